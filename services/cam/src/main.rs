@@ -1,0 +1,35 @@
+//! `depthmill-cam`: the cam service alone, as its own process.
+
+use std::path::PathBuf;
+
+use anyhow::Context as _;
+use clap::Parser;
+
+/// Runs the depthmill cam service (gRPC, with health and reflection).
+///
+/// Configuration: the TOML file given with --config (see deploy/config/cam.toml), then
+/// environment overrides DEPTHMILL_CAM__<KEY> (e.g. DEPTHMILL_CAM__GRPC_ADDR=0.0.0.0:50051).
+#[derive(Parser)]
+#[command(version)]
+struct Args {
+    /// Configuration file (TOML).
+    #[arg(long, env = "DEPTHMILL_CAM_CONFIG")]
+    config: Option<PathBuf>,
+    /// Log as JSON lines.
+    #[arg(long)]
+    log_json: bool,
+}
+
+#[tokio::main]
+async fn main() -> anyhow::Result<()> {
+    let args = Args::parse();
+    depthmill_common::telemetry::init_tracing(args.log_json);
+    let config: depthmill_cam::Config =
+        depthmill_common::config::load(args.config.as_deref(), "DEPTHMILL_CAM")
+            .context("loading configuration")?;
+    let listener = tokio::net::TcpListener::bind(config.grpc_addr)
+        .await
+        .with_context(|| format!("binding {}", config.grpc_addr))?;
+    depthmill_cam::serve(listener, config, depthmill_common::shutdown::shutdown_signal()).await?;
+    Ok(())
+}

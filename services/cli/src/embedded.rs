@@ -1,0 +1,91 @@
+//! `depthmill serve`: every service in one process, talking gRPC over loopback.
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+
+use anyhow::Context as _;
+use tokio::net::TcpListener;
+use tokio_util::sync::CancellationToken;
+
+async fn loopback() -> anyhow::Result<TcpListener> {
+    TcpListener::bind("127.0.0.1:0").await.context("binding a loopback port for a stage service")
+}
+
+pub async fn serve(
+    data_dir: PathBuf,
+    rest_addr: SocketAddr,
+    grpc_addr: SocketAddr,
+    config: Option<PathBuf>,
+) -> anyhow::Result<()> {
+    let metrics = metrics_exporter_prometheus_handle()?;
+    let mut cfg: depthmill_orchestrator::Config =
+        depthmill_common::config::load(config.as_deref(), "DEPTHMILL_ORCHESTRATOR")
+            .context("loading configuration")?;
+    cfg.data_dir = data_dir;
+    cfg.rest_addr = rest_addr;
+    cfg.grpc_addr = grpc_addr;
+    let artifacts_dir = cfg.data_dir.join("artifacts");
+
+    let token = CancellationToken::new();
+    let mut tasks = tokio::task::JoinSet::new();
+    macro_rules! service {
+        ($krate:ident, $field:ident) => {{
+            let listener = loopback().await?;
+            let addr = listener.local_addr()?;
+            cfg.services.$field = format!("http://{addr}");
+            let svc_cfg = $krate::Config { grpc_addr: addr, artifacts_dir: artifacts_dir.clone() };
+            let stop = token.clone();
+            tasks.spawn(async move {
+                $krate::serve(listener, svc_cfg, async move { stop.cancelled().await })
+                    .await
+                    .with_context(|| format!("{} service", stringify!($field)))
+            });
+        }};
+    }
+    service!(depthmill_scanning, scanning);
+    service!(depthmill_reconstruction, reconstruction);
+    service!(depthmill_cam, cam);
+    service!(depthmill_machine, machine);
+
+    let rest =
+        TcpListener::bind(cfg.rest_addr).await.with_context(|| format!("binding REST {}", cfg.rest_addr))?;
+    let grpc =
+        TcpListener::bind(cfg.grpc_addr).await.with_context(|| format!("binding gRPC {}", cfg.grpc_addr))?;
+    let rest_addr = rest.local_addr()?;
+    let grpc_addr = grpc.local_addr()?;
+    let stop = token.clone();
+    tasks.spawn(async move {
+        depthmill_orchestrator::serve(rest, grpc, cfg, Some(metrics), async move { stop.cancelled().await })
+            .await
+            .context("orchestrator")
+    });
+    println!("REST listening on http://{rest_addr}");
+    println!("gRPC listening on http://{grpc_addr}");
+    let stop = token.clone();
+    tokio::spawn(async move {
+        depthmill_common::shutdown::shutdown_signal().await;
+        stop.cancel();
+    });
+    let mut first_error = None;
+    while let Some(joined) = tasks.join_next().await {
+        // Any part stopping stops the whole stack.
+        token.cancel();
+        match joined {
+            Ok(Ok(())) => {}
+            Ok(Err(e)) => {
+                tracing::error!(error = format!("{e:#}"), "a part of the stack failed");
+                first_error.get_or_insert(e);
+            }
+            Err(e) => {
+                first_error.get_or_insert(anyhow::anyhow!("a part of the stack panicked: {e}"));
+            }
+        }
+    }
+    first_error.map_or(Ok(()), Err)
+}
+
+fn metrics_exporter_prometheus_handle() -> anyhow::Result<metrics_exporter_prometheus::PrometheusHandle> {
+    metrics_exporter_prometheus::PrometheusBuilder::new()
+        .install_recorder()
+        .context("installing the metrics recorder")
+}

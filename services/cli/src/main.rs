@@ -1,0 +1,140 @@
+//! `depthmill`: the embedded stack (`serve`) and the client verbs (`submit`, `status`, `watch`, `fetch`).
+
+mod client;
+mod embedded;
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+
+use anyhow::Context as _;
+use clap::{Parser, Subcommand};
+
+/// depthmill: from a scanned part to a machined copy.
+///
+/// `depthmill serve` runs every service in one process (the embedded default: SQLite file and
+/// artifact folder in --data-dir). The client verbs talk to a running orchestrator's REST API
+/// (--url, or DEPTHMILL_URL; default http://127.0.0.1:8080).
+#[derive(Parser)]
+#[command(version, propagate_version = true)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+    /// Log as JSON lines.
+    #[arg(long, global = true)]
+    log_json: bool,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Run the orchestrator and every stage service in this process.
+    ///
+    /// The stage services listen on loopback ports chosen by the system and the orchestrator
+    /// reaches them over gRPC, as it would across machines. Prints `REST listening on
+    /// http://HOST:PORT` once it accepts requests.
+    Serve {
+        /// Holds jobs.sqlite, artifacts/ and node_id.
+        #[arg(long, default_value = "data")]
+        data_dir: PathBuf,
+        /// REST address; port 0 picks a free port.
+        #[arg(long, default_value = "127.0.0.1:8080")]
+        rest_addr: SocketAddr,
+        /// Orchestrator gRPC address; port 0 picks a free port.
+        #[arg(long, default_value = "127.0.0.1:50050")]
+        grpc_addr: SocketAddr,
+        /// Orchestrator configuration (TOML, see deploy/config/orchestrator.toml); the flags above win.
+        #[arg(long)]
+        config: Option<PathBuf>,
+    },
+    /// Upload a local file and submit a job that starts from it; prints the job id.
+    ///
+    /// The input kind follows the extension (.stl mesh; .xyz/.ply point cloud; .png/.npy depth map;
+    /// .ngc/.nc/.gcode/.tap G-code) unless --kind says otherwise.
+    Submit {
+        file: PathBuf,
+        /// mesh, point_cloud, depth_map or gcode.
+        #[arg(long)]
+        kind: Option<String>,
+        /// A job request JSON (DESIGN.md §7) whose sections (scan, reconstruct, plan, execute, name)
+        /// are used; its input is replaced by the uploaded file.
+        #[arg(long)]
+        options: Option<PathBuf>,
+        #[arg(long)]
+        name: Option<String>,
+        /// Pixel size of a depth image without depthmill metadata.
+        #[arg(long)]
+        pixel_mm: Option<f64>,
+        #[arg(long)]
+        z_min_mm: Option<f64>,
+        #[arg(long)]
+        z_max_mm: Option<f64>,
+        /// Repeat-safe submission: the same key returns the same job.
+        #[arg(long)]
+        idempotency_key: Option<String>,
+        #[command(flatten)]
+        server: client::Server,
+    },
+    /// Print a job's status (as JSON with --json).
+    Status {
+        id: String,
+        #[arg(long)]
+        json: bool,
+        #[command(flatten)]
+        server: client::Server,
+    },
+    /// Show a live progress bar until the job ends; exits non-zero unless it succeeded.
+    Watch {
+        id: String,
+        #[command(flatten)]
+        server: client::Server,
+    },
+    /// Download a job's artifacts and its JSON into a folder.
+    Fetch {
+        id: String,
+        #[arg(short, long, default_value = ".")]
+        output: PathBuf,
+        #[command(flatten)]
+        server: client::Server,
+    },
+}
+
+fn main() -> anyhow::Result<()> {
+    let cli = Cli::parse();
+    let runtime =
+        tokio::runtime::Builder::new_multi_thread().enable_all().build().context("starting the runtime")?;
+    runtime.block_on(async move {
+        match cli.command {
+            Command::Serve { data_dir, rest_addr, grpc_addr, config } => {
+                depthmill_common::telemetry::init_tracing(cli.log_json);
+                embedded::serve(data_dir, rest_addr, grpc_addr, config).await
+            }
+            Command::Submit {
+                file,
+                kind,
+                options,
+                name,
+                pixel_mm,
+                z_min_mm,
+                z_max_mm,
+                idempotency_key,
+                server,
+            } => {
+                let submit = client::Submit {
+                    file,
+                    kind,
+                    options,
+                    name,
+                    pixel_mm,
+                    z_min_mm,
+                    z_max_mm,
+                    idempotency_key,
+                };
+                let id = client::submit(&server, submit).await?;
+                println!("{id}");
+                Ok(())
+            }
+            Command::Status { id, json, server } => client::status(&server, &id, json).await,
+            Command::Watch { id, server } => client::watch(&server, &id).await,
+            Command::Fetch { id, output, server } => client::fetch(&server, &id, &output).await,
+        }
+    })
+}

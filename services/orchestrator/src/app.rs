@@ -1,0 +1,299 @@
+//! The application handle both APIs (REST and gRPC) call: job submission, queries, cancel, watch,
+//! artifact upload and download. Validation happens here, once, for both.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use depthmill_common::artifacts::{ArtifactError, ArtifactStore, BlobReader};
+use depthmill_geometry::ArtifactRef;
+use depthmill_proto::ErrorCode;
+use tokio::io::AsyncRead;
+use tokio::sync::mpsc;
+
+use crate::domain::{Job, JobSpec, JobStatus, SpecError};
+use crate::events::EventHub;
+use crate::store::{Created, JobPage, JobStore, NewJob, StoreError};
+
+/// An error as clients see it: a kind, a message, and the offending field when there is one.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{message}")]
+pub struct ApiError {
+    pub code: ErrorCode,
+    pub message: String,
+    pub field: Option<String>,
+}
+
+impl ApiError {
+    pub fn new(code: ErrorCode, message: impl Into<String>) -> Self {
+        Self { code, message: message.into(), field: None }
+    }
+
+    pub fn field(code: ErrorCode, field: impl Into<String>, message: impl Into<String>) -> Self {
+        Self { code, message: message.into(), field: Some(field.into()) }
+    }
+}
+
+impl From<SpecError> for ApiError {
+    fn from(e: SpecError) -> Self {
+        ApiError::field(ErrorCode::InvalidArgument, e.field.clone(), e.to_string())
+    }
+}
+
+impl From<StoreError> for ApiError {
+    fn from(e: StoreError) -> Self {
+        match e {
+            StoreError::IdempotencyConflict { .. } => {
+                ApiError::field(ErrorCode::Conflict, "Idempotency-Key", e.to_string())
+            }
+            other => {
+                tracing::error!(error = %depthmill_common::ErrorChain(&other), "job store failed");
+                ApiError::new(ErrorCode::Internal, "the job store failed; see the server log")
+            }
+        }
+    }
+}
+
+impl From<ArtifactError> for ApiError {
+    fn from(e: ArtifactError) -> Self {
+        let code = match &e {
+            ArtifactError::NotFound { .. } => ErrorCode::NotFound,
+            ArtifactError::BadDigest { .. } | ArtifactError::Empty | ArtifactError::Upload(_) => {
+                ErrorCode::InvalidArgument
+            }
+            ArtifactError::TooLarge { .. } => ErrorCode::PayloadTooLarge,
+            ArtifactError::UnsupportedMediaType { .. } | ArtifactError::ContentMismatch { .. } => {
+                ErrorCode::UnsupportedMediaType
+            }
+            ArtifactError::Io { .. } | ArtifactError::Metadata { .. } => {
+                tracing::error!(error = %depthmill_common::ErrorChain(&e), "artifact store failed");
+                return ApiError::new(ErrorCode::Internal, "the artifact store failed; see the server log");
+            }
+        };
+        ApiError::new(code, e.to_string())
+    }
+}
+
+/// Limits and defaults of the API.
+#[derive(Debug, Clone)]
+pub struct ApiLimits {
+    /// Largest artifact upload, bytes.
+    pub max_upload_bytes: u64,
+    /// Page size when the client gives none.
+    pub default_page: u32,
+    /// Largest page.
+    pub max_page: u32,
+}
+
+/// Shared state of the orchestrator's APIs.
+#[derive(Clone)]
+pub struct App {
+    pub(crate) store: Arc<dyn JobStore>,
+    pub(crate) artifacts: Arc<dyn ArtifactStore>,
+    pub(crate) events: Arc<EventHub>,
+    pub(crate) limits: ApiLimits,
+    /// Local cancel signals for jobs this process runs.
+    pub(crate) running: depthmill_common::stage::StageRegistry,
+}
+
+pub(crate) fn now_ms() -> i64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| i64::try_from(d.as_millis()).unwrap_or(i64::MAX))
+        .unwrap_or(0)
+}
+
+impl App {
+    /// Validates and submits a job. Returns the job and whether it is new (false: the
+    /// idempotency key was used before for the same request).
+    pub async fn create_job(
+        &self,
+        spec: JobSpec,
+        idempotency_key: Option<String>,
+    ) -> Result<(Job, bool), ApiError> {
+        spec.validate()?;
+        if let Some(k) = &idempotency_key
+            && (k.is_empty() || k.len() > 256)
+        {
+            return Err(ApiError::field(
+                ErrorCode::InvalidArgument,
+                "Idempotency-Key",
+                format!("must be 1 to 256 characters, got {}", k.len()),
+            ));
+        }
+        let input = self.artifacts.stat(&spec.input.artifact).await?.ok_or_else(|| {
+            ApiError::field(
+                ErrorCode::InvalidArgument,
+                "input.artifact",
+                format!(
+                    "artifact {} not found: upload it with POST /v1/artifacts first",
+                    spec.input.artifact
+                ),
+            )
+        })?;
+        let kind = spec.input.kind;
+        if !kind.media_types().contains(&input.media_type.as_str()) {
+            return Err(ApiError::field(
+                ErrorCode::InvalidArgument,
+                "input.kind",
+                format!(
+                    "input kind {} needs an artifact of type {}, artifact {} is {}",
+                    kind.as_str(),
+                    kind.media_types().join(" or "),
+                    input.sha256,
+                    input.media_type
+                ),
+            ));
+        }
+        let new = NewJob { id: uuid::Uuid::now_v7().to_string(), spec, idempotency_key, now_ms: now_ms() };
+        let created = self.store.create(new).await?;
+        let (job, is_new) = match created {
+            Created::New(job) => (job, true),
+            Created::Existing(job) => (job, false),
+        };
+        if is_new {
+            metrics::counter!("depthmill_jobs_created_total").increment(1);
+            self.events.job_changed(&job.id);
+            self.events.work_available();
+        }
+        Ok((self.with_input(job).await, is_new))
+    }
+
+    /// Adds the input artifact's reference to a job's artifacts.
+    async fn with_input(&self, mut job: Job) -> Job {
+        if let Ok(Some(input)) = self.artifacts.stat(&job.spec.input.artifact).await {
+            job.artifacts.entry(job.spec.input.kind.as_str().to_string()).or_insert(input);
+        }
+        job
+    }
+
+    pub async fn get_job(&self, id: &str) -> Result<Job, ApiError> {
+        match self.store.get(id).await? {
+            Some(job) => Ok(self.with_input(job).await),
+            None => Err(ApiError::new(ErrorCode::NotFound, format!("job {id} not found"))),
+        }
+    }
+
+    pub async fn list_jobs(
+        &self,
+        status: Option<JobStatus>,
+        limit: Option<u32>,
+        cursor: Option<&str>,
+    ) -> Result<JobPage, ApiError> {
+        let limit = limit.unwrap_or(self.limits.default_page);
+        if limit == 0 || limit > self.limits.max_page {
+            return Err(ApiError::field(
+                ErrorCode::InvalidArgument,
+                "limit",
+                format!("must be 1 to {}, got {limit}", self.limits.max_page),
+            ));
+        }
+        let cursor = match cursor.filter(|c| !c.is_empty()) {
+            None => None,
+            Some(c) => Some(c.parse::<i64>().ok().filter(|v| *v > 0).ok_or_else(|| {
+                ApiError::field(
+                    ErrorCode::InvalidArgument,
+                    "cursor",
+                    format!("'{c}' is not a cursor this API returned"),
+                )
+            })?),
+        };
+        let mut page = self.store.list(status, limit, cursor).await?;
+        let mut jobs = Vec::with_capacity(page.jobs.len());
+        for job in page.jobs.drain(..) {
+            jobs.push(self.with_input(job).await);
+        }
+        page.jobs = jobs;
+        Ok(page)
+    }
+
+    /// Asks a job to stop. A queued job is cancelled at once; a running job stops at its next stage
+    /// boundary, and the service running its current stage is told to stop. Cancelling an ended job
+    /// changes nothing and returns it.
+    pub async fn cancel_job(&self, id: &str) -> Result<Job, ApiError> {
+        let job = self
+            .store
+            .request_cancel(id, now_ms())
+            .await?
+            .ok_or_else(|| ApiError::new(ErrorCode::NotFound, format!("job {id} not found")))?;
+        self.running.cancel(id);
+        self.events.job_changed(id);
+        Ok(self.with_input(job).await)
+    }
+
+    /// The job now, then the job after each change of status, stage or progress, until it ends.
+    /// The channel closes after the terminal state was sent.
+    pub async fn watch_job(&self, id: &str) -> Result<mpsc::Receiver<Result<Job, ApiError>>, ApiError> {
+        let mut changes = self.events.subscribe();
+        let first = self.get_job(id).await?;
+        let (tx, rx) = mpsc::channel(16);
+        let app = self.clone();
+        let id = id.to_string();
+        tokio::spawn(async move {
+            let mut last = (first.status, first.stage, first.progress);
+            let done = first.status.is_terminal();
+            if tx.send(Ok(first)).await.is_err() || done {
+                return;
+            }
+            loop {
+                // A periodic re-read covers changes made by other orchestrator instances.
+                let woke = tokio::time::timeout(Duration::from_secs(2), changes.recv()).await;
+                match woke {
+                    Ok(Ok(changed)) if changed != id => continue,
+                    Ok(Err(tokio::sync::broadcast::error::RecvError::Closed)) => return,
+                    _ => {}
+                }
+                let job = match app.get_job(&id).await {
+                    Ok(j) => j,
+                    Err(e) => {
+                        let _ = tx.send(Err(e)).await;
+                        return;
+                    }
+                };
+                let now = (job.status, job.stage, job.progress);
+                if now == last {
+                    continue;
+                }
+                last = now;
+                let done = job.status.is_terminal();
+                if tx.send(Ok(job)).await.is_err() || done {
+                    return;
+                }
+            }
+        });
+        Ok(rx)
+    }
+
+    /// Streams an upload into the artifact store, within the configured size limit.
+    pub async fn upload(
+        &self,
+        media_type: &str,
+        body: &mut (dyn AsyncRead + Send + Unpin),
+        declared_len: Option<u64>,
+    ) -> Result<ArtifactRef, ApiError> {
+        if let Some(len) = declared_len
+            && len > self.limits.max_upload_bytes
+        {
+            return Err(ApiError::new(
+                ErrorCode::PayloadTooLarge,
+                format!(
+                    "upload of {len} bytes is larger than the limit of {} bytes",
+                    self.limits.max_upload_bytes
+                ),
+            ));
+        }
+        let aref = self.artifacts.put(media_type, body, self.limits.max_upload_bytes).await?;
+        metrics::counter!("depthmill_artifacts_uploaded_total").increment(1);
+        Ok(aref)
+    }
+
+    /// Opens an artifact for download.
+    pub async fn download(&self, sha256: &str) -> Result<(ArtifactRef, BlobReader), ApiError> {
+        Ok(self.artifacts.open(sha256).await?)
+    }
+
+    /// Readiness: the database answers.
+    pub async fn ready(&self) -> Result<(), ApiError> {
+        self.store.ping().await?;
+        Ok(())
+    }
+}

@@ -1,0 +1,395 @@
+//! Conversions between the job model and the wire types, both directions: the orchestrator's
+//! gRPC API takes and returns jobs, and the worker sends each stage its parameters.
+
+use depthmill_proto::cam::v1 as cam;
+use depthmill_proto::machine::v1 as machine;
+use depthmill_proto::orchestrator::v1 as pb;
+use depthmill_proto::reconstruction::v1 as rec;
+use depthmill_proto::scanning::v1 as scan;
+
+use crate::domain::spec::{
+    AdaptiveMode, Dialect, ExecuteParams, FaceSpec, FillMethod, FillParams, Finishing, FinishingStrategy,
+    InputKind, JobInput, PlanParams, ReconstructParams, Roughing, RoughingDirection, ScanMode, ScanParams,
+    Stock,
+};
+use crate::domain::{Job, JobSpec, JobStatus, SpecError, Stage};
+
+fn spec_err(field: &str, message: &str) -> SpecError {
+    SpecError { field: field.to_string(), message: message.to_string() }
+}
+
+// ---- domain -> wire -------------------------------------------------------------------------
+
+pub fn scan_params(p: &ScanParams) -> scan::ScanParams {
+    scan::ScanParams {
+        mode: match p.mode {
+            None => scan::ScanMode::Unspecified,
+            Some(ScanMode::Dynamic) => scan::ScanMode::Dynamic,
+            Some(ScanMode::StopAndMove) => scan::ScanMode::StopAndMove,
+        } as i32,
+        table_angles_deg: p.table_angles_deg.clone().unwrap_or_default(),
+        standoff_mm: p.standoff_mm,
+        line_rate_hz: p.line_rate_hz,
+        adaptive_rescan: p.adaptive_rescan,
+    }
+}
+
+pub fn face(f: &FaceSpec) -> rec::FaceSpec {
+    rec::FaceSpec {
+        face: match (&f.view, f.a_deg) {
+            (Some(v), _) => Some(rec::face_spec::Face::View(v.clone())),
+            (None, Some(a)) => Some(rec::face_spec::Face::ADeg(a)),
+            (None, None) => None,
+        },
+    }
+}
+
+pub fn reconstruct_params(p: &ReconstructParams) -> rec::ReconstructParams {
+    rec::ReconstructParams {
+        pixel_mm: p.pixel_mm,
+        faces: p.faces.iter().flatten().map(face).collect(),
+        fill: p.fill.as_ref().map(|f| rec::FillParams {
+            method: match f.method {
+                None => rec::FillMethod::Unspecified,
+                Some(FillMethod::Idw) => rec::FillMethod::Idw,
+                Some(FillMethod::Max) => rec::FillMethod::Max,
+            } as i32,
+            max_hole_mm: f.max_hole_mm,
+        }),
+    }
+}
+
+pub fn plan_params(p: &PlanParams) -> cam::PlanParams {
+    cam::PlanParams {
+        stock: p.stock.as_ref().map(|s| cam::Stock {
+            x_mm: s.x_mm,
+            y_mm: s.y_mm,
+            z_mm: s.z_mm,
+            material: s.material.clone(),
+        }),
+        roughing: p.roughing.as_ref().map(|r| cam::Roughing {
+            tool: r.tool.clone(),
+            step_down_mm: r.step_down_mm,
+            stock_to_leave_mm: r.stock_to_leave_mm,
+            direction: match r.direction {
+                None => cam::RasterDirection::Unspecified,
+                Some(RoughingDirection::X) => cam::RasterDirection::X,
+                Some(RoughingDirection::Y) => cam::RasterDirection::Y,
+                Some(RoughingDirection::Contour) => cam::RasterDirection::Contour,
+            } as i32,
+        }),
+        finishing: p.finishing.as_ref().map(|f| cam::Finishing {
+            tool: f.tool.clone(),
+            strategy: match f.strategy {
+                None => cam::FinishingStrategy::Unspecified,
+                Some(FinishingStrategy::RasterX) => cam::FinishingStrategy::RasterX,
+                Some(FinishingStrategy::RasterY) => cam::FinishingStrategy::RasterY,
+                Some(FinishingStrategy::RasterAngle) => cam::FinishingStrategy::RasterAngle,
+                Some(FinishingStrategy::IsoLevel) => cam::FinishingStrategy::IsoLevel,
+            } as i32,
+            angle_deg: f.angle_deg,
+            step_over_mm: f.step_over_mm,
+            tolerance_mm: f.tolerance_mm,
+            arcs: f.arcs,
+        }),
+        dialect: match p.dialect {
+            None => cam::Dialect::Unspecified,
+            Some(Dialect::Linuxcnc) => cam::Dialect::Linuxcnc,
+            Some(Dialect::Fanuc) => cam::Dialect::Fanuc,
+        } as i32,
+    }
+}
+
+pub fn execute_params(p: &ExecuteParams) -> machine::ExecuteParams {
+    machine::ExecuteParams {
+        machine: p.machine.clone(),
+        adaptive: match p.adaptive {
+            None => machine::AdaptiveMode::Unspecified,
+            Some(AdaptiveMode::Aco) => machine::AdaptiveMode::Aco,
+            Some(AdaptiveMode::FeedOnly) => machine::AdaptiveMode::FeedOnly,
+            Some(AdaptiveMode::Off) => machine::AdaptiveMode::Off,
+        } as i32,
+    }
+}
+
+pub fn input_kind(k: InputKind) -> pb::InputKind {
+    match k {
+        InputKind::Mesh => pb::InputKind::Mesh,
+        InputKind::PointCloud => pb::InputKind::PointCloud,
+        InputKind::DepthMap => pb::InputKind::DepthMap,
+        InputKind::Gcode => pb::InputKind::Gcode,
+    }
+}
+
+pub fn job_spec(s: &JobSpec) -> pb::JobSpec {
+    pb::JobSpec {
+        name: s.name.clone(),
+        input: Some(pb::JobInput {
+            kind: input_kind(s.input.kind) as i32,
+            artifact: s.input.artifact.clone(),
+            pixel_mm: s.input.pixel_mm,
+            z_min_mm: s.input.z_min_mm,
+            z_max_mm: s.input.z_max_mm,
+        }),
+        scan: s.scan.as_ref().map(scan_params),
+        reconstruct: s.reconstruct.as_ref().map(reconstruct_params),
+        plan: s.plan.as_ref().map(plan_params),
+        execute: s.execute.as_ref().map(execute_params),
+    }
+}
+
+pub fn stage(s: Stage) -> pb::Stage {
+    match s {
+        Stage::Scan => pb::Stage::Scan,
+        Stage::Reconstruct => pb::Stage::Reconstruct,
+        Stage::Plan => pb::Stage::Plan,
+        Stage::Execute => pb::Stage::Execute,
+        Stage::Report => pb::Stage::Report,
+    }
+}
+
+pub fn status(s: JobStatus) -> pb::JobStatus {
+    match s {
+        JobStatus::Queued => pb::JobStatus::Queued,
+        JobStatus::Running => pb::JobStatus::Running,
+        JobStatus::Succeeded => pb::JobStatus::Succeeded,
+        JobStatus::Failed => pb::JobStatus::Failed,
+        JobStatus::Cancelled => pb::JobStatus::Cancelled,
+    }
+}
+
+pub fn job(j: &Job) -> pb::Job {
+    pb::Job {
+        id: j.id.clone(),
+        name: j.name.clone(),
+        status: status(j.status) as i32,
+        stage: stage(j.stage) as i32,
+        progress: j.progress,
+        error: j.error.as_ref().map(|e| pb::JobError {
+            code: e.code.clone(),
+            message: e.message.clone(),
+            stage: stage(e.stage) as i32,
+        }),
+        stage_timings_s: j.stage_timings_s.iter().map(|(k, v)| (k.clone(), *v)).collect(),
+        artifacts: j.artifacts.iter().map(|(k, v)| (k.clone(), v.clone().into())).collect(),
+        metrics: Some(pb::JobMetrics {
+            coverage_pct: j.metrics.coverage_pct,
+            max_gouge_mm: j.metrics.max_gouge_mm,
+            max_leftover_mm: j.metrics.max_leftover_mm,
+            rms_deviation_mm: j.metrics.rms_deviation_mm,
+            cycle_time_s: j.metrics.cycle_time_s,
+            cycle_time_no_adaptive_s: j.metrics.cycle_time_no_adaptive_s,
+        }),
+        spec: Some(job_spec(&j.spec)),
+        created_at_ms: j.created_at_ms,
+        updated_at_ms: j.updated_at_ms,
+        cancel_requested: j.cancel_requested,
+        attempts: j
+            .attempts
+            .iter()
+            .map(|a| pb::StageAttempt {
+                stage: stage(a.stage) as i32,
+                attempt: a.attempt,
+                started_at_ms: a.started_at_ms,
+                finished_at_ms: a.finished_at_ms.unwrap_or(0),
+                outcome: a.outcome.as_str().to_string(),
+                error_code: a.error_code.clone().unwrap_or_default(),
+                error_message: a.error_message.clone().unwrap_or_default(),
+            })
+            .collect(),
+    }
+}
+
+// ---- wire -> domain -------------------------------------------------------------------------
+
+fn enum_value<T: TryFrom<i32>>(field: &str, v: i32) -> Result<T, SpecError> {
+    T::try_from(v).map_err(|_| spec_err(field, &format!("unknown enum value {v}")))
+}
+
+pub fn job_status_filter(v: i32) -> Result<Option<JobStatus>, SpecError> {
+    Ok(match enum_value::<pb::JobStatus>("status", v)? {
+        pb::JobStatus::Unspecified => None,
+        pb::JobStatus::Queued => Some(JobStatus::Queued),
+        pb::JobStatus::Running => Some(JobStatus::Running),
+        pb::JobStatus::Succeeded => Some(JobStatus::Succeeded),
+        pb::JobStatus::Failed => Some(JobStatus::Failed),
+        pb::JobStatus::Cancelled => Some(JobStatus::Cancelled),
+    })
+}
+
+/// A job request received over gRPC, checked field by field like the REST body.
+pub fn job_spec_from_pb(s: pb::JobSpec) -> Result<JobSpec, SpecError> {
+    let input = s.input.ok_or_else(|| spec_err("input", "is required"))?;
+    let kind = match enum_value::<pb::InputKind>("input.kind", input.kind)? {
+        pb::InputKind::Unspecified => return Err(spec_err("input.kind", "is required")),
+        pb::InputKind::Mesh => InputKind::Mesh,
+        pb::InputKind::PointCloud => InputKind::PointCloud,
+        pb::InputKind::DepthMap => InputKind::DepthMap,
+        pb::InputKind::Gcode => InputKind::Gcode,
+    };
+    let scan = s
+        .scan
+        .map(|p| -> Result<ScanParams, SpecError> {
+            Ok(ScanParams {
+                mode: match enum_value::<scan::ScanMode>("scan.mode", p.mode)? {
+                    scan::ScanMode::Unspecified => None,
+                    scan::ScanMode::Dynamic => Some(ScanMode::Dynamic),
+                    scan::ScanMode::StopAndMove => Some(ScanMode::StopAndMove),
+                },
+                table_angles_deg: (!p.table_angles_deg.is_empty()).then_some(p.table_angles_deg),
+                standoff_mm: p.standoff_mm,
+                line_rate_hz: p.line_rate_hz,
+                adaptive_rescan: p.adaptive_rescan,
+            })
+        })
+        .transpose()?;
+    let reconstruct = s
+        .reconstruct
+        .map(|p| -> Result<ReconstructParams, SpecError> {
+            let faces: Vec<FaceSpec> = p
+                .faces
+                .into_iter()
+                .map(|f| match f.face {
+                    Some(rec::face_spec::Face::View(v)) => FaceSpec { view: Some(v), a_deg: None },
+                    Some(rec::face_spec::Face::ADeg(a)) => FaceSpec { view: None, a_deg: Some(a) },
+                    None => FaceSpec::default(),
+                })
+                .collect();
+            Ok(ReconstructParams {
+                pixel_mm: p.pixel_mm,
+                faces: (!faces.is_empty()).then_some(faces),
+                fill: p
+                    .fill
+                    .map(|f| -> Result<FillParams, SpecError> {
+                        Ok(FillParams {
+                            method: match enum_value::<rec::FillMethod>("reconstruct.fill.method", f.method)?
+                            {
+                                rec::FillMethod::Unspecified => None,
+                                rec::FillMethod::Idw => Some(FillMethod::Idw),
+                                rec::FillMethod::Max => Some(FillMethod::Max),
+                            },
+                            max_hole_mm: f.max_hole_mm,
+                        })
+                    })
+                    .transpose()?,
+            })
+        })
+        .transpose()?;
+    let plan = s
+        .plan
+        .map(|p| -> Result<PlanParams, SpecError> {
+            Ok(PlanParams {
+                stock: p.stock.map(|st| Stock {
+                    x_mm: st.x_mm,
+                    y_mm: st.y_mm,
+                    z_mm: st.z_mm,
+                    material: st.material,
+                }),
+                roughing: p
+                    .roughing
+                    .map(|r| -> Result<Roughing, SpecError> {
+                        Ok(Roughing {
+                            tool: r.tool,
+                            step_down_mm: r.step_down_mm,
+                            stock_to_leave_mm: r.stock_to_leave_mm,
+                            direction: match enum_value::<cam::RasterDirection>(
+                                "plan.roughing.direction",
+                                r.direction,
+                            )? {
+                                cam::RasterDirection::Unspecified => None,
+                                cam::RasterDirection::X => Some(RoughingDirection::X),
+                                cam::RasterDirection::Y => Some(RoughingDirection::Y),
+                                cam::RasterDirection::Contour => Some(RoughingDirection::Contour),
+                            },
+                        })
+                    })
+                    .transpose()?,
+                finishing: p
+                    .finishing
+                    .map(|f| -> Result<Finishing, SpecError> {
+                        Ok(Finishing {
+                            tool: f.tool,
+                            strategy: match enum_value::<cam::FinishingStrategy>(
+                                "plan.finishing.strategy",
+                                f.strategy,
+                            )? {
+                                cam::FinishingStrategy::Unspecified => None,
+                                cam::FinishingStrategy::RasterX => Some(FinishingStrategy::RasterX),
+                                cam::FinishingStrategy::RasterY => Some(FinishingStrategy::RasterY),
+                                cam::FinishingStrategy::RasterAngle => Some(FinishingStrategy::RasterAngle),
+                                cam::FinishingStrategy::IsoLevel => Some(FinishingStrategy::IsoLevel),
+                            },
+                            angle_deg: f.angle_deg,
+                            step_over_mm: f.step_over_mm,
+                            tolerance_mm: f.tolerance_mm,
+                            arcs: f.arcs,
+                        })
+                    })
+                    .transpose()?,
+                dialect: match enum_value::<cam::Dialect>("plan.dialect", p.dialect)? {
+                    cam::Dialect::Unspecified => None,
+                    cam::Dialect::Linuxcnc => Some(Dialect::Linuxcnc),
+                    cam::Dialect::Fanuc => Some(Dialect::Fanuc),
+                },
+            })
+        })
+        .transpose()?;
+    let execute = s
+        .execute
+        .map(|p| -> Result<ExecuteParams, SpecError> {
+            Ok(ExecuteParams {
+                machine: p.machine,
+                adaptive: match enum_value::<machine::AdaptiveMode>("execute.adaptive", p.adaptive)? {
+                    machine::AdaptiveMode::Unspecified => None,
+                    machine::AdaptiveMode::Aco => Some(AdaptiveMode::Aco),
+                    machine::AdaptiveMode::FeedOnly => Some(AdaptiveMode::FeedOnly),
+                    machine::AdaptiveMode::Off => Some(AdaptiveMode::Off),
+                },
+            })
+        })
+        .transpose()?;
+    Ok(JobSpec {
+        name: s.name,
+        input: JobInput {
+            kind,
+            artifact: input.artifact,
+            pixel_mm: input.pixel_mm,
+            z_min_mm: input.z_min_mm,
+            z_max_mm: input.z_max_mm,
+        },
+        scan,
+        reconstruct,
+        plan,
+        execute,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_full_spec_survives_the_wire() {
+        let json = r#"{"name": "bracket",
+            "input": {"kind": "mesh", "artifact": "aaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaa"},
+            "scan": {"mode": "stop_and_move", "table_angles_deg": [0, 90], "standoff_mm": 150},
+            "reconstruct": {"pixel_mm": 0.1, "faces": [{"view": "+Z"}, {"a_deg": 90}], "fill": {"method": "max"}},
+            "plan": {"stock": {"x_mm": 100, "material": "brass"},
+                     "roughing": {"tool": "flat-6", "direction": "contour"},
+                     "finishing": {"strategy": "raster_angle", "angle_deg": 30, "arcs": false},
+                     "dialect": "fanuc"},
+            "execute": {"machine": "emco-f1", "adaptive": "feed_only"}}"#;
+        let spec: JobSpec = serde_json::from_str(json).expect("parse");
+        assert_eq!(job_spec_from_pb(job_spec(&spec)).expect("back"), spec);
+    }
+
+    #[test]
+    fn missing_input_and_bad_enums_name_the_field() {
+        assert_eq!(job_spec_from_pb(pb::JobSpec::default()).expect_err("input").field, "input");
+        let bad = pb::JobSpec {
+            input: Some(pb::JobInput { kind: 99, ..Default::default() }),
+            ..Default::default()
+        };
+        assert_eq!(job_spec_from_pb(bad).expect_err("kind").field, "input.kind");
+    }
+}

@@ -1,0 +1,295 @@
+//! Jobs, stages, statuses and stage outputs.
+
+use std::collections::BTreeMap;
+
+use depthmill_geometry::ArtifactRef;
+use serde::{Deserialize, Serialize};
+use utoipa::ToSchema;
+
+use super::spec::JobSpec;
+
+/// The stages of a scan-to-part run, in order. A job starts at the stage its input allows.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize, ToSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum Stage {
+    /// Mesh -> point cloud (scanning service).
+    Scan,
+    /// Point cloud -> depth maps (reconstruction service).
+    Reconstruct,
+    /// Depth maps -> G-code (CAM service).
+    Plan,
+    /// G-code -> machined part (machine service).
+    Execute,
+    /// Everything -> the job's report (the orchestrator itself).
+    Report,
+}
+
+impl Stage {
+    /// Every stage, in order.
+    pub const ALL: [Stage; 5] = [Stage::Scan, Stage::Reconstruct, Stage::Plan, Stage::Execute, Stage::Report];
+
+    /// The wire name.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Stage::Scan => "scan",
+            Stage::Reconstruct => "reconstruct",
+            Stage::Plan => "plan",
+            Stage::Execute => "execute",
+            Stage::Report => "report",
+        }
+    }
+
+    /// The stage after this one, or `None` after the last.
+    pub fn next(self) -> Option<Stage> {
+        Self::ALL.iter().position(|s| *s == self).and_then(|i| Self::ALL.get(i + 1)).copied()
+    }
+
+    /// Position in [`Stage::ALL`].
+    pub fn index(self) -> usize {
+        Self::ALL.iter().position(|s| *s == self).unwrap_or(0)
+    }
+}
+
+impl std::fmt::Display for Stage {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+impl std::str::FromStr for Stage {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        Self::ALL.into_iter().find(|x| x.as_str() == s).ok_or_else(|| format!("unknown stage '{s}'"))
+    }
+}
+
+/// Where a job is in its life.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, ToSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum JobStatus {
+    Queued,
+    Running,
+    Succeeded,
+    Failed,
+    Cancelled,
+}
+
+impl JobStatus {
+    /// The wire name.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            JobStatus::Queued => "queued",
+            JobStatus::Running => "running",
+            JobStatus::Succeeded => "succeeded",
+            JobStatus::Failed => "failed",
+            JobStatus::Cancelled => "cancelled",
+        }
+    }
+
+    /// True for succeeded, failed and cancelled: nothing will change any more.
+    pub fn is_terminal(self) -> bool {
+        matches!(self, JobStatus::Succeeded | JobStatus::Failed | JobStatus::Cancelled)
+    }
+}
+
+impl std::fmt::Display for JobStatus {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+impl std::str::FromStr for JobStatus {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        [JobStatus::Queued, JobStatus::Running, JobStatus::Succeeded, JobStatus::Failed, JobStatus::Cancelled]
+            .into_iter()
+            .find(|x| x.as_str() == s)
+            .ok_or_else(|| {
+                format!("unknown status '{s}' (expected queued, running, succeeded, failed or cancelled)")
+            })
+    }
+}
+
+/// Why a job failed.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct JobError {
+    /// `invalid_argument`, `stage_not_available`, `unavailable`, `deadline_exceeded`, `internal`, ...
+    pub code: String,
+    pub message: String,
+    pub stage: Stage,
+}
+
+/// The measurements of the machined part and the run, as far as the job got.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct JobMetrics {
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub coverage_pct: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub max_gouge_mm: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub max_leftover_mm: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub rms_deviation_mm: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub cycle_time_s: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub cycle_time_no_adaptive_s: Option<f64>,
+}
+
+impl JobMetrics {
+    /// Collects the known metric names from a stage's metric map.
+    pub fn absorb(&mut self, metrics: &BTreeMap<String, f64>) {
+        for (k, v) in metrics {
+            let slot = match k.as_str() {
+                "coverage_pct" => &mut self.coverage_pct,
+                "max_gouge_mm" => &mut self.max_gouge_mm,
+                "max_leftover_mm" => &mut self.max_leftover_mm,
+                "rms_deviation_mm" => &mut self.rms_deviation_mm,
+                "cycle_time_s" => &mut self.cycle_time_s,
+                "cycle_time_no_adaptive_s" => &mut self.cycle_time_no_adaptive_s,
+                _ => continue,
+            };
+            *slot = Some(*v);
+        }
+    }
+}
+
+/// What one stage produced: named artifacts (`point_cloud`, `depth_map`, `gcode`, ...) and metrics.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct StageOutputs {
+    #[schema(value_type = BTreeMap<String, ArtifactRefSchema>)]
+    pub artifacts: BTreeMap<String, ArtifactRef>,
+    pub metrics: BTreeMap<String, f64>,
+}
+
+/// A reference to a stored artifact.
+#[derive(ToSchema)]
+#[allow(dead_code)]
+pub struct ArtifactRefSchema {
+    /// Where the blob can be read (file:// for the local store).
+    uri: String,
+    /// Lowercase hex sha256 of the bytes.
+    sha256: String,
+    size: u64,
+    media_type: String,
+}
+
+/// A completed stage, recorded exactly once per job.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StageResult {
+    pub stage: Stage,
+    pub outputs: StageOutputs,
+    pub started_at_ms: i64,
+    pub finished_at_ms: i64,
+}
+
+/// How one attempt at a stage ended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum AttemptOutcome {
+    /// Still running (or the process died while it ran; see `interrupted`).
+    Running,
+    Ok,
+    /// Failed with a transient error; another attempt follows.
+    Retry,
+    Failed,
+    Cancelled,
+    /// The orchestrator stopped (crash or restart) while the attempt ran.
+    Interrupted,
+}
+
+impl AttemptOutcome {
+    /// The wire name.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            AttemptOutcome::Running => "running",
+            AttemptOutcome::Ok => "ok",
+            AttemptOutcome::Retry => "retry",
+            AttemptOutcome::Failed => "failed",
+            AttemptOutcome::Cancelled => "cancelled",
+            AttemptOutcome::Interrupted => "interrupted",
+        }
+    }
+}
+
+impl std::str::FromStr for AttemptOutcome {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        [
+            AttemptOutcome::Running,
+            AttemptOutcome::Ok,
+            AttemptOutcome::Retry,
+            AttemptOutcome::Failed,
+            AttemptOutcome::Cancelled,
+            AttemptOutcome::Interrupted,
+        ]
+        .into_iter()
+        .find(|x| x.as_str() == s)
+        .ok_or_else(|| format!("unknown attempt outcome '{s}'"))
+    }
+}
+
+/// One call of a stage's service.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct AttemptRecord {
+    pub stage: Stage,
+    pub attempt: u32,
+    pub started_at_ms: i64,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub finished_at_ms: Option<i64>,
+    pub outcome: AttemptOutcome,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub error_code: Option<String>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub error_message: Option<String>,
+}
+
+/// A job as clients see it (`GET /v1/jobs/{id}`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct Job {
+    pub id: String,
+    pub name: String,
+    pub status: JobStatus,
+    /// The stage running now, the next to run, or (when the job ended) the last one reached.
+    pub stage: Stage,
+    /// 0.0 ..= 1.0 over the stages this job runs.
+    pub progress: f64,
+    pub error: Option<JobError>,
+    /// Wall time of each completed stage.
+    pub stage_timings_s: BTreeMap<String, f64>,
+    /// Every artifact the job has: its input and what its stages produced.
+    #[schema(value_type = BTreeMap<String, ArtifactRefSchema>)]
+    pub artifacts: BTreeMap<String, ArtifactRef>,
+    pub metrics: JobMetrics,
+    pub spec: JobSpec,
+    pub cancel_requested: bool,
+    /// Creation time, milliseconds since the Unix epoch.
+    pub created_at_ms: i64,
+    pub updated_at_ms: i64,
+    /// Every call of a stage's service, in order.
+    pub attempts: Vec<AttemptRecord>,
+}
+
+/// Overall progress of a job that started at `first` and is in `stage` with `fraction` of it done.
+pub fn overall_progress(first: Stage, stage: Stage, fraction: f64) -> f64 {
+    let total = (Stage::Report.index() - first.index() + 1) as f64;
+    let done = stage.index().saturating_sub(first.index()) as f64;
+    ((done + fraction.clamp(0.0, 1.0)) / total).clamp(0.0, 1.0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn stages_run_in_order_and_progress_spans_only_the_job_s_stages() {
+        assert_eq!(Stage::Scan.next(), Some(Stage::Reconstruct));
+        assert_eq!(Stage::Report.next(), None);
+        assert_eq!(overall_progress(Stage::Execute, Stage::Execute, 0.0), 0.0);
+        assert_eq!(overall_progress(Stage::Execute, Stage::Report, 0.0), 0.5);
+        assert_eq!(overall_progress(Stage::Scan, Stage::Report, 1.0), 1.0);
+        for s in Stage::ALL {
+            assert_eq!(s.as_str().parse::<Stage>(), Ok(s));
+        }
+    }
+}

@@ -1,0 +1,121 @@
+//! The REST API (axum), exactly the contract of DESIGN.md §7, with its OpenAPI document generated
+//! from the handlers (utoipa) at `/openapi.json` and Swagger UI at `/docs`.
+
+mod artifacts;
+mod jobs;
+
+use axum::Json;
+use axum::extract::State;
+use axum::http::{HeaderValue, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use axum::routing::get;
+use depthmill_proto::ErrorCode;
+use metrics_exporter_prometheus::PrometheusHandle;
+use serde::Serialize;
+use utoipa::{OpenApi, ToSchema};
+use utoipa_axum::router::OpenApiRouter;
+use utoipa_axum::routes;
+use utoipa_swagger_ui::SwaggerUi;
+
+use crate::app::{ApiError, App};
+
+/// The error body of every failed request.
+#[derive(Serialize, ToSchema)]
+pub struct ErrorBody {
+    pub error: ErrorDetail,
+}
+
+/// What went wrong.
+#[derive(Serialize, ToSchema)]
+pub struct ErrorDetail {
+    /// `invalid_argument`, `not_found`, `conflict`, `payload_too_large`, `unsupported_media_type`, `internal`, ...
+    pub code: String,
+    pub message: String,
+    /// Dotted path of the offending field, e.g. `plan.finishing.step_over_mm`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub field: Option<String>,
+}
+
+impl IntoResponse for ApiError {
+    fn into_response(self) -> Response {
+        let status = self.code.http();
+        if status.is_server_error() {
+            tracing::warn!(code = %self.code, message = %self.message, "request failed");
+        }
+        let body = ErrorBody {
+            error: ErrorDetail { code: self.code.as_str().into(), message: self.message, field: self.field },
+        };
+        (status, Json(body)).into_response()
+    }
+}
+
+#[derive(OpenApi)]
+#[openapi(
+    info(title = "depthmill", description = "Scan-to-part jobs: upload a mesh, point cloud, depth map or G-code, submit a job, watch it, fetch its results."),
+    tags((name = "jobs", description = "Scan-to-part jobs"), (name = "artifacts", description = "Content-addressed files"), (name = "ops", description = "Health and metrics")),
+    components(schemas(ErrorBody, ErrorDetail))
+)]
+struct ApiDoc;
+
+/// The OpenAPI document of the REST API.
+pub fn openapi() -> utoipa::openapi::OpenApi {
+    router_parts().1
+}
+
+fn router_parts() -> (axum::Router<App>, utoipa::openapi::OpenApi) {
+    OpenApiRouter::with_openapi(ApiDoc::openapi())
+        .routes(routes!(jobs::create_job, jobs::list_jobs))
+        .routes(routes!(jobs::get_job))
+        .routes(routes!(jobs::cancel_job))
+        .routes(routes!(jobs::job_events))
+        .routes(routes!(artifacts::upload_artifact))
+        .routes(routes!(artifacts::download_artifact))
+        .routes(routes!(healthz))
+        .routes(routes!(readyz))
+        .split_for_parts()
+}
+
+/// The REST router. `metrics` renders `/metrics` when the process installed a Prometheus recorder.
+pub fn router(app: App, metrics: Option<PrometheusHandle>) -> axum::Router {
+    let (router, api) = router_parts();
+    let metrics_route = get(move || {
+        let handle = metrics.clone();
+        async move {
+            match handle {
+                Some(h) => (
+                    [(header::CONTENT_TYPE, HeaderValue::from_static("text/plain; version=0.0.4"))],
+                    h.render(),
+                )
+                    .into_response(),
+                None => ApiError::new(ErrorCode::NotFound, "this process exports no metrics").into_response(),
+            }
+        }
+    });
+    router
+        .route("/metrics", metrics_route)
+        .merge(SwaggerUi::new("/docs").url("/openapi.json", api))
+        .fallback(|uri: axum::http::Uri| async move {
+            ApiError::new(ErrorCode::NotFound, format!("no route for {}", uri.path()))
+        })
+        .layer(tower_http::trace::TraceLayer::new_for_http())
+        .with_state(app)
+}
+
+/// Liveness: the process serves requests.
+#[utoipa::path(get, path = "/healthz", tag = "ops", responses((status = 200, description = "alive")))]
+async fn healthz() -> &'static str {
+    "ok"
+}
+
+/// Readiness: the job database answers.
+#[utoipa::path(get, path = "/readyz", tag = "ops", responses(
+    (status = 200, description = "ready"),
+    (status = 500, description = "not ready", body = ErrorBody)))]
+async fn readyz(State(app): State<App>) -> Result<&'static str, ApiError> {
+    app.ready().await?;
+    Ok("ready")
+}
+
+pub(crate) fn created<T: Serialize>(body: T) -> Response {
+    (StatusCode::CREATED, Json(body)).into_response()
+}

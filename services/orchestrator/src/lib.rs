@@ -1,0 +1,183 @@
+//! The orchestrator: persisted scan-to-part jobs.
+//!
+//! A job starts at the stage its input allows (mesh -> scan, point cloud -> reconstruct, depth map
+//! -> plan, G-code -> execute) and runs `scan -> reconstruct -> plan -> execute -> report`. Jobs
+//! live in SQLite (WAL); a worker advances each job by calling the stage's service over gRPC, with
+//! deadlines, retries with backoff for transient errors, every attempt recorded, and resumption
+//! after a crash. REST (axum) and gRPC (tonic) expose the same operations over one [`app::App`].
+//!
+//! # Layout
+//! - [`domain`]: the job model and request validation (pure).
+//! - [`store`]: the [`store::JobStore`] trait and its SQLite implementation.
+//! - [`stages`]: the [`stages::StageRunner`] port and its gRPC adapter.
+//! - [`worker`]: claims jobs and runs them stage by stage.
+//! - [`app`]: operations shared by both APIs; [`http`] (REST + OpenAPI) and `grpc` adapt it.
+//! - [`events`]: change notifications for watchers and idle workers.
+//! - `convert`: job model <-> wire types.
+
+pub mod app;
+mod convert;
+pub mod domain;
+pub mod events;
+mod grpc;
+pub mod http;
+pub mod stages;
+pub mod store;
+pub mod worker;
+
+use std::future::Future;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use depthmill_common::artifacts::{ArtifactError, LocalStore};
+use metrics_exporter_prometheus::PrometheusHandle;
+use serde::Deserialize;
+use tokio::net::TcpListener;
+use tokio_util::sync::CancellationToken;
+
+pub use stages::Endpoints;
+pub use worker::WorkerConfig;
+
+/// Configuration of the orchestrator (`deploy/config/orchestrator.toml`, env `DEPTHMILL_ORCHESTRATOR__KEY`).
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Config {
+    /// REST listen address.
+    pub rest_addr: SocketAddr,
+    /// gRPC listen address.
+    pub grpc_addr: SocketAddr,
+    /// Holds `jobs.sqlite`, `artifacts/` and `node_id`.
+    pub data_dir: PathBuf,
+    /// Largest artifact upload, bytes.
+    pub max_upload_bytes: u64,
+    /// Stage service URLs; an empty one makes its stage fail with `stage_not_available`.
+    pub services: Endpoints,
+    pub worker: WorkerConfig,
+}
+
+impl Default for Config {
+    fn default() -> Self {
+        Self {
+            rest_addr: SocketAddr::from(([127, 0, 0, 1], 8080)),
+            grpc_addr: SocketAddr::from(([127, 0, 0, 1], 50050)),
+            data_dir: PathBuf::from("data"),
+            max_upload_bytes: 4 << 30,
+            services: Endpoints {
+                scanning: "http://127.0.0.1:50051".into(),
+                reconstruction: "http://127.0.0.1:50052".into(),
+                cam: "http://127.0.0.1:50053".into(),
+                machine: "http://127.0.0.1:50054".into(),
+            },
+            worker: WorkerConfig::default(),
+        }
+    }
+}
+
+/// Why the orchestrator could not start or stopped with an error.
+#[derive(Debug, thiserror::Error)]
+pub enum OrchestratorError {
+    #[error("cannot prepare the data directory {path}")]
+    DataDir {
+        path: String,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("cannot open the job store")]
+    Store(#[from] store::StoreError),
+    #[error("cannot open the artifact store")]
+    Artifacts(#[from] ArtifactError),
+    #[error("invalid service endpoint")]
+    Endpoint(#[from] stages::EndpointError),
+    #[error("REST server failed")]
+    Rest(#[source] std::io::Error),
+    #[error("gRPC server failed")]
+    Grpc(#[from] depthmill_common::grpc::ServeError),
+}
+
+/// The gRPC service names the orchestrator reports in its health service.
+pub const SERVICE_NAMES: &[&str] = &[grpc::SERVICE_NAME];
+
+fn node_id(data_dir: &Path) -> Result<String, OrchestratorError> {
+    let path = data_dir.join("node_id");
+    let err = |source| OrchestratorError::DataDir { path: path.display().to_string(), source };
+    match std::fs::read_to_string(&path) {
+        Ok(s) if !s.trim().is_empty() => Ok(s.trim().to_string()),
+        Ok(_) => Err(err(std::io::Error::other("node_id is empty"))),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            let id = format!("node-{}", uuid::Uuid::now_v7());
+            std::fs::write(&path, &id).map_err(err)?;
+            Ok(id)
+        }
+        Err(e) => Err(err(e)),
+    }
+}
+
+/// Serves REST on `rest` and gRPC on `grpc`, and runs the job worker, until `shutdown` completes.
+/// `metrics` is the process's Prometheus recorder handle, rendered at `/metrics`.
+pub async fn serve(
+    rest: TcpListener,
+    grpc: TcpListener,
+    config: Config,
+    metrics: Option<PrometheusHandle>,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> Result<(), OrchestratorError> {
+    let data_dir = &config.data_dir;
+    std::fs::create_dir_all(data_dir)
+        .map_err(|source| OrchestratorError::DataDir { path: data_dir.display().to_string(), source })?;
+    let owner = node_id(data_dir)?;
+    let store = store::SqliteStore::open(&data_dir.join("jobs.sqlite")).await?;
+    let artifacts = LocalStore::open(data_dir.join("artifacts")).await?;
+    let app = app::App {
+        store: Arc::new(store),
+        artifacts: Arc::new(artifacts),
+        events: Arc::new(events::EventHub::default()),
+        limits: app::ApiLimits {
+            max_upload_bytes: config.max_upload_bytes,
+            default_page: 50,
+            max_page: 1000,
+        },
+        running: Default::default(),
+    };
+    let stages = Arc::new(stages::GrpcStages::new(&config.services)?);
+    let worker = Arc::new(worker::Worker::new(app.clone(), stages, config.worker.clone(), owner));
+
+    let token = CancellationToken::new();
+    let stop = token.clone();
+    tokio::spawn(async move {
+        shutdown.await;
+        stop.cancel();
+    });
+    let rest_addr = rest.local_addr().map_err(OrchestratorError::Rest)?;
+    tracing::info!(addr = %rest_addr, "REST listening");
+    let rest_token = token.clone();
+    let rest_server = axum::serve(rest, http::router(app.clone(), metrics))
+        .with_graceful_shutdown(async move { rest_token.cancelled().await });
+    let grpc_token = token.clone();
+    let grpc_server =
+        depthmill_common::grpc::serve_grpc(grpc, grpc::routes(app), SERVICE_NAMES, async move {
+            grpc_token.cancelled().await
+        });
+    let worker_run = worker.run(token.clone());
+    let (rest_result, grpc_result, worker_result) = tokio::join!(
+        async {
+            let r = rest_server.await;
+            token.cancel();
+            r
+        },
+        async {
+            let r = grpc_server.await;
+            token.cancel();
+            r
+        },
+        async {
+            let r = worker_run.await;
+            token.cancel();
+            r
+        }
+    );
+    rest_result.map_err(OrchestratorError::Rest)?;
+    grpc_result?;
+    worker_result?;
+    Ok(())
+}

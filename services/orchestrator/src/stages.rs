@@ -1,0 +1,379 @@
+//! The stage services as seen from the worker: the [`StageRunner`] port and its gRPC adapter
+//! [`GrpcStages`]. Each stage is one streaming call (progress updates, then one result) to one
+//! service, with a deadline.
+
+use std::collections::BTreeMap;
+use std::time::Duration;
+
+use depthmill_geometry::ArtifactRef;
+use depthmill_proto::ErrorCode;
+use depthmill_proto::cam::v1 as cam;
+use depthmill_proto::machine::v1 as machine;
+use depthmill_proto::reconstruction::v1 as rec;
+use depthmill_proto::scanning::v1 as scan;
+use depthmill_proto::types::v1 as types;
+use tonic::transport::Channel;
+
+use crate::convert;
+use crate::domain::{JobSpec, Stage, StageOutputs};
+
+/// Everything a stage call needs.
+#[derive(Debug, Clone)]
+pub struct StageCall {
+    pub job_id: String,
+    pub attempt: u32,
+    pub stage: Stage,
+    pub spec: JobSpec,
+    /// The job's artifacts so far: its input (under its kind's name) and earlier stages' outputs.
+    pub artifacts: BTreeMap<String, ArtifactRef>,
+}
+
+/// A failed stage call, classified.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{message}")]
+pub struct StageError {
+    pub code: ErrorCode,
+    pub message: String,
+}
+
+impl StageError {
+    pub fn new(code: ErrorCode, message: impl Into<String>) -> Self {
+        Self { code, message: message.into() }
+    }
+
+    fn from_status(stage: Stage, status: &tonic::Status) -> Self {
+        let code = ErrorCode::from_grpc(status.code());
+        let message = match code {
+            ErrorCode::StageNotAvailable => format!("stage not available: {}", status.message()),
+            _ => format!("{stage} service answered {:?}: {}", status.code(), status.message()),
+        };
+        Self { code, message }
+    }
+}
+
+/// Progress reports from a running stage: fraction of the stage done (0..=1) and a message.
+pub type ProgressFn<'a> = &'a (dyn Fn(f64, &str) + Send + Sync);
+
+/// Runs stages on the services that provide them.
+#[async_trait::async_trait]
+pub trait StageRunner: Send + Sync + 'static {
+    /// Runs one attempt of `call.stage`, within `deadline`.
+    async fn run(
+        &self,
+        call: &StageCall,
+        deadline: Duration,
+        progress: ProgressFn<'_>,
+    ) -> Result<StageOutputs, StageError>;
+    /// Tells the service running `stage` for `job_id` to stop. True when it was running it.
+    async fn cancel(&self, stage: Stage, job_id: &str) -> Result<bool, StageError>;
+}
+
+/// Service endpoints (URLs such as `http://127.0.0.1:50053`). An empty URL means the deployment has
+/// no such service: its stage fails with `stage_not_available`.
+#[derive(Debug, Clone, Default, serde::Deserialize, serde::Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct Endpoints {
+    #[serde(default)]
+    pub scanning: String,
+    #[serde(default)]
+    pub reconstruction: String,
+    #[serde(default)]
+    pub cam: String,
+    #[serde(default)]
+    pub machine: String,
+}
+
+/// [`StageRunner`] over tonic clients. Channels connect lazily, so start-up order does not matter
+/// and a service that comes back after a restart is reached again.
+#[derive(Clone)]
+pub struct GrpcStages {
+    scanning: Option<Channel>,
+    reconstruction: Option<Channel>,
+    cam: Option<Channel>,
+    machine: Option<Channel>,
+}
+
+/// An endpoint URL that cannot be used.
+#[derive(Debug, thiserror::Error)]
+#[error("invalid {service} endpoint '{url}'")]
+pub struct EndpointError {
+    service: &'static str,
+    url: String,
+    #[source]
+    source: Box<dyn std::error::Error + Send + Sync>,
+}
+
+fn channel(service: &'static str, url: &str) -> Result<Option<Channel>, EndpointError> {
+    if url.trim().is_empty() {
+        return Ok(None);
+    }
+    let endpoint = Channel::from_shared(url.to_string())
+        .map_err(|e| EndpointError { service, url: url.to_string(), source: Box::new(e) })?
+        .connect_timeout(Duration::from_secs(5))
+        .tcp_nodelay(true);
+    Ok(Some(endpoint.connect_lazy()))
+}
+
+impl GrpcStages {
+    pub fn new(endpoints: &Endpoints) -> Result<Self, EndpointError> {
+        Ok(Self {
+            scanning: channel("scanning", &endpoints.scanning)?,
+            reconstruction: channel("reconstruction", &endpoints.reconstruction)?,
+            cam: channel("cam", &endpoints.cam)?,
+            machine: channel("machine", &endpoints.machine)?,
+        })
+    }
+
+    fn channel_for(&self, stage: Stage) -> Result<Channel, StageError> {
+        let (ch, service) = match stage {
+            Stage::Scan => (&self.scanning, "scanning"),
+            Stage::Reconstruct => (&self.reconstruction, "reconstruction"),
+            Stage::Plan => (&self.cam, "cam"),
+            Stage::Execute => (&self.machine, "machine"),
+            Stage::Report => {
+                return Err(StageError::new(
+                    ErrorCode::Internal,
+                    "the report stage runs in the orchestrator",
+                ));
+            }
+        };
+        ch.clone().ok_or_else(|| {
+            StageError::new(
+                ErrorCode::StageNotAvailable,
+                format!("stage not available: no {service} service is configured for the {stage} stage"),
+            )
+        })
+    }
+}
+
+fn context(call: &StageCall) -> Option<types::StageContext> {
+    Some(types::StageContext { job_id: call.job_id.clone(), attempt: call.attempt })
+}
+
+fn need(call: &StageCall, name: &str) -> Result<types::ArtifactRef, StageError> {
+    call.artifacts.get(name).cloned().map(Into::into).ok_or_else(|| {
+        StageError::new(
+            ErrorCode::Internal,
+            format!("the {} stage needs a {name} artifact, none was produced", call.stage),
+        )
+    })
+}
+
+fn request<T>(msg: T, deadline: Duration) -> tonic::Request<T> {
+    let mut req = tonic::Request::new(msg);
+    req.set_timeout(deadline);
+    req
+}
+
+fn put(out: &mut StageOutputs, name: &str, a: Option<types::ArtifactRef>) {
+    if let Some(a) = a {
+        out.artifacts.insert(name.to_string(), a.into());
+    }
+}
+
+/// Drains a stage's update stream: reports progress, returns the one result.
+async fn drain<U, R>(
+    stage: Stage,
+    mut stream: tonic::Streaming<U>,
+    progress: ProgressFn<'_>,
+    split: impl Fn(U) -> Option<Result<R, types::Progress>>,
+) -> Result<R, StageError> {
+    loop {
+        match stream.message().await {
+            Ok(Some(update)) => match split(update) {
+                Some(Ok(result)) => return Ok(result),
+                Some(Err(p)) => progress(p.fraction, &p.message),
+                None => {}
+            },
+            Ok(None) => {
+                return Err(StageError::new(
+                    ErrorCode::Unavailable,
+                    format!("{stage} service closed its stream without a result"),
+                ));
+            }
+            Err(status) => return Err(StageError::from_status(stage, &status)),
+        }
+    }
+}
+
+#[async_trait::async_trait]
+impl StageRunner for GrpcStages {
+    async fn run(
+        &self,
+        call: &StageCall,
+        deadline: Duration,
+        progress: ProgressFn<'_>,
+    ) -> Result<StageOutputs, StageError> {
+        let stage = call.stage;
+        let channel = self.channel_for(stage)?;
+        let status = |s: tonic::Status| StageError::from_status(stage, &s);
+        let work = async {
+            let mut out = StageOutputs::default();
+            match stage {
+                Stage::Scan => {
+                    let msg = scan::ScanPartRequest {
+                        context: context(call),
+                        mesh: Some(need(call, "mesh")?),
+                        params: Some(convert::scan_params(&call.spec.scan.clone().unwrap_or_default())),
+                    };
+                    let mut client = scan::scanning_service_client::ScanningServiceClient::new(channel);
+                    let stream = client.scan_part(request(msg, deadline)).await.map_err(status)?.into_inner();
+                    let r = drain(stage, stream, progress, |u| match u.update? {
+                        scan::scan_part_update::Update::Progress(p) => Some(Err(p)),
+                        scan::scan_part_update::Update::Result(r) => Some(Ok(r)),
+                    })
+                    .await?;
+                    put(&mut out, "point_cloud", r.point_cloud);
+                    out.metrics.insert("points".into(), r.points as f64);
+                }
+                Stage::Reconstruct => {
+                    let input = need(call, "point_cloud").or_else(|_| need(call, "mesh"))?;
+                    let msg = rec::BuildDepthMapsRequest {
+                        context: context(call),
+                        input: Some(input),
+                        params: Some(convert::reconstruct_params(
+                            &call.spec.reconstruct.clone().unwrap_or_default(),
+                        )),
+                    };
+                    let mut client =
+                        rec::reconstruction_service_client::ReconstructionServiceClient::new(channel);
+                    let stream =
+                        client.build_depth_maps(request(msg, deadline)).await.map_err(status)?.into_inner();
+                    let r = drain(stage, stream, progress, |u| match u.update? {
+                        rec::build_depth_maps_update::Update::Progress(p) => Some(Err(p)),
+                        rec::build_depth_maps_update::Update::Result(r) => Some(Ok(r)),
+                    })
+                    .await?;
+                    for (i, f) in r.faces.into_iter().enumerate() {
+                        // The first face's maps under the plain names, further faces suffixed `@<i>`.
+                        let suffix = if i == 0 { String::new() } else { format!("@{i}") };
+                        put(&mut out, &format!("depth_map{suffix}"), f.depth_map);
+                        put(&mut out, &format!("coverage_map{suffix}"), f.coverage_map);
+                        put(&mut out, &format!("roughing_map{suffix}"), f.roughing_map);
+                        if i == 0 {
+                            out.metrics.insert("coverage_pct".into(), f.coverage_pct);
+                        }
+                    }
+                }
+                Stage::Plan => {
+                    let mut faces = Vec::new();
+                    let mut i = 0;
+                    loop {
+                        let suffix = if i == 0 { String::new() } else { format!("@{i}") };
+                        let Some(map) = call.artifacts.get(&format!("depth_map{suffix}")) else { break };
+                        faces.push(cam::FaceInput {
+                            face: suffix.trim_start_matches('@').to_string(),
+                            depth_map: Some(map.clone().into()),
+                            roughing_map: call
+                                .artifacts
+                                .get(&format!("roughing_map{suffix}"))
+                                .cloned()
+                                .map(Into::into),
+                        });
+                        i += 1;
+                    }
+                    if faces.is_empty() {
+                        need(call, "depth_map")?;
+                    }
+                    let msg = cam::PlanToolpathsRequest {
+                        context: context(call),
+                        faces,
+                        params: Some(convert::plan_params(&call.spec.plan.clone().unwrap_or_default())),
+                        pixel_mm: call.spec.input.pixel_mm,
+                        z_min_mm: call.spec.input.z_min_mm,
+                        z_max_mm: call.spec.input.z_max_mm,
+                    };
+                    let mut client = cam::cam_service_client::CamServiceClient::new(channel);
+                    let stream =
+                        client.plan_toolpaths(request(msg, deadline)).await.map_err(status)?.into_inner();
+                    let r = drain(stage, stream, progress, |u| match u.update? {
+                        cam::plan_toolpaths_update::Update::Progress(p) => Some(Err(p)),
+                        cam::plan_toolpaths_update::Update::Result(r) => Some(Ok(r)),
+                    })
+                    .await?;
+                    put(&mut out, "gcode", r.gcode);
+                    put(&mut out, "toolpath_preview", r.toolpath_preview);
+                    put(&mut out, "plan_report", r.plan_report);
+                    out.metrics.insert("estimated_time_s".into(), r.estimated_time_s);
+                }
+                Stage::Execute => {
+                    let msg = machine::ExecuteProgramRequest {
+                        context: context(call),
+                        gcode: Some(need(call, "gcode")?),
+                        target_map: call.artifacts.get("depth_map").cloned().map(Into::into),
+                        params: Some(convert::execute_params(&call.spec.execute.clone().unwrap_or_default())),
+                    };
+                    let mut client = machine::machine_service_client::MachineServiceClient::new(channel);
+                    let stream =
+                        client.execute_program(request(msg, deadline)).await.map_err(status)?.into_inner();
+                    let r = drain(stage, stream, progress, |u| match u.update? {
+                        machine::execute_program_update::Update::Progress(p) => Some(Err(p)),
+                        machine::execute_program_update::Update::Telemetry(_) => None,
+                        machine::execute_program_update::Update::Result(r) => Some(Ok(r)),
+                    })
+                    .await?;
+                    put(&mut out, "final_stock", r.final_stock);
+                    put(&mut out, "deviation_map", r.deviation_map);
+                    put(&mut out, "telemetry", r.telemetry);
+                    if let Some(m) = r.metrics {
+                        for (k, v) in [
+                            ("max_gouge_mm", m.max_gouge_mm),
+                            ("max_leftover_mm", m.max_leftover_mm),
+                            ("mean_leftover_mm", m.mean_leftover_mm),
+                            ("rms_deviation_mm", m.rms_deviation_mm),
+                            ("cycle_time_s", m.cycle_time_s),
+                            ("cycle_time_no_adaptive_s", m.cycle_time_no_adaptive_s),
+                        ] {
+                            out.metrics.insert(k.into(), v);
+                        }
+                    }
+                }
+                Stage::Report => unreachable_report()?,
+            }
+            Ok(out)
+        };
+        match tokio::time::timeout(deadline, work).await {
+            Ok(r) => r,
+            Err(_) => Err(StageError::new(
+                ErrorCode::DeadlineExceeded,
+                format!("{stage} stage did not finish within its deadline of {} s", deadline.as_secs_f64()),
+            )),
+        }
+    }
+
+    async fn cancel(&self, stage: Stage, job_id: &str) -> Result<bool, StageError> {
+        let channel = match self.channel_for(stage) {
+            Ok(c) => c,
+            Err(_) => return Ok(false),
+        };
+        let msg = types::CancelStageRequest { job_id: job_id.to_string() };
+        let deadline = Duration::from_secs(5);
+        let status = |s: tonic::Status| StageError::from_status(stage, &s);
+        let r = match stage {
+            Stage::Scan => scan::scanning_service_client::ScanningServiceClient::new(channel)
+                .cancel_stage(request(msg, deadline))
+                .await
+                .map_err(status)?,
+            Stage::Reconstruct => {
+                rec::reconstruction_service_client::ReconstructionServiceClient::new(channel)
+                    .cancel_stage(request(msg, deadline))
+                    .await
+                    .map_err(status)?
+            }
+            Stage::Plan => cam::cam_service_client::CamServiceClient::new(channel)
+                .cancel_stage(request(msg, deadline))
+                .await
+                .map_err(status)?,
+            Stage::Execute => machine::machine_service_client::MachineServiceClient::new(channel)
+                .cancel_stage(request(msg, deadline))
+                .await
+                .map_err(status)?,
+            Stage::Report => return Ok(false),
+        };
+        Ok(r.into_inner().found)
+    }
+}
+
+fn unreachable_report() -> Result<(), StageError> {
+    Err(StageError::new(ErrorCode::Internal, "the report stage runs in the orchestrator, not in a service"))
+}

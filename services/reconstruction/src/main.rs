@@ -1,0 +1,35 @@
+//! `depthmill-reconstruction`: the reconstruction service alone, as its own process.
+
+use std::path::PathBuf;
+
+use anyhow::Context as _;
+use clap::Parser;
+
+/// Runs the depthmill reconstruction service (gRPC, with health and reflection).
+///
+/// Configuration: the TOML file given with --config (see deploy/config/reconstruction.toml), then
+/// environment overrides DEPTHMILL_RECONSTRUCTION__<KEY> (e.g. DEPTHMILL_RECONSTRUCTION__GRPC_ADDR=0.0.0.0:50051).
+#[derive(Parser)]
+#[command(version)]
+struct Args {
+    /// Configuration file (TOML).
+    #[arg(long, env = "DEPTHMILL_RECONSTRUCTION_CONFIG")]
+    config: Option<PathBuf>,
+    /// Log as JSON lines.
+    #[arg(long)]
+    log_json: bool,
+}
+
+#[tokio::main]
+async fn main() -> anyhow::Result<()> {
+    let args = Args::parse();
+    depthmill_common::telemetry::init_tracing(args.log_json);
+    let config: depthmill_reconstruction::Config =
+        depthmill_common::config::load(args.config.as_deref(), "DEPTHMILL_RECONSTRUCTION")
+            .context("loading configuration")?;
+    let listener = tokio::net::TcpListener::bind(config.grpc_addr)
+        .await
+        .with_context(|| format!("binding {}", config.grpc_addr))?;
+    depthmill_reconstruction::serve(listener, config, depthmill_common::shutdown::shutdown_signal()).await?;
+    Ok(())
+}

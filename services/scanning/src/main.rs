@@ -1,0 +1,35 @@
+//! `depthmill-scanning`: the scanning service alone, as its own process.
+
+use std::path::PathBuf;
+
+use anyhow::Context as _;
+use clap::Parser;
+
+/// Runs the depthmill scanning service (gRPC, with health and reflection).
+///
+/// Configuration: the TOML file given with --config (see deploy/config/scanning.toml), then
+/// environment overrides DEPTHMILL_SCANNING__<KEY> (e.g. DEPTHMILL_SCANNING__GRPC_ADDR=0.0.0.0:50051).
+#[derive(Parser)]
+#[command(version)]
+struct Args {
+    /// Configuration file (TOML).
+    #[arg(long, env = "DEPTHMILL_SCANNING_CONFIG")]
+    config: Option<PathBuf>,
+    /// Log as JSON lines.
+    #[arg(long)]
+    log_json: bool,
+}
+
+#[tokio::main]
+async fn main() -> anyhow::Result<()> {
+    let args = Args::parse();
+    depthmill_common::telemetry::init_tracing(args.log_json);
+    let config: depthmill_scanning::Config =
+        depthmill_common::config::load(args.config.as_deref(), "DEPTHMILL_SCANNING")
+            .context("loading configuration")?;
+    let listener = tokio::net::TcpListener::bind(config.grpc_addr)
+        .await
+        .with_context(|| format!("binding {}", config.grpc_addr))?;
+    depthmill_scanning::serve(listener, config, depthmill_common::shutdown::shutdown_signal()).await?;
+    Ok(())
+}

@@ -1,0 +1,17 @@
+//! End-to-end tests: every service in-process on ephemeral ports, driven through REST and gRPC.
+
+mod api;
+mod jobs;
+mod recovery;
+
+use serde_json::{Value, json};
+
+/// A small G-code program.
+pub fn program() -> Vec<u8> {
+    b"%\nG21 G90 G17\nG0 Z5\nG0 X0 Y0\nG1 Z-1 F100\nG1 X10 F200\nG1 Y10\nM30\n%\n".to_vec()
+}
+
+/// A job that starts from the uploaded G-code.
+pub fn gcode_job(sha: &str) -> Value {
+    json!({"name": "e2e", "input": {"kind": "gcode", "artifact": sha}, "execute": {"machine": "emco-f1", "adaptive": "off"}})
+}
