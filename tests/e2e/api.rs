@@ -22,7 +22,7 @@ async fn artifacts_round_trip_over_rest_and_grpc() -> anyhow::Result<()> {
     // gRPC: upload in chunks, download in chunks, same digest and bytes.
     let mut client = stack.grpc().await?;
     let big: Vec<u8> =
-        (0..300_000u32).flat_map(|i| format!("{} {} {}\n", i % 97, i % 89, i % 83).into_bytes()).collect();
+        (0..60_000u32).flat_map(|i| format!("{} {} {}\n", i % 97, i % 89, i % 83).into_bytes()).collect();
     let chunks: Vec<pb::UploadArtifactRequest> = big
         .chunks(64 * 1024)
         .enumerate()

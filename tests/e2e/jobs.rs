@@ -82,7 +82,7 @@ async fn a_gcode_job_runs_to_the_end_and_is_watched_and_listed() -> anyhow::Resu
     for name in ["gcode", "telemetry", "report"] {
         assert!(job["artifacts"][name]["sha256"].is_string(), "{name} missing: {job}");
     }
-    assert_eq!(job["metrics"]["cycle_time_s"].as_f64(), Some(0.7));
+    assert_eq!(job["metrics"]["cycle_time_s"].as_f64(), Some(0.9), "9 lines at 0.1 s each");
     assert_eq!(outcomes(&job), ["execute:ok", "report:ok"]);
     assert_eq!(script.completed(), 1);
 

@@ -23,12 +23,11 @@ pub fn parse_job_spec(body: &[u8]) -> Result<JobSpec, ApiError> {
         let path = e.path().to_string();
         let inner = e.inner();
         let message = inner.to_string();
-        // serde names an unknown field in the message; make it part of the path.
+        // The path ends at the unknown field itself; at the top level serde names it only in the message.
         let field = match message.strip_prefix("unknown field `").and_then(|r| r.split('`').next()) {
             Some(unknown) if path == "." => unknown.to_string(),
-            Some(unknown) => format!("{path}.{unknown}"),
-            None if path == "." => String::new(),
-            None => path,
+            _ if path == "." => String::new(),
+            _ => path,
         };
         let what = if inner.is_syntax() || inner.is_eof() { "malformed JSON" } else { "invalid job" };
         let text = if field.is_empty() {
