@@ -1,6 +1,7 @@
 //! End-to-end tests: every service in-process on ephemeral ports, driven through REST and gRPC.
 
 mod api;
+mod deploy;
 mod jobs;
 mod recovery;
 

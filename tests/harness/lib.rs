@@ -90,7 +90,7 @@ impl TestStack {
         let artifacts_dir = data_dir.join("artifacts");
         let mut services = Vec::new();
         let mut service_urls = Vec::new();
-        let mut endpoints = depthmill_orchestrator::Endpoints::default();
+        let mut endpoints = depthmill_orchestrator::Endpoints::none();
 
         macro_rules! real {
             ($krate:ident, $field:ident) => {{

@@ -16,7 +16,7 @@ pub enum ConfigError {
         path: String,
         prefix: String,
         #[source]
-        source: config::ConfigError,
+        source: Box<config::ConfigError>,
     },
 }
 
@@ -38,7 +38,7 @@ pub fn load<T: DeserializeOwned>(file: Option<&Path>, env_prefix: &str) -> Resul
     builder.build().and_then(|c| c.try_deserialize()).map_err(|source| ConfigError::Invalid {
         path,
         prefix: env_prefix.to_string(),
-        source,
+        source: Box::new(source),
     })
 }
 

@@ -63,12 +63,7 @@ impl Default for Config {
             grpc_addr: SocketAddr::from(([127, 0, 0, 1], 50050)),
             data_dir: PathBuf::from("data"),
             max_upload_bytes: 4 << 30,
-            services: Endpoints {
-                scanning: "http://127.0.0.1:50051".into(),
-                reconstruction: "http://127.0.0.1:50052".into(),
-                cam: "http://127.0.0.1:50053".into(),
-                machine: "http://127.0.0.1:50054".into(),
-            },
+            services: Endpoints::default(),
             worker: WorkerConfig::default(),
         }
     }

@@ -69,18 +69,38 @@ pub trait StageRunner: Send + Sync + 'static {
 }
 
 /// Service endpoints (URLs such as `http://127.0.0.1:50053`). An empty URL means the deployment has
-/// no such service: its stage fails with `stage_not_available`.
-#[derive(Debug, Clone, Default, serde::Deserialize, serde::Serialize)]
-#[serde(deny_unknown_fields)]
+/// no such service: its stage fails with `stage_not_available`. A key left out keeps its default
+/// (the service's default port on loopback).
+#[derive(Debug, Clone, serde::Deserialize, serde::Serialize)]
+#[serde(deny_unknown_fields, default)]
 pub struct Endpoints {
-    #[serde(default)]
     pub scanning: String,
-    #[serde(default)]
     pub reconstruction: String,
-    #[serde(default)]
     pub cam: String,
-    #[serde(default)]
     pub machine: String,
+}
+
+impl Default for Endpoints {
+    fn default() -> Self {
+        Self {
+            scanning: "http://127.0.0.1:50051".into(),
+            reconstruction: "http://127.0.0.1:50052".into(),
+            cam: "http://127.0.0.1:50053".into(),
+            machine: "http://127.0.0.1:50054".into(),
+        }
+    }
+}
+
+impl Endpoints {
+    /// No stage service at all: every stage but the report fails with `stage_not_available`.
+    pub fn none() -> Self {
+        Self {
+            scanning: String::new(),
+            reconstruction: String::new(),
+            cam: String::new(),
+            machine: String::new(),
+        }
+    }
 }
 
 /// [`StageRunner`] over tonic clients. Channels connect lazily, so start-up order does not matter

@@ -495,3 +495,113 @@ impl JobStore for SqliteStore {
         Ok(())
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::domain::spec::{InputKind, JobInput};
+
+    fn spec(name: &str) -> JobSpec {
+        JobSpec {
+            name: name.into(),
+            input: JobInput {
+                kind: InputKind::Gcode,
+                artifact: "a".repeat(64),
+                pixel_mm: None,
+                z_min_mm: None,
+                z_max_mm: None,
+            },
+            scan: None,
+            reconstruct: None,
+            plan: None,
+            execute: None,
+        }
+    }
+
+    async fn store() -> (tempfile::TempDir, SqliteStore) {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let store = SqliteStore::open(&dir.path().join("jobs.sqlite")).await.expect("open");
+        (dir, store)
+    }
+
+    fn new(id: &str, key: Option<&str>) -> NewJob {
+        NewJob { id: id.into(), spec: spec(id), idempotency_key: key.map(Into::into), now_ms: 1 }
+    }
+
+    #[tokio::test]
+    async fn leases_fence_writers_and_a_stage_is_recorded_once() {
+        let (_dir, s) = store().await;
+        assert!(matches!(s.create(new("j1", None)).await.expect("create"), Created::New(_)));
+        let claimed = s.claim("a", 100, 1000).await.expect("claim").expect("a job");
+        assert_eq!((claimed.id.as_str(), claimed.stage), ("j1", Stage::Execute));
+        // Leased: nobody else gets it until the lease expires.
+        assert!(s.claim("b", 500, 1000).await.expect("claim").is_none());
+        let attempt = s.begin_attempt("j1", "a", Stage::Execute, 200).await.expect("begin");
+        assert_eq!(attempt, 1);
+        // The lease expires; b takes over; a can no longer write.
+        let taken = s.claim("b", 5000, 1000).await.expect("claim").expect("expired lease");
+        assert_eq!(taken.id, "j1");
+        let result = StageResult {
+            stage: Stage::Execute,
+            outputs: StageOutputs::default(),
+            started_at_ms: 1,
+            finished_at_ms: 2,
+        };
+        let lost = s.complete_stage("j1", "a", &result, Some(Stage::Report), 0.5, 5001).await;
+        assert!(matches!(lost, Err(StoreError::LeaseLost { .. })), "{lost:?}");
+        assert!(!s.renew("j1", "a", 5002, 1000).await.expect("renew").held);
+        s.complete_stage("j1", "b", &result, Some(Stage::Report), 0.5, 5003).await.expect("b completes");
+        // A second record of the same stage is refused by the schema.
+        let again = s.complete_stage("j1", "b", &result, Some(Stage::Report), 0.5, 5004).await;
+        assert!(again.is_err(), "recorded twice");
+        let job = s.get("j1").await.expect("get").expect("job");
+        assert_eq!(job.stage, Stage::Report);
+        assert_eq!(job.stage_timings_s.len(), 1);
+        assert_eq!(job.progress, 0.5, "the refused write changed nothing");
+    }
+
+    #[tokio::test]
+    async fn recovery_releases_the_owner_s_jobs_and_marks_attempts_interrupted() {
+        let (_dir, s) = store().await;
+        s.create(new("j1", None)).await.expect("create");
+        s.claim("node-1", 0, 60_000).await.expect("claim").expect("job");
+        s.begin_attempt("j1", "node-1", Stage::Execute, 1).await.expect("begin");
+        assert_eq!(s.recover_owner("node-2", 2).await.expect("recover"), 0, "another node's lease stays");
+        assert_eq!(s.recover_owner("node-1", 2).await.expect("recover"), 1);
+        let job = s.get("j1").await.expect("get").expect("job");
+        assert_eq!(job.attempts[0].outcome, AttemptOutcome::Interrupted);
+        let again = s.claim("node-1", 3, 60_000).await.expect("claim").expect("released");
+        assert_eq!(again.stage, Stage::Execute);
+        assert_eq!(s.begin_attempt("j1", "node-1", Stage::Execute, 4).await.expect("begin"), 2);
+    }
+
+    #[tokio::test]
+    async fn idempotency_keys_and_cancel_and_pages() {
+        let (_dir, s) = store().await;
+        assert!(matches!(s.create(new("j1", Some("k"))).await.expect("create"), Created::New(_)));
+        let mut same = new("j2", Some("k"));
+        same.spec = spec("j1");
+        match s.create(same).await.expect("same request") {
+            Created::Existing(job) => assert_eq!(job.id, "j1"),
+            Created::New(_) => panic!("a second job for the same key"),
+        }
+        assert!(matches!(s.create(new("j3", Some("k"))).await, Err(StoreError::IdempotencyConflict { .. })));
+        for i in 4..9 {
+            s.create(new(&format!("j{i}"), None)).await.expect("create");
+        }
+        let job = s.request_cancel("j4", 10).await.expect("cancel").expect("job");
+        assert_eq!(job.status, JobStatus::Cancelled, "a queued job is cancelled at once");
+        assert!(s.request_cancel("nope", 10).await.expect("cancel").is_none());
+        let mut seen = Vec::new();
+        let mut cursor = None;
+        loop {
+            let page = s.list(Some(JobStatus::Queued), 2, cursor).await.expect("list");
+            seen.extend(page.jobs.into_iter().map(|j| j.id));
+            match page.next_cursor {
+                Some(c) => cursor = Some(c),
+                None => break,
+            }
+        }
+        assert_eq!(seen, ["j8", "j7", "j6", "j5", "j1"]);
+    }
+}
