@@ -44,6 +44,9 @@ impl StageError {
     fn from_status(stage: Stage, status: &tonic::Status) -> Self {
         let code = ErrorCode::from_grpc(status.code());
         let message = match code {
+            ErrorCode::StageNotAvailable if status.message().starts_with("stage not available") => {
+                status.message().to_string()
+            }
             ErrorCode::StageNotAvailable => format!("stage not available: {}", status.message()),
             _ => format!("{stage} service answered {:?}: {}", status.code(), status.message()),
         };

@@ -136,9 +136,6 @@ impl Worker {
 
     async fn run_job(&self, job: ClaimedJob, shutdown: &CancellationToken) -> Ended {
         let id = job.id.clone();
-        let span = tracing::info_span!("job", job_id = %id);
-        let _enter = span.enter();
-        drop(_enter);
         match self.advance(job, shutdown).await {
             Ok(ended) => ended,
             Err(StoreError::LeaseLost { .. }) => {

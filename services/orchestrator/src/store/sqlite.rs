@@ -219,14 +219,16 @@ impl JobStore for SqliteStore {
         sqlx::query(
             "UPDATE jobs SET status = 'cancelled', cancel_requested = 1, updated_at_ms = ?2, \
              error_code = 'cancelled', error_message = 'cancelled before it started', error_stage = stage, \
-             lease_owner = NULL, lease_expires_ms = NULL WHERE id = ?1 AND status = 'queued'",
+             lease_owner = NULL, lease_expires_ms = NULL WHERE id = ?1 AND status = 'queued' \
+             AND lease_owner IS NULL",
         )
         .bind(id)
         .bind(now_ms)
         .execute(&mut *tx)
         .await?;
         sqlx::query(
-            "UPDATE jobs SET cancel_requested = 1, updated_at_ms = ?2 WHERE id = ?1 AND status = 'running'",
+            "UPDATE jobs SET cancel_requested = 1, updated_at_ms = ?2 WHERE id = ?1 \
+             AND status IN ('queued', 'running')",
         )
         .bind(id)
         .bind(now_ms)
