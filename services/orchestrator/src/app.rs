@@ -146,16 +146,17 @@ impl App {
         }
         let new = NewJob { id: uuid::Uuid::now_v7().to_string(), spec, idempotency_key, now_ms: now_ms() };
         let created = self.store.create(new).await?;
-        let (job, is_new) = match created {
+        let (mut job, is_new) = match created {
             Created::New(job) => (job, true),
             Created::Existing(job) => (job, false),
         };
+        job.artifacts.entry(kind.as_str().to_string()).or_insert(input);
         if is_new {
             metrics::counter!("depthmill_jobs_created_total").increment(1);
             self.events.job_changed(&job.id);
             self.events.work_available();
         }
-        Ok((self.with_input(job).await, is_new))
+        Ok((job, is_new))
     }
 
     /// Adds the input artifact's reference to a job's artifacts.
@@ -237,6 +238,10 @@ impl App {
             loop {
                 // A periodic re-read covers changes made by other orchestrator instances.
                 let woke = tokio::time::timeout(Duration::from_secs(2), changes.recv()).await;
+                if tx.is_closed() {
+                    // The watcher went away.
+                    return;
+                }
                 match woke {
                     Ok(Ok(changed)) if changed != id => continue,
                     Ok(Err(tokio::sync::broadcast::error::RecvError::Closed)) => return,

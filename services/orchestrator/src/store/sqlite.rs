@@ -157,12 +157,23 @@ impl JobStore for SqliteStore {
         .await?
         .rows_affected();
         if inserted == 1 {
-            let job = self.get_from(&self.writer, &new.id).await?.ok_or_else(|| StoreError::Corrupt {
-                id: new.id.clone(),
-                what: "row",
-                detail: "inserted job not found".into(),
-            })?;
-            return Ok(Created::New(job));
+            // Everything about a new job is known: no need to read it back.
+            return Ok(Created::New(Job {
+                id: new.id,
+                name: new.spec.name.clone(),
+                status: JobStatus::Queued,
+                stage: first,
+                progress: 0.0,
+                error: None,
+                stage_timings_s: BTreeMap::new(),
+                artifacts: BTreeMap::new(),
+                metrics: JobMetrics::default(),
+                spec: new.spec,
+                cancel_requested: false,
+                created_at_ms: new.now_ms,
+                updated_at_ms: new.now_ms,
+                attempts: Vec::new(),
+            }));
         }
         // The key exists: same request -> same job; different request -> conflict.
         let key = new.idempotency_key.clone().unwrap_or_default();
