@@ -110,7 +110,7 @@ pub trait ArtifactStore: Send + Sync + 'static {
 
 /// Checks that `s` is a sha256 in the store's spelling.
 pub fn validate_digest(s: &str) -> Result<(), ArtifactError> {
-    if s.len() == 64 && s.bytes().all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b)) {
+    if depthmill_geometry::artifact::is_sha256_hex(s) {
         Ok(())
     } else {
         Err(ArtifactError::BadDigest { value: s.chars().take(80).collect() })

@@ -351,9 +351,7 @@ impl JobSpec {
             }
         }
         let input = &self.input;
-        let hexdigest = input.artifact.len() == 64
-            && input.artifact.bytes().all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b));
-        if !hexdigest {
+        if !depthmill_geometry::artifact::is_sha256_hex(&input.artifact) {
             return Err(err(
                 "input.artifact",
                 "must be the sha256 (64 lowercase hex digits) of an uploaded artifact",
