@@ -1,0 +1,23 @@
+//! CAM domain: pure and synchronous (rayon allowed); no tokio, tonic, proto or I/O beyond explicit
+//! file functions.
+//!
+//! Pipeline: a depth map A and a [`tool::Tool`] -> the compensated tip surface C
+//! ([`compensate`]) -> roughing and finishing passes ([`roughing`], [`finishing`]) -> cleaned
+//! segments with arcs ([`cleanup`]) -> G-code ([`gcode`]); [`holder`] checks the tool holder,
+//! [`feeds`] picks feeds and speeds and estimates time, [`preview`] sweeps the program over the
+//! stock to measure gouge and leftover, [`plan`] runs it all.
+
+pub mod cleanup;
+pub mod compensate;
+pub mod error;
+pub mod feeds;
+pub mod finishing;
+pub mod gcode;
+pub mod holder;
+pub mod path;
+pub mod plan;
+pub mod preview;
+pub mod roughing;
+pub mod tool;
+
+pub use error::CamError;
