@@ -193,23 +193,17 @@ async fn transient_errors_are_retried_and_invalid_arguments_are_not() -> anyhow:
 #[tokio::test]
 async fn a_stage_without_its_service_fails_the_job_clearly() -> anyhow::Result<()> {
     let stack = TestStack::start().await?;
-    // A 2x2 16-bit PNG is a depth map; the real CAM service does not plan yet.
-    let mut meta = depthmill_geometry::HeightMapMeta::new(2, 2, 0.5);
-    meta.z_max_mm = 5.0;
-    let map = depthmill_geometry::HeightMap::new(meta, vec![1.0, 2.0, 3.0, 4.0])?;
-    let mut bytes = Vec::new();
-    depthmill_geometry::write_png_to(&map, &mut bytes, depthmill_geometry::PngDepth::Bits16)?;
-    let sha = stack.upload("image/png", bytes).await?;
-    let (status, job) =
-        stack.post_job(&json!({"input": {"kind": "depth_map", "artifact": sha}}), None).await?;
+    // G-code goes to the machine service, which does not execute programs yet.
+    let sha = stack.upload("text/x-gcode", program()).await?;
+    let (status, job) = stack.post_job(&gcode_job(&sha), None).await?;
     assert_eq!(status, 201, "{job}");
     let job = stack.wait_for_end(job["id"].as_str().expect("id"), WAIT).await?;
     assert_eq!(job["status"], "failed");
     assert_eq!(job["error"]["code"], "stage_not_available");
-    assert_eq!(job["error"]["stage"], "plan");
+    assert_eq!(job["error"]["stage"], "execute");
     assert!(job["error"]["message"].as_str().unwrap_or_default().contains("stage not available"), "{job}");
-    assert_eq!(outcomes(&job), ["plan:failed"], "no retries for a missing stage");
-    assert!(job["artifacts"].get("gcode").is_none(), "no fake results");
+    assert_eq!(outcomes(&job), ["execute:failed"], "no retries for a missing stage");
+    assert!(job["artifacts"].get("telemetry").is_none(), "no fake results");
     stack.shutdown().await
 }
 

@@ -3,6 +3,7 @@
 mod api;
 mod deploy;
 mod jobs;
+mod plan;
 mod recovery;
 
 use serde_json::{Value, json};

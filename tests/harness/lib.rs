@@ -100,7 +100,11 @@ impl TestStack {
                 for name in $krate::SERVICE_NAMES {
                     service_urls.push((name.to_string(), endpoints.$field.clone()));
                 }
-                let cfg = $krate::Config { grpc_addr: addr, artifacts_dir: artifacts_dir.clone() };
+                let cfg = $krate::Config {
+                    grpc_addr: addr,
+                    artifacts_dir: artifacts_dir.clone(),
+                    ..Default::default()
+                };
                 let token = CancellationToken::new();
                 let stop = token.clone();
                 let handle = tokio::spawn(async move {

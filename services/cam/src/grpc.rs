@@ -1,39 +1,304 @@
-//! tonic adapter of the cam service.
+//! tonic adapter of the cam service: reads depth maps from the artifact store, plans on a blocking
+//! thread (rayon inside), streams progress, stores the program, report and preview.
 
+use std::io::Cursor;
 use std::pin::Pin;
+use std::sync::Arc;
 
+use depthmill_common::artifacts::{ArtifactError, ArtifactStore, LocalStore};
 use depthmill_common::stage::StageRegistry;
+use depthmill_geometry::{HeightMap, ImageMapping, PngDepth};
 use depthmill_proto::ErrorCode;
 use depthmill_proto::cam::v1 as pb;
-use depthmill_proto::types::v1::{CancelStageRequest, CancelStageResponse};
+use depthmill_proto::types::v1::{CancelStageRequest, CancelStageResponse, Progress};
+use tokio::sync::mpsc;
 use tonic::{Request, Response, Status};
+
+use crate::domain::CamError;
+use crate::domain::feeds::MachineLimits;
+use crate::domain::plan::{FaceInput, FinishingOptions, PlanOptions, RoughingOptions, StockOptions, plan};
+use crate::domain::tool::ToolLibrary;
 
 pub(crate) const SERVICE_NAME: &str = "depthmill.cam.v1.CamService";
 
-#[derive(Default)]
+/// Largest depth map accepted (bytes of the stored artifact).
+const MAX_MAP_BYTES: u64 = 1 << 30;
+
 struct CamServiceImpl {
     running: StageRegistry,
+    store: Arc<LocalStore>,
+    library: Arc<ToolLibrary>,
 }
 
-pub(crate) fn routes() -> tonic::service::Routes {
-    tonic::service::Routes::new(pb::cam_service_server::CamServiceServer::new(CamServiceImpl::default()))
+pub(crate) fn routes(store: LocalStore, library: ToolLibrary) -> tonic::service::Routes {
+    let svc = CamServiceImpl {
+        running: StageRegistry::default(),
+        store: Arc::new(store),
+        library: Arc::new(library),
+    };
+    tonic::service::Routes::new(pb::cam_service_server::CamServiceServer::new(svc))
+}
+
+impl From<CamError> for Status {
+    fn from(e: CamError) -> Self {
+        let code = match &e {
+            CamError::InvalidParameter { .. }
+            | CamError::InvalidTool { .. }
+            | CamError::InvalidMap { .. }
+            | CamError::HolderCollision { .. } => ErrorCode::InvalidArgument,
+            CamError::Cancelled => ErrorCode::Cancelled,
+            CamError::Io { .. } => ErrorCode::Internal,
+        };
+        code.status(e.to_string())
+    }
+}
+
+fn artifact_status(e: ArtifactError) -> Status {
+    match e {
+        ArtifactError::NotFound { .. } | ArtifactError::BadDigest { .. } | ArtifactError::TooLarge { .. } => {
+            ErrorCode::InvalidArgument.status(e.to_string())
+        }
+        other => {
+            tracing::error!(error = %depthmill_common::ErrorChain(&other), "artifact store failed");
+            ErrorCode::Internal.status("the artifact store failed")
+        }
+    }
+}
+
+/// Decodes a stored depth map by its media type.
+fn decode_map(
+    bytes: Vec<u8>,
+    media_type: &str,
+    fallback: Option<&ImageMapping>,
+    what: &str,
+) -> Result<HeightMap, Status> {
+    let map = match media_type {
+        "image/png" => depthmill_geometry::read_png_from(Cursor::new(bytes), fallback),
+        "application/x-npy" => depthmill_geometry::read_npy_from(Cursor::new(bytes), None, fallback),
+        other => {
+            return Err(ErrorCode::InvalidArgument
+                .status(format!("{what}: a depth map is image/png or application/x-npy, got {other}")));
+        }
+    };
+    map.map_err(|e| ErrorCode::InvalidArgument.status(format!("{what}: {e}")))
+}
+
+fn enum_name<T: TryFrom<i32> + std::fmt::Debug>(
+    v: i32,
+    names: fn(T) -> Option<&'static str>,
+) -> Result<Option<String>, Status> {
+    match T::try_from(v) {
+        Ok(t) => Ok(names(t).map(str::to_string)),
+        Err(_) => Err(ErrorCode::InvalidArgument.status(format!("unknown enum value {v}"))),
+    }
+}
+
+/// Wire parameters -> the plan options of a job request.
+fn options(p: pb::PlanParams) -> Result<PlanOptions, Status> {
+    Ok(PlanOptions {
+        stock: p.stock.map(|s| StockOptions {
+            x_mm: s.x_mm,
+            y_mm: s.y_mm,
+            z_mm: s.z_mm,
+            material: s.material,
+        }),
+        roughing: p
+            .roughing
+            .map(|r| -> Result<RoughingOptions, Status> {
+                Ok(RoughingOptions {
+                    tool: r.tool,
+                    step_down_mm: r.step_down_mm,
+                    stock_to_leave_mm: r.stock_to_leave_mm,
+                    direction: enum_name::<pb::RasterDirection>(r.direction, |d| match d {
+                        pb::RasterDirection::Unspecified => None,
+                        pb::RasterDirection::X => Some("x"),
+                        pb::RasterDirection::Y => Some("y"),
+                        pb::RasterDirection::Contour => Some("contour"),
+                    })?,
+                })
+            })
+            .transpose()?,
+        finishing: p
+            .finishing
+            .map(|f| -> Result<FinishingOptions, Status> {
+                Ok(FinishingOptions {
+                    tool: f.tool,
+                    strategy: enum_name::<pb::FinishingStrategy>(f.strategy, |s| match s {
+                        pb::FinishingStrategy::Unspecified => None,
+                        pb::FinishingStrategy::RasterX => Some("raster_x"),
+                        pb::FinishingStrategy::RasterY => Some("raster_y"),
+                        pb::FinishingStrategy::RasterAngle => Some("raster_angle"),
+                        pb::FinishingStrategy::IsoLevel => Some("iso_level"),
+                    })?,
+                    angle_deg: f.angle_deg,
+                    step_over_mm: f.step_over_mm,
+                    tolerance_mm: f.tolerance_mm,
+                    arcs: f.arcs,
+                })
+            })
+            .transpose()?,
+        dialect: enum_name::<pb::Dialect>(p.dialect, |d| match d {
+            pb::Dialect::Unspecified => None,
+            pb::Dialect::Linuxcnc => Some("linuxcnc"),
+            pb::Dialect::Fanuc => Some("fanuc"),
+        })?,
+    })
+}
+
+fn face_angle(face: &str) -> Result<Option<f64>, Status> {
+    let f = face.trim();
+    if f.is_empty() || f == "+Z" || f.chars().all(|c| c.is_ascii_digit()) {
+        return Ok(None);
+    }
+    match f.strip_prefix("A=").map(str::parse::<f64>) {
+        Some(Ok(a)) if a.is_finite() => Ok(Some(a)),
+        _ => Err(ErrorCode::InvalidArgument.status(format!("face '{face}' is not +Z or A=<degrees>"))),
+    }
 }
 
 type UpdateStream = Pin<Box<dyn tokio_stream::Stream<Item = Result<pb::PlanToolpathsUpdate, Status>> + Send>>;
+
+fn progress_update(fraction: f64, message: &str) -> pb::PlanToolpathsUpdate {
+    pb::PlanToolpathsUpdate {
+        update: Some(pb::plan_toolpaths_update::Update::Progress(Progress {
+            fraction,
+            message: message.to_string(),
+        })),
+    }
+}
 
 #[tonic::async_trait]
 impl pb::cam_service_server::CamService for CamServiceImpl {
     type PlanToolpathsStream = UpdateStream;
 
+    #[tracing::instrument(skip_all, fields(job_id))]
     async fn plan_toolpaths(
         &self,
         request: Request<pb::PlanToolpathsRequest>,
     ) -> Result<Response<Self::PlanToolpathsStream>, Status> {
-        let job_id = request.get_ref().context.as_ref().map(|c| c.job_id.clone()).unwrap_or_default();
-        tracing::warn!(%job_id, "cam stage requested but not available");
-        Err(ErrorCode::StageNotAvailable.status(
-            "stage not available: the cam service does not implement PlanToolpaths yet (see issue #3)",
-        ))
+        let req = request.into_inner();
+        let job_id = req.context.as_ref().map(|c| c.job_id.clone()).unwrap_or_default();
+        tracing::Span::current().record("job_id", job_id.as_str());
+        if req.faces.is_empty() {
+            return Err(ErrorCode::InvalidArgument.status("faces: at least one depth map is needed"));
+        }
+        let fallback = req.pixel_mm.map(|p| ImageMapping {
+            pixel_mm: p,
+            z_min_mm: req.z_min_mm,
+            z_max_mm: req.z_max_mm,
+        });
+        let mut faces = Vec::with_capacity(req.faces.len());
+        for (i, f) in req.faces.iter().enumerate() {
+            let load = |a: &depthmill_proto::types::v1::ArtifactRef, what: String| {
+                let store = self.store.clone();
+                let a = a.clone();
+                let fallback = fallback.clone();
+                async move {
+                    let bytes = store.read_all(&a.sha256, MAX_MAP_BYTES).await.map_err(artifact_status)?;
+                    let media = store
+                        .stat(&a.sha256)
+                        .await
+                        .map_err(artifact_status)?
+                        .map(|r| r.media_type)
+                        .unwrap_or(a.media_type);
+                    tokio::task::spawn_blocking(move || decode_map(bytes, &media, fallback.as_ref(), &what))
+                        .await
+                        .map_err(|e| Status::internal(format!("decoding failed: {e}")))?
+                }
+            };
+            let map_ref = f.depth_map.as_ref().ok_or_else(|| {
+                ErrorCode::InvalidArgument.status(format!("faces[{i}].depth_map is required"))
+            })?;
+            let map = load(map_ref, format!("faces[{i}].depth_map")).await?;
+            let roughing_map = match &f.roughing_map {
+                Some(r) => Some(load(r, format!("faces[{i}].roughing_map")).await?),
+                None => None,
+            };
+            faces.push(FaceInput { a_deg: face_angle(&f.face)?, map, roughing_map });
+        }
+        let opts = options(req.params.unwrap_or_default())?;
+        let guard = self.running.start(&job_id);
+        let (tx, rx) = mpsc::channel(32);
+        let library = self.library.clone();
+        let store = self.store.clone();
+        let span = tracing::Span::current();
+        tokio::spawn(async move {
+            let token = guard.token().clone();
+            let progress_tx = tx.clone();
+            let planned = tokio::task::spawn_blocking(move || {
+                span.in_scope(|| {
+                    let progress = move |f: f64, m: &str| {
+                        let _ = progress_tx.try_send(Ok(progress_update(f, m)));
+                    };
+                    let cancelled = move || token.is_cancelled();
+                    plan(&faces, &opts, &library, &MachineLimits::emco_f1(), &progress, &cancelled)
+                })
+            })
+            .await;
+            let out = match planned {
+                Ok(Ok(out)) => out,
+                Ok(Err(e)) => {
+                    tracing::info!(error = %e, "planning failed");
+                    let _ = tx.send(Err(Status::from(e))).await;
+                    return;
+                }
+                Err(e) => {
+                    let _ = tx.send(Err(Status::internal(format!("planning panicked: {e}")))).await;
+                    return;
+                }
+            };
+            let result = async {
+                let gcode = store.put_bytes("text/x-gcode", out.gcode.as_bytes()).await?;
+                let report_json = serde_json::to_vec_pretty(&out.report).unwrap_or_default();
+                let report = store.put_bytes("application/json", &report_json).await?;
+                let mut surface_png = Vec::new();
+                let mut leftover_png = Vec::new();
+                let encoded = depthmill_geometry::write_png_to(
+                    &out.preview.final_surface,
+                    &mut surface_png,
+                    PngDepth::Bits16,
+                )
+                .and_then(|()| {
+                    depthmill_geometry::write_png_to(
+                        &out.preview.leftover,
+                        &mut leftover_png,
+                        PngDepth::Bits8,
+                    )
+                });
+                let (preview, leftover) = match encoded {
+                    Ok(()) => (
+                        Some(store.put_bytes("image/png", &surface_png).await?.into()),
+                        Some(store.put_bytes("image/png", &leftover_png).await?.into()),
+                    ),
+                    Err(e) => {
+                        tracing::warn!(error = %e, "preview images not written");
+                        (None, None)
+                    }
+                };
+                Ok::<_, ArtifactError>(pb::PlanToolpathsResult {
+                    gcode: Some(gcode.into()),
+                    toolpath_preview: preview,
+                    plan_report: Some(report.into()),
+                    estimated_time_s: out.report.estimated_time_s,
+                    blocks: out.report.blocks as u64,
+                    diagnostics: Vec::new(),
+                    leftover_map: leftover,
+                    max_gouge_mm: out.preview.max_gouge_mm,
+                    max_leftover_mm: out.preview.max_leftover_mm,
+                    mean_leftover_mm: out.preview.mean_leftover_mm,
+                })
+            }
+            .await;
+            let msg = match result {
+                Ok(r) => {
+                    Ok(pb::PlanToolpathsUpdate { update: Some(pb::plan_toolpaths_update::Update::Result(r)) })
+                }
+                Err(e) => Err(artifact_status(e)),
+            };
+            let _ = tx.send(msg).await;
+            drop(guard);
+        });
+        Ok(Response::new(Box::pin(tokio_stream::wrappers::ReceiverStream::new(rx))))
     }
 
     async fn cancel_stage(
@@ -48,7 +313,16 @@ impl pb::cam_service_server::CamService for CamServiceImpl {
         &self,
         _request: Request<pb::ListToolsRequest>,
     ) -> Result<Response<pb::ListToolsResponse>, Status> {
-        Err(ErrorCode::StageNotAvailable
-            .status("stage not available: the cam service has no tool library yet"))
+        let tools = self
+            .library
+            .tools()
+            .map(|t| pb::Tool {
+                name: t.name.clone(),
+                kind: t.kind.as_str().to_string(),
+                diameter_mm: t.diameter_mm(),
+                cutting_length_mm: t.cutting_length_mm,
+            })
+            .collect();
+        Ok(Response::new(pb::ListToolsResponse { tools }))
     }
 }

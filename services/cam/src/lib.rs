@@ -1,11 +1,8 @@
 //! CAM service: tool library, tool compensation, roughing and finishing toolpaths, G-code.
 //!
-//! The cam stage is not provided yet: `PlanToolpaths` answers UNIMPLEMENTED ("stage not available"),
-//! which the orchestrator reports as a failed job with code `stage_not_available`. The service
-//! already serves health, reflection and `CancelStage`.
-//!
 //! # Layout
-//! - [`Config`]: listen address and artifact folder.
+//! - [`domain`]: pure planning code (compensation, strategies, clean-up, G-code, preview).
+//! - [`Config`]: listen address, artifact folder, extra tool folder.
 //! - [`serve`]: the gRPC server on a bound listener.
 //! - `grpc`: the tonic adapter (the only module that knows proto types).
 
@@ -28,6 +25,9 @@ pub struct Config {
     /// Folder of the artifact store shared with the orchestrator.
     #[serde(default = "default_artifacts_dir")]
     pub artifacts_dir: PathBuf,
+    /// Folder of `.tool` files added to (and overriding) the shipped tool library.
+    #[serde(default)]
+    pub tools_dir: Option<PathBuf>,
 }
 
 fn default_grpc_addr() -> SocketAddr {
@@ -40,18 +40,35 @@ fn default_artifacts_dir() -> PathBuf {
 
 impl Default for Config {
     fn default() -> Self {
-        Self { grpc_addr: default_grpc_addr(), artifacts_dir: default_artifacts_dir() }
+        Self { grpc_addr: default_grpc_addr(), artifacts_dir: default_artifacts_dir(), tools_dir: None }
     }
 }
 
 /// The gRPC service names this server reports in its health service.
 pub const SERVICE_NAMES: &[&str] = &[grpc::SERVICE_NAME];
 
+/// Why the CAM service could not start.
+#[derive(Debug, thiserror::Error)]
+pub enum CamServeError {
+    #[error(transparent)]
+    Serve(#[from] ServeError),
+    #[error("cannot open the artifact store")]
+    Artifacts(#[from] depthmill_common::artifacts::ArtifactError),
+    #[error("cannot load the tool library")]
+    Tools(#[from] domain::CamError),
+}
+
 /// Serves the cam service on `listener` until `shutdown` completes.
 pub async fn serve(
     listener: tokio::net::TcpListener,
-    _config: Config,
+    config: Config,
     shutdown: impl Future<Output = ()> + Send,
-) -> Result<(), ServeError> {
-    depthmill_common::grpc::serve_grpc(listener, grpc::routes(), SERVICE_NAMES, shutdown).await
+) -> Result<(), CamServeError> {
+    let mut library = domain::tool::ToolLibrary::builtin()?;
+    if let Some(dir) = &config.tools_dir {
+        library = library.merged(domain::tool::ToolLibrary::load_dir(dir)?);
+    }
+    let store = depthmill_common::artifacts::LocalStore::open(&config.artifacts_dir).await?;
+    let routes = grpc::routes(store, library);
+    Ok(depthmill_common::grpc::serve_grpc(listener, routes, SERVICE_NAMES, shutdown).await?)
 }

@@ -33,7 +33,11 @@ pub async fn serve(
             let listener = loopback().await?;
             let addr = listener.local_addr()?;
             cfg.services.$field = format!("http://{addr}");
-            let svc_cfg = $krate::Config { grpc_addr: addr, artifacts_dir: artifacts_dir.clone() };
+            let svc_cfg = $krate::Config {
+                grpc_addr: addr,
+                artifacts_dir: artifacts_dir.clone(),
+                ..Default::default()
+            };
             let stop = token.clone();
             tasks.spawn(async move {
                 $krate::serve(listener, svc_cfg, async move { stop.cancelled().await })

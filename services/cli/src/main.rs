@@ -1,5 +1,6 @@
 //! `depthmill`: the embedded stack (`serve`) and the client verbs (`submit`, `status`, `watch`, `fetch`).
 
+mod cam;
 mod client;
 mod embedded;
 
@@ -87,6 +88,48 @@ enum Command {
         #[command(flatten)]
         server: client::Server,
     },
+    /// Compensate a depth map for a tool: the surface the tool tip follows (no server).
+    Compensate {
+        /// Depth map: .png (depthmill metadata, or give --pixel-mm and the Z range) or .npy.
+        map: PathBuf,
+        /// Tool: a name (ball-6, flat-6, bull-6-1, v-6-90, or one of the shipped library) or a .tool file.
+        #[arg(long)]
+        tool: String,
+        /// Pixel reading: column (conservative: each cell a square column) or point (cell-centre samples).
+        #[arg(long, default_value = "column")]
+        model: String,
+        /// Height of everything outside the map and of cells without data (default: the map's z_min).
+        #[arg(long)]
+        floor_mm: Option<f64>,
+        #[command(flatten)]
+        map_args: cam::MapArgs,
+        /// Extra folder of .tool files.
+        #[arg(long)]
+        tools_dir: Option<PathBuf>,
+        /// Output: .npy (f32 mm) or .png (16-bit with metadata).
+        #[arg(short, long)]
+        output: PathBuf,
+    },
+    /// Plan roughing and finishing for a depth map and write the G-code (no server).
+    ///
+    /// Also writes <stem>.report.json, <stem>.preview.png (the surface the program leaves) and
+    /// <stem>.leftover.png next to the program.
+    Plan {
+        map: PathBuf,
+        /// The job's "plan" object as JSON (stock, roughing, finishing, dialect), as in DESIGN.md §7.
+        #[arg(long)]
+        options: Option<PathBuf>,
+        /// Over-approximating map for roughing.
+        #[arg(long)]
+        roughing_map: Option<PathBuf>,
+        #[command(flatten)]
+        map_args: cam::MapArgs,
+        #[arg(long)]
+        tools_dir: Option<PathBuf>,
+        /// Output program (.ngc).
+        #[arg(short, long)]
+        output: PathBuf,
+    },
     /// Download a job's artifacts and its JSON into a folder.
     Fetch {
         id: String,
@@ -135,6 +178,33 @@ fn main() -> anyhow::Result<()> {
             Command::Status { id, json, server } => client::status(&server, &id, json).await,
             Command::Watch { id, server } => client::watch(&server, &id).await,
             Command::Fetch { id, output, server } => client::fetch(&server, &id, &output).await,
+            Command::Compensate { map, tool, model, floor_mm, map_args, tools_dir, output } => {
+                depthmill_common::telemetry::init_tracing(cli.log_json);
+                tokio::task::block_in_place(|| {
+                    cam::run_compensate(
+                        &map,
+                        &tool,
+                        &model,
+                        floor_mm,
+                        &map_args,
+                        tools_dir.as_deref(),
+                        &output,
+                    )
+                })
+            }
+            Command::Plan { map, options, roughing_map, map_args, tools_dir, output } => {
+                depthmill_common::telemetry::init_tracing(cli.log_json);
+                tokio::task::block_in_place(|| {
+                    cam::run_plan(
+                        &map,
+                        options.as_deref(),
+                        roughing_map.as_deref(),
+                        &map_args,
+                        tools_dir.as_deref(),
+                        &output,
+                    )
+                })
+            }
         }
     })
 }

@@ -317,7 +317,11 @@ impl StageRunner for GrpcStages {
                     put(&mut out, "gcode", r.gcode);
                     put(&mut out, "toolpath_preview", r.toolpath_preview);
                     put(&mut out, "plan_report", r.plan_report);
+                    put(&mut out, "leftover_map", r.leftover_map);
                     out.metrics.insert("estimated_time_s".into(), r.estimated_time_s);
+                    out.metrics.insert("plan_max_gouge_mm".into(), r.max_gouge_mm);
+                    out.metrics.insert("plan_max_leftover_mm".into(), r.max_leftover_mm);
+                    out.metrics.insert("plan_mean_leftover_mm".into(), r.mean_leftover_mm);
                 }
                 Stage::Execute => {
                     let msg = machine::ExecuteProgramRequest {

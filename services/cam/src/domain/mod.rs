@@ -9,6 +9,7 @@
 
 pub mod cleanup;
 pub mod compensate;
+pub mod contour;
 pub mod error;
 pub mod feeds;
 pub mod finishing;

@@ -1,1 +1,449 @@
-//! (being written)
+//! Planning: depth maps and plan options -> one G-code program, a plan report and a preview.
+//!
+//! Per face: roughing with a flat end mill on the roughing map (or the depth map), compensation of
+//! the depth map for the finishing tool (conservative column reading), finishing on the tip
+//! surface, holder checks for both tools, clean-up (Douglas–Peucker then arcs), feeds and speeds
+//! from the tool × material table, time estimate, and a preview sweep measuring gouge and leftover.
+//! Faces with an A angle become A-axis rotations of one program.
+//!
+//! Options mirror the `plan` object of a job request (DESIGN.md §7); defaults: stock = the map's
+//! extent and highest point, aluminium; roughing `flat-6`, 2 mm step-down, 0.3 mm stock to leave,
+//! raster along X at 40 % of the diameter; finishing `ball-3`, raster along X, step-over from a
+//! 0.01 mm scallop, tolerance 0.01 mm, arcs on; dialect `linuxcnc`.
+
+use std::time::Instant;
+
+use depthmill_geometry::HeightMap;
+use nalgebra::Point3;
+use serde::{Deserialize, Serialize};
+
+use super::CamError;
+use super::compensate::{CompensateOptions, PixelModel, compensate};
+use super::feeds::{MachineLimits, cutting_data, estimate_time_s};
+use super::finishing::{FinishingParams, FinishingPattern, finishing, step_over_for_scallop};
+use super::gcode::{Dialect, FaceProgram, Operation, ProgramInfo, write_program};
+use super::holder::check_holder;
+use super::path::{Segment, Toolpath};
+use super::preview::{PreviewReport, SweptOp, simulate};
+use super::roughing::{RoughingParams, RoughingPattern, roughing};
+use super::tool::ToolLibrary;
+
+/// The `plan` object of a job request.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PlanOptions {
+    #[serde(default)]
+    pub stock: Option<StockOptions>,
+    #[serde(default)]
+    pub roughing: Option<RoughingOptions>,
+    #[serde(default)]
+    pub finishing: Option<FinishingOptions>,
+    /// `linuxcnc` or `fanuc`.
+    #[serde(default)]
+    pub dialect: Option<String>,
+}
+
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StockOptions {
+    #[serde(default)]
+    pub x_mm: Option<f64>,
+    #[serde(default)]
+    pub y_mm: Option<f64>,
+    #[serde(default)]
+    pub z_mm: Option<f64>,
+    #[serde(default)]
+    pub material: Option<String>,
+}
+
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RoughingOptions {
+    #[serde(default)]
+    pub tool: Option<String>,
+    #[serde(default)]
+    pub step_down_mm: Option<f64>,
+    #[serde(default)]
+    pub stock_to_leave_mm: Option<f64>,
+    /// `x`, `y` or `contour`.
+    #[serde(default)]
+    pub direction: Option<String>,
+}
+
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FinishingOptions {
+    #[serde(default)]
+    pub tool: Option<String>,
+    /// `raster_x`, `raster_y`, `raster_angle` or `iso_level`.
+    #[serde(default)]
+    pub strategy: Option<String>,
+    #[serde(default)]
+    pub angle_deg: Option<f64>,
+    #[serde(default)]
+    pub step_over_mm: Option<f64>,
+    #[serde(default)]
+    pub tolerance_mm: Option<f64>,
+    #[serde(default)]
+    pub arcs: Option<bool>,
+}
+
+/// One face to cut.
+pub struct FaceInput {
+    /// Rotation of the part about the A axis for this face; `None` for a 3-axis job.
+    pub a_deg: Option<f64>,
+    pub map: HeightMap,
+    /// Over-approximation of `map` for roughing, when the job has one.
+    pub roughing_map: Option<HeightMap>,
+}
+
+/// What [`plan`] produced.
+pub struct PlanOutput {
+    pub gcode: String,
+    pub report: PlanReport,
+    /// Preview of the first face.
+    pub preview: PreviewReport,
+}
+
+/// The plan report (JSON).
+#[derive(Debug, Clone, Serialize)]
+pub struct PlanReport {
+    pub dialect: String,
+    pub pixel_model: PixelModel,
+    pub tolerance_mm: f64,
+    pub material: String,
+    pub faces: Vec<FaceReport>,
+    pub blocks: usize,
+    pub estimated_time_s: f64,
+    pub timings_s: std::collections::BTreeMap<String, f64>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct FaceReport {
+    pub a_deg: Option<f64>,
+    pub width: u32,
+    pub height: u32,
+    pub pixel_mm: f64,
+    pub stock_top_mm: f64,
+    pub floor_mm: f64,
+    pub operations: Vec<OperationReport>,
+    pub max_gouge_mm: f64,
+    pub gouge_at_mm: Option<[f64; 2]>,
+    pub max_leftover_mm: f64,
+    pub mean_leftover_mm: f64,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct OperationReport {
+    pub strategy: String,
+    pub tool: String,
+    pub tool_number: u32,
+    pub step_over_mm: f64,
+    pub passes: usize,
+    pub points: usize,
+    pub lines: usize,
+    pub arcs: usize,
+    pub spindle_rpm: f64,
+    pub feed_mm_min: f64,
+    pub min_stickout_mm: f64,
+    /// Smallest clearance of shank and holder over the part; `None` when the operation has no moves.
+    pub holder_clearance_mm: Option<f64>,
+    pub estimated_time_s: f64,
+}
+
+fn positive(field: &str, v: Option<f64>, default: f64) -> Result<f64, CamError> {
+    match v {
+        None => Ok(default),
+        Some(x) if x.is_finite() && x > 0.0 => Ok(x),
+        Some(x) => Err(CamError::param(field, format!("must be a positive number, got {x}"))),
+    }
+}
+
+struct Steps<'a> {
+    progress: &'a (dyn Fn(f64, &str) + Sync),
+    cancelled: &'a (dyn Fn() -> bool + Sync),
+    timings: std::collections::BTreeMap<String, f64>,
+}
+
+impl Steps<'_> {
+    fn run<T>(
+        &mut self,
+        name: &str,
+        fraction: f64,
+        f: impl FnOnce() -> Result<T, CamError>,
+    ) -> Result<T, CamError> {
+        if (self.cancelled)() {
+            return Err(CamError::Cancelled);
+        }
+        (self.progress)(fraction, name);
+        let t = Instant::now();
+        let r = f()?;
+        *self.timings.entry(name.to_string()).or_insert(0.0) += t.elapsed().as_secs_f64();
+        Ok(r)
+    }
+}
+
+fn face_top(map: &HeightMap) -> Result<f64, CamError> {
+    map.z_range_of_data().map(|(_, hi)| f64::from(hi)).ok_or_else(|| CamError::InvalidMap {
+        message: format!("{}x{} map has no cell with data", map.width(), map.height()),
+    })
+}
+
+/// Plans every face into one program. `progress` gets the fraction done and the step's name;
+/// `cancelled` is polled between steps.
+pub fn plan(
+    faces: &[FaceInput],
+    options: &PlanOptions,
+    library: &ToolLibrary,
+    limits: &MachineLimits,
+    progress: &(dyn Fn(f64, &str) + Sync),
+    cancelled: &(dyn Fn() -> bool + Sync),
+) -> Result<PlanOutput, CamError> {
+    if faces.is_empty() {
+        return Err(CamError::param("faces", "no depth map to plan"));
+    }
+    let stock = options.stock.clone().unwrap_or_default();
+    let rough = options.roughing.clone().unwrap_or_default();
+    let fin = options.finishing.clone().unwrap_or_default();
+    let material = stock.material.clone().unwrap_or_else(|| "aluminium".into());
+    let dialect = match options.dialect.as_deref().unwrap_or("linuxcnc") {
+        "linuxcnc" => Dialect::Linuxcnc,
+        "fanuc" => Dialect::Fanuc,
+        other => return Err(CamError::param("plan.dialect", format!("'{other}' is not linuxcnc or fanuc"))),
+    };
+    let rough_tool = library.resolve(rough.tool.as_deref().unwrap_or("flat-6"))?;
+    let fin_tool = library.resolve(fin.tool.as_deref().unwrap_or("ball-3"))?;
+    let step_down = positive("plan.roughing.step_down_mm", rough.step_down_mm, 2.0)?;
+    let leave = match rough.stock_to_leave_mm {
+        None => 0.3,
+        Some(x) if x.is_finite() && x >= 0.0 => x,
+        Some(x) => {
+            return Err(CamError::param("plan.roughing.stock_to_leave_mm", format!("must be >= 0, got {x}")));
+        }
+    };
+    let pattern = match rough.direction.as_deref().unwrap_or("x") {
+        "x" => RoughingPattern::X,
+        "y" => RoughingPattern::Y,
+        "contour" => RoughingPattern::Contour,
+        other => {
+            return Err(CamError::param(
+                "plan.roughing.direction",
+                format!("'{other}' is not x, y or contour"),
+            ));
+        }
+    };
+    let tolerance = positive("plan.finishing.tolerance_mm", fin.tolerance_mm, 0.01)?;
+    let arcs = fin.arcs.unwrap_or(true);
+    let fin_pattern = match fin.strategy.as_deref().unwrap_or("raster_x") {
+        "raster_x" => FinishingPattern::RasterX,
+        "raster_y" => FinishingPattern::RasterY,
+        "raster_angle" => FinishingPattern::RasterAngle { angle_deg: fin.angle_deg.unwrap_or(45.0) },
+        "iso_level" => FinishingPattern::IsoLevel,
+        other => {
+            return Err(CamError::param(
+                "plan.finishing.strategy",
+                format!("'{other}' is not raster_x, raster_y, raster_angle or iso_level"),
+            ));
+        }
+    };
+    if fin.angle_deg.is_some() && !matches!(fin_pattern, FinishingPattern::RasterAngle { .. }) {
+        return Err(CamError::param("plan.finishing.angle_deg", "applies only to strategy raster_angle"));
+    }
+    let step_over = match fin.step_over_mm {
+        Some(_) => positive("plan.finishing.step_over_mm", fin.step_over_mm, 0.0)?,
+        None => step_over_for_scallop(&fin_tool, 0.01)?,
+    };
+    let rough_data = cutting_data(&rough_tool, &material, limits)?;
+    let fin_data = cutting_data(&fin_tool, &material, limits)?;
+
+    let mut steps = Steps { progress, cancelled, timings: Default::default() };
+    let mut programs = Vec::new();
+    let mut face_reports = Vec::new();
+    let mut first_preview = None;
+    let mut total_time = 0.0;
+    let per_face = 1.0 / faces.len() as f64;
+    for (fi, face) in faces.iter().enumerate() {
+        let base = fi as f64 * per_face;
+        let map = &face.map;
+        let floor = map.z_min_mm();
+        let top = match stock.z_mm {
+            Some(z) if z.is_finite() && z > 0.0 => floor + z,
+            Some(z) => return Err(CamError::param("plan.stock.z_mm", format!("must be positive, got {z}"))),
+            None => face_top(map)?,
+        };
+        if top < face_top(map)? - 1e-9 {
+            return Err(CamError::param(
+                "plan.stock.z_mm",
+                format!("stock top {top:.3} mm is below the part's highest point {:.3} mm", face_top(map)?),
+            ));
+        }
+        for (field, given, need) in [
+            ("plan.stock.x_mm", stock.x_mm, map.meta().width_mm()),
+            ("plan.stock.y_mm", stock.y_mm, map.meta().height_mm()),
+        ] {
+            if let Some(g) = given
+                && g + 1e-9 < need
+            {
+                return Err(CamError::param(
+                    field,
+                    format!("stock of {g} mm is smaller than the depth map's {need:.3} mm"),
+                ));
+            }
+        }
+        let safe_z = top + 5.0;
+        let rough_map = face.roughing_map.as_ref().unwrap_or(map);
+
+        let rough_path = steps.run("roughing", base + 0.05 * per_face, || {
+            roughing(
+                rough_map,
+                &rough_tool,
+                &RoughingParams {
+                    step_down_mm: step_down,
+                    stock_to_leave_mm: leave,
+                    step_over_mm: 0.4 * rough_tool.diameter_mm(),
+                    pattern,
+                    stock_top_mm: top,
+                    floor_mm: floor,
+                    safe_z_mm: safe_z,
+                },
+            )
+        })?;
+        let opts = CompensateOptions { pixel_model: PixelModel::Column, outside_z_mm: Some(floor) };
+        let tip =
+            steps.run("compensate", base + 0.25 * per_face, || compensate(map, &fin_tool.profile, &opts))?;
+        let fin_path = steps.run("finishing", base + 0.4 * per_face, || {
+            finishing(
+                &tip,
+                &fin_tool,
+                &FinishingParams {
+                    pattern: fin_pattern,
+                    step_over_mm: step_over,
+                    level_step_mm: step_over,
+                    zigzag: true,
+                    safe_z_mm: safe_z,
+                },
+            )
+        })?;
+        let rough_tip =
+            steps.run("compensate", base + 0.5 * per_face, || compensate(map, &rough_tool.profile, &opts))?;
+        let holders = steps.run("holder", base + 0.55 * per_face, || {
+            let points = |t: &Toolpath| {
+                t.passes.iter().flat_map(|p| p.points.iter().copied()).collect::<Vec<Point3<f64>>>()
+            };
+            Ok((
+                check_holder(map, &rough_tool, &rough_tip, &points(&rough_path), floor)?,
+                check_holder(map, &fin_tool, &tip, &points(&fin_path), floor)?,
+            ))
+        })?;
+        let (rough_segs, fin_segs) = steps.run("cleanup", base + 0.6 * per_face, || {
+            Ok((
+                super::cleanup::link(&rough_path, tolerance, arcs),
+                super::cleanup::link(&fin_path, tolerance, arcs),
+            ))
+        })?;
+        let start = Point3::new(map.origin_x_mm(), map.origin_y_mm(), safe_z);
+        let preview = steps.run("preview", base + 0.7 * per_face, || {
+            simulate(
+                map,
+                top,
+                &[
+                    SweptOp { tool: &rough_tool, start, segments: &rough_segs },
+                    SweptOp {
+                        tool: &fin_tool,
+                        start: rough_segs.last().map_or(start, Segment::end),
+                        segments: &fin_segs,
+                    },
+                ],
+            )
+        })?;
+        let mut ops_report = Vec::new();
+        let mut operations = Vec::new();
+        let mut prev_end = start;
+        for (number, path, segs, tool, data, holder, so) in [
+            (
+                1u32,
+                &rough_path,
+                rough_segs,
+                &rough_tool,
+                rough_data.clone(),
+                holders.0,
+                0.4 * rough_tool.diameter_mm(),
+            ),
+            (2u32, &fin_path, fin_segs, &fin_tool, fin_data.clone(), holders.1, step_over),
+        ] {
+            let time = estimate_time_s(prev_end, &segs, &data, limits);
+            prev_end = segs.last().map_or(prev_end, Segment::end);
+            total_time += time;
+            let (lines, arcs_n) = segs.iter().fold((0, 0), |(l, a), s| match s {
+                Segment::Arc { .. } => (l, a + 1),
+                _ => (l + 1, a),
+            });
+            ops_report.push(OperationReport {
+                strategy: path.strategy.clone(),
+                tool: tool.name.clone(),
+                tool_number: number,
+                step_over_mm: so,
+                passes: path.passes.len(),
+                points: path.point_count(),
+                lines,
+                arcs: arcs_n,
+                spindle_rpm: data.spindle_rpm,
+                feed_mm_min: data.feed_mm_min,
+                min_stickout_mm: holder.min_stickout_mm,
+                holder_clearance_mm: holder.clearance_mm.is_finite().then_some(holder.clearance_mm),
+                estimated_time_s: time,
+            });
+            operations.push(Operation {
+                tool: tool.clone(),
+                tool_number: number,
+                data,
+                segments: segs,
+                comment: format!("{} with {}", path.strategy, tool.name),
+            });
+        }
+        face_reports.push(FaceReport {
+            a_deg: face.a_deg,
+            width: map.width(),
+            height: map.height(),
+            pixel_mm: map.pixel_mm(),
+            stock_top_mm: top,
+            floor_mm: floor,
+            operations: ops_report,
+            max_gouge_mm: preview.max_gouge_mm,
+            gouge_at_mm: preview.gouge_at_mm,
+            max_leftover_mm: preview.max_leftover_mm,
+            mean_leftover_mm: preview.mean_leftover_mm,
+        });
+        programs.push(FaceProgram { a_deg: face.a_deg, operations });
+        if first_preview.is_none() {
+            first_preview = Some(preview);
+        }
+    }
+    let info = ProgramInfo {
+        title: "depthmill".into(),
+        lines: vec![
+            format!("material {material}"),
+            format!("tolerance {tolerance} mm, pixel model column"),
+            format!("roughing step-down {step_down} mm, stock to leave {leave} mm"),
+            format!("finishing step-over {step_over:.4} mm"),
+        ],
+    };
+    let gcode = steps.run("gcode", 0.95, || Ok(write_program(&info, &programs, dialect)))?;
+    let blocks = gcode.lines().count();
+    progress(1.0, "done");
+    let preview = first_preview.ok_or_else(|| CamError::param("faces", "no depth map to plan"))?;
+    Ok(PlanOutput {
+        gcode,
+        report: PlanReport {
+            dialect: options.dialect.clone().unwrap_or_else(|| "linuxcnc".into()),
+            pixel_model: PixelModel::Column,
+            tolerance_mm: tolerance,
+            material,
+            faces: face_reports,
+            blocks,
+            estimated_time_s: total_time,
+            timings_s: steps.timings,
+        },
+        preview,
+    })
+}

@@ -381,7 +381,34 @@ pub struct ToolLibrary {
     tools: BTreeMap<String, Tool>,
 }
 
+/// The tool library that ships with depthmill (`services/cam/tools/`), compiled in.
+const BUILTIN: &[(&str, &str)] = &[
+    ("ball-1.tool", include_str!("../../tools/ball-1.tool")),
+    ("ball-3.tool", include_str!("../../tools/ball-3.tool")),
+    ("ball-6.tool", include_str!("../../tools/ball-6.tool")),
+    ("flat-3.tool", include_str!("../../tools/flat-3.tool")),
+    ("flat-6.tool", include_str!("../../tools/flat-6.tool")),
+    ("flat-10.tool", include_str!("../../tools/flat-10.tool")),
+    ("bull-6-1.tool", include_str!("../../tools/bull-6-1.tool")),
+    ("v-6-90.tool", include_str!("../../tools/v-6-90.tool")),
+];
+
 impl ToolLibrary {
+    /// The library shipped with depthmill.
+    pub fn builtin() -> Result<Self, CamError> {
+        let mut lib = Self::default();
+        for (file, text) in BUILTIN {
+            lib.insert(Tool::parse(text, file)?);
+        }
+        Ok(lib)
+    }
+
+    /// This library with the tools of `other` added (replacing same-named ones).
+    pub fn merged(mut self, other: ToolLibrary) -> Self {
+        self.tools.extend(other.tools);
+        self
+    }
+
     /// Loads every `*.tool` file of `dir`. A tool named twice is an error naming both files.
     pub fn load_dir(dir: &Path) -> Result<Self, CamError> {
         let io = |e: std::io::Error| CamError::Io { path: dir.display().to_string(), message: e.to_string() };
@@ -469,6 +496,14 @@ mod tests {
             let e = Tool::parse(text, "t.tool").expect_err(text).to_string();
             assert!(e.contains(needle) && e.contains("t.tool"), "{text:?} -> {e}");
         }
+    }
+
+    #[test]
+    fn the_shipped_library_loads() {
+        let lib = ToolLibrary::builtin().expect("builtin");
+        assert_eq!(lib.tools().count(), 8);
+        assert_eq!(lib.resolve("flat-6").expect("flat-6").flutes, 3);
+        assert_eq!(lib.resolve("v-6-90").expect("v").kind, ToolKind::V);
     }
 
     #[test]

@@ -1,0 +1,10 @@
+# 3 mm flat end mill, carbide, 2 flutes.
+name = flat-3
+type = flat
+diameter_mm = 3
+cutting_length_mm = 9
+shank_diameter_mm = 3
+stickout_mm = 25
+holder_diameter_mm = 32
+holder_length_mm = 40
+flutes = 2

@@ -1,0 +1,81 @@
+//! The plan stage over gRPC: a depth map job planned by the real CAM service.
+
+use std::time::Duration;
+
+use depthmill_geometry::{HeightMap, HeightMapMeta, PngDepth};
+use depthmill_tests::scripted::Script;
+use depthmill_tests::{MachineBackend, StackOptions, TestStack};
+use serde_json::{Value, json};
+
+/// A 24 x 20 mm block at 0.4 mm pixels with a dome of radius 7 mm rising to 9 mm from a 2 mm base.
+fn dome_png() -> anyhow::Result<Vec<u8>> {
+    let mut meta = HeightMapMeta::new(60, 50, 0.4);
+    meta.z_min_mm = 0.0;
+    meta.z_max_mm = 10.0;
+    let map = HeightMap::from_fn(meta, |c, r| {
+        let (x, y) = ((f64::from(c) + 0.5) * 0.4 - 12.0, (f64::from(r) + 0.5) * 0.4 - 10.0);
+        let d2 = x * x + y * y;
+        (2.0 + if d2 < 49.0 { (49.0 - d2).sqrt() } else { 0.0 }) as f32
+    })?;
+    let mut bytes = Vec::new();
+    depthmill_geometry::write_png_to(&map, &mut bytes, PngDepth::Bits16)?;
+    Ok(bytes)
+}
+
+#[tokio::test]
+async fn a_depth_map_job_is_planned_by_the_cam_service_and_executed() -> anyhow::Result<()> {
+    let script = Script::default();
+    let stack = TestStack::start_with(StackOptions {
+        machine: MachineBackend::Scripted(script.clone()),
+        ..Default::default()
+    })
+    .await?;
+    let sha = stack.upload("image/png", dome_png()?).await?;
+    let job = json!({
+        "name": "dome",
+        "input": {"kind": "depth_map", "artifact": sha},
+        "plan": {"stock": {"z_mm": 10, "material": "aluminium"},
+                 "roughing": {"tool": "flat-3", "step_down_mm": 2.5, "stock_to_leave_mm": 0.3},
+                 "finishing": {"tool": "ball-3", "strategy": "raster_x", "step_over_mm": 0.5, "tolerance_mm": 0.01},
+                 "dialect": "linuxcnc"}
+    });
+    let (status, created) = stack.post_job(&job, None).await?;
+    assert_eq!(status, 201, "{created}");
+    let id = created["id"].as_str().expect("id").to_string();
+    let done = stack.wait_for_end(&id, Duration::from_secs(120)).await?;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    for name in ["gcode", "plan_report", "toolpath_preview", "leftover_map", "telemetry", "report"] {
+        assert!(done["artifacts"][name]["sha256"].is_string(), "{name} missing: {done}");
+    }
+    let gcode_sha = done["artifacts"]["gcode"]["sha256"].as_str().expect("gcode");
+    let gcode = stack.http.get(stack.url(&format!("/v1/artifacts/{gcode_sha}"))).send().await?.text().await?;
+    assert!(gcode.contains("G21"), "{}", &gcode[..gcode.len().min(400)]);
+    assert!(gcode.contains("M30"));
+    assert!(gcode.contains("T1") && gcode.contains("T2"), "roughing and finishing tools");
+    // The machine received the program the CAM service wrote.
+    assert_eq!(script.completed(), 1);
+    let report_sha = done["artifacts"]["plan_report"]["sha256"].as_str().expect("report");
+    let report: Value =
+        stack.http.get(stack.url(&format!("/v1/artifacts/{report_sha}"))).send().await?.json().await?;
+    let face = &report["faces"][0];
+    assert!(face["max_gouge_mm"].as_f64().unwrap_or(1.0) <= 0.001 + 0.01, "{report}");
+    assert_eq!(face["operations"].as_array().map(Vec::len), Some(2));
+    assert!(done["stage_timings_s"]["plan"].is_number());
+    stack.shutdown().await
+}
+
+#[tokio::test]
+async fn a_plan_the_cam_service_rejects_fails_without_retries() -> anyhow::Result<()> {
+    let stack = TestStack::start().await?;
+    let sha = stack.upload("image/png", dome_png()?).await?;
+    let job =
+        json!({"input": {"kind": "depth_map", "artifact": sha}, "plan": {"finishing": {"tool": "spoon-3"}}});
+    let (_, created) = stack.post_job(&job, None).await?;
+    let done = stack.wait_for_end(created["id"].as_str().expect("id"), Duration::from_secs(60)).await?;
+    assert_eq!(done["status"], "failed");
+    assert_eq!(done["error"]["code"], "invalid_argument");
+    assert_eq!(done["error"]["stage"], "plan");
+    assert!(done["error"]["message"].as_str().unwrap_or_default().contains("spoon-3"), "{done}");
+    assert_eq!(done["attempts"].as_array().map(Vec::len), Some(1));
+    stack.shutdown().await
+}
