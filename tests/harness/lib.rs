@@ -100,6 +100,8 @@ impl TestStack {
                 for name in $krate::SERVICE_NAMES {
                     service_urls.push((name.to_string(), endpoints.$field.clone()));
                 }
+                // Service configs differ beyond these two fields (the cam service has more).
+                #[allow(clippy::needless_update)]
                 let cfg = $krate::Config {
                     grpc_addr: addr,
                     artifacts_dir: artifacts_dir.clone(),

@@ -192,7 +192,6 @@ impl pb::cam_service_server::CamService for CamServiceImpl {
             let load = |a: &depthmill_proto::types::v1::ArtifactRef, what: String| {
                 let store = self.store.clone();
                 let a = a.clone();
-                let fallback = fallback.clone();
                 async move {
                     let bytes = store.read_all(&a.sha256, MAX_MAP_BYTES).await.map_err(artifact_status)?;
                     let media = store

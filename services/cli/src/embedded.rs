@@ -33,6 +33,8 @@ pub async fn serve(
             let listener = loopback().await?;
             let addr = listener.local_addr()?;
             cfg.services.$field = format!("http://{addr}");
+            // Service configs differ beyond these two fields (the cam service has more).
+            #[allow(clippy::needless_update)]
             let svc_cfg = $krate::Config {
                 grpc_addr: addr,
                 artifacts_dir: artifacts_dir.clone(),

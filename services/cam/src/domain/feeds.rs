@@ -167,7 +167,8 @@ fn effective_diameter_mm(tool: &Tool) -> f64 {
 ///
 /// Algorithm: `D_eff` as in the effective-diameter rule (ball: 0.6·D, V: D/2, others D);
 /// `rpm = vc·1000 / (π·D_eff)` rounded to whole rpm and clamped to the machine; chip load `fz`
-/// interpolated in the table at `D_eff` (conservative: a smaller diameter gives a smaller chip);
+/// interpolated in the table at the nominal diameter D (the tool's strength sets the chip load;
+/// the effective diameter only sets the surface speed);
 /// `feed = fz · flutes · rpm` rounded to whole mm/min and clamped to the machine's feed range;
 /// plunge = feed/2 for ball tools, feed/3 otherwise, at least the machine's minimum feed.
 /// Coolant for metals. Materials (case-insensitive, `-`/space read as `_`): aluminium, brass,
@@ -197,7 +198,7 @@ pub fn cutting_data(tool: &Tool, material: &str, limits: &MachineLimits) -> Resu
     }
     let rpm =
         (m.vc_m_min * 1000.0 / (std::f64::consts::PI * d_eff)).round().clamp(limits.rpm_min, limits.rpm_max);
-    let fz = interpolate(&FZ_DIAMETERS_MM, &m.fz_mm, d_eff);
+    let fz = interpolate(&FZ_DIAMETERS_MM, &m.fz_mm, tool.diameter_mm());
     let feed = (fz * f64::from(tool.flutes.max(1)) * rpm)
         .round()
         .clamp(limits.feed_min_mm_min, limits.feed_max_mm_min);
@@ -323,9 +324,9 @@ mod tests {
             d,
             CuttingData { spindle_rpm: 2000.0, feed_mm_min: 180.0, plunge_mm_min: 60.0, coolant: true }
         );
-        // Ball 3 in mild steel: D_eff 1.8 mm, 30 m/min -> 5305 rpm -> 2000; fz 0.005 · 2 · 2000 = 20.
+        // Ball 3 in mild steel: D_eff 1.8 mm, 30 m/min -> 5305 rpm -> 2000; fz 0.008 · 2 · 2000 = 32.
         let d = cutting_data(&tool("ball-3"), "Mild Steel", &lim).expect("data");
-        assert_eq!((d.spindle_rpm, d.feed_mm_min, d.plunge_mm_min), (2000.0, 20.0, 10.0));
+        assert_eq!((d.spindle_rpm, d.feed_mm_min, d.plunge_mm_min), (2000.0, 32.0, 16.0));
         // Big tool in steel: 30 m/min on 16 mm = 597 rpm, not clamped.
         let t = Tool::parse("name = f16\ntype = flat\ndiameter_mm = 16\nflutes = 4\n", "mem").expect("tool");
         let d = cutting_data(&t, "steel", &lim).expect("data");

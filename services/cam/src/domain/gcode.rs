@@ -15,11 +15,12 @@
 //!   X/Y/Z only for axes whose rounded value changed; arcs always carry X, Y, I and J.
 //! - Arcs use I/J (incremental centre, `G90.1` is never used), never R. I/J are computed from the
 //!   rounded start the control will actually be at: the centre is moved onto the perpendicular
-//!   bisector of the rounded start and end, rounded to the 0.0001 grid, and the grid neighbour
-//!   giving the closest start/end radii is kept: the two radii differ by < 0.0005 mm (tested;
-//!   LinuxCNC rejects mismatched radii). An arc whose ends round to the same XY point but was not
-//!   meant as a full circle (its unrounded ends differ), or whose start is unknown, or whose
-//!   radius rounds to zero, is written as a G1 to its end.
+//!   bisector of the rounded start and end and rounded to the 0.0001 grid; when the two radii then
+//!   differ by 0.0001 mm or more, the grid neighbour (±2 units) giving the closest radii is used.
+//!   The start and end radii differ by < 0.0005 mm (tested; LinuxCNC rejects mismatched radii).
+//!   An arc whose ends round to the same XY point but was not meant as a full circle (its
+//!   unrounded ends differ), or whose start is unknown, or whose radius rounds to zero, is
+//!   written as a G1 to its end.
 //! - Comments: `(...)` with `(`/`)` turned into `[`/`]`, non-printable or non-ASCII characters as
 //!   `?`, `%` as `pct`, at most 100 characters, never in the form of a LinuxCNC active comment
 //!   (`MSG,`, `DEBUG,`, `LOGOPEN,`, ... get a `- ` prefix); upper case for Fanuc.
@@ -405,7 +406,8 @@ impl Writer {
                     (rs - re).abs()
                 };
                 let mut best = (i0, j0, mismatch(i0, j0));
-                if !same_xy {
+                // Plain rounding is kept when its radii agree within one grid unit (0.0001 mm).
+                if !same_xy && best.2 >= 1.0 {
                     for di in -2..=2 {
                         for dj in -2..=2 {
                             let m = mismatch(i0 + di, j0 + dj);
@@ -653,6 +655,57 @@ N230 M30
             write_program(&ProgramInfo { title: "t".into(), lines: vec![] }, &faces, Dialect::Linuxcnc);
         assert!(text.contains("G3 X0.0000 Y0.0000 I5.0000 J0.0000 F120.0000"), "{text}");
         assert!(!text.contains("G2 "), "{text}");
+    }
+
+    #[test]
+    fn linked_toolpath_to_program() {
+        use crate::domain::cleanup::link;
+        use crate::domain::feeds::{MachineLimits, cutting_data, estimate_time_s};
+        use crate::domain::path::{Link, Pass, Toolpath};
+        let ring = |r: f64, z: f64| -> Vec<Point3<f64>> {
+            (0..=200)
+                .map(|i| {
+                    let a = i as f64 / 200.0 * 5.0;
+                    p(20.0 + r * a.cos(), 20.0 + r * a.sin(), z)
+                })
+                .collect()
+        };
+        let tp = Toolpath {
+            strategy: "finishing-iso-level".into(),
+            tool: "ball-3".into(),
+            passes: vec![
+                Pass { link: Link::Retract, points: ring(10.0, -1.0) },
+                Pass { link: Link::Direct, points: ring(9.0, -1.5) },
+                Pass {
+                    link: Link::Retract,
+                    points: (0..50).map(|i| p(i as f64 * 0.2, 0.0, -0.01 * i as f64)).collect(),
+                },
+            ],
+            safe_z_mm: 5.0,
+        };
+        let segs = link(&tp, 0.01, true);
+        let lim = MachineLimits::emco_f1();
+        let tool = Tool::from_spec(&"ball-3".parse().expect("spec")).expect("tool");
+        let data = cutting_data(&tool, "aluminium", &lim).expect("data");
+        let t = estimate_time_s(p(0.0, 0.0, 5.0), &segs, &data, &lim);
+        let faces = [FaceProgram {
+            a_deg: None,
+            operations: vec![Operation {
+                tool,
+                tool_number: 1,
+                data,
+                segments: segs,
+                comment: tp.strategy.clone(),
+            }],
+        }];
+        let info = ProgramInfo { title: "ring".into(), lines: vec![] };
+        for d in [Dialect::Linuxcnc, Dialect::Fanuc] {
+            let text = write_program(&info, &faces, d);
+            eprintln!("{text}estimated {t:.1} s");
+            let (arcs, worst) = max_arc_mismatch(&text);
+            assert!(arcs >= 2 && worst < ARC_RADIUS_MISMATCH_MAX_MM, "{arcs} {worst}");
+            assert!(text.lines().count() < 40, "{text}");
+        }
     }
 
     /// Replays the arcs of `text` as the control would and returns the largest radius mismatch.
