@@ -5,6 +5,7 @@ mod deploy;
 mod jobs;
 mod plan;
 mod recovery;
+mod rs274;
 
 use serde_json::{Value, json};
 

@@ -1,0 +1,99 @@
+//! The programs the CAM service writes run in a real interpreter: LinuxCNC's standalone `rs274`
+//! (Debian package `linuxcnc-uspace`, which `.ci/run` installs and then requires with
+//! `DEPTHMILL_REQUIRE_RS274=1`). Without it and without the variable, the test says so and passes.
+
+use std::process::Command;
+
+use depthmill_cam::domain::feeds::MachineLimits;
+use depthmill_cam::domain::plan::{
+    FaceInput, FinishingOptions, PlanOptions, RoughingOptions, StockOptions, plan,
+};
+use depthmill_cam::domain::tool::ToolLibrary;
+use depthmill_geometry::{HeightMap, HeightMapMeta};
+
+fn rs274_available() -> bool {
+    Command::new("rs274").arg("-h").output().is_ok()
+}
+
+fn dome() -> anyhow::Result<HeightMap> {
+    let mut meta = HeightMapMeta::new(100, 80, 0.3);
+    meta.z_max_mm = 12.0;
+    Ok(HeightMap::from_fn(meta, |c, r| {
+        let (x, y) = ((f64::from(c) + 0.5) * 0.3 - 15.0, (f64::from(r) + 0.5) * 0.3 - 12.0);
+        let d2 = x * x + y * y;
+        let step = if x > 8.0 { 1.5 } else { 0.0 };
+        (1.0 + step + if d2 < 81.0 { (81.0 - d2).sqrt() } else { 0.0 }) as f32
+    })?)
+}
+
+#[test]
+fn cam_programs_run_in_linuxcnc_rs274() -> anyhow::Result<()> {
+    if !rs274_available() {
+        assert!(
+            std::env::var_os("DEPTHMILL_REQUIRE_RS274").is_none(),
+            "DEPTHMILL_REQUIRE_RS274 is set but rs274 (linuxcnc-uspace) is not installed"
+        );
+        eprintln!("rs274 not installed (apt-get install linuxcnc-uspace): skipping the interpreter check");
+        return Ok(());
+    }
+    let dir = tempfile::tempdir()?;
+    let table = dir.path().join("tool.tbl");
+    std::fs::write(&table, "T1 P1 D6.0 Z0 ;roughing\nT2 P2 D3.0 Z0 ;finishing\n")?;
+    let library = ToolLibrary::builtin()?;
+    let cases = [
+        ("x", "raster_x", None),
+        ("contour", "raster_angle", Some(30.0)),
+        ("y", "iso_level", None),
+        ("x", "raster_y", None),
+    ];
+    for (direction, strategy, angle) in cases {
+        let options = PlanOptions {
+            stock: Some(StockOptions { z_mm: Some(13.0), ..Default::default() }),
+            roughing: Some(RoughingOptions {
+                tool: Some("flat-6".into()),
+                step_down_mm: Some(3.0),
+                stock_to_leave_mm: Some(0.3),
+                direction: Some(direction.into()),
+            }),
+            finishing: Some(FinishingOptions {
+                tool: Some("ball-3".into()),
+                strategy: Some(strategy.into()),
+                angle_deg: angle,
+                step_over_mm: Some(0.6),
+                tolerance_mm: Some(0.01),
+                arcs: Some(true),
+            }),
+            dialect: Some("linuxcnc".into()),
+        };
+        let out = plan(
+            &[FaceInput { a_deg: None, map: dome()?, roughing_map: None }],
+            &options,
+            &library,
+            &MachineLimits::emco_f1(),
+            &|_, _| {},
+            &|| false,
+        )?;
+        let program = dir.path().join(format!("{direction}-{strategy}.ngc"));
+        std::fs::write(&program, &out.gcode)?;
+        let canon = dir.path().join("canon.txt");
+        let run = Command::new("rs274").arg("-t").arg(&table).arg("-g").arg(&program).arg(&canon).output()?;
+        let stdout = String::from_utf8_lossy(&run.stdout);
+        let moves = std::fs::read_to_string(&canon)?;
+        assert!(run.status.success(), "{direction}/{strategy}: rs274 failed: {stdout}");
+        assert!(
+            moves.contains("PROGRAM_END"),
+            "{direction}/{strategy}: the interpreter stopped early:\n{stdout}"
+        );
+        let feeds = moves.matches("STRAIGHT_FEED").count() + moves.matches("ARC_FEED").count();
+        let blocks = out
+            .gcode
+            .lines()
+            .filter(|l| l.starts_with('G') || l.starts_with('X') || l.starts_with('Y'))
+            .count();
+        assert!(
+            feeds > 0 && feeds <= blocks + 10,
+            "{direction}/{strategy}: {feeds} feed moves for {blocks} blocks"
+        );
+    }
+    Ok(())
+}
