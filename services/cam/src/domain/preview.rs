@@ -2,12 +2,13 @@
 //! measure it against the model: gouge (cut below the part) and leftover (material above it).
 //!
 //! Algorithm: the stock is a Z-map on the depth map's grid, initially flat at the stock top. Every
-//! move (rapids too: a rapid through material shows up as a gouge) is sampled at no more than half
-//! a pixel; at each sample the tool, a solid of revolution, lowers every cell whose centre
-//! lies within its radius to `tip_z + height_at(distance)`. This is exact at cell centres for the
-//! sampled positions; between samples the surface can be higher than the true swept envelope by at
-//! most the tool's height change over half a pixel of travel (a quarter pixel either side), so leftover is slightly over-reported and
-//! gouge never under-reported by more than that. Rows are split into bands processed in parallel,
+//! move counts (rapids too: a rapid through material shows up as a gouge). A straight move at
+//! constant Z is applied exactly: each cell whose centre is within the tool radius of the segment
+//! drops to `z + height_at(distance to the segment)` (the tool's height grows with distance, so the
+//! nearest point of the segment is the deepest). Other moves are sampled at no more than half a
+//! pixel, and each sample lowers the cells within its radius to `tip_z + height_at(distance)`;
+//! between samples the surface can be higher than the true envelope by at most the tool's height
+//! change over a quarter pixel, so leftover is slightly over-reported there. Rows are split into bands processed in parallel,
 //! each band applying the samples whose footprint reaches it.
 
 use depthmill_geometry::HeightMap;
@@ -108,6 +109,169 @@ pub fn sample_segment(from: Point3<f64>, seg: &Segment, step: f64, out: &mut Vec
     }
 }
 
+/// One piece of a tool's motion as the preview applies it.
+#[derive(Debug, Clone, Copy)]
+enum Sweep {
+    /// The tool at one position (moves that change Z are sampled).
+    Point(Point3<f64>),
+    /// A straight move at constant Z from `a` to `b` (XY): the envelope is exact, each cell takes
+    /// the tool's height at its distance from the segment.
+    Level { a: [f64; 2], b: [f64; 2], z: f64 },
+    /// A ball end mill on a straight sloped move from tip `a` to tip `b`: the swept solid is a
+    /// capsule, and each cell takes the lowest point of the capsule above it (closed form).
+    BallLine { a: Point3<f64>, b: Point3<f64>, r: f64 },
+}
+
+/// The moves of `op` as sweeps: straight moves at constant Z whole, the rest sampled `step` apart.
+fn sweeps(op: &SweptOp<'_>, step: f64) -> Vec<Sweep> {
+    let ball = match op.tool.profile.spec() {
+        Some(depthmill_geometry::ToolSpec::Ball { diameter_mm }) => Some(diameter_mm / 2.0),
+        _ => None,
+    };
+    let mut out = vec![Sweep::Point(op.start)];
+    let mut samples = Vec::new();
+    let mut at = op.start;
+    for seg in op.segments {
+        match *seg {
+            Segment::Rapid(to) | Segment::Linear(to) | Segment::Plunge(to) if (to.z - at.z).abs() < 1e-12 => {
+                out.push(Sweep::Level { a: [at.x, at.y], b: [to.x, to.y], z: at.z });
+            }
+            Segment::Rapid(to) | Segment::Linear(to) | Segment::Plunge(to) if ball.is_some() => {
+                out.push(Sweep::BallLine { a: at, b: to, r: ball.unwrap_or_default() });
+            }
+            _ => {
+                samples.clear();
+                sample_segment(at, seg, step, &mut samples);
+                out.extend(samples.iter().map(|s| Sweep::Point(*s)));
+            }
+        }
+        at = seg.end();
+    }
+    out
+}
+
+struct Grid {
+    w: usize,
+    x0: f64,
+    y0: f64,
+    p: f64,
+}
+
+/// Lowest point, above the horizontal position `c`, of the solid a ball end mill of radius `r`
+/// sweeps when its tip moves straight from `a` to `b`: the capsule of radius `r` around the
+/// centre segment `a + r·ẑ` .. `b + r·ẑ`. It is the lowest of: the lower intersection of the
+/// vertical line through `c` with the infinite cylinder around the centre line, when that point
+/// projects inside the segment, and the lowest points of the two end spheres. `None` when the
+/// vertical line misses the capsule.
+fn capsule_bottom(c: [f64; 2], a: Point3<f64>, b: Point3<f64>, r: f64) -> Option<f64> {
+    let sphere = |q: Point3<f64>| {
+        let d2 = (c[0] - q.x).powi(2) + (c[1] - q.y).powi(2);
+        (d2 <= r * r).then(|| q.z + r - (r * r - d2).sqrt())
+    };
+    let mut best = match (sphere(a), sphere(b)) {
+        (Some(x), Some(y)) => Some(x.min(y)),
+        (x, y) => x.or(y),
+    };
+    let v = b - a;
+    let l2 = v.norm_squared();
+    let hxy2 = v.x * v.x + v.y * v.y;
+    if l2 > 0.0 && hxy2 > 1e-18 {
+        // w(z) = (c - centre_a) with the vertical coordinate z - centre_a.z = s: |w|² - (w·v)²/L² = r².
+        let (ux, uy) = (c[0] - a.x, c[1] - a.y);
+        let uv = ux * v.x + uy * v.y; // horizontal part of w·v; the vertical part is s·v.z
+        let alpha = hxy2 / l2;
+        let beta = -uv * v.z / l2;
+        let gamma = ux * ux + uy * uy - uv * uv / l2 - r * r;
+        let disc = beta * beta - alpha * gamma;
+        if disc >= 0.0 {
+            let s = (-beta - disc.sqrt()) / alpha; // lower root: centre-relative height
+            let t = (uv + s * v.z) / l2;
+            if (0.0..=1.0).contains(&t) {
+                let z = a.z + r + s; // a point on the capsule surface (centre line is at tip + r)
+                best = Some(best.map_or(z, |x| x.min(z)));
+            }
+        }
+    }
+    best
+}
+
+/// Squared distance from `c` to the segment `a`–`b` (XY).
+#[inline]
+fn dist2_to_segment(c: [f64; 2], a: [f64; 2], b: [f64; 2]) -> f64 {
+    let (vx, vy) = (b[0] - a[0], b[1] - a[1]);
+    let (wx, wy) = (c[0] - a[0], c[1] - a[1]);
+    let len2 = vx * vx + vy * vy;
+    let t = if len2 > 0.0 { ((wx * vx + wy * vy) / len2).clamp(0.0, 1.0) } else { 0.0 };
+    let (dx, dy) = (wx - t * vx, wy - t * vy);
+    dx * dx + dy * dy
+}
+
+/// Lowers the cells of one band (rows `row0 .. row0 + rows`) under one sweep.
+fn apply(sw: &Sweep, shape: &Shape<'_>, r2: f64, g: &Grid, band: &mut [f32], row0: usize, rows: usize) {
+    let radius = r2.sqrt();
+    let (xlo, xhi, ylo, yhi) = match *sw {
+        Sweep::Point(s) => (s.x, s.x, s.y, s.y),
+        Sweep::Level { a, b, .. } => (a[0].min(b[0]), a[0].max(b[0]), a[1].min(b[1]), a[1].max(b[1])),
+        Sweep::BallLine { a, b, .. } => (a.x.min(b.x), a.x.max(b.x), a.y.min(b.y), a.y.max(b.y)),
+    };
+    let row_lo = (((ylo - radius - g.y0) / g.p - 0.5).floor() as i64).max(row0 as i64);
+    let row_hi = (((yhi + radius - g.y0) / g.p - 0.5).ceil() as i64).min((row0 + rows) as i64 - 1);
+    for row in row_lo..=row_hi {
+        let cy = g.y0 + (row as f64 + 0.5) * g.p;
+        let line = &mut band[(row as usize - row0) * g.w..][..g.w];
+        match *sw {
+            Sweep::Point(s) => {
+                let dy2 = (cy - s.y).powi(2);
+                if dy2 > r2 {
+                    continue;
+                }
+                // Only the columns inside the tool's circle on this row.
+                let half = (r2 - dy2).sqrt();
+                let col_lo = (((s.x - half - g.x0) / g.p - 0.5).floor() as i64).max(0);
+                let col_hi = (((s.x + half - g.x0) / g.p - 0.5).ceil() as i64).min(g.w as i64 - 1);
+                for col in col_lo..=col_hi {
+                    let dx = g.x0 + (col as f64 + 0.5) * g.p - s.x;
+                    if let Some(hgt) = shape.height_at_d2(dx * dx + dy2) {
+                        let z = (s.z + hgt) as f32;
+                        let cell = &mut line[col as usize];
+                        if z < *cell {
+                            *cell = z;
+                        }
+                    }
+                }
+            }
+            Sweep::BallLine { a, b, r } => {
+                let col_lo = (((xlo - radius - g.x0) / g.p - 0.5).floor() as i64).max(0);
+                let col_hi = (((xhi + radius - g.x0) / g.p - 0.5).ceil() as i64).min(g.w as i64 - 1);
+                for col in col_lo..=col_hi {
+                    let cx = g.x0 + (col as f64 + 0.5) * g.p;
+                    if let Some(zz) = capsule_bottom([cx, cy], a, b, r) {
+                        let zz = zz as f32;
+                        let cell = &mut line[col as usize];
+                        if zz < *cell {
+                            *cell = zz;
+                        }
+                    }
+                }
+            }
+            Sweep::Level { a, b, z } => {
+                let col_lo = (((xlo - radius - g.x0) / g.p - 0.5).floor() as i64).max(0);
+                let col_hi = (((xhi + radius - g.x0) / g.p - 0.5).ceil() as i64).min(g.w as i64 - 1);
+                for col in col_lo..=col_hi {
+                    let cx = g.x0 + (col as f64 + 0.5) * g.p;
+                    if let Some(hgt) = shape.height_at_d2(dist2_to_segment([cx, cy], a, b)) {
+                        let zz = (z + hgt) as f32;
+                        let cell = &mut line[col as usize];
+                        if zz < *cell {
+                            *cell = zz;
+                        }
+                    }
+                }
+            }
+        }
+    }
+}
+
 /// Sweeps `ops` over a stock flat at `stock_top_mm` on `target`'s grid and compares with `target`.
 pub fn simulate(
     target: &HeightMap,
@@ -125,67 +289,39 @@ pub fn simulate(
     let mut samples_total = 0u64;
     for op in ops {
         let radius = op.tool.radius_mm();
-        let mut samples = Vec::new();
-        let mut at = op.start;
-        samples.push(at);
-        for seg in op.segments {
-            sample_segment(at, seg, p * SAMPLE_STEP_PX, &mut samples);
-            at = seg.end();
-        }
-        samples_total += samples.len() as u64;
-        // Bucket samples by the row bands their footprint reaches.
+        let r2 = radius * radius;
+        let sweeps = sweeps(op, p * SAMPLE_STEP_PX);
+        samples_total += sweeps.len() as u64;
+        // Bucket sweeps by the row bands their footprint reaches.
         let bands = h.div_ceil(BAND_ROWS);
-        let mut buckets: Vec<Vec<Point3<f64>>> = vec![Vec::new(); bands];
-        for s in &samples {
-            // The tool's lowest point is its tip: a sample at or above the stock top cuts nothing.
-            if s.z >= stock_top_mm {
+        let mut buckets: Vec<Vec<Sweep>> = vec![Vec::new(); bands];
+        for sw in sweeps {
+            let (ylo, yhi, z) = match sw {
+                Sweep::Point(s) => (s.y, s.y, s.z),
+                Sweep::Level { a, b, z } => (a[1].min(b[1]), a[1].max(b[1]), z),
+                Sweep::BallLine { a, b, .. } => (a.y.min(b.y), a.y.max(b.y), a.z.min(b.z)),
+            };
+            // The tool's lowest point is its tip: a sweep at or above the stock top cuts nothing.
+            if z >= stock_top_mm {
                 continue;
             }
-            let row_lo = (((s.y - radius - y0) / p).floor() as i64).max(0);
-            let row_hi = (((s.y + radius - y0) / p).ceil() as i64).min(h as i64 - 1);
-            if row_hi < 0 || row_lo > h as i64 - 1 {
+            let row_lo = (((ylo - radius - y0) / p).floor() as i64).max(0);
+            let row_hi = (((yhi + radius - y0) / p).ceil() as i64).min(h as i64 - 1);
+            if row_hi < 0 || row_lo > h as i64 - 1 || row_lo > row_hi {
                 continue;
             }
             for bucket in &mut buckets[row_lo as usize / BAND_ROWS..=row_hi as usize / BAND_ROWS] {
-                bucket.push(*s);
+                bucket.push(sw);
             }
         }
         let shape = Shape::of(&op.tool.profile);
-        let r2 = radius * radius;
+        let grid = Grid { w, x0, y0, p };
         surface.par_chunks_mut(BAND_ROWS * w).zip(buckets.par_iter()).enumerate().for_each(
-            |(b, (band, pts))| {
+            |(b, (band, items))| {
                 let band_row0 = b * BAND_ROWS;
                 let band_rows = band.len() / w;
-                for s in pts {
-                    let row_lo = (((s.y - radius - y0) / p - 0.5).floor() as i64).max(band_row0 as i64);
-                    let row_hi = (((s.y + radius - y0) / p - 0.5).ceil() as i64)
-                        .min((band_row0 + band_rows) as i64 - 1);
-                    for row in row_lo..=row_hi {
-                        let cy = y0 + (row as f64 + 0.5) * p;
-                        let dy2 = (cy - s.y).powi(2);
-                        if dy2 > r2 {
-                            continue;
-                        }
-                        // Only the columns inside the tool's circle on this row.
-                        let half = (r2 - dy2).sqrt();
-                        let col_lo = (((s.x - half - x0) / p - 0.5).floor() as i64).max(0);
-                        let col_hi = (((s.x + half - x0) / p - 0.5).ceil() as i64).min(w as i64 - 1);
-                        if col_lo > col_hi {
-                            continue;
-                        }
-                        let line = &mut band[(row as usize - band_row0) * w..][..w];
-                        for col in col_lo..=col_hi {
-                            let dx = x0 + (col as f64 + 0.5) * p - s.x;
-                            let d2 = dx * dx + dy2;
-                            if let Some(hgt) = shape.height_at_d2(d2) {
-                                let z = (s.z + hgt) as f32;
-                                let cell = &mut line[col as usize];
-                                if z < *cell {
-                                    *cell = z;
-                                }
-                            }
-                        }
-                    }
+                for sw in items {
+                    apply(sw, &shape, r2, &grid, band, band_row0, band_rows);
                 }
             },
         );
@@ -246,7 +382,8 @@ mod tests {
         HeightMap::filled(meta, z).expect("map")
     }
 
-    /// Brute force: every sample against every cell.
+    /// Brute force, every sweep against every cell: level moves by the exact distance to the
+    /// segment, the others by samples.
     fn reference(
         target: &HeightMap,
         stock: f64,
@@ -254,20 +391,35 @@ mod tests {
         start: Point3<f64>,
         segs: &[Segment],
     ) -> Vec<f32> {
-        let mut pts = vec![start];
-        let mut at = start;
-        for s in segs {
-            sample_segment(at, s, target.pixel_mm() * SAMPLE_STEP_PX, &mut pts);
-            at = s.end();
-        }
+        let op = SweptOp { tool, start, segments: segs };
+        let all = sweeps(&op, target.pixel_mm() * SAMPLE_STEP_PX);
         let mut out = vec![stock as f32; target.data().len()];
         for r in 0..target.height() {
             for c in 0..target.width() {
                 let (x, y) = target.cell_center(c, r);
-                for p in &pts {
-                    if let Some(hh) = tool.profile.height_at(((x - p.x).powi(2) + (y - p.y).powi(2)).sqrt()) {
+                for sw in &all {
+                    let (d, z) = match *sw {
+                        Sweep::Point(p) => (((x - p.x).powi(2) + (y - p.y).powi(2)).sqrt(), p.z),
+                        Sweep::Level { a, b, z } => (dist2_to_segment([x, y], a, b).sqrt(), z),
+                        Sweep::BallLine { a, b, .. } => {
+                            // Dense samples: the exact capsule must be at least as low, and close.
+                            let mut lowest = f64::INFINITY;
+                            for k in 0..=400 {
+                                let q = a + (b - a) * (f64::from(k) / 400.0);
+                                if let Some(hh) =
+                                    tool.profile.height_at(((x - q.x).powi(2) + (y - q.y).powi(2)).sqrt())
+                                {
+                                    lowest = lowest.min(q.z + hh);
+                                }
+                            }
+                            let i = (r * target.width() + c) as usize;
+                            out[i] = out[i].min(lowest as f32);
+                            continue;
+                        }
+                    };
+                    if let Some(hh) = tool.profile.height_at(d) {
                         let i = (r * target.width() + c) as usize;
-                        out[i] = out[i].min((p.z + hh) as f32);
+                        out[i] = out[i].min((z + hh) as f32);
                     }
                 }
             }
@@ -299,6 +451,24 @@ mod tests {
         assert!((f64::from(z) - 1.0).abs() < 0.01, "{z}");
         assert_eq!(rep.max_gouge_mm, 0.0);
         assert!((rep.max_leftover_mm - 3.0).abs() < 1e-6);
+    }
+
+    #[test]
+    fn sloped_ball_moves_take_the_exact_capsule_bottom() {
+        let target = flat_target(60, 40, 0.0);
+        let tool = Tool::from_spec(&"ball-2".parse::<ToolSpec>().expect("spec")).expect("tool");
+        let start = Point3::new(0.5, 1.0, 2.0);
+        let segs = [
+            Segment::Linear(Point3::new(5.0, 3.0, 0.5)),
+            Segment::Linear(Point3::new(1.0, 3.5, 1.5)),
+            Segment::Linear(Point3::new(1.0, 3.5, 1.0)),
+        ];
+        let rep = simulate(&target, 3.0, &[SweptOp { tool: &tool, start, segments: &segs }]).expect("sim");
+        let dense = reference(&target, 3.0, &tool, start, &segs);
+        for (exact, sampled) in rep.final_surface.data().iter().zip(&dense) {
+            // The exact envelope is never above dense samples of it, and barely below them.
+            assert!(*exact <= sampled + 1e-5 && sampled - exact <= 0.01, "{exact} vs {sampled}");
+        }
     }
 
     #[test]
