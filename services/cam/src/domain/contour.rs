@@ -41,6 +41,38 @@ pub struct Polyline {
 }
 
 impl Polyline {
+    /// Splits the polyline at the segments `keep` rejects (dropping them) and appends the pieces
+    /// to `out`; a closed loop with every segment kept stays whole, and the pieces of a broken loop
+    /// start right after a rejected segment, so no piece is cut in two needlessly.
+    pub fn split_segments(self, keep: impl Fn(Point2<f64>, Point2<f64>) -> bool, out: &mut Vec<Polyline>) {
+        let n = self.points.len();
+        if n < 2 {
+            return;
+        }
+        let segs = if self.closed { n } else { n - 1 };
+        let good: Vec<bool> = (0..segs).map(|i| keep(self.points[i], self.points[(i + 1) % n])).collect();
+        if good.iter().all(|&g| g) {
+            out.push(self);
+            return;
+        }
+        let start = if self.closed { good.iter().position(|&g| !g).map_or(0, |i| i + 1) } else { 0 };
+        let mut cur: Vec<Point2<f64>> = Vec::new();
+        for k in 0..segs {
+            let i = (start + k) % segs;
+            if good[i] {
+                if cur.is_empty() {
+                    cur.push(self.points[i]);
+                }
+                cur.push(self.points[(i + 1) % n]);
+            } else if !cur.is_empty() {
+                out.push(Polyline { points: std::mem::take(&mut cur), closed: false });
+            }
+        }
+        if !cur.is_empty() {
+            out.push(Polyline { points: cur, closed: false });
+        }
+    }
+
     /// Length in mm (including the closing segment of a closed loop).
     pub fn length_mm(&self) -> f64 {
         let open: f64 = self.points.windows(2).map(|w| (w[1] - w[0]).norm()).sum();

@@ -522,34 +522,7 @@ fn iso_levels(
 
 /// Splits `line` where a segment's middle touches a NaN cell.
 fn split_nan(s: &Surface<'_>, line: Polyline, out: &mut Vec<Polyline>) {
-    let n = line.points.len();
-    let segs = if line.closed { n } else { n - 1 };
-    let good: Vec<bool> = (0..segs)
-        .map(|i| {
-            let mid = Point2::from((line.points[i].coords + line.points[(i + 1) % n].coords) / 2.0);
-            !s.max_at(mid).1
-        })
-        .collect();
-    if good.iter().all(|&g| g) {
-        out.push(line);
-        return;
-    }
-    let start = if line.closed { good.iter().position(|&g| !g).map_or(0, |i| i + 1) } else { 0 };
-    let mut cur: Vec<Point2<f64>> = Vec::new();
-    for k in 0..segs {
-        let i = (start + k) % segs;
-        if good[i] {
-            if cur.is_empty() {
-                cur.push(line.points[i]);
-            }
-            cur.push(line.points[(i + 1) % n]);
-        } else if !cur.is_empty() {
-            out.push(Polyline { points: std::mem::take(&mut cur), closed: false });
-        }
-    }
-    if !cur.is_empty() {
-        out.push(Polyline { points: cur, closed: false });
-    }
+    line.split_segments(|a, b| !s.max_at(Point2::from((a.coords + b.coords) / 2.0)).1, out);
 }
 
 #[cfg(test)]

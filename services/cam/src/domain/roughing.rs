@@ -507,31 +507,7 @@ fn contour_level(keep: &KeepOut<'_>, z: f64, step_over: f64, passes: &mut Vec<Pa
 
 /// Splits `line` at the segments that are not clear at `z` (dropping them).
 fn split_clear(keep: &KeepOut<'_>, z: f64, line: Polyline, out: &mut Vec<Polyline>) {
-    let n = line.points.len();
-    let segs = if line.closed { n } else { n - 1 };
-    let clear: Vec<bool> =
-        (0..segs).map(|i| keep.segment_clear(line.points[i], line.points[(i + 1) % n], z)).collect();
-    if line.closed && clear.iter().all(|&c| c) {
-        out.push(line);
-        return;
-    }
-    // Start right after a blocked segment for closed loops, at 0 for open lines.
-    let start = if line.closed { clear.iter().position(|&c| !c).map_or(0, |i| i + 1) } else { 0 };
-    let mut cur: Vec<Point2<f64>> = Vec::new();
-    for k in 0..segs {
-        let i = (start + k) % segs;
-        if clear[i] {
-            if cur.is_empty() {
-                cur.push(line.points[i]);
-            }
-            cur.push(line.points[(i + 1) % n]);
-        } else if !cur.is_empty() {
-            out.push(Polyline { points: std::mem::take(&mut cur), closed: false });
-        }
-    }
-    if !cur.is_empty() {
-        out.push(Polyline { points: cur, closed: false });
-    }
+    line.split_segments(|a, b| keep.segment_clear(a, b, z), out);
 }
 
 /// Orders polylines by nearest start from `pos`: open lines may be reversed, closed loops are
