@@ -86,8 +86,15 @@ impl HeightMapMeta {
         if self.z_min_mm >= self.z_max_mm {
             return Err(GeometryError::invalid("z_max_mm", self.z_max_mm, "a value greater than z_min_mm"));
         }
-        if let Face::A { angle_deg } = self.face {
-            check_finite("face angle_deg", angle_deg)?;
+        match self.face {
+            Face::A { angle_deg } => check_finite("face angle_deg", angle_deg)?,
+            Face::Normal { x, y, z } => {
+                let norm = (x * x + y * y + z * z).sqrt();
+                if !norm.is_finite() || (norm - 1.0).abs() > 1e-6 {
+                    return Err(GeometryError::invalid("face normal length", norm, "a unit vector"));
+                }
+            }
+            _ => {}
         }
         Ok(())
     }

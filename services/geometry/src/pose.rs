@@ -77,7 +77,8 @@ impl Face {
     ///
     /// One rotation about a machine axis: `+Z` identity; `-Z` 180° about X; `+Y` +90° about X;
     /// `-Y` −90° about X; `+X` −90° about Y; `-X` +90° about Y; `A=a` `a` degrees about X (so
-    /// `A=90` equals `+Y` and `A=180` equals `-Z`).
+    /// `A=90` equals `+Y` and `A=180` equals `-Z`); `N=n` the shortest rotation taking `n` to +Z
+    /// (180° about X when `n` points straight down).
     pub fn view_from_part(&self) -> UnitQuaternion<f64> {
         let about = |axis: nalgebra::Unit<Vector3<f64>>, deg: f64| {
             UnitQuaternion::from_axis_angle(&axis, deg.to_radians())
@@ -90,6 +91,12 @@ impl Face {
             Face::PosX => about(Vector3::y_axis(), -90.0),
             Face::NegX => about(Vector3::y_axis(), 90.0),
             Face::A { angle_deg } => about(Vector3::x_axis(), angle_deg),
+            Face::Normal { .. } => {
+                let n = self.normal_in_part();
+                // The shortest rotation; straight down has no unique one: turn 180° about X like -Z.
+                UnitQuaternion::rotation_between(&n, &Vector3::z())
+                    .unwrap_or_else(|| about(Vector3::x_axis(), 180.0))
+            }
         }
     }
 
@@ -141,6 +148,9 @@ mod tests {
         prop_oneof![
             (0usize..6).prop_map(|i| Face::NAMED[i]),
             (-720.0f64..720.0).prop_map(|angle_deg| Face::A { angle_deg }),
+            (-1.0f64..1.0, -1.0f64..1.0, -1.0f64..1.0)
+                .prop_filter_map("zero", |(x, y, z)| Face::normal(Vector3::new(x, y, z))),
+            Just(Face::Normal { x: 0.0, y: 0.0, z: -1.0 }),
         ]
     }
 
