@@ -5,10 +5,12 @@
 //! already serves health, reflection and `CancelStage`.
 //!
 //! # Layout
+//! - [`domain`]: the library (machine profiles so far).
 //! - [`Config`]: listen address and artifact folder.
 //! - [`serve`]: the gRPC server on a bound listener.
 //! - `grpc`: the tonic adapter (the only module that knows proto types).
 
+pub mod domain;
 mod grpc;
 
 use std::future::Future;

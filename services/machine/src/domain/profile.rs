@@ -1,0 +1,313 @@
+//! [`MachineProfile`]: what a machine can do, read from a TOML file per machine
+//! (`services/machine/machines/<name>.toml`; the EMCO F1 class ships built in).
+//!
+//! Machine coordinates: X and Y from the home corner, Z = 0 at the top of travel (where
+//! `G53 G0 Z0` and `G28` go), negative downwards; A in degrees. Every commanded position is
+//! quantised to `step_mm` (the stepper resolution). Feeds in mm/min, accelerations in mm/s²,
+//! spindle in rpm.
+
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+/// The EMCO F1 profile, as shipped.
+pub const EMCO_F1_TOML: &str = include_str!("../../machines/emco-f1.toml");
+
+/// A bad profile: the file, the field and why.
+#[derive(Debug, thiserror::Error)]
+pub enum ProfileError {
+    #[error("{file}: {message}")]
+    Parse { file: String, message: String },
+    #[error("{file}: {field} = {value}: {reason}")]
+    Invalid { file: String, field: String, value: String, reason: String },
+    #[error("unknown machine '{name}': expected one of {known}")]
+    Unknown { name: String, known: String },
+    #[error("{file}: {source}")]
+    Io {
+        file: String,
+        #[source]
+        source: std::io::Error,
+    },
+}
+
+/// Travel of one axis (`min_mm <= max_mm`; for A, degrees, and `min = max = 0` means continuous).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AxisRange {
+    pub min_mm: f64,
+    pub max_mm: f64,
+}
+
+impl AxisRange {
+    /// True when `v` lies within the travel (with `tol` slack for rounding).
+    pub fn contains(&self, v: f64, tol: f64) -> bool {
+        v >= self.min_mm - tol && v <= self.max_mm + tol
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Axes {
+    pub x: AxisRange,
+    pub y: AxisRange,
+    pub z: AxisRange,
+    pub a: AxisRange,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Motion {
+    pub feed_min_mm_min: f64,
+    pub feed_max_mm_min: f64,
+    pub rapid_mm_min: f64,
+    pub accel_mm_s2: f64,
+    pub a_rate_deg_min: f64,
+}
+
+/// The spindle and its DC motor: torque at the spindle `T = kt·(I − i0)`, back-EMF `ke = kt`
+/// (SI units), armature `U = R·I + kt·ω`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Spindle {
+    pub rpm_min: f64,
+    pub rpm_max: f64,
+    pub power_w: f64,
+    pub torque_constant_nm_per_a: f64,
+    pub no_load_current_a: f64,
+    pub armature_resistance_ohm: f64,
+    pub supply_voltage_v: f64,
+    pub accel_rpm_s: f64,
+}
+
+impl Spindle {
+    /// Motor current drawn for a cutting torque `torque_nm` at the spindle.
+    pub fn current_for_torque(&self, torque_nm: f64) -> f64 {
+        self.no_load_current_a + torque_nm.max(0.0) / self.torque_constant_nm_per_a
+    }
+
+    /// Largest cutting torque at `rpm` within the motor's power rating.
+    pub fn max_torque_nm(&self, rpm: f64) -> f64 {
+        let omega = rpm.max(1.0) * std::f64::consts::TAU / 60.0;
+        self.power_w / omega
+    }
+
+    /// Electrical power drawn at `rpm` with current `current_a`: `U·I` with `U = R·I + kt·ω`.
+    pub fn electrical_power_w(&self, rpm: f64, current_a: f64) -> f64 {
+        let omega = rpm * std::f64::consts::TAU / 60.0;
+        (self.armature_resistance_ohm * current_a + self.torque_constant_nm_per_a * omega) * current_a
+    }
+}
+
+/// Sensor resolutions and noise (noise as a standard deviation in counts).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Sensors {
+    pub torque_nm_per_count: f64,
+    pub torque_noise_counts: f64,
+    pub torque_max_nm: f64,
+    pub current_a_per_count: f64,
+    pub current_noise_counts: f64,
+    pub current_max_a: f64,
+    pub encoder_pulses_per_rev: u32,
+}
+
+/// A point in machine coordinates.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Offset {
+    pub x_mm: f64,
+    pub y_mm: f64,
+    pub z_mm: f64,
+}
+
+/// A tool table entry.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ToolEntry {
+    pub number: u32,
+    /// A tool of the CAM library or a spec (`ball-6`, `flat-3`, `bull-6-1`, `v-6-90`).
+    pub name: String,
+    /// Gauge length (spindle nose to tip), what `G43 H<number>` applies.
+    pub length_mm: f64,
+}
+
+/// A machine: travel, motion limits, spindle, sensors, default work offset and tool table.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MachineProfile {
+    pub name: String,
+    #[serde(default)]
+    pub description: String,
+    pub step_mm: f64,
+    pub axes: Axes,
+    pub motion: Motion,
+    pub spindle: Spindle,
+    pub sensors: Sensors,
+    pub work_offset: Offset,
+    #[serde(default)]
+    pub tools: Vec<ToolEntry>,
+}
+
+impl MachineProfile {
+    /// The profiles shipped with the service, by name.
+    pub fn builtin(name: &str) -> Result<Self, ProfileError> {
+        match name.trim().to_ascii_lowercase().as_str() {
+            "emco-f1" | "emco_f1" => Self::parse(EMCO_F1_TOML, "emco-f1.toml"),
+            _ => Err(ProfileError::Unknown { name: name.to_string(), known: "emco-f1".into() }),
+        }
+    }
+
+    /// Reads and checks a profile file.
+    pub fn read(path: &Path) -> Result<Self, ProfileError> {
+        let file = path.display().to_string();
+        let text = std::fs::read_to_string(path)
+            .map_err(|source| ProfileError::Io { file: file.clone(), source })?;
+        Self::parse(&text, &file)
+    }
+
+    /// Parses and checks profile text; `file` names it in errors.
+    pub fn parse(text: &str, file: &str) -> Result<Self, ProfileError> {
+        let profile: MachineProfile = toml::from_str(text)
+            .map_err(|e| ProfileError::Parse { file: file.to_string(), message: e.to_string() })?;
+        profile.validate(file)?;
+        Ok(profile)
+    }
+
+    /// Checks every figure: finite, positive where it must be, ranges ordered, tools unique.
+    pub fn validate(&self, file: &str) -> Result<(), ProfileError> {
+        let bad = |field: &str, value: &dyn std::fmt::Display, reason: &str| ProfileError::Invalid {
+            file: file.to_string(),
+            field: field.to_string(),
+            value: value.to_string(),
+            reason: reason.to_string(),
+        };
+        let positive = [
+            ("step_mm", self.step_mm),
+            ("motion.feed_min_mm_min", self.motion.feed_min_mm_min),
+            ("motion.feed_max_mm_min", self.motion.feed_max_mm_min),
+            ("motion.rapid_mm_min", self.motion.rapid_mm_min),
+            ("motion.accel_mm_s2", self.motion.accel_mm_s2),
+            ("motion.a_rate_deg_min", self.motion.a_rate_deg_min),
+            ("spindle.rpm_min", self.spindle.rpm_min),
+            ("spindle.rpm_max", self.spindle.rpm_max),
+            ("spindle.power_w", self.spindle.power_w),
+            ("spindle.torque_constant_nm_per_a", self.spindle.torque_constant_nm_per_a),
+            ("spindle.armature_resistance_ohm", self.spindle.armature_resistance_ohm),
+            ("spindle.supply_voltage_v", self.spindle.supply_voltage_v),
+            ("spindle.accel_rpm_s", self.spindle.accel_rpm_s),
+            ("sensors.torque_nm_per_count", self.sensors.torque_nm_per_count),
+            ("sensors.torque_max_nm", self.sensors.torque_max_nm),
+            ("sensors.current_a_per_count", self.sensors.current_a_per_count),
+            ("sensors.current_max_a", self.sensors.current_max_a),
+        ];
+        for (field, v) in positive {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(bad(field, &v, "must be finite and positive"));
+            }
+        }
+        for (field, v) in [
+            ("spindle.no_load_current_a", self.spindle.no_load_current_a),
+            ("sensors.torque_noise_counts", self.sensors.torque_noise_counts),
+            ("sensors.current_noise_counts", self.sensors.current_noise_counts),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(bad(field, &v, "must be finite and not negative"));
+            }
+        }
+        if self.sensors.encoder_pulses_per_rev == 0 {
+            return Err(bad("sensors.encoder_pulses_per_rev", &0, "must be at least 1"));
+        }
+        for (axis, r) in [("x", self.axes.x), ("y", self.axes.y), ("z", self.axes.z), ("a", self.axes.a)] {
+            if !(r.min_mm.is_finite() && r.max_mm.is_finite()) || r.min_mm > r.max_mm {
+                return Err(bad(
+                    &format!("axes.{axis}"),
+                    &format!("[{}, {}]", r.min_mm, r.max_mm),
+                    "needs finite min <= max",
+                ));
+            }
+        }
+        if self.motion.feed_min_mm_min > self.motion.feed_max_mm_min {
+            return Err(bad(
+                "motion.feed_min_mm_min",
+                &self.motion.feed_min_mm_min,
+                "is above feed_max_mm_min",
+            ));
+        }
+        if self.spindle.rpm_min > self.spindle.rpm_max {
+            return Err(bad("spindle.rpm_min", &self.spindle.rpm_min, "is above rpm_max"));
+        }
+        let w = self.work_offset;
+        if ![w.x_mm, w.y_mm, w.z_mm].iter().all(|v| v.is_finite()) {
+            return Err(bad("work_offset", &format!("{w:?}"), "must be finite"));
+        }
+        let mut seen = std::collections::BTreeSet::new();
+        for (i, t) in self.tools.iter().enumerate() {
+            if !seen.insert(t.number) {
+                return Err(bad(&format!("tools[{i}].number"), &t.number, "appears twice"));
+            }
+            if !(t.length_mm.is_finite() && t.length_mm > 0.0) {
+                return Err(bad(
+                    &format!("tools[{i}].length_mm"),
+                    &t.length_mm,
+                    "must be finite and positive",
+                ));
+            }
+            if t.name.trim().is_empty() {
+                return Err(bad(&format!("tools[{i}].name"), &"''", "must name a tool"));
+            }
+        }
+        Ok(())
+    }
+
+    /// A position quantised to whole steps.
+    pub fn quantise(&self, v_mm: f64) -> f64 {
+        (v_mm / self.step_mm).round() * self.step_mm
+    }
+
+    /// The tool table entry for `number`.
+    pub fn tool(&self, number: u32) -> Option<&ToolEntry> {
+        self.tools.iter().find(|t| t.number == number)
+    }
+
+    /// True when the A axis is continuous (no travel limits).
+    pub fn a_is_continuous(&self) -> bool {
+        self.axes.a.min_mm == 0.0 && self.axes.a.max_mm == 0.0
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_shipped_emco_profile_is_valid_and_matches_the_class_figures() {
+        let p = MachineProfile::builtin("emco-f1").expect("builtin");
+        assert_eq!(p.step_mm, 0.01);
+        assert_eq!((p.motion.feed_min_mm_min, p.motion.feed_max_mm_min), (5.0, 400.0));
+        assert_eq!((p.spindle.rpm_min, p.spindle.rpm_max), (300.0, 2000.0));
+        assert_eq!(p.spindle.power_w, 440.0);
+        assert_eq!(p.sensors.encoder_pulses_per_rev, 100);
+        assert!((p.sensors.current_a_per_count - 0.00625).abs() < 1e-12);
+        // The scale check of DESIGN §5: at most about 2.1 N·m at 2000 rpm.
+        assert!((p.spindle.max_torque_nm(2000.0) - 2.1).abs() < 0.01);
+        // Full torque stays inside the ±5 A current sensor.
+        assert!(p.spindle.current_for_torque(p.spindle.max_torque_nm(2000.0)) < p.sensors.current_max_a);
+        assert_eq!(p.quantise(1.23456), 1.23);
+        assert!(p.a_is_continuous());
+        assert_eq!(p.tool(2).map(|t| t.name.as_str()), Some("ball-3"));
+        assert!(MachineProfile::builtin("haas").is_err());
+    }
+
+    #[test]
+    fn bad_profiles_name_the_field() {
+        let bad = EMCO_F1_TOML.replace("feed_max_mm_min = 400.0", "feed_max_mm_min = -4.0");
+        let e = MachineProfile::parse(&bad, "m.toml").expect_err("negative");
+        assert!(e.to_string().contains("m.toml: motion.feed_max_mm_min = -4"), "{e}");
+        let bad = EMCO_F1_TOML.replace("rapid_mm_min", "rapid_mm_mn");
+        let e = MachineProfile::parse(&bad, "m.toml").expect_err("unknown field");
+        assert!(e.to_string().contains("rapid_mm_mn"), "{e}");
+        let bad = EMCO_F1_TOML.replace("number = 2", "number = 1");
+        let e = MachineProfile::parse(&bad, "m.toml").expect_err("duplicate");
+        assert!(e.to_string().contains("tools[1].number = 1: appears twice"), "{e}");
+    }
+}
