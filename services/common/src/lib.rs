@@ -15,6 +15,7 @@
 pub mod artifacts;
 pub mod config;
 pub mod grpc;
+pub mod plot;
 pub mod shutdown;
 pub mod stage;
 pub mod telemetry;
