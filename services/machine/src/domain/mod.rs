@@ -6,6 +6,10 @@
 //!   side-by-side check against LinuxCNC's `rs274`.
 //! - [`cutting`]: Kienzle materials, chip thickness, torque and power of a revolution.
 //! - [`sensors`]: torque ADC, current sensor and speed encoder with resolution and noise.
+//! - [`removal`]: the stock as a Z-map and the exact sweep of a tool of revolution along lines
+//!   and arcs (material removal per revolution, engagement, hardness field).
+//! - [`sim`]: the simulated mill running a program: motion with acceleration and blending,
+//!   removal, forces and sensors per revolution, the feed/speed policy, telemetry.
 //! - [`adaptive`]: the seed's adaptive feed/speed loop, the feed-only baseline, the productivity
 //!   index.
 
@@ -13,4 +17,6 @@ pub mod adaptive;
 pub mod cutting;
 pub mod gcode;
 pub mod profile;
+pub mod removal;
 pub mod sensors;
+pub mod sim;

@@ -132,6 +132,8 @@ pub const PAR_CELLS: u64 = 1 << 18;
 const PATH_CHUNK: usize = 4096;
 /// Entries of the lower-bound table of `h` (non-ball tools).
 const LB_TABLE: usize = 256;
+/// Cells per chunk of a row in the branch-free sweep.
+const ROW_CHUNK: usize = 64;
 /// Bisection tolerance for the bull-nose torus, mm of tool travel.
 const TORUS_TOL_MM: f64 = 1.0e-10;
 
@@ -426,7 +428,8 @@ impl Stock {
         let mut tallies = Vec::new();
         for start in (0..moves).step_by(PATH_CHUNK) {
             let end = (start + PATH_CHUNK).min(moves);
-            let jobs: Vec<Job> = (start..end).map(|i| Job::Line(LineJob::new(path[i], path[i + 1]))).collect();
+            let jobs: Vec<Job> =
+                (start..end).map(|i| Job::Line(LineJob::new(path[i], path[i + 1]))).collect();
             buckets.iter_mut().for_each(Vec::clear);
             for (k, job) in jobs.iter().enumerate() {
                 let (ylo, yhi) = job.y_range(shape.r);
@@ -811,10 +814,9 @@ struct LineJob {
     ux: f64,
     uy: f64,
     len: f64,
-    /// Slope `Δz / L` and `m/√(1+m²)`, `1/√(1+m²)`.
+    /// Slope `Δz / L` and `m/√(1+m²)`.
     m: f64,
     mk: f64,
-    inv_k: f64,
     zlo: f64,
     /// Level or vertical: `E = zlo + h(d)`.
     level: bool,
@@ -837,7 +839,6 @@ impl LineJob {
                 len: 0.0,
                 m: 0.0,
                 mk: 0.0,
-                inv_k: 1.0,
                 zlo,
                 level: true,
                 frame: Frame::Axis { ex: b.x, ey: b.y, ez: b.z },
@@ -857,7 +858,6 @@ impl LineJob {
             len,
             m,
             mk: m / k,
-            inv_k: 1.0 / k,
             zlo,
             level: b.z == a.z,
             frame: Frame::Dir { ex: b.x, ey: b.y, ez: b.z, dx: ux, dy: uy },
@@ -1101,7 +1101,8 @@ impl ArcPath {
                     (ylo, yhi) = (ylo.min(rho * dy), yhi.max(rho * dy));
                 }
             }
-            (arc.xlo, arc.xhi, arc.ylo, arc.yhi) = (self.cx + xlo, self.cx + xhi, self.cy + ylo, self.cy + yhi);
+            (arc.xlo, arc.xhi, arc.ylo, arc.yhi) =
+                (self.cx + xlo, self.cx + xhi, self.cy + ylo, self.cy + yhi);
             return Ok(vec![Job::Arc(arc)]);
         }
         // Chords with a sagitta of at most `sag`: ρ·(1 − cos(Δ/2)) <= sag.
@@ -1271,6 +1272,14 @@ fn record(t: &mut Tally, ctx: &Ctx<'_>, frame: &Frame, gi: usize, cx: f64, cy: f
     }
 }
 
+/// `top` plus a margin that covers the rounding of an envelope to f32 (two f32 ulps plus 1e-5 mm):
+/// an envelope at or above it cannot lower the cell, so skipping the cell changes nothing.
+#[inline(always)]
+fn with_margin(top: f32) -> f64 {
+    let t = f64::from(top);
+    t + 1e-5 + t.abs() * 2.4e-7
+}
+
 /// Indices `i` in `[min, end)` whose cell centre `origin + (i + ½)·p` lies in `[lo, hi]`
 /// (with a hair of slack; callers test the exact condition per cell).
 #[inline]
@@ -1282,8 +1291,15 @@ fn index_range(lo: f64, hi: f64, origin: f64, p: f64, min: usize, end: usize) ->
 
 /// The envelope of one move over a cell, in the move's frame.
 trait Env {
+    /// [`Env::above`] is implemented: use it instead of the lower bound.
+    const EXACT_TEST: bool;
     /// A lower bound of `h` at squared distance `d2` (relative to the move's lowest tip Z).
     fn lb(&self, d2: f64) -> f64;
+    /// Whether the envelope is certainly at or above `t` (so a top below `t` stays), decided
+    /// exactly and without square roots. Only called when `EXACT_TEST`.
+    fn above(&self, _s: f64, _e: f64, _d2: f64, _t: f64) -> bool {
+        false
+    }
     /// The exact envelope (absolute Z) at along/across coordinates `s`, `e` with `d2` the squared
     /// distance to the horizontal segment (`<= R²`).
     fn z(&self, s: f64, e: f64, d2: f64) -> f64;
@@ -1297,9 +1313,16 @@ struct BallLevel {
 }
 
 impl Env for BallLevel {
+    const EXACT_TEST: bool = true;
     #[inline(always)]
     fn lb(&self, d2: f64) -> f64 {
         d2 * self.inv2r
+    }
+    /// `z + R − √(R² − d²) >= t` ⟺ `b = z + R − t >= 0` and `b² >= R² − d²`.
+    #[inline(always)]
+    fn above(&self, _s: f64, _e: f64, d2: f64, t: f64) -> bool {
+        let b = self.z + self.r - t;
+        (b >= 0.0) & (b * b >= self.r2 - d2)
     }
     #[inline(always)]
     fn z(&self, _s: f64, _e: f64, d2: f64) -> f64 {
@@ -1315,26 +1338,41 @@ struct BallSlope {
     len: f64,
     m: f64,
     mk: f64,
-    inv_k: f64,
+    /// `1 + m²`.
+    k2: f64,
 }
 
 impl Env for BallSlope {
+    const EXACT_TEST: bool = true;
     #[inline(always)]
     fn lb(&self, d2: f64) -> f64 {
         d2 * self.inv2r
     }
+    /// The envelope is the cylinder value `az + m·s + R − w·√(1+m²)` when the stationary point
+    /// lies on the move, else the nearer end sphere's value; the cylinder value is the smallest
+    /// of the three. So the envelope is at least `t` exactly when all three are (a sphere out of
+    /// reach counts as `+∞`), each tested without a square root as in [`BallLevel::above`].
+    #[inline(always)]
+    fn above(&self, s: f64, e: f64, _d2: f64, t: f64) -> bool {
+        let e2 = e * e;
+        let a = self.az + self.m * s + self.r - t;
+        let cyl = (a >= 0.0) & (a * a >= (self.r2 - e2) * self.k2);
+        let da2 = s * s + e2;
+        let b = self.az + self.r - t;
+        let start = (da2 > self.r2) | ((b >= 0.0) & (b * b >= self.r2 - da2));
+        let sl = s - self.len;
+        let db2 = sl * sl + e2;
+        let c = self.az + self.m * self.len + self.r - t;
+        let end = (db2 > self.r2) | ((c >= 0.0) & (c * c >= self.r2 - db2));
+        cyl & start & end
+    }
+    /// Branch-free: the clamp of the stationary point; inside the move `√(w² − σ*²) = w/√(1+m²)`.
     #[inline(always)]
     fn z(&self, s: f64, e: f64, _d2: f64) -> f64 {
         let w2 = (self.r2 - e * e).max(0.0);
-        let w = w2.sqrt();
-        let star = s - self.mk * w;
-        if (0.0..=self.len).contains(&star) {
-            self.az + self.m * star + self.r - w * self.inv_k
-        } else {
-            let sc = star.clamp(0.0, self.len);
-            let ds = sc - s;
-            self.az + self.m * sc + self.r - (w2 - ds * ds).max(0.0).sqrt()
-        }
+        let sc = (s - self.mk * w2.sqrt()).max(0.0).min(self.len);
+        let ds = sc - s;
+        self.az + self.m * sc + self.r - (w2 - ds * ds).max(0.0).sqrt()
     }
 }
 
@@ -1344,6 +1382,7 @@ struct PolyLevel<'a> {
 }
 
 impl Env for PolyLevel<'_> {
+    const EXACT_TEST: bool = false;
     #[inline(always)]
     fn lb(&self, d2: f64) -> f64 {
         let i = ((d2 * self.sh.lb_scale) as usize).min(LB_TABLE);
@@ -1364,6 +1403,7 @@ struct PolySlope<'a> {
 }
 
 impl Env for PolySlope<'_> {
+    const EXACT_TEST: bool = false;
     #[inline(always)]
     fn lb(&self, d2: f64) -> f64 {
         let i = ((d2 * self.sh.lb_scale) as usize).min(LB_TABLE);
@@ -1386,7 +1426,7 @@ fn run_job<const FAST: bool>(job: &Job, sh: &Shape, ctx: &Ctx<'_>, band: &mut Ba
             sweep_line::<FAST, _>(j, &BallLevel { z: j.zlo, r, r2, inv2r }, ctx, band, t)
         }
         (Job::Line(j), Kind::Ball) => {
-            let env = BallSlope { az: j.az, r, r2, inv2r, len: j.len, m: j.m, mk: j.mk, inv_k: j.inv_k };
+            let env = BallSlope { az: j.az, r, r2, inv2r, len: j.len, m: j.m, mk: j.mk, k2: 1.0 + j.m * j.m };
             sweep_line::<FAST, _>(j, &env, ctx, band, t)
         }
         (Job::Line(j), Kind::Pieces(_)) if j.level => {
@@ -1396,7 +1436,9 @@ fn run_job<const FAST: bool>(job: &Job, sh: &Shape, ctx: &Ctx<'_>, band: &mut Ba
             let env = PolySlope { az: j.az, len: j.len, m: j.m, sh, pieces };
             sweep_line::<FAST, _>(j, &env, ctx, band, t)
         }
-        (Job::Arc(a), Kind::Ball) => sweep_arc::<FAST, _>(a, &BallLevel { z: a.z, r, r2, inv2r }, ctx, band, t),
+        (Job::Arc(a), Kind::Ball) => {
+            sweep_arc::<FAST, _>(a, &BallLevel { z: a.z, r, r2, inv2r }, ctx, band, t)
+        }
         (Job::Arc(a), Kind::Pieces(_)) => sweep_arc::<FAST, _>(a, &PolyLevel { z: a.z, sh }, ctx, band, t),
     }
 }
@@ -1412,14 +1454,9 @@ fn sweep_line<const FAST: bool, E: Env>(
 ) {
     let g = ctx.grid;
     let (r, r2) = (ctx.r, ctx.r2);
-    let Some((row_lo, row_hi)) = index_range(
-        j.ay.min(j.by) - r,
-        j.ay.max(j.by) + r,
-        g.y0,
-        g.p,
-        band.row0,
-        band.row0 + band.rows,
-    ) else {
+    let Some((row_lo, row_hi)) =
+        index_range(j.ay.min(j.by) - r, j.ay.max(j.by) + r, g.y0, g.p, band.row0, band.row0 + band.rows)
+    else {
         return;
     };
     let (bxlo, bxhi) = (j.ax.min(j.bx) - r, j.ax.max(j.bx) + r);
@@ -1438,12 +1475,51 @@ fn sweep_line<const FAST: bool, E: Env>(
         let base = (row - band.row0) * g.w;
         let Some(line) = band.tops.get_mut(base + c_lo..=base + c_hi) else { continue };
         t.visited += (c_hi - c_lo + 1) as u64;
+        if FAST && E::EXACT_TEST {
+            // Per chunk of the row: the branch-free, square-root-free test of every cell first,
+            // then the envelope only where a cell may be lowered.
+            let mut need = [false; ROW_CHUNK];
+            for (i, cells) in line.chunks_mut(ROW_CHUNK).enumerate() {
+                let c0 = c_lo + i * ROW_CHUNK;
+                let mut any = false;
+                for (k, (flag, top)) in need.iter_mut().zip(cells.iter()).enumerate() {
+                    let cx = g.x0 + ((c0 + k) as f64 + 0.5) * g.p;
+                    let dx = cx - j.ax;
+                    let s = dx * j.ux + dyr * j.uy;
+                    let e = dyr * j.ux - dx * j.uy;
+                    let ds = s - s.max(0.0).min(j.len);
+                    let d2 = ds * ds + e * e;
+                    *flag = (d2 <= r2) & !env.above(s, e, d2, with_margin(*top));
+                    any |= *flag;
+                }
+                if !any {
+                    continue;
+                }
+                for (k, (cell, flag)) in cells.iter_mut().zip(&need).enumerate() {
+                    if !*flag {
+                        continue;
+                    }
+                    let cx = g.x0 + ((c0 + k) as f64 + 0.5) * g.p;
+                    let dx = cx - j.ax;
+                    let s = dx * j.ux + dyr * j.uy;
+                    let e = dyr * j.ux - dx * j.uy;
+                    let ds = s - s.max(0.0).min(j.len);
+                    let new = (env.z(s, e, ds * ds + e * e) as f32).max(g.bottom);
+                    if new < *cell {
+                        let old = *cell;
+                        *cell = new;
+                        record(t, ctx, &j.frame, row * g.w + c0 + k, cx, cy, old, new);
+                    }
+                }
+            }
+            continue;
+        }
         for (k, cell) in line.iter_mut().enumerate() {
             let cx = g.x0 + ((c_lo + k) as f64 + 0.5) * g.p;
             let dx = cx - j.ax;
             let s = dx * j.ux + dyr * j.uy;
             let e = dyr * j.ux - dx * j.uy;
-            let ds = s - s.clamp(0.0, j.len);
+            let ds = s - s.max(0.0).min(j.len);
             let d2 = ds * ds + e * e;
             if d2 > r2 {
                 continue;
@@ -1463,7 +1539,13 @@ fn sweep_line<const FAST: bool, E: Env>(
 
 /// Lowers the cells of `band` under a level arc.
 #[inline(never)]
-fn sweep_arc<const FAST: bool, E: Env>(a: &ArcJob, env: &E, ctx: &Ctx<'_>, band: &mut Band<'_>, t: &mut Tally) {
+fn sweep_arc<const FAST: bool, E: Env>(
+    a: &ArcJob,
+    env: &E,
+    ctx: &Ctx<'_>,
+    band: &mut Band<'_>,
+    t: &mut Tally,
+) {
     let g = ctx.grid;
     let (r, r2) = (ctx.r, ctx.r2);
     let Some((row_lo, row_hi)) =
@@ -1564,7 +1646,12 @@ mod tests {
     /// Dense reference of one move: the lowest tool surface over each cell centre among the
     /// `n + 1` positions `pos(i/n)`, with the index of the best sample; `None` where no sample
     /// reaches. (Plain arrays: generic nalgebra code would run unoptimised in test builds.)
-    fn dense(tool: &ToolProfile, cells: &[(f64, f64)], n: usize, pos: impl Fn(f64) -> [f64; 3]) -> Vec<Option<(f64, usize)>> {
+    fn dense(
+        tool: &ToolProfile,
+        cells: &[(f64, f64)],
+        n: usize,
+        pos: impl Fn(f64) -> [f64; 3],
+    ) -> Vec<Option<(f64, usize)>> {
         let samples: Vec<[f64; 3]> = (0..=n).map(|i| pos(i as f64 / n as f64)).collect();
         let r = tool.radius_mm();
         cells
@@ -1635,7 +1722,8 @@ mod tests {
         tol: f64,
         rim: impl Fn(f64, f64) -> bool,
     ) {
-        for ((x, y), (z, want)) in centres(stock).iter().zip(stock.height_map().data().iter().zip(reference)) {
+        for ((x, y), (z, want)) in centres(stock).iter().zip(stock.height_map().data().iter().zip(reference))
+        {
             let z = f64::from(*z);
             match want {
                 Some(w) => {
@@ -1657,11 +1745,13 @@ mod tests {
         let n = 2000;
         for (name, tool) in tools() {
             for case in 0..6 {
-                let a = p(rng.random_range(-2.0..2.0), rng.random_range(-2.0..2.0), rng.random_range(-1.5..0.5));
-                let mut b = p(rng.random_range(-2.0..2.0), rng.random_range(-2.0..2.0), rng.random_range(-1.5..0.5));
+                let a =
+                    p(rng.random_range(-2.0..2.0), rng.random_range(-2.0..2.0), rng.random_range(-1.5..0.5));
+                let mut b =
+                    p(rng.random_range(-2.0..2.0), rng.random_range(-2.0..2.0), rng.random_range(-1.5..0.5));
                 match case {
-                    0 => b.z = a.z,                 // level
-                    1 => (b.x, b.y) = (a.x, a.y),   // plunge
+                    0 => b.z = a.z,                             // level
+                    1 => (b.x, b.y) = (a.x, a.y),               // plunge
                     2 => b.z = a.z + 3.0 * (b - a).xy().norm(), // steep ramp
                     _ => {}
                 }
@@ -1685,7 +1775,10 @@ mod tests {
                 for (((x, y), z), best) in cells.iter().zip(stock.height_map().data()).zip(&reference) {
                     let want = best.map_or(1.0, |(_, k)| refine(&tool, *x, *y, n, k, &pos).min(1.0));
                     let z = f64::from(*z);
-                    assert!((z - want).abs() <= 1e-5, "{name} case {case} at ({x}, {y}): {z} vs refined {want}");
+                    assert!(
+                        (z - want).abs() <= 1e-5,
+                        "{name} case {case} at ({x}, {y}): {z} vs refined {want}"
+                    );
                 }
             }
         }
@@ -1703,7 +1796,10 @@ mod tests {
                 stock.cut_line(&tool, a, b).expect("cut");
                 for ((x, y), got) in centres(&stock).iter().zip(stock.height_map().data()) {
                     let want = h_ref(&tool, dist_to_segment(*x, *y, a, b)).map_or(1.0, |h| (z + h).min(1.0));
-                    assert!((f64::from(*got) - want).abs() <= 1e-5, "{name} line at ({x},{y}): {got} vs {want}");
+                    assert!(
+                        (f64::from(*got) - want).abs() <= 1e-5,
+                        "{name} line at ({x},{y}): {got} vs {want}"
+                    );
                 }
                 // A level arc: distance by angle (atan2), independent of the cross-product test.
                 let (cx, cy) = (rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0));
@@ -1724,7 +1820,10 @@ mod tests {
                         (x - from.x).hypot(y - from.y).min((x - to.x).hypot(y - to.y))
                     };
                     let want = h_ref(&tool, d).map_or(1.0, |h| (z + h).min(1.0));
-                    assert!((f64::from(*got) - want).abs() <= 1e-5, "{name} arc at ({x},{y}): {got} vs {want}");
+                    assert!(
+                        (f64::from(*got) - want).abs() <= 1e-5,
+                        "{name} arc at ({x},{y}): {got} vs {want}"
+                    );
                 }
             }
         }
@@ -1768,7 +1867,10 @@ mod tests {
                 }
                 assert!(z <= upper.min(1.0) + 2e-6, "{name} helix at ({x},{y}): {z} above {upper}");
                 if lower.is_finite() {
-                    assert!(z >= lower.min(1.0) - tol, "{name} helix at ({x},{y}): {z} below {lower} - {tol}");
+                    assert!(
+                        z >= lower.min(1.0) - tol,
+                        "{name} helix at ({x},{y}): {z} below {lower} - {tol}"
+                    );
                 } else {
                     let d = ((x - cx).hypot(y - cy) - rho).abs();
                     assert!(z == 1.0 || d >= r + sag - dxy, "{name} helix at ({x},{y}): {z}");
@@ -1787,7 +1889,8 @@ mod tests {
             let mut removed = 0.0;
             let mut at = p(1.0, 1.0, 1.0);
             for i in 0..25 {
-                let to = p(rng.random_range(-1.0..11.0), rng.random_range(-1.0..9.0), rng.random_range(-6.0..0.5));
+                let to =
+                    p(rng.random_range(-1.0..11.0), rng.random_range(-1.0..9.0), rng.random_range(-6.0..0.5));
                 let cut = if i % 4 == 3 {
                     let c = (0.5 * (at.x + to.x) + 0.7, 0.5 * (at.y + to.y) - 0.4);
                     stock.cut_arc_xy(&tool, at, to, c, rng.random_bool(0.5), 0).expect("arc")
@@ -1817,7 +1920,9 @@ mod tests {
             assert!(first.volume_mm3 > 0.0, "{name}");
             let again = stock.cut_line(&tool, a, b).expect("cut");
             assert_eq!((again.cells_updated, again.volume_mm3), (0, 0.0), "{name}");
-            let arc = |s: &mut Stock| s.cut_arc_xy(&tool, p(1.0, 0.0, -0.3), p(-1.0, 0.0, -0.8), (0.0, 0.0), true, 0);
+            let arc = |s: &mut Stock| {
+                s.cut_arc_xy(&tool, p(1.0, 0.0, -0.3), p(-1.0, 0.0, -0.8), (0.0, 0.0), true, 0)
+            };
             assert!(arc(&mut stock).expect("arc").volume_mm3 > 0.0, "{name}");
             assert_eq!(arc(&mut stock).expect("arc").cells_updated, 0, "{name}");
         }
@@ -1850,7 +1955,10 @@ mod tests {
             assert_eq!(revs.len(), ((b - a).norm() / 0.13).ceil() as usize, "{name}");
             let sum: f64 = revs.iter().map(|c| c.volume_mm3).sum();
             assert!((sum - total.volume_mm3).abs() < 1e-9, "{name}");
-            assert!((one.volume_mm3 - total.volume_mm3).abs() <= 1e-6 * one.volume_mm3, "{name}: {one:?} {total:?}");
+            assert!(
+                (one.volume_mm3 - total.volume_mm3).abs() <= 1e-6 * one.volume_mm3,
+                "{name}: {one:?} {total:?}"
+            );
             for (u, v) in whole.height_map().data().iter().zip(split.height_map().data()) {
                 assert!((u - v).abs() <= 2e-6, "{name}: {u} vs {v}");
             }
@@ -1861,10 +1969,11 @@ mod tests {
                 let one = whole.cut_arc_xy(&tool, from, to, (0.0, 0.0), false, turns).expect("arc");
                 let mut split = small_stock(0.0);
                 let mut count = 0;
-                let total = cut_arc_xy_per_rev(&mut split, &tool, from, to, (0.0, 0.0), false, turns, 0.2, |_| {
-                    count += 1
-                })
-                .expect("arc per rev");
+                let total =
+                    cut_arc_xy_per_rev(&mut split, &tool, from, to, (0.0, 0.0), false, turns, 0.2, |_| {
+                        count += 1
+                    })
+                    .expect("arc per rev");
                 assert!(count > 10, "{name}");
                 let tol = if z1 == -0.5 { 1e-6 } else { 2e-3 }; // chords of pieces vs chords of the whole
                 assert!(
@@ -2003,7 +2112,10 @@ mod tests {
             msg(Stock::block(o, 1e5, 1e5, 10.0, 0.001)),
             "stock of 100000000 x 100000000 cells exceeds the limit of 268435456 cells"
         );
-        assert!(msg(Stock::block(p(f64::INFINITY, 0.0, 0.0), 1.0, 1.0, 1.0, 0.1)).starts_with("invalid origin (inf, 0, 0)"));
+        assert!(
+            msg(Stock::block(p(f64::INFINITY, 0.0, 0.0), 1.0, 1.0, 1.0, 0.1))
+                .starts_with("invalid origin (inf, 0, 0)")
+        );
         let tool: ToolProfile = "ball-3".parse().expect("ball");
         let mut s = Stock::block(o, 10.0, 10.0, 10.0, 0.1).expect("stock");
         let e = s.cut_line(&tool, o, p(1.0, f64::NAN, 0.0)).expect_err("nan");

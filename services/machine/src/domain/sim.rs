@@ -1,0 +1,1053 @@
+//! The simulated mill: canonical commands from the interpreter in, motion with acceleration
+//! limits, material removal per spindle revolution, forces, sensors and a feed/speed policy, out
+//! a cut stock, telemetry and a cycle time.
+//!
+//! # Frames
+//! The interpreter gives machine coordinates of the controlled point (work offset and `G43`
+//! tool length added). The simulated control applies each tool's measured length at `M6` (the
+//! EMCO/Fanuc convention of this machine class), so the tip is the canonical position minus the
+//! `G43` offset the program asked for: a program with or without `G43 H` puts the tip where it
+//! says. The spindle nose is the tip plus the tool's length; the travel limits apply to the nose.
+//! The stock lives in the work frame of `G54` (the profile's work offset), like the depth map the
+//! CAM service planned on, so the final stock and the target map share coordinates.
+//!
+//! # Motion
+//! Every move is a trapezoid in path length with the profile's acceleration. Consecutive moves
+//! blend: the junction speed is limited by the direction change (the junction-deviation rule with
+//! the program's `G64 P` tolerance, default 0.01 mm), by both moves' feeds, and by what the next
+//! move's length allows to stop in (a one-move look-ahead, conservative). `G61` stops at every
+//! junction. Rapids run at the profile's rapid rate and must not touch the stock (a rapid into
+//! material is a crash and ends the run with an error); feed moves into material with the
+//! spindle stopped end the run the same way.
+//!
+//! # Per revolution
+//! Feed moves are cut in pieces of one spindle revolution (`w/n` mm at the current feed `w` and
+//! speed `n`). Each piece: exact material removal, Kienzle torque from the hardness-weighted
+//! volume and the engagement, motor current, sensor readings (several samples per revolution,
+//! averaged), and one step of the feed/speed policy, whose feed and speed apply from the next
+//! revolution. XY arcs are cut as sub-arcs; arcs in other planes as chords.
+
+use std::io::BufRead;
+
+use depthmill_geometry::{HeightMap, ToolProfile};
+use nalgebra::Point3;
+use serde::Serialize;
+
+use super::adaptive::{
+    Aco, Constraint, Economics, FeedOnly, Fixed, Limits, Measured, Policy, Tuning, productivity,
+};
+use super::cutting::{Material, rev_load};
+use super::gcode::{
+    Canon, FeedMode, GcodeError, InterpConfig, Interpreter, PathMode, Plane, Pos, SpindleDir,
+};
+use super::profile::MachineProfile;
+use super::removal::{Cut, RemovalError, Stock};
+use super::sensors::{RevAverager, SensorBank};
+
+/// Raw sensor samples averaged per revolution.
+const SAMPLES_PER_REV: usize = 8;
+
+/// Which feed/speed policy runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PolicyKind {
+    /// The seed's adaptive control of feed and speed.
+    Aco,
+    /// Hold cutting power by a feed override (what commercial controllers do).
+    FeedOnly,
+    /// The programmed feed and speed.
+    Off,
+}
+
+impl PolicyKind {
+    pub fn parse(s: &str) -> Option<PolicyKind> {
+        match s {
+            "aco" => Some(PolicyKind::Aco),
+            "feed_only" => Some(PolicyKind::FeedOnly),
+            "off" => Some(PolicyKind::Off),
+            _ => None,
+        }
+    }
+
+    pub fn as_str(self) -> &'static str {
+        match self {
+            PolicyKind::Aco => "aco",
+            PolicyKind::FeedOnly => "feed_only",
+            PolicyKind::Off => "off",
+        }
+    }
+}
+
+/// A tool the machine holds: its shape, teeth and measured length.
+#[derive(Debug, Clone)]
+pub struct MachineTool {
+    pub number: u32,
+    pub name: String,
+    pub profile: ToolProfile,
+    pub teeth: u32,
+    pub length_mm: f64,
+}
+
+/// The raw stock, in the work frame (`G54`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct StockSpec {
+    pub min_x_mm: f64,
+    pub min_y_mm: f64,
+    pub min_z_mm: f64,
+    pub x_mm: f64,
+    pub y_mm: f64,
+    pub z_mm: f64,
+    /// Z-map cell size.
+    pub cell_mm: f64,
+}
+
+/// A hard inclusion in the stock (work frame).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Inclusion {
+    pub center: [f64; 3],
+    pub radius_mm: f64,
+    pub factor: f32,
+}
+
+/// Everything a run needs besides the program.
+#[derive(Debug, Clone)]
+pub struct SimSetup {
+    pub profile: MachineProfile,
+    pub material: Material,
+    pub stock: StockSpec,
+    pub tools: Vec<MachineTool>,
+    pub policy: PolicyKind,
+    /// Clamp F and S to the machine's ranges (with a warning) instead of refusing the program.
+    pub clamp: bool,
+    pub inclusions: Vec<Inclusion>,
+    /// Sensor noise seed.
+    pub seed: u64,
+    /// Simulated seconds between telemetry rows (every revolution's data still drives the loop).
+    pub telemetry_interval_s: f64,
+    /// Skip material removal (motion and time only): the no-adaptation cycle time.
+    pub motion_only: bool,
+}
+
+/// Errors of a run; each names the program line where there is one.
+#[derive(Debug, thiserror::Error)]
+pub enum SimError {
+    #[error(transparent)]
+    Gcode(#[from] GcodeError),
+    #[error("line {line}: {message}")]
+    Rejected { line: u64, message: String },
+    #[error("line {line}: crash: {message}")]
+    Crash { line: u64, message: String },
+    #[error("invalid setup: {0}")]
+    Setup(String),
+    #[error(transparent)]
+    Removal(#[from] RemovalError),
+    #[error("stopped at line {line}")]
+    Stopped { line: u64 },
+}
+
+/// One telemetry row.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct TelemetryRow {
+    pub time_s: f64,
+    pub line: u64,
+    /// Tip position, work frame.
+    pub x_mm: f64,
+    pub y_mm: f64,
+    pub z_mm: f64,
+    pub a_deg: f64,
+    pub feed_mm_min: f64,
+    pub spindle_rpm: f64,
+    /// Cutting torque, the model's truth.
+    pub torque_true_nm: f64,
+    /// Torque ADC, revolution mean and counts of the last sample.
+    pub torque_adc_nm: f64,
+    pub torque_counts: i32,
+    /// Spindle current, revolution mean.
+    pub current_a: f64,
+    /// Cutting torque estimated from the current (what the loop uses).
+    pub torque_from_current_nm: f64,
+    pub power_w: f64,
+    pub removal_mm3_s: f64,
+    /// Active constraints as a bit mask over `Constraint::ALL` (see [`active_names`]).
+    pub active: u16,
+}
+
+/// Warnings and figures of a finished run.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct SimReport {
+    pub policy: &'static str,
+    pub blocks: u64,
+    pub moves: u64,
+    pub revolutions: u64,
+    pub cycle_time_s: f64,
+    pub cutting_time_s: f64,
+    pub removed_mm3: f64,
+    pub max_torque_nm: f64,
+    pub max_power_w: f64,
+    pub max_current_a: f64,
+    /// Revolutions during which torque or power exceeded the limits.
+    pub revs_over_torque: u64,
+    pub revs_over_power: u64,
+    pub productivity_index: f64,
+    pub cells_updated: u64,
+    pub warnings: Vec<String>,
+}
+
+/// Live progress callback: (fraction of lines, telemetry row).
+pub type Observer<'a> = &'a mut dyn FnMut(&TelemetryRow);
+
+fn limits_for(profile: &MachineProfile, tool: &MachineTool, material: &Material, rpm_hint: f64) -> Limits {
+    let r = tool.profile.radius_mm().max(0.1);
+    // Deflection: a carbide cantilever of 0.8·D core over 3·D stick-out bending 10 µm.
+    let d_core = 1.6 * r;
+    let stick = 6.0 * r;
+    let inertia = std::f64::consts::PI * d_core.powi(4) / 64.0;
+    let stiffness = 3.0 * 600_000.0 * inertia / stick.powi(3);
+    let _ = material;
+    Limits {
+        torque_max_nm: (0.6 * profile.spindle.max_torque_nm(rpm_hint.max(profile.spindle.rpm_min)))
+            .min(0.002 * r.powi(3) * 50.0),
+        force_max_n: stiffness * 0.01,
+        tool_radius_mm: r,
+        teeth: tool.teeth.max(1),
+        fz_min_mm: 0.002,
+        fz_max_mm: (0.02 * r).clamp(0.01, 0.15),
+        feed_min_mm_min: profile.motion.feed_min_mm_min,
+        feed_max_mm_min: profile.motion.feed_max_mm_min,
+        rpm_min: profile.spindle.rpm_min,
+        rpm_max: profile.spindle.rpm_max,
+        power_max_w: 0.9 * profile.spindle.power_w,
+    }
+}
+
+/// Trapezoid of a path of `len` from speed `v0` to `v1` (clamped to what `a` allows) at cruise
+/// `vmax`: the time.
+fn trapezoid_time(len: f64, v0: f64, v1: f64, vmax: f64, a: f64) -> f64 {
+    if len <= 0.0 {
+        return 0.0;
+    }
+    let vmax = vmax.max(1e-9);
+    let v0 = v0.min(vmax);
+    let v1 = v1.min(vmax).min((v0 * v0 + 2.0 * a * len).sqrt());
+    // Peak speed if accelerating then decelerating with no cruise.
+    let vp = ((2.0 * a * len + v0 * v0 + v1 * v1) / 2.0).sqrt();
+    if vp <= vmax {
+        (vp - v0) / a + (vp - v1) / a
+    } else {
+        let d_acc = (vmax * vmax - v0 * v0) / (2.0 * a);
+        let d_dec = (vmax * vmax - v1 * v1) / (2.0 * a);
+        (vmax - v0) / a + (vmax - v1) / a + (len - d_acc - d_dec).max(0.0) / vmax
+    }
+}
+
+/// Junction speed between two unit directions at the given tolerance (junction deviation).
+fn junction_speed(d0: [f64; 3], d1: [f64; 3], tolerance_mm: f64, a: f64) -> f64 {
+    let cos = -(d0[0] * d1[0] + d0[1] * d1[1] + d0[2] * d1[2]);
+    if cos > 0.999_999 {
+        return 0.0; // reversal
+    }
+    if cos < -0.999_999 {
+        return f64::INFINITY; // straight on
+    }
+    let sin_half = ((1.0 - cos) / 2.0).sqrt();
+    (a * tolerance_mm * sin_half / (1.0 - sin_half)).sqrt()
+}
+
+/// A pending motion (one-move look-ahead for the junction speed).
+#[derive(Debug, Clone, Copy)]
+struct Pending {
+    canon: Canon,
+    from: Pos,
+    len: f64,
+    dir_start: [f64; 3],
+    dir_end: [f64; 3],
+    rapid: bool,
+}
+
+/// The running machine.
+pub struct Machine<'a> {
+    setup: &'a SimSetup,
+    interp_cfg: InterpConfig,
+    stock: Option<Stock>,
+    sensors: SensorBank,
+    policy: Box<dyn Policy>,
+    policy_enabled: bool,
+    /// Machine coordinates of the controlled point (as the interpreter sees it).
+    pos: Pos,
+    tlo_mm: f64,
+    tool: Option<usize>,
+    feed_prog: f64,
+    feed_mode: FeedMode,
+    rpm_prog: f64,
+    spindle: SpindleDir,
+    /// Feed and speed the policy commands now.
+    feed_now: f64,
+    rpm_now: f64,
+    /// Path speed at the end of the last move, mm/s.
+    v_end: f64,
+    blend_tol: Option<f64>,
+    time_s: f64,
+    next_row_s: f64,
+    pending: Option<Pending>,
+    avg: RevAverager,
+    pub report: SimReport,
+    last_row: Option<TelemetryRow>,
+}
+
+impl<'a> Machine<'a> {
+    /// A machine ready to run, the stock in place.
+    pub fn new(setup: &'a SimSetup) -> Result<Self, SimError> {
+        let p = &setup.profile;
+        let w = p.work_offset;
+        let mut interp_cfg = InterpConfig {
+            home: Pos::new(0.0, 0.0, p.axes.z.max_mm, 0.0),
+            initial_position: Pos::new(p.axes.x.min_mm, p.axes.y.min_mm, p.axes.z.max_mm, 0.0),
+            ..Default::default()
+        };
+        interp_cfg.work_offsets = [Pos::new(w.x_mm, w.y_mm, w.z_mm, 0.0); 6];
+        for t in &setup.tools {
+            interp_cfg.tools.insert(t.number, t.length_mm);
+        }
+        let s = setup.stock;
+        let stock = if setup.motion_only {
+            None
+        } else {
+            let mut stock = Stock::block(
+                Point3::new(s.min_x_mm, s.min_y_mm, s.min_z_mm),
+                s.x_mm,
+                s.y_mm,
+                s.z_mm,
+                s.cell_mm,
+            )?;
+            for inc in &setup.inclusions {
+                stock.set_hardness_sphere(Point3::from(inc.center), inc.radius_mm, inc.factor)?;
+            }
+            Some(stock)
+        };
+        let policy: Box<dyn Policy> = Box::new(Fixed::default());
+        Ok(Machine {
+            setup,
+            pos: interp_cfg.initial_position,
+            interp_cfg,
+            stock,
+            sensors: SensorBank::new(p.sensors, setup.seed),
+            policy,
+            policy_enabled: true,
+            tlo_mm: 0.0,
+            tool: None,
+            feed_prog: 0.0,
+            feed_mode: FeedMode::PerMinute,
+            rpm_prog: 0.0,
+            spindle: SpindleDir::Off,
+            feed_now: 0.0,
+            rpm_now: 0.0,
+            v_end: 0.0,
+            blend_tol: Some(0.01),
+            time_s: 0.0,
+            next_row_s: 0.0,
+            pending: None,
+            avg: RevAverager::default(),
+            report: SimReport { policy: setup.policy.as_str(), ..Default::default() },
+            last_row: None,
+        })
+    }
+
+    /// The interpreter configuration matching this machine (tool table, offsets, home).
+    pub fn interp_config(&self) -> InterpConfig {
+        self.interp_cfg.clone()
+    }
+
+    /// The stock as it is now (work frame), `None` for a motion-only run.
+    pub fn stock(&self) -> Option<&Stock> {
+        self.stock.as_ref()
+    }
+
+    fn work(&self, p: Pos) -> Point3<f64> {
+        let w = self.setup.profile.work_offset;
+        Point3::new(p.x - w.x_mm, p.y - w.y_mm, p.z - self.tlo_mm - w.z_mm)
+    }
+
+    fn current_tool(&self) -> Option<&MachineTool> {
+        self.tool.map(|i| &self.setup.tools[i])
+    }
+
+    fn make_policy(&self, tool: &MachineTool) -> Box<dyn Policy> {
+        let limits = limits_for(&self.setup.profile, tool, &self.setup.material, self.rpm_prog);
+        match self.setup.policy {
+            PolicyKind::Aco => Box::new(Aco::new(limits, Tuning::default())),
+            PolicyKind::FeedOnly => Box::new(FeedOnly::new(limits, 0.5 * limits.power_max_w.min(200.0))),
+            PolicyKind::Off => Box::new(Fixed::default()),
+        }
+    }
+
+    fn feed_mm_min(&self) -> f64 {
+        match self.feed_mode {
+            FeedMode::PerMinute => self.feed_prog,
+            FeedMode::PerRevolution => self.feed_prog * self.rpm_prog,
+        }
+    }
+
+    /// Feeds one canonical command. `observe` sees telemetry rows as they are made.
+    pub fn execute(&mut self, canon: Canon, observe: Observer<'_>) -> Result<(), SimError> {
+        match canon {
+            Canon::Traverse { .. } | Canon::Feed { .. } | Canon::Arc { .. } => {
+                self.check_envelope(&canon)?;
+                let next = self.plan(canon);
+                if let Some(prev) = self.pending.replace(next) {
+                    let v_junction = self.junction(&prev, &next);
+                    self.run_move(prev, v_junction, observe)?;
+                }
+            }
+            other => {
+                self.flush(observe)?;
+                self.apply(other)?;
+            }
+        }
+        Ok(())
+    }
+
+    /// Ends the program: runs the last move to a stop.
+    pub fn finish(&mut self, observe: Observer<'_>) -> Result<(), SimError> {
+        self.flush(observe)?;
+        if let Some(row) = self.last_row {
+            observe(&row);
+        }
+        Ok(())
+    }
+
+    fn flush(&mut self, observe: Observer<'_>) -> Result<(), SimError> {
+        if let Some(prev) = self.pending.take() {
+            self.run_move(prev, 0.0, observe)?;
+        }
+        Ok(())
+    }
+
+    fn apply(&mut self, canon: Canon) -> Result<(), SimError> {
+        let prof = &self.setup.profile;
+        match canon {
+            Canon::SetFeedRate { line, rate, mode } => {
+                self.feed_mode = mode;
+                self.feed_prog = rate;
+                let w = self.feed_mm_min();
+                if rate > 0.0 && (mode == FeedMode::PerMinute || self.rpm_prog > 0.0) {
+                    self.check_range(
+                        line,
+                        "F",
+                        w,
+                        prof.motion.feed_min_mm_min,
+                        prof.motion.feed_max_mm_min,
+                        "mm/min",
+                    )?;
+                }
+                // programmed() clamps to the machine's range (refused above unless clamping).
+                self.programmed();
+            }
+            Canon::SetSpindleSpeed { line, rpm } => {
+                if rpm > 0.0 {
+                    self.check_range(line, "S", rpm, prof.spindle.rpm_min, prof.spindle.rpm_max, "rpm")?;
+                }
+                self.rpm_prog = rpm.clamp(0.0, prof.spindle.rpm_max);
+                if rpm > 0.0 {
+                    self.rpm_prog = self.rpm_prog.max(prof.spindle.rpm_min);
+                }
+                self.programmed();
+            }
+            Canon::Spindle { dir, .. } => {
+                // The spindle ramps to speed before the next move (a dwell of the ramp time).
+                if dir != SpindleDir::Off && self.spindle == SpindleDir::Off {
+                    self.time_s += self.rpm_prog / prof.spindle.accel_rpm_s;
+                }
+                self.spindle = dir;
+            }
+            Canon::ToolChange { line, tool } => {
+                self.tool = if tool == 0 {
+                    None
+                } else {
+                    let i = self.setup.tools.iter().position(|t| t.number == tool).ok_or_else(|| {
+                        SimError::Rejected {
+                            line,
+                            message: format!("T{tool} is not in the machine's tool table"),
+                        }
+                    })?;
+                    Some(i)
+                };
+                self.spindle = SpindleDir::Off;
+                // A manual change on this machine class: 20 s.
+                self.time_s += 20.0;
+                if let Some(t) = self.current_tool().cloned() {
+                    self.policy = self.make_policy(&t);
+                    self.programmed();
+                }
+            }
+            Canon::ToolLengthOffset { mm, .. } => self.tlo_mm = mm,
+            Canon::Dwell { seconds, .. } => self.time_s += seconds.max(0.0),
+            Canon::AdaptiveFeed { enabled, .. } => self.policy_enabled = enabled,
+            Canon::SetPathMode { mode, .. } => {
+                self.blend_tol = match mode {
+                    PathMode::ExactPath | PathMode::ExactStop => None,
+                    PathMode::Blend { tolerance_mm, .. } => Some(tolerance_mm.unwrap_or(0.01).max(0.001)),
+                }
+            }
+            Canon::Pause { .. }
+            | Canon::Coolant { .. }
+            | Canon::WorkOffset { .. }
+            | Canon::ProgramEnd { .. }
+            | Canon::Traverse { .. }
+            | Canon::Feed { .. }
+            | Canon::Arc { .. } => {}
+        }
+        Ok(())
+    }
+
+    fn check_range(
+        &mut self,
+        line: u64,
+        word: &str,
+        v: f64,
+        lo: f64,
+        hi: f64,
+        unit: &str,
+    ) -> Result<(), SimError> {
+        if v >= lo - 1e-9 && v <= hi + 1e-9 {
+            return Ok(());
+        }
+        let message = format!("{word}{v} is outside the machine's {lo}-{hi} {unit}");
+        if self.setup.clamp {
+            self.report.warnings.push(format!("line {line}: {message}; clamped"));
+            Ok(())
+        } else {
+            Err(SimError::Rejected { line, message })
+        }
+    }
+
+    fn programmed(&mut self) {
+        let prof = &self.setup.profile;
+        let w = self.feed_mm_min().clamp(prof.motion.feed_min_mm_min, prof.motion.feed_max_mm_min);
+        let n = self.rpm_prog.clamp(prof.spindle.rpm_min, prof.spindle.rpm_max);
+        self.feed_now = w;
+        self.rpm_now = n;
+        self.policy.programmed(w, n);
+    }
+
+    fn check_envelope(&self, canon: &Canon) -> Result<(), SimError> {
+        let Some(to) = canon.end_point() else { return Ok(()) };
+        let prof = &self.setup.profile;
+        let length = self.current_tool().map_or(0.0, |t| t.length_mm);
+        // Nose = tip + length; the tip is the canonical point minus the program's G43 offset.
+        let nose_z = to.z - self.tlo_mm + length;
+        let line = canon.line();
+        let a = &prof.axes;
+        for (axis, v, r) in [("X", to.x, a.x), ("Y", to.y, a.y), ("Z", nose_z, a.z)] {
+            if !r.contains(v, 1e-6) {
+                return Err(SimError::Rejected {
+                    line,
+                    message: format!(
+                        "the move leaves the machine's travel: {axis} {v:.3} mm (spindle nose) is outside [{}, {}]",
+                        r.min_mm, r.max_mm
+                    ),
+                });
+            }
+        }
+        if !prof.a_is_continuous() && !a.a.contains(to.a, 1e-6) {
+            return Err(SimError::Rejected {
+                line,
+                message: format!("A {:.3}° is outside [{}, {}]", to.a, a.a.min_mm, a.a.max_mm),
+            });
+        }
+        Ok(())
+    }
+
+    fn plan(&self, canon: Canon) -> Pending {
+        let from = self.pending.as_ref().map_or(self.pos, |p| p.canon.end_point().unwrap_or(p.from));
+        let rapid = matches!(canon, Canon::Traverse { .. });
+        let to = canon.end_point().unwrap_or(from);
+        let (len, d0, d1) = match canon {
+            Canon::Arc { end, plane, center, rotation, .. } => {
+                arc_geometry(from, end, plane, center, rotation)
+            }
+            _ => {
+                let d = [to.x - from.x, to.y - from.y, to.z - from.z];
+                let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+                let u = if l > 0.0 { [d[0] / l, d[1] / l, d[2] / l] } else { [0.0; 3] };
+                (l, u, u)
+            }
+        };
+        Pending { canon, from, len, dir_start: d0, dir_end: d1, rapid }
+    }
+
+    fn junction(&self, prev: &Pending, next: &Pending) -> f64 {
+        let a = self.setup.profile.motion.accel_mm_s2;
+        let Some(tol) = self.blend_tol else { return 0.0 };
+        if prev.rapid != next.rapid || prev.len <= 0.0 || next.len <= 0.0 {
+            return 0.0;
+        }
+        let v_feed = if next.rapid { self.setup.profile.motion.rapid_mm_min } else { self.feed_now } / 60.0;
+        junction_speed(prev.dir_end, next.dir_start, tol, a).min(v_feed).min((2.0 * a * next.len).sqrt())
+    }
+
+    fn run_move(&mut self, m: Pending, v_exit: f64, observe: Observer<'_>) -> Result<(), SimError> {
+        let prof = &self.setup.profile;
+        let a = prof.motion.accel_mm_s2;
+        self.report.moves += 1;
+        let to = m.canon.end_point().unwrap_or(m.from);
+        let line = m.canon.line();
+        let a_move = (to.a - m.from.a).abs();
+        if m.rapid || self.stock.is_none() {
+            let vmax = if m.rapid { prof.motion.rapid_mm_min } else { self.feed_now } / 60.0;
+            let mut t = trapezoid_time(m.len, self.v_end, v_exit, vmax, a);
+            t = t.max(a_move / (prof.motion.a_rate_deg_min / 60.0));
+            if m.rapid
+                && let Some(stock) = self.stock.as_mut()
+            {
+                // A rapid that touches material is a crash.
+                let tool = self.tool.map(|i| &self.setup.tools[i]);
+                if let Some(tool) = tool {
+                    let w = prof.work_offset;
+                    let (f, e) = (
+                        Point3::new(m.from.x - w.x_mm, m.from.y - w.y_mm, m.from.z - self.tlo_mm - w.z_mm),
+                        Point3::new(to.x - w.x_mm, to.y - w.y_mm, to.z - self.tlo_mm - w.z_mm),
+                    );
+                    let cut = stock.cut_line(&tool.profile, f, e)?;
+                    if cut.volume_mm3 > 1e-3 {
+                        return Err(SimError::Crash {
+                            line,
+                            message: format!(
+                                "rapid move into the stock ({:.3} mm³ in the way)",
+                                cut.volume_mm3
+                            ),
+                        });
+                    }
+                }
+            }
+            self.time_s += t;
+            self.v_end = v_exit.min(vmax);
+            self.pos = to;
+            return Ok(());
+        }
+        if self.feed_now <= 0.0 {
+            return Err(SimError::Rejected { line, message: "feed move with no feed rate".into() });
+        }
+        if (to.a - self.interp_cfg.initial_position.a).abs() > 1e-9 || a_move > 1e-9 {
+            self.report.warnings.push(format!(
+                "line {line}: a feed move at A={:.3}° is timed but not cut: the Z-map stock models 3-axis work",
+                to.a
+            ));
+            let t = trapezoid_time(m.len, self.v_end, v_exit, self.feed_now / 60.0, a);
+            self.time_s += t.max(a_move / (prof.motion.a_rate_deg_min / 60.0));
+            self.pos = to;
+            self.v_end = 0.0;
+            return Ok(());
+        }
+        let Some(tool) = self.current_tool().cloned() else {
+            return Err(SimError::Rejected { line, message: "feed move with no tool in the spindle".into() });
+        };
+        // Cut per revolution.
+        let mut s = 0.0;
+        let mut v = self.v_end;
+        let mut prev_tip = self.work(m.from);
+        let mut guard = 0u64;
+        while s < m.len - 1e-12 {
+            guard += 1;
+            if guard > 50_000_000 {
+                return Err(SimError::Setup(format!(
+                    "line {line}: move too long to simulate per revolution"
+                )));
+            }
+            let rpm = if self.spindle == SpindleDir::Off { 0.0 } else { self.rpm_now };
+            let w = self.feed_now;
+            let per_rev = if rpm > 0.0 { w / rpm } else { m.len };
+            let ds = per_rev.min(m.len - s).max(1e-6);
+            let s1 = (s + ds).min(m.len);
+            // Speed along the piece: accelerate toward w, decelerate to reach v_exit at the end.
+            let v_target = (w / 60.0).min((v_exit * v_exit + 2.0 * a * (m.len - s1)).sqrt());
+            let v1 = if v_target >= v {
+                v_target.min((v * v + 2.0 * a * ds).sqrt())
+            } else {
+                v_target.max((v * v - 2.0 * a * ds).max(0.0).sqrt())
+            };
+            let dt = 2.0 * ds / (v + v1).max(1e-9);
+            let tip = self.work(point_at(&m, s1 / m.len));
+            let cut = self.cut_piece(&m, &tool.profile, prev_tip, tip, s / m.len, s1 / m.len)?;
+            if cut.volume_mm3 > 1e-6 && rpm <= 0.0 {
+                return Err(SimError::Crash {
+                    line,
+                    message: "feed move into the stock with the spindle stopped".into(),
+                });
+            }
+            self.time_s += dt;
+            self.revolution(&tool, &cut, w, rpm, dt, line, tip, to.a, observe);
+            prev_tip = tip;
+            s = s1;
+            v = v1;
+        }
+        self.v_end = v;
+        self.pos = to;
+        Ok(())
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn cut_piece(
+        &mut self,
+        m: &Pending,
+        tool: &ToolProfile,
+        from: Point3<f64>,
+        to: Point3<f64>,
+        _t0: f64,
+        _t1: f64,
+    ) -> Result<Cut, SimError> {
+        let Some(stock) = self.stock.as_mut() else { return Ok(Cut::default()) };
+        match m.canon {
+            Canon::Arc { plane: Plane::Xy, center, rotation, .. } => {
+                let w = self.setup.profile.work_offset;
+                let c = (center[0] - w.x_mm, center[1] - w.y_mm);
+                // A piece is less than a full turn: no extra turns.
+                Ok(stock.cut_arc_xy(tool, from, to, c, rotation > 0, 0)?)
+            }
+            _ => Ok(stock.cut_line(tool, from, to)?),
+        }
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn revolution(
+        &mut self,
+        tool: &MachineTool,
+        cut: &Cut,
+        w: f64,
+        rpm: f64,
+        dt: f64,
+        line: u64,
+        tip: Point3<f64>,
+        a_deg: f64,
+        observe: Observer<'_>,
+    ) {
+        let prof = &self.setup.profile;
+        self.report.revolutions += 1;
+        self.report.removed_mm3 += cut.volume_mm3;
+        self.report.cells_updated += cut.cells_updated;
+        if cut.volume_mm3 > 0.0 {
+            self.report.cutting_time_s += dt;
+        }
+        let fz = if rpm > 0.0 { w / rpm / f64::from(tool.teeth.max(1)) } else { 0.0 };
+        let load =
+            rev_load(&self.setup.material, cut.hard_volume_mm3, fz, cut.engagement_deg.to_radians(), rpm);
+        let current = if rpm > 0.0 { prof.spindle.current_for_torque(load.torque_nm) } else { 0.0 };
+        for _ in 0..SAMPLES_PER_REV {
+            let r = self.sensors.read(load.torque_nm, current, rpm, dt / SAMPLES_PER_REV as f64);
+            self.avg.push(&r);
+        }
+        let (t_adc, i_avg, t_max) = self.avg.take().unwrap_or_default();
+        let t_est =
+            ((i_avg - prof.spindle.no_load_current_a) * prof.spindle.torque_constant_nm_per_a).max(0.0);
+        let power = t_est * rpm * std::f64::consts::TAU / 60.0;
+        self.report.max_torque_nm = self.report.max_torque_nm.max(load.torque_nm);
+        self.report.max_power_w = self.report.max_power_w.max(load.power_w);
+        self.report.max_current_a = self.report.max_current_a.max(current);
+        let limits = limits_for(prof, tool, &self.setup.material, rpm);
+        if load.torque_nm > limits.torque_max_nm {
+            self.report.revs_over_torque += 1;
+        }
+        if load.power_w > limits.power_max_w {
+            self.report.revs_over_power += 1;
+        }
+        let measured =
+            Measured { feed_mm_min: w, rpm, torque_nm: t_est, torque_adc_max_nm: t_max, power_w: power };
+        let decision =
+            if self.policy_enabled && rpm > 0.0 { Some(self.policy.step(&measured)) } else { None };
+        let active = decision.as_ref().map_or(0, |d| active_mask(&d.active));
+        if let Some(d) = decision {
+            self.feed_now = d.feed_mm_min;
+            self.rpm_now = d.rpm;
+        }
+        let row = TelemetryRow {
+            time_s: self.time_s,
+            line,
+            x_mm: tip.x,
+            y_mm: tip.y,
+            z_mm: tip.z,
+            a_deg,
+            feed_mm_min: w,
+            spindle_rpm: rpm,
+            torque_true_nm: load.torque_nm,
+            torque_adc_nm: t_adc,
+            torque_counts: (t_adc / prof.sensors.torque_nm_per_count).round() as i32,
+            current_a: i_avg,
+            torque_from_current_nm: t_est,
+            power_w: power,
+            removal_mm3_s: if dt > 0.0 { cut.volume_mm3 / dt } else { 0.0 },
+            active,
+        };
+        self.last_row = Some(row);
+        if self.time_s >= self.next_row_s {
+            self.next_row_s = self.time_s + self.setup.telemetry_interval_s;
+            observe(&row);
+        }
+    }
+
+    /// The productivity index of the run (seed 002) from its mean feed, with the cut's width and
+    /// depth estimated from the removed volume.
+    pub fn finish_report(&mut self) {
+        self.report.cycle_time_s = self.time_s;
+        if self.report.cutting_time_s > 0.0 {
+            let mean_feed = self.report.removed_mm3 / self.report.cutting_time_s * 60.0;
+            let cut_power_kw = self.report.max_power_w / 1000.0;
+            // I ∝ w·B·Δ: the removal rate (mm³/min) stands for w·B·Δ.
+            self.report.productivity_index = productivity(
+                &Economics::default(),
+                mean_feed,
+                1.0,
+                1.0,
+                self.setup.material.density_g_cm3,
+                cut_power_kw,
+            );
+        }
+    }
+}
+
+/// Bit `i` set when `Constraint::ALL[i]` is active.
+fn active_mask(active: &[Constraint]) -> u16 {
+    active.iter().filter_map(|c| Constraint::ALL.iter().position(|k| k == c)).fold(0, |m, i| m | (1 << i))
+}
+
+/// The names of the constraints in a telemetry mask, `|`-separated.
+pub fn active_names(mask: u16) -> String {
+    Constraint::ALL
+        .iter()
+        .enumerate()
+        .filter(|(i, _)| mask & (1 << i) != 0)
+        .map(|(_, c)| c.as_str())
+        .collect::<Vec<_>>()
+        .join("|")
+}
+
+/// Length and start/end tangents of an arc.
+fn arc_geometry(
+    from: Pos,
+    end: Pos,
+    plane: Plane,
+    center: [f64; 2],
+    rotation: i32,
+) -> (f64, [f64; 3], [f64; 3]) {
+    let [i0, i1, i2] = plane.axes();
+    let f = from.to_array();
+    let e = end.to_array();
+    let (r0x, r0y) = (f[i0] - center[0], f[i1] - center[1]);
+    let (r1x, r1y) = (e[i0] - center[0], e[i1] - center[1]);
+    let r = (r0x * r0x + r0y * r0y).sqrt();
+    let sweep = super::gcode::arc_sweep(plane, from, end, center, rotation);
+    let planar = r * sweep.abs();
+    let axial = e[i2] - f[i2];
+    let len = (planar * planar + axial * axial).sqrt();
+    let sign = if rotation > 0 { 1.0 } else { -1.0 };
+    let tangent = |rx: f64, ry: f64| {
+        let mut t = [0.0; 3];
+        let n = (rx * rx + ry * ry).sqrt().max(1e-12);
+        t[i0] = -sign * ry / n * planar / len.max(1e-12);
+        t[i1] = sign * rx / n * planar / len.max(1e-12);
+        t[i2] = axial / len.max(1e-12);
+        t
+    };
+    (len, tangent(r0x, r0y), tangent(r1x, r1y))
+}
+
+/// The point at fraction `t` of a pending move (machine coordinates).
+fn point_at(m: &Pending, t: f64) -> Pos {
+    let to = m.canon.end_point().unwrap_or(m.from);
+    match m.canon {
+        Canon::Arc { end, plane, center, rotation, .. } => {
+            let [i0, i1, i2] = plane.axes();
+            let f = m.from.to_array();
+            let e = end.to_array();
+            let (r0x, r0y) = (f[i0] - center[0], f[i1] - center[1]);
+            let sweep = super::gcode::arc_sweep(plane, m.from, end, center, rotation);
+            let (r, a0) = ((r0x * r0x + r0y * r0y).sqrt(), r0y.atan2(r0x));
+            let ang = a0 + sweep * t;
+            let mut p = f;
+            p[i0] = center[0] + r * ang.cos();
+            p[i1] = center[1] + r * ang.sin();
+            p[i2] = f[i2] + (e[i2] - f[i2]) * t;
+            p[3] = f[3] + (e[3] - f[3]) * t;
+            Pos::from_array(p)
+        }
+        _ => {
+            let (f, e) = (m.from.to_array(), to.to_array());
+            Pos::from_array([0, 1, 2, 3].map(|i| f[i] + (e[i] - f[i]) * t))
+        }
+    }
+}
+
+/// Runs a whole program. `stop` is polled between lines; `observe` sees telemetry rows.
+pub fn simulate<R: BufRead>(
+    program: R,
+    setup: &SimSetup,
+    stop: &dyn Fn() -> bool,
+    observe: Observer<'_>,
+) -> Result<(SimReport, Option<HeightMap>), SimError> {
+    let mut machine = Machine::new(setup)?;
+    let mut interp = Interpreter::new(machine.interp_config());
+    let mut buf: Vec<Canon> = Vec::with_capacity(8);
+    let mut line = String::new();
+    let mut reader = program;
+    let mut line_no = 0u64;
+    loop {
+        line.clear();
+        let n = reader.read_line(&mut line).map_err(|source| GcodeError::Io { line: line_no + 1, source })?;
+        if n == 0 {
+            break;
+        }
+        line_no += 1;
+        if line_no.is_multiple_of(256) && stop() {
+            return Err(SimError::Stopped { line: line_no });
+        }
+        buf.clear();
+        interp.execute_line(line.trim_end_matches(['\n', '\r']), line_no, &mut |c| buf.push(c))?;
+        for c in buf.drain(..) {
+            machine.execute(c, observe)?;
+        }
+        if interp.is_ended() {
+            break;
+        }
+    }
+    interp.finish(line_no)?;
+    machine.finish(observe)?;
+    machine.report.blocks = interp.blocks();
+    machine.finish_report();
+    let map = machine.stock().map(Stock::to_height_map);
+    Ok((machine.report, map))
+}
+
+#[cfg(test)]
+mod tests {
+    use std::io::Cursor;
+
+    use super::*;
+    use crate::domain::cutting::material;
+
+    fn setup(policy: PolicyKind) -> SimSetup {
+        SimSetup {
+            profile: MachineProfile::builtin("emco-f1").expect("profile"),
+            material: material("aluminium").expect("al"),
+            stock: StockSpec {
+                min_x_mm: 0.0,
+                min_y_mm: 0.0,
+                min_z_mm: 0.0,
+                x_mm: 30.0,
+                y_mm: 20.0,
+                z_mm: 10.0,
+                cell_mm: 0.1,
+            },
+            tools: vec![MachineTool {
+                number: 1,
+                name: "flat-6".into(),
+                profile: ToolProfile::flat(6.0).expect("flat"),
+                teeth: 2,
+                length_mm: 45.0,
+            }],
+            policy,
+            clamp: false,
+            inclusions: Vec::new(),
+            seed: 1,
+            telemetry_interval_s: 0.0,
+            motion_only: false,
+        }
+    }
+
+    /// A 2 mm deep slot along X through the stock.
+    const SLOT: &str = "%\nG21 G90 G17 G94 G40 G49 G80\nT1 M6\nS1500 M3\nG43 H1\nG0 X-5 Y10\nG0 Z5\nG1 Z8 F100\nG1 X35 F200\nG0 Z15\nG53 G0 Z0\nM30\n%\n";
+
+    fn run(
+        setup: &SimSetup,
+        program: &str,
+    ) -> Result<(SimReport, Vec<TelemetryRow>, Option<HeightMap>), SimError> {
+        let mut rows = Vec::new();
+        let (report, map) = simulate(Cursor::new(program), setup, &|| false, &mut |r| rows.push(*r))?;
+        Ok((report, rows, map))
+    }
+
+    #[test]
+    fn a_slot_removes_its_volume_and_takes_its_time() {
+        let s = setup(PolicyKind::Off);
+        let (report, rows, map) = run(&s, SLOT).expect("runs");
+        let map = map.expect("stock");
+        // The slot: 30 mm long through the stock, 6 mm wide, 2 mm deep, round ends outside.
+        let expected = 30.0 * 6.0 * 2.0;
+        assert!((report.removed_mm3 - expected).abs() < 0.03 * expected, "{}", report.removed_mm3);
+        let volume_before = 30.0 * 20.0 * 10.0;
+        let volume_after: f64 = map.data().iter().map(|z| f64::from(*z) * 0.01).sum();
+        assert!((volume_before - volume_after - report.removed_mm3).abs() < 0.5, "conservation");
+        // The bottom of the slot at Z 8 on the centre line, untouched stock beside it.
+        let (c, r) = map.cell_of(15.0, 10.0).expect("cell");
+        assert!((map.get(c, r).unwrap_or(0.0) - 8.0).abs() < 1e-3);
+        let (c, r) = map.cell_of(15.0, 2.0).expect("cell");
+        assert!((map.get(c, r).unwrap_or(0.0) - 10.0).abs() < 1e-6);
+        // 40 mm at 200 mm/min is 12 s of feed; plus the tool change, spindle ramp, rapids.
+        assert!(report.cycle_time_s > 12.0 + 20.0 && report.cycle_time_s < 60.0, "{}", report.cycle_time_s);
+        assert!(!rows.is_empty());
+        let cutting: Vec<_> = rows.iter().filter(|r| r.removal_mm3_s > 0.0).collect();
+        assert!(!cutting.is_empty());
+        // Slotting 2 mm deep at 0.133 mm/rev in aluminium: about a torque count, a clear current.
+        let t = cutting.iter().map(|r| r.torque_true_nm).fold(0.0, f64::max);
+        assert!((0.05..1.0).contains(&t), "{t}");
+        let i = cutting.iter().map(|r| r.current_a).fold(0.0, f64::max);
+        assert!(i > 0.35, "{i}");
+    }
+
+    #[test]
+    fn out_of_range_programs_are_refused_with_their_line_or_clamped() {
+        let s = setup(PolicyKind::Off);
+        let fast = SLOT.replace("F200", "F900");
+        let e = run(&s, &fast).map(|_| ()).expect_err("F900");
+        assert!(e.to_string().starts_with("line 9: F900 is outside the machine's 5-400 mm/min"), "{e}");
+        let mut clamped = setup(PolicyKind::Off);
+        clamped.clamp = true;
+        let (report, _, _) = run(&clamped, &fast).expect("clamped");
+        assert!(report.warnings.iter().any(|w| w.contains("F900") && w.contains("clamped")));
+        let e = run(&s, &SLOT.replace("S1500", "S5000")).map(|_| ()).expect_err("S5000");
+        assert!(e.to_string().contains("line 4: S5000"), "{e}");
+        let e = run(&s, &SLOT.replace("G1 X35", "G1 X400")).map(|_| ()).expect_err("travel");
+        assert!(e.to_string().contains("line 9") && e.to_string().contains("travel"), "{e}");
+    }
+
+    #[test]
+    fn crashes_end_the_run() {
+        let s = setup(PolicyKind::Off);
+        let e = run(&s, &SLOT.replace("G1 X35 F200", "G0 X35")).map(|_| ()).expect_err("rapid into stock");
+        assert!(matches!(e, SimError::Crash { line: 9, .. }), "{e}");
+        let e = run(&s, &SLOT.replace("S1500 M3", "S1500")).map(|_| ()).expect_err("spindle off");
+        assert!(e.to_string().contains("spindle stopped"), "{e}");
+    }
+
+    #[test]
+    fn the_adaptive_loop_holds_torque_through_a_hard_inclusion() {
+        let deep = SLOT.replace("G1 Z8 F100", "G1 Z6 F100");
+        let mut fixed = setup(PolicyKind::Off);
+        fixed.inclusions = vec![Inclusion { center: [15.0, 10.0, 7.0], radius_mm: 4.0, factor: 4.0 }];
+        let mut aco = fixed.clone();
+        aco.policy = PolicyKind::Aco;
+        let (r_fixed, _, _) = run(&fixed, &deep).expect("fixed");
+        let (r_aco, rows, _) = run(&aco, &deep).expect("aco");
+        assert!(r_fixed.revs_over_torque > 0, "the fixed feed overloads in the inclusion: {r_fixed:?}");
+        assert!(
+            r_aco.revs_over_torque * 4 < r_fixed.revs_over_torque,
+            "aco {} vs fixed {} revolutions over the torque limit",
+            r_aco.revs_over_torque,
+            r_fixed.revs_over_torque
+        );
+        let seen: std::collections::BTreeSet<String> = rows.iter().map(|r| active_names(r.active)).collect();
+        // The binding limit of a 6 mm end mill 4 mm deep is its deflection (then torque).
+        assert!(
+            seen.iter().any(|a| a.contains("deflection") || a.contains("torque")),
+            "the loop reports the active limit: {seen:?}"
+        );
+        assert_eq!(r_aco.revs_over_power, 0);
+        assert!(r_fixed.revs_over_power > 0);
+    }
+
+    #[test]
+    fn motion_only_runs_time_the_program() {
+        let mut s = setup(PolicyKind::Off);
+        s.motion_only = true;
+        let (report, _, map) = run(&s, SLOT).expect("runs");
+        assert!(map.is_none());
+        assert!(report.cycle_time_s > 32.0, "{}", report.cycle_time_s);
+    }
+}
