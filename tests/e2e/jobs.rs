@@ -142,6 +142,7 @@ async fn the_same_idempotency_key_gives_the_same_job() -> anyhow::Result<()> {
         execute: Some(depthmill_proto::machine::v1::ExecuteParams {
             machine: Some("emco-f1".into()),
             adaptive: depthmill_proto::machine::v1::AdaptiveMode::Off as i32,
+            ..Default::default()
         }),
         ..Default::default()
     };
@@ -190,20 +191,33 @@ async fn transient_errors_are_retried_and_invalid_arguments_are_not() -> anyhow:
     stack.shutdown().await
 }
 
+/// A binary STL of one triangle.
+fn one_triangle_stl() -> Vec<u8> {
+    let mut b = vec![0u8; 80];
+    b.extend_from_slice(&1u32.to_le_bytes());
+    for v in [[0.0f32, 0.0, 1.0], [0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [0.0, 10.0, 0.0]] {
+        for c in v {
+            b.extend_from_slice(&c.to_le_bytes());
+        }
+    }
+    b.extend_from_slice(&[0, 0]);
+    b
+}
+
 #[tokio::test]
 async fn a_stage_without_its_service_fails_the_job_clearly() -> anyhow::Result<()> {
     let stack = TestStack::start().await?;
-    // G-code goes to the machine service, which does not execute programs yet.
-    let sha = stack.upload("text/x-gcode", program()).await?;
-    let (status, job) = stack.post_job(&gcode_job(&sha), None).await?;
+    // A mesh goes to the scanning service, which does not scan yet.
+    let sha = stack.upload("model/stl", one_triangle_stl()).await?;
+    let (status, job) = stack.post_job(&json!({"input": {"kind": "mesh", "artifact": sha}}), None).await?;
     assert_eq!(status, 201, "{job}");
     let job = stack.wait_for_end(job["id"].as_str().expect("id"), WAIT).await?;
     assert_eq!(job["status"], "failed");
     assert_eq!(job["error"]["code"], "stage_not_available");
-    assert_eq!(job["error"]["stage"], "execute");
+    assert_eq!(job["error"]["stage"], "scan");
     assert!(job["error"]["message"].as_str().unwrap_or_default().contains("stage not available"), "{job}");
-    assert_eq!(outcomes(&job), ["execute:failed"], "no retries for a missing stage");
-    assert!(job["artifacts"].get("telemetry").is_none(), "no fake results");
+    assert_eq!(outcomes(&job), ["scan:failed"], "no retries for a missing stage");
+    assert!(job["artifacts"].get("point_cloud").is_none(), "no fake results");
     stack.shutdown().await
 }
 

@@ -79,3 +79,46 @@ async fn a_plan_the_cam_service_rejects_fails_without_retries() -> anyhow::Resul
     assert_eq!(done["attempts"].as_array().map(Vec::len), Some(1));
     stack.shutdown().await
 }
+
+#[tokio::test]
+async fn a_planned_program_is_machined_and_measured_against_the_depth_map() -> anyhow::Result<()> {
+    let stack = TestStack::start().await?;
+    let sha = stack.upload("image/png", dome_png()?).await?;
+    let job = json!({
+        "name": "dome on the mill",
+        "input": {"kind": "depth_map", "artifact": sha},
+        "plan": {"stock": {"z_mm": 10, "material": "aluminium"},
+                 "roughing": {"tool": "flat-3", "step_down_mm": 2.5, "stock_to_leave_mm": 0.3},
+                 "finishing": {"tool": "ball-3", "strategy": "raster_x", "step_over_mm": 0.5, "tolerance_mm": 0.01}},
+        "execute": {"machine": "emco-f1", "adaptive": "aco"}
+    });
+    let (status, created) = stack.post_job(&job, None).await?;
+    assert_eq!(status, 201, "{created}");
+    let done = stack.wait_for_end(created["id"].as_str().expect("id"), Duration::from_secs(600)).await?;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    for name in ["final_stock", "deviation_map", "telemetry", "telemetry_plot", "machine_report"] {
+        assert!(done["artifacts"][name]["sha256"].is_string(), "{name} missing: {done}");
+    }
+    let m = &done["metrics"];
+    // The map's pixel is 0.4 mm and the finishing tool a 3 mm ball at 0.5 mm step-over: the part
+    // is never cut below the map by more than the Z-map's resolution, and material is left only
+    // where the ball cannot reach (scallops, and the concave foot of the dome).
+    let gouge = m["max_gouge_mm"].as_f64().unwrap_or(f64::NAN);
+    assert!(gouge < 0.05, "max gouge {gouge}: {m}");
+    let cycle = m["cycle_time_s"].as_f64().unwrap_or(0.0);
+    let plain = m["cycle_time_no_adaptive_s"].as_f64().unwrap_or(0.0);
+    // Light cuts in aluminium: the loop raises the feed, the cycle is shorter than as programmed.
+    assert!(cycle > 10.0 && plain > cycle, "{m}");
+    let report_sha = done["artifacts"]["machine_report"]["sha256"].as_str().expect("report");
+    let report: Value =
+        stack.http.get(stack.url(&format!("/v1/artifacts/{report_sha}"))).send().await?.json().await?;
+    assert!(report["run"]["removed_mm3"].as_f64().unwrap_or(0.0) > 100.0, "{report}");
+    let mean_left = report["deviation"]["mean_leftover_mm"].as_f64().unwrap_or(f64::NAN);
+    assert!(mean_left < 0.2, "mean leftover {mean_left}");
+    assert_eq!(report["run"]["revs_over_torque"], 0, "{report}");
+    let csv_sha = done["artifacts"]["telemetry"]["sha256"].as_str().expect("telemetry");
+    let csv = stack.http.get(stack.url(&format!("/v1/artifacts/{csv_sha}"))).send().await?.text().await?;
+    assert!(csv.starts_with("time_s,line,x_mm"), "{}", &csv[..csv.len().min(200)]);
+    assert!(csv.lines().count() > 10);
+    stack.shutdown().await
+}

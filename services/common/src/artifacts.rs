@@ -32,6 +32,7 @@ pub const ACCEPTED_MEDIA_TYPES: &[&str] = &[
     "application/json",
     "text/html",
     "text/csv",
+    "image/svg+xml",
     "application/octet-stream",
 ];
 
@@ -146,7 +147,7 @@ impl MediaCheck {
     fn is_text(&self) -> bool {
         matches!(
             self.media_type.as_str(),
-            "text/x-xyz" | "text/x-gcode" | "application/json" | "text/html" | "text/csv"
+            "text/x-xyz" | "text/x-gcode" | "application/json" | "text/html" | "text/csv" | "image/svg+xml"
         )
     }
 
@@ -201,7 +202,8 @@ impl MediaCheck {
             "image/png" => need(b"\x89PNG\r\n\x1a\n", "PNG"),
             "application/x-npy" => need(b"\x93NUMPY", ".npy"),
             "application/x-ply" => need(b"ply", "PLY"),
-            "text/x-xyz" | "text/x-gcode" | "text/csv" | "application/json" | "text/html" => {
+            "text/x-xyz" | "text/x-gcode" | "text/csv" | "application/json" | "text/html"
+            | "image/svg+xml" => {
                 // A multi-byte UTF-8 sequence may be cut at the end of the head: ignore that tail.
                 match std::str::from_utf8(head) {
                     Ok(_) => Ok(()),

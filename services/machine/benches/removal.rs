@@ -47,7 +47,7 @@ fn finishing_program(moves: usize) -> Vec<Point3<f64>> {
     let mut pts = Vec::with_capacity(moves + 1);
     let mut pass = 0usize;
     'passes: loop {
-        let along_x = pass % 2 == 0;
+        let along_x = pass.is_multiple_of(2);
         let (len, across) = if along_x { (w, h) } else { (h, w) };
         let phase = (pass as f64 * STEPOVER_MM * 0.618).rem_euclid(STEPOVER_MM);
         let mut forward = true;
@@ -112,6 +112,19 @@ fn cpu_secs() -> f64 {
         (Some(u), Some(s)) => (u + s) / 100.0, // USER_HZ is 100 on Linux
         _ => 0.0,
     }
+}
+
+/// CPU seconds of each thread of this process by thread id (from `/proc/self/task/*/stat`).
+fn thread_cpu_secs() -> Vec<(String, f64)> {
+    let Ok(dir) = std::fs::read_dir("/proc/self/task") else { return Vec::new() };
+    dir.filter_map(|e| {
+        let path = e.ok()?.path();
+        let stat = std::fs::read_to_string(path.join("stat")).ok()?;
+        let f: Vec<&str> = stat.rsplit_once(')')?.1.split_whitespace().collect();
+        let secs = (f.get(11)?.parse::<f64>().ok()? + f.get(12)?.parse::<f64>().ok()?) / 100.0;
+        Some((path.file_name()?.to_string_lossy().into_owned(), secs))
+    })
+    .collect()
 }
 
 /// Runs `f`, returning its result with the wall and CPU seconds it took.
@@ -195,6 +208,7 @@ fn main() {
 
     // (a) The whole program, in two halves so the middle state is kept for (b) and (c).
     let mid = MOVES / 2;
+    let threads_before = thread_cpu_secs();
     let mut stock = roughed.clone();
     let before = stock.volume_mm3();
     let (first, t1, c1) = timed(|| stock.cut_path(&ball, &path[..=mid]).expect("first half"));
@@ -226,6 +240,16 @@ fn main() {
         updated / total / 1e6,
         updated / cpu.max(1e-9) / 1e6
     );
+    // How the work was shared: per-thread CPU time spent in (a) (threads that did any work).
+    let threads_after = thread_cpu_secs();
+    let mut split: Vec<f64> = threads_after
+        .iter()
+        .map(|(tid, t)| t - threads_before.iter().find(|(b, _)| b == tid).map_or(0.0, |(_, b)| *b))
+        .filter(|t| *t > 0.05)
+        .collect();
+    split.sort_by(|a, b| b.total_cmp(a));
+    let split: Vec<String> = split.iter().map(|t| format!("{t:.2}")).collect();
+    println!("    CPU s per thread (all threads of the process, sorted): [{}]", split.join(", "));
     println!(
         "    removed {removed:.3} mm3; volume before - after = {:.3} mm3 (difference {:.2e})",
         before - after,

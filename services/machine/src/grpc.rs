@@ -1,42 +1,320 @@
-//! tonic adapter of the machine service.
+//! tonic adapter of the machine service: one simulated machine, one program at a time.
+//!
+//! `ExecuteProgram` reads the program from the artifact store (streaming, several passes), runs
+//! [`execute`] on a blocking thread, streams progress and telemetry (at most 10 rows a second of
+//! simulated time reach the stream; the CSV artifact has them all at 20 Hz), and stores the
+//! final stock (16-bit PNG), the deviation map (8-bit PNG), the telemetry CSV and its SVG plot
+//! and a JSON report. `Stop` ends the running program at the next line (feed hold and end, the
+//! machine stays referenced); `Reset` is the emergency stop: it ends the program the same way and
+//! latches `estop` until the next program starts. `GetStatus` reports state, job, line and the
+//! tip position.
 
+use std::io::{BufReader, Cursor};
 use std::pin::Pin;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
 
+use depthmill_common::artifacts::{ArtifactError, ArtifactStore, LocalStore};
 use depthmill_common::stage::StageRegistry;
+use depthmill_geometry::PngDepth;
 use depthmill_proto::ErrorCode;
 use depthmill_proto::machine::v1 as pb;
-use depthmill_proto::types::v1::{CancelStageRequest, CancelStageResponse};
+use depthmill_proto::types::v1::{CancelStageRequest, CancelStageResponse, Diagnostic, Progress};
+use tokio::sync::mpsc;
 use tonic::{Request, Response, Status};
+
+use crate::domain::job::{ExecuteError, ExecuteOptions, execute};
+use crate::domain::sim::{PolicyKind, SimError, active_names};
 
 pub(crate) const SERVICE_NAME: &str = "depthmill.machine.v1.MachineService";
 
-#[derive(Default)]
-struct MachineServiceImpl {
-    running: StageRegistry,
+/// Largest program accepted, bytes.
+const MAX_PROGRAM_BYTES: u64 = 2 << 30;
+/// Largest target map accepted, bytes.
+const MAX_MAP_BYTES: u64 = 1 << 30;
+
+#[derive(Debug, Default)]
+struct Shared {
+    state: Mutex<Status_>,
+    stop: AtomicBool,
+    estop: AtomicBool,
+    line: AtomicU64,
 }
 
-pub(crate) fn routes() -> tonic::service::Routes {
-    tonic::service::Routes::new(pb::machine_service_server::MachineServiceServer::new(
-        MachineServiceImpl::default(),
-    ))
+impl Shared {
+    /// State after a run: `estop` while latched, `stopped` after a stop, else `idle`.
+    fn settle(&self) {
+        let state = if self.estop.load(Ordering::SeqCst) {
+            "estop"
+        } else if self.stop.load(Ordering::SeqCst) {
+            "stopped"
+        } else {
+            "idle"
+        };
+        set_state(self, state, None);
+    }
+}
+
+#[derive(Debug, Clone, Default)]
+struct Status_ {
+    state: &'static str,
+    job_id: String,
+    pos: [f64; 4],
+}
+
+struct MachineServiceImpl {
+    running: StageRegistry,
+    store: Arc<LocalStore>,
+    shared: Arc<Shared>,
+}
+
+pub(crate) fn routes(store: LocalStore) -> tonic::service::Routes {
+    let shared = Arc::new(Shared::default());
+    if let Ok(mut s) = shared.state.lock() {
+        s.state = "idle";
+    }
+    tonic::service::Routes::new(pb::machine_service_server::MachineServiceServer::new(MachineServiceImpl {
+        running: StageRegistry::default(),
+        store: Arc::new(store),
+        shared,
+    }))
+}
+
+fn exec_status(e: ExecuteError) -> Status {
+    match &e {
+        ExecuteError::Sim(SimError::Stopped { .. }) => ErrorCode::Cancelled.status(e.to_string()),
+        ExecuteError::Io(_) => ErrorCode::Internal.status(e.to_string()),
+        _ => ErrorCode::InvalidArgument.status(e.to_string()),
+    }
+}
+
+fn artifact_status(e: ArtifactError) -> Status {
+    match e {
+        ArtifactError::NotFound { .. } | ArtifactError::BadDigest { .. } | ArtifactError::TooLarge { .. } => {
+            ErrorCode::InvalidArgument.status(e.to_string())
+        }
+        other => {
+            tracing::error!(error = %depthmill_common::ErrorChain(&other), "artifact store failed");
+            ErrorCode::Internal.status("the artifact store failed")
+        }
+    }
+}
+
+fn options(p: pb::ExecuteParams) -> Result<ExecuteOptions, Status> {
+    let policy = match pb::AdaptiveMode::try_from(p.adaptive) {
+        Ok(pb::AdaptiveMode::Unspecified | pb::AdaptiveMode::Aco) => PolicyKind::Aco,
+        Ok(pb::AdaptiveMode::FeedOnly) => PolicyKind::FeedOnly,
+        Ok(pb::AdaptiveMode::Off) => PolicyKind::Off,
+        Err(_) => {
+            return Err(
+                ErrorCode::InvalidArgument.status(format!("execute.adaptive: unknown value {}", p.adaptive))
+            );
+        }
+    };
+    Ok(ExecuteOptions {
+        machine: p.machine.unwrap_or_else(|| "emco-f1".into()),
+        policy,
+        material: p.material,
+        stock_z_mm: p.stock_z_mm,
+        cell_mm: p.cell_mm,
+        clamp: p.clamp,
+        compare: p.compare.unwrap_or(true),
+        ..Default::default()
+    })
+}
+
+fn status_msg(shared: &Shared) -> pb::MachineStatus {
+    let s = shared.state.lock().map(|s| s.clone()).unwrap_or_default();
+    pb::MachineStatus {
+        state: s.state.to_string(),
+        job_id: s.job_id,
+        line: shared.line.load(Ordering::Relaxed),
+        x_mm: s.pos[0],
+        y_mm: s.pos[1],
+        z_mm: s.pos[2],
+        a_deg: s.pos[3],
+    }
+}
+
+fn set_state(shared: &Shared, state: &'static str, job_id: Option<&str>) {
+    if let Ok(mut s) = shared.state.lock() {
+        s.state = state;
+        if let Some(j) = job_id {
+            s.job_id = j.to_string();
+        }
+    }
 }
 
 type UpdateStream =
     Pin<Box<dyn tokio_stream::Stream<Item = Result<pb::ExecuteProgramUpdate, Status>> + Send>>;
 
+fn update(u: pb::execute_program_update::Update) -> pb::ExecuteProgramUpdate {
+    pb::ExecuteProgramUpdate { update: Some(u) }
+}
+
 #[tonic::async_trait]
 impl pb::machine_service_server::MachineService for MachineServiceImpl {
     type ExecuteProgramStream = UpdateStream;
 
+    #[tracing::instrument(skip_all, fields(job_id))]
     async fn execute_program(
         &self,
         request: Request<pb::ExecuteProgramRequest>,
     ) -> Result<Response<Self::ExecuteProgramStream>, Status> {
-        let job_id = request.get_ref().context.as_ref().map(|c| c.job_id.clone()).unwrap_or_default();
-        tracing::warn!(%job_id, "machine stage requested but not available");
-        Err(ErrorCode::StageNotAvailable.status(
-            "stage not available: the machine service does not implement ExecuteProgram yet (see issue #5)",
-        ))
+        let req = request.into_inner();
+        let job_id = req.context.as_ref().map(|c| c.job_id.clone()).unwrap_or_default();
+        tracing::Span::current().record("job_id", job_id.as_str());
+        let gcode =
+            req.gcode.ok_or_else(|| ErrorCode::InvalidArgument.status("gcode: an artifact is required"))?;
+        let opts = options(req.params.unwrap_or_default())?;
+        let stat = self.store.stat(&gcode.sha256).await.map_err(artifact_status)?.ok_or_else(|| {
+            ErrorCode::InvalidArgument.status(format!("gcode: no artifact {}", gcode.sha256))
+        })?;
+        if stat.size > MAX_PROGRAM_BYTES {
+            return Err(ErrorCode::InvalidArgument
+                .status(format!("gcode: {} bytes exceeds the limit of {MAX_PROGRAM_BYTES}", stat.size)));
+        }
+        let path = self.store.local_path(&gcode.sha256).ok_or_else(|| {
+            ErrorCode::Internal.status("the artifact store has no local file for the program")
+        })?;
+        let target = match &req.target_map {
+            Some(t) => {
+                let bytes = self.store.read_all(&t.sha256, MAX_MAP_BYTES).await.map_err(artifact_status)?;
+                let map = tokio::task::spawn_blocking(move || {
+                    depthmill_geometry::read_png_from(Cursor::new(bytes), None)
+                })
+                .await
+                .map_err(|e| Status::internal(format!("decoding failed: {e}")))?
+                .map_err(|e| ErrorCode::InvalidArgument.status(format!("target_map: {e}")))?;
+                Some(map)
+            }
+            None => None,
+        };
+        {
+            let busy = self.shared.state.lock().map(|s| s.state == "running").unwrap_or(false);
+            if busy {
+                return Err(ErrorCode::Unavailable.status("the machine is running another program"));
+            }
+        }
+        // A new program clears a latched emergency stop (reset, then cycle start).
+        self.shared.estop.store(false, Ordering::SeqCst);
+        self.shared.stop.store(false, Ordering::SeqCst);
+        set_state(&self.shared, "running", Some(&job_id));
+        self.shared.line.store(0, Ordering::Relaxed);
+        let guard = self.running.start(&job_id);
+        let (tx, rx) = mpsc::channel(64);
+        let store = self.store.clone();
+        let shared = self.shared.clone();
+        let span = tracing::Span::current();
+        tokio::spawn(async move {
+            let token = guard.token().clone();
+            let live_tx = tx.clone();
+            let shared_run = shared.clone();
+            let _ = tx.try_send(Ok(update(pb::execute_program_update::Update::Progress(Progress {
+                fraction: 0.0,
+                message: "running the program".into(),
+            }))));
+            let worked = tokio::task::spawn_blocking(move || {
+                span.in_scope(|| {
+                    let open = || -> std::io::Result<Box<dyn std::io::BufRead + Send>> {
+                        Ok(Box::new(BufReader::with_capacity(1 << 16, std::fs::File::open(&path)?)))
+                    };
+                    let stop = || token.is_cancelled() || shared_run.stop.load(Ordering::Relaxed);
+                    let mut next_live = 0.0;
+                    let mut observe = |r: &crate::domain::sim::TelemetryRow| {
+                        shared_run.line.store(r.line, Ordering::Relaxed);
+                        if let Ok(mut s) = shared_run.state.lock() {
+                            s.pos = [r.x_mm, r.y_mm, r.z_mm, r.a_deg];
+                        }
+                        if r.time_s >= next_live {
+                            next_live = r.time_s + 0.1;
+                            let _ = live_tx.try_send(Ok(update(
+                                pb::execute_program_update::Update::Telemetry(pb::Telemetry {
+                                    time_s: r.time_s,
+                                    line: r.line,
+                                    feed_mm_min: r.feed_mm_min,
+                                    spindle_rpm: r.spindle_rpm,
+                                    torque_nm: r.torque_from_current_nm,
+                                    current_a: r.current_a,
+                                    power_w: r.power_w,
+                                    x_mm: r.x_mm,
+                                    y_mm: r.y_mm,
+                                    z_mm: r.z_mm,
+                                    active_limits: active_names(r.active),
+                                }),
+                            )));
+                        }
+                    };
+                    let out =
+                        execute(&open, &opts, target.as_ref(), &stop, &mut observe).map_err(exec_status)?;
+                    let stock_png = png(&out.final_stock, PngDepth::Bits16)?;
+                    let dev_png = match &out.report.deviation {
+                        Some(d) => Some(png(&d.map, PngDepth::Bits8)?),
+                        None => None,
+                    };
+                    Ok::<_, Status>((out, stock_png, dev_png))
+                })
+            })
+            .await;
+            shared.settle();
+            let (out, stock_png, dev_png) = match worked {
+                Ok(Ok(v)) => v,
+                Ok(Err(status)) => {
+                    tracing::info!(error = %status.message(), "execution failed");
+                    let _ = tx.send(Err(status)).await;
+                    return;
+                }
+                Err(e) => {
+                    let _ = tx.send(Err(Status::internal(format!("execution panicked: {e}")))).await;
+                    return;
+                }
+            };
+            let result = async {
+                let final_stock = store.put_bytes("image/png", &stock_png).await?;
+                let deviation_map = match dev_png {
+                    Some(b) => Some(store.put_bytes("image/png", &b).await?.into()),
+                    None => None,
+                };
+                let telemetry = store.put_bytes("text/csv", out.telemetry_csv.as_bytes()).await?;
+                let plot = store.put_bytes("image/svg+xml", out.telemetry_svg.as_bytes()).await?;
+                let report_json = serde_json::to_vec_pretty(&out.report).unwrap_or_default();
+                let report = store.put_bytes("application/json", &report_json).await?;
+                let r = &out.report;
+                let d = r.deviation.as_ref();
+                Ok::<_, ArtifactError>(pb::ExecuteProgramResult {
+                    final_stock: Some(final_stock.into()),
+                    deviation_map,
+                    telemetry: Some(telemetry.into()),
+                    metrics: Some(pb::MachinedPartMetrics {
+                        max_gouge_mm: d.map_or(0.0, |d| d.max_gouge_mm),
+                        max_leftover_mm: d.map_or(0.0, |d| d.max_leftover_mm),
+                        mean_leftover_mm: d.map_or(0.0, |d| d.mean_leftover_mm),
+                        rms_deviation_mm: d.map_or(0.0, |d| d.rms_deviation_mm),
+                        cycle_time_s: r.cycle_time_s,
+                        cycle_time_no_adaptive_s: r.cycle_time_no_adaptive_s,
+                        cycle_time_other_s: r.cycle_time_other_s,
+                        removed_mm3: r.run.removed_mm3,
+                    }),
+                    diagnostics: r
+                        .run
+                        .warnings
+                        .iter()
+                        .take(100)
+                        .map(|w| Diagnostic { code: "machine".into(), message: w.clone() })
+                        .collect(),
+                    telemetry_plot: Some(plot.into()),
+                    machine_report: Some(report.into()),
+                })
+            }
+            .await;
+            let msg = match result {
+                Ok(r) => Ok(update(pb::execute_program_update::Update::Result(r))),
+                Err(e) => Err(artifact_status(e)),
+            };
+            let _ = tx.send(msg).await;
+            drop(guard);
+        });
+        Ok(Response::new(Box::pin(tokio_stream::wrappers::ReceiverStream::new(rx))))
     }
 
     async fn cancel_stage(
@@ -51,20 +329,28 @@ impl pb::machine_service_server::MachineService for MachineServiceImpl {
         &self,
         _request: Request<pb::GetStatusRequest>,
     ) -> Result<Response<pb::MachineStatus>, Status> {
-        Err(ErrorCode::StageNotAvailable
-            .status("stage not available: the machine service has no machine yet"))
+        Ok(Response::new(status_msg(&self.shared)))
     }
 
     async fn stop(&self, _request: Request<pb::StopRequest>) -> Result<Response<pb::MachineStatus>, Status> {
-        Err(ErrorCode::StageNotAvailable
-            .status("stage not available: the machine service has no machine yet"))
+        self.shared.stop.store(true, Ordering::SeqCst);
+        Ok(Response::new(status_msg(&self.shared)))
     }
 
     async fn reset(
         &self,
         _request: Request<pb::ResetRequest>,
     ) -> Result<Response<pb::MachineStatus>, Status> {
-        Err(ErrorCode::StageNotAvailable
-            .status("stage not available: the machine service has no machine yet"))
+        self.shared.estop.store(true, Ordering::SeqCst);
+        self.shared.stop.store(true, Ordering::SeqCst);
+        set_state(&self.shared, "estop", None);
+        Ok(Response::new(status_msg(&self.shared)))
     }
+}
+
+fn png(map: &depthmill_geometry::HeightMap, depth: PngDepth) -> Result<Vec<u8>, Status> {
+    let mut out = Vec::new();
+    depthmill_geometry::write_png_to(map, &mut out, depth)
+        .map_err(|e| ErrorCode::Internal.status(format!("encoding a map failed: {e}")))?;
+    Ok(out)
 }

@@ -1,8 +1,8 @@
 //! Machine service: G-code interpreter, simulated EMCO mill, material removal, adaptive feed/speed loop.
 //!
-//! The machine stage is not provided yet: `ExecuteProgram` answers UNIMPLEMENTED ("stage not available"),
-//! which the orchestrator reports as a failed job with code `stage_not_available`. The service
-//! already serves health, reflection and `CancelStage`.
+//! `ExecuteProgram` runs a program on the simulated mill under the job's feed/speed policy and
+//! stores the final stock, deviation map, telemetry (CSV and plot) and a report; `Stop`, `Reset`
+//! (emergency stop) and `GetStatus` act on the running program. See [`domain`].
 //!
 //! # Layout
 //! - [`domain`]: the library (machine profiles so far).
@@ -51,8 +51,18 @@ pub const SERVICE_NAMES: &[&str] = &[grpc::SERVICE_NAME];
 /// Serves the machine service on `listener` until `shutdown` completes.
 pub async fn serve(
     listener: tokio::net::TcpListener,
-    _config: Config,
+    config: Config,
     shutdown: impl Future<Output = ()> + Send,
-) -> Result<(), ServeError> {
-    depthmill_common::grpc::serve_grpc(listener, grpc::routes(), SERVICE_NAMES, shutdown).await
+) -> Result<(), MachineServeError> {
+    let store = depthmill_common::artifacts::LocalStore::open(&config.artifacts_dir).await?;
+    Ok(depthmill_common::grpc::serve_grpc(listener, grpc::routes(store), SERVICE_NAMES, shutdown).await?)
+}
+
+/// Why the service could not start or stopped.
+#[derive(Debug, thiserror::Error)]
+pub enum MachineServeError {
+    #[error(transparent)]
+    Serve(#[from] ServeError),
+    #[error("cannot open the artifact store")]
+    Artifacts(#[from] depthmill_common::artifacts::ArtifactError),
 }

@@ -10,12 +10,15 @@
 //!   and arcs (material removal per revolution, engagement, hardness field).
 //! - [`sim`]: the simulated mill running a program: motion with acceleration and blending,
 //!   removal, forces and sensors per revolution, the feed/speed policy, telemetry.
+//! - [`job`]: the execute stage as one call: tools, stock, runs with and without adaptation,
+//!   deviation from the target, telemetry CSV and plot.
 //! - [`adaptive`]: the seed's adaptive feed/speed loop, the feed-only baseline, the productivity
 //!   index.
 
 pub mod adaptive;
 pub mod cutting;
 pub mod gcode;
+pub mod job;
 pub mod profile;
 pub mod removal;
 pub mod sensors;

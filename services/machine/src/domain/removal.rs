@@ -75,20 +75,24 @@
 //!   [lo, hi]|` per cell.
 //! - Engagement ([`Cut::engagement_deg`]): seen from the tool axis at the end of the move, in the
 //!   horizontal travel direction there (the tangent for arcs). The *engaged cells* are the cells
-//!   the move lowered that lie in the front half (`(q − p_end)·dir >= 0`) and within `R` of the
-//!   axis. With `e` their signed offset across the travel direction, `ρ_c` the largest distance
-//!   of an engaged cell from the axis (the contact radius: `R` for a flat end at depth, less for
-//!   a ball at a shallow depth) and `p` the cell size, the engaged arc runs from
+//!   in the front half (`(q − p_end)·dir >= 0`) that the move lowered within `R` of the axis,
+//!   plus, for profiles with a horizontal part (flat, bull-nose, ...), those just outside the rim
+//!   (`R < ρ <= R + cell`) where material stands above the rim's lowest point `z_end + h(R)`
+//!   (the periphery touches it: without these, a flat end advancing less than a cell per
+//!   revolution removes a crescent too thin for the grid to resolve at its tips; a sloped
+//!   profile lowers the whole front half of its contact disc at any feed). With `e` their signed offset across the travel direction, `ρ_c` the largest
+//!   distance of an engaged cell from the axis (the contact radius: about `R` for a flat end,
+//!   less for a ball at a shallow depth) and `p` the cell size, the engaged arc runs from
 //!   `θ_min = asin((e_min − p/2)/ρ_c)` to `θ_max = asin((e_max + p/2)/ρ_c)` (clamped to ±90°; the
 //!   half cell is the column a cell stands for), and the engagement is `θ_max − θ_min`: 180° for a
-//!   slot, 90° for half immersion, `acos(1 − ae/R)` for a side cut of radial width `ae`, 0 for an
-//!   air cut (gaps between the extremes count as engaged). Cross-track extents stay well
-//!   resolved for feeds per revolution down to about a cell (a flat end removes only a crescent
-//!   of along-track thickness = feed; a ball lowers the whole front half of its contact disc).
-//!   A move without horizontal travel (a plunge) reports `180° × (occupied 10° sectors around
-//!   the axis) / 36`.
-//! - Axial depth ([`Cut::axial_depth_mm`]): over the same front-half cells, the largest height of
-//!   the material before the cut above the tip's end Z.
+//!   slot, 90° for half immersion, `acos(1 − ae/R)` for a side cut of radial width `ae` (all
+//!   within 2° in the tests, also per revolution and at an angle to the grid); gaps between the
+//!   extremes count as engaged. A move that lowers no cell reports 0 (an air cut, or a tool
+//!   grazing a wall). A move without horizontal travel (a plunge) reports
+//!   `180° × (occupied 10° sectors around the axis) / 36`.
+//! - Axial depth ([`Cut::axial_depth_mm`]): over the same engaged cells, the largest height of
+//!   the material (before the cut; beside the rim, as it stands) above the tip's end Z; 0 when
+//!   nothing was removed.
 //!
 //! [`cut_line_per_rev`] and [`cut_arc_xy_per_rev`] split a move into pieces of one feed per
 //! revolution; the envelope of the whole move is the minimum over its pieces, so the pieces
@@ -97,18 +101,27 @@
 //! # Speed
 //!
 //! Only the footprint is visited: the rows within `R` of the move and, per row, the columns
-//! inside the capsule (segment ⊕ disc of radius `R`; ring ∩ box for arcs). Before computing the
-//! envelope at a cell, a cheap lower bound `z_low + h_lb(d²)` (the lowest tip Z plus a lower
-//! bound of `h` at the distance to the segment: `d²/2R` for a ball, a 256-entry table for the
-//! rest) is compared with the current top; a cell already at or below it cannot be lowered and
-//! is skipped. In finishing, where almost every cell of a footprint was already cut to within
-//! microns of the new envelope, most cells stop there. [`Stock::cut_path`] runs a program of
-//! straight moves in parallel strips: rows are split into bands of [`BAND_ROWS`], each band
-//! applies, in program order, the moves whose footprint reaches it; every cell sees the same
-//! sequence of updates as a sequential run, so the result is identical and each move's figures are
-//! the sums over bands. A single move whose footprint exceeds [`PAR_CELLS`] cells is itself split
-//! into bands across threads. [`Stock::cut_line_baseline`] is the same sweep without the column
-//! clipping and the early-out (benchmark reference, identical result).
+//! inside the capsule (segment ⊕ disc of radius `R`; ring ∩ box for arcs). Before the envelope
+//! is computed at a cell, a cheap test decides whether it can lower the cell at all:
+//!
+//! - Ball mills: an *exact* test without square roots. The envelope is at least a level `t`
+//!   exactly when both end spheres are (`b = z_end + R − t >= 0` and `b² >= R² − d_end²`) and,
+//!   when the stationary point lies on the move, the cylinder value is
+//!   (`a = z₀ + m·s + R − t >= 0` and `a² >= (R² − e²)(1 + m²)`); whether `σ*` lies on the move
+//!   is a squared comparison too. `t` is the cell's top lowered by just under half an f32 step,
+//!   so an envelope at or above it cannot change the f32 top. The tests of a chunk of 64 cells
+//!   run branch-free (vectorised), and only the cells that will really be lowered pay for the
+//!   envelope's square roots: in the finishing benchmark about as many as are updated.
+//! - Other tools: a lower bound `z_low + h_lb(d²)` (the lowest tip Z plus `h` at the distance
+//!   to the segment, from a 256-entry table of `h` by `d²` rounded down) against the top.
+//!
+//! [`Stock::cut_path`] runs a program of straight moves in parallel strips: rows are split into
+//! bands of [`BAND_ROWS`], each band applies, in program order, the moves whose footprint reaches
+//! it (in batches of 4096 moves); every cell sees the same sequence of updates as in a sequential
+//! run, so the result is identical and each move's figures are the sums over bands. A single
+//! move whose footprint exceeds [`PAR_CELLS`] cells is itself split into bands across threads.
+//! [`Stock::cut_line_baseline`] is the same sweep over the whole bounding box of the move
+//! without any test (the benchmark's reference; identical result).
 
 use std::f64::consts::{PI, TAU};
 
@@ -134,6 +147,8 @@ const PATH_CHUNK: usize = 4096;
 const LB_TABLE: usize = 256;
 /// Cells per chunk of a row in the branch-free sweep.
 const ROW_CHUNK: usize = 64;
+/// Material must stand this far above the rim's lowest point to count as touching it (mm).
+const RIM_EPS_MM: f64 = 1.0e-4;
 /// Bisection tolerance for the bull-nose torus, mm of tool travel.
 const TORUS_TOL_MM: f64 = 1.0e-10;
 
@@ -242,7 +257,7 @@ impl Stock {
                 return Err(invalid(field, v, "a finite positive length"));
             }
         }
-        if !(z_mm <= MAX_COORD_MM) {
+        if z_mm > MAX_COORD_MM {
             return Err(invalid("z_mm", z_mm, "a height within 1 km"));
         }
         let count = |len: f64| ((len / cell_mm) - 1e-9).ceil().max(1.0);
@@ -368,7 +383,8 @@ impl Stock {
     ) -> Result<Cut, RemovalError> {
         check_point(|| "from".into(), &from)?;
         check_point(|| "to".into(), &to)?;
-        Ok(self.run(tool, &[Job::Line(LineJob::new(from, to))], true))
+        let job = LineJob::new(from, to);
+        Ok(self.run(tool, &[Job::Line(job), Job::Probe(job.frame)], true))
     }
 
     /// [`Stock::cut_line`] without the per-row column clipping and the per-cell early-out: every
@@ -382,13 +398,16 @@ impl Stock {
     ) -> Result<Cut, RemovalError> {
         check_point(|| "from".into(), &from)?;
         check_point(|| "to".into(), &to)?;
-        Ok(self.run(tool, &[Job::Line(LineJob::new(from, to))], false))
+        let job = LineJob::new(from, to);
+        Ok(self.run(tool, &[Job::Line(job), Job::Probe(job.frame)], false))
     }
 
     /// Arc in the XY plane around `center` (x, y) from `from` to `to`, `ccw` (G3) or clockwise
     /// (G2), plus `turns` extra full turns; Z is linear in the angle (a helix when it changes).
-    /// An end angle equal to the start angle is a full circle (LinuxCNC `ARC_FEED`). Level arcs
-    /// are exact, helices and spirals are chorded (see the module docs).
+    /// As LinuxCNC's `ARC_FEED`: an end angle equal to the start angle is a full circle, and
+    /// `turns` is the G2/G3 `P` word minus one (`P1`, the default, is `turns = 0`). The radius
+    /// is the start point's; an end radius that differs makes a spiral. Level arcs are exact,
+    /// helices and spirals are chorded (see the module docs).
     ///
     /// Errors: non-finite points or centre; more than [`MAX_PIECES`] chords.
     #[allow(clippy::too_many_arguments)]
@@ -432,7 +451,8 @@ impl Stock {
                 (start..end).map(|i| Job::Line(LineJob::new(path[i], path[i + 1]))).collect();
             buckets.iter_mut().for_each(Vec::clear);
             for (k, job) in jobs.iter().enumerate() {
-                let (ylo, yhi) = job.y_range(shape.r);
+                // (One cell more than the footprint: the rim probe looks just outside it.)
+                let (ylo, yhi) = job.y_range(shape.r + grid.p);
                 if let Some((r0, r1)) = index_range(ylo, yhi, grid.y0, grid.p, 0, grid.h) {
                     for bucket in &mut buckets[r0 / BAND_ROWS..=r1 / BAND_ROWS] {
                         bucket.push(k as u32);
@@ -449,7 +469,11 @@ impl Stock {
                         .iter()
                         .filter_map(|&k| {
                             let mut t = Tally::new();
-                            run_job::<true>(jobs.get(k as usize)?, shape, &ctx, &mut band, &mut t);
+                            let job = jobs.get(k as usize)?;
+                            run_job::<true>(job, shape, &ctx, &mut band, &mut t);
+                            if let (Job::Line(line), true) = (job, shape.flat_part) {
+                                probe_rim(&line.frame, shape, &ctx, &mut band, &mut t);
+                            }
                             Some((k, t))
                         })
                         .collect()
@@ -546,7 +570,8 @@ pub fn cut_line_per_rev(
     let mut prev = from;
     for i in 1..=n {
         let next = if i == n { to } else { from + (to - from) * (i as f64 * feed_per_rev_mm / len) };
-        let cut = stock.run(tool, &[Job::Line(LineJob::new(prev, next))], true);
+        let job = LineJob::new(prev, next);
+        let cut = stock.run(tool, &[Job::Line(job), Job::Probe(job.frame)], true);
         per_rev(&cut);
         total.accumulate(&cut);
         prev = next;
@@ -657,7 +682,7 @@ impl Piece {
     /// The same on one interval where the piece applies (the function is convex there).
     #[inline]
     fn min_interval(&self, e: f64, lo: f64, hi: f64, m: f64) -> f64 {
-        if !(lo <= hi) {
+        if lo.partial_cmp(&hi).is_none_or(|o| o.is_gt()) {
             return f64::INFINITY;
         }
         let g = |sigma: f64| m * sigma + self.h((sigma * sigma + e * e).sqrt());
@@ -735,6 +760,8 @@ struct Shape {
     /// `lb[i] = h(√(i·R²/N))`: a lower bound of `h` for `d² >= i·R²/N`.
     lb: Vec<f64>,
     lb_scale: f64,
+    /// The profile has a horizontal part: probe the rim for engagement (see [`probe_rim`]).
+    flat_part: bool,
 }
 
 impl Shape {
@@ -763,7 +790,11 @@ impl Shape {
                 Kind::Pieces(pieces)
             }
         };
-        let mut shape = Shape { r, r2: r * r, kind, lb: Vec::new(), lb_scale: 0.0 };
+        let flat_part = match &kind {
+            Kind::Ball => false,
+            Kind::Pieces(ps) => ps.iter().any(|p| matches!(p, Piece::Line { k, .. } if *k == 0.0)),
+        };
+        let mut shape = Shape { r, r2: r * r, kind, lb: Vec::new(), lb_scale: 0.0, flat_part };
         if let Kind::Pieces(_) = shape.kind {
             let lb: Vec<f64> =
                 (0..=LB_TABLE).map(|i| shape.h(shape.r2 * i as f64 / LB_TABLE as f64)).collect();
@@ -961,6 +992,8 @@ impl ArcJob {
 enum Job {
     Line(LineJob),
     Arc(ArcJob),
+    /// Looks for material standing beside the tool's rim at the end of the cut (engagement).
+    Probe(Frame),
 }
 
 impl Job {
@@ -968,6 +1001,7 @@ impl Job {
         match self {
             Job::Line(j) => (j.ay.min(j.by) - r, j.ay.max(j.by) + r),
             Job::Arc(a) => (a.ylo - r, a.yhi + r),
+            Job::Probe(Frame::Dir { ey, .. } | Frame::Axis { ey, .. }) => (ey - r, ey + r),
         }
     }
 
@@ -975,6 +1009,7 @@ impl Job {
         let (xlo, xhi) = match self {
             Job::Line(j) => (j.ax.min(j.bx), j.ax.max(j.bx)),
             Job::Arc(a) => (a.xlo, a.xhi),
+            Job::Probe(_) => return 0,
         };
         let (ylo, yhi) = self.y_range(r);
         let cols = ((xhi - xlo + 2.0 * r) / p + 1.0).min(1e12);
@@ -1071,7 +1106,8 @@ impl ArcPath {
         let frame = Frame::Dir { ex: self.to.x, ey: self.to.y, ez: self.to.z, dx: tx, dy: ty };
         let rmax = self.r0.max(self.r1);
         if rmax < VERTICAL_EPS_MM {
-            return Ok(vec![Job::Line(LineJob::new(self.from, self.to))]);
+            let job = LineJob::new(self.from, self.to);
+            return Ok(vec![Job::Line(job), Job::Probe(job.frame)]);
         }
         if self.z0 == self.z1 && (self.r1 - self.r0).abs() <= sag {
             let rho = 0.5 * (self.r0 + self.r1);
@@ -1103,7 +1139,7 @@ impl ArcPath {
             }
             (arc.xlo, arc.xhi, arc.ylo, arc.yhi) =
                 (self.cx + xlo, self.cx + xhi, self.cy + ylo, self.cy + yhi);
-            return Ok(vec![Job::Arc(arc)]);
+            return Ok(vec![Job::Arc(arc), Job::Probe(frame)]);
         }
         // Chords with a sagitta of at most `sag`: ρ·(1 − cos(Δ/2)) <= sag.
         let step = if sag < rmax { 2.0 * (1.0 - sag / rmax).acos() } else { PI / 2.0 };
@@ -1118,7 +1154,7 @@ impl ArcPath {
         }
         let n = n as usize;
         let mut prev = self.from;
-        Ok((1..=n)
+        let mut jobs: Vec<Job> = (1..=n)
             .map(|i| {
                 let next = self.at(i as f64 / n as f64);
                 let mut job = LineJob::new(prev, next);
@@ -1126,7 +1162,9 @@ impl ArcPath {
                 prev = next;
                 Job::Line(job)
             })
-            .collect())
+            .collect();
+        jobs.push(Job::Probe(frame));
+        Ok(jobs)
     }
 }
 
@@ -1207,9 +1245,11 @@ impl Tally {
     }
 
     /// The cut on cells of `p` mm.
-    fn to_cut(&self, p: f64) -> Cut {
+    fn to_cut(self, p: f64) -> Cut {
         let area = p * p;
-        let engagement_deg = if self.sectors != 0 {
+        let engagement_deg = if self.updated == 0 {
+            0.0
+        } else if self.sectors != 0 {
             180.0 * f64::from(self.sectors.count_ones()) / 36.0
         } else if self.engaged > 0 {
             let rho = self.rho2_max.sqrt().max(0.5 * p);
@@ -1225,7 +1265,7 @@ impl Tally {
             hard_volume_mm3: (self.removed + self.hard_extra) * area,
             max_depth_mm: self.max_depth,
             engagement_deg,
-            axial_depth_mm: self.axial,
+            axial_depth_mm: if self.updated == 0 { 0.0 } else { self.axial },
         }
     }
 }
@@ -1272,20 +1312,33 @@ fn record(t: &mut Tally, ctx: &Ctx<'_>, frame: &Frame, gi: usize, cx: f64, cy: f
     }
 }
 
-/// `top` plus a margin that covers the rounding of an envelope to f32 (two f32 ulps plus 1e-5 mm):
-/// an envelope at or above it cannot lower the cell, so skipping the cell changes nothing.
+/// The level at or above which an envelope cannot lower a cell whose top is `top`: any `z` at or
+/// above it rounds to an f32 `>= top`. Below `top` by less than half the f32 spacing under it
+/// (which is at least `|top|·2⁻²⁴`), plus 1e-9 mm (relative above 1 mm) for the rounding of
+/// the tests themselves. Cells the tool last touched at the same position (an envelope equal to
+/// the top) are thus skipped too.
 #[inline(always)]
-fn with_margin(top: f32) -> f64 {
+fn skip_level(top: f32) -> f64 {
     let t = f64::from(top);
-    t + 1e-5 + t.abs() * 2.4e-7
+    let a = t.abs();
+    t - a * (1.0 / 33_554_432.0) + 1e-9 * (1.0 + a)
 }
 
 /// Indices `i` in `[min, end)` whose cell centre `origin + (i + ½)·p` lies in `[lo, hi]`
-/// (with a hair of slack; callers test the exact condition per cell).
+/// (with a hair of slack; callers test the exact condition per cell). Inputs are finite.
 #[inline]
 fn index_range(lo: f64, hi: f64, origin: f64, p: f64, min: usize, end: usize) -> Option<(usize, usize)> {
-    let a = ((lo - origin) / p - 0.5 - 1e-9).ceil().max(min as f64);
-    let b = ((hi - origin) / p - 0.5 + 1e-9).floor().min(end as f64 - 1.0);
+    // Without SSE4.1, `f64::floor`/`ceil` are library calls; a truncating cast is not.
+    let floor = |x: f64| {
+        let i = x as i64;
+        i - i64::from((i as f64) > x)
+    };
+    let ceil = |x: f64| {
+        let i = x as i64;
+        i + i64::from((i as f64) < x)
+    };
+    let a = ceil((lo - origin) / p - 0.5 - 1e-9).max(min as i64);
+    let b = floor((hi - origin) / p - 0.5 + 1e-9).min(end as i64 - 1);
     (a <= b).then_some((a as usize, b as usize))
 }
 
@@ -1349,23 +1402,34 @@ impl Env for BallSlope {
         d2 * self.inv2r
     }
     /// The envelope is the cylinder value `az + m·s + R − w·√(1+m²)` when the stationary point
-    /// lies on the move, else the nearer end sphere's value; the cylinder value is the smallest
-    /// of the three. So the envelope is at least `t` exactly when all three are (a sphere out of
-    /// reach counts as `+∞`), each tested without a square root as in [`BallLevel::above`].
+    /// `σ* = −m·w/√(1+m²)` lies on the move (`0 <= s + σ* <= L`), else the value of the end
+    /// sphere it is clamped to; both spheres are never below the envelope. So the envelope is at
+    /// least `t` exactly when both spheres are (one out of reach counts as `+∞`) and, if `σ*` is on
+    /// the move, the cylinder value is. Each comparison is squared, as in [`BallLevel::above`],
+    /// and so is the test of `σ*`'s position.
     #[inline(always)]
     fn above(&self, s: f64, e: f64, _d2: f64, t: f64) -> bool {
         let e2 = e * e;
+        let w2 = self.r2 - e2;
         let a = self.az + self.m * s + self.r - t;
-        let cyl = (a >= 0.0) & (a * a >= (self.r2 - e2) * self.k2);
+        let cyl = (a >= 0.0) & (a * a >= w2 * self.k2);
         let da2 = s * s + e2;
         let b = self.az + self.r - t;
         let start = (da2 > self.r2) | ((b >= 0.0) & (b * b >= self.r2 - da2));
-        let sl = s - self.len;
-        let db2 = sl * sl + e2;
+        let u = s - self.len;
+        let db2 = u * u + e2;
         let c = self.az + self.m * self.len + self.r - t;
         let end = (db2 > self.r2) | ((c >= 0.0) & (c * c >= self.r2 - db2));
-        cyl & start & end
+        // σ* on the move ⟺ s − L <= mk·w <= s, with w = √w2 >= 0.
+        let q = self.mk * self.mk * w2;
+        let on = if self.mk >= 0.0 {
+            ((s >= 0.0) & (q <= s * s)) & ((u <= 0.0) | (q >= u * u))
+        } else {
+            ((s >= 0.0) | (q >= s * s)) & ((u <= 0.0) & (q <= u * u))
+        };
+        start & end & (cyl | !on)
     }
+
     /// Branch-free: the clamp of the stationary point; inside the move `√(w² − σ*²) = w/√(1+m²)`.
     #[inline(always)]
     fn z(&self, s: f64, e: f64, _d2: f64) -> f64 {
@@ -1440,6 +1504,65 @@ fn run_job<const FAST: bool>(job: &Job, sh: &Shape, ctx: &Ctx<'_>, band: &mut Ba
             sweep_arc::<FAST, _>(a, &BallLevel { z: a.z, r, r2, inv2r }, ctx, band, t)
         }
         (Job::Arc(a), Kind::Pieces(_)) => sweep_arc::<FAST, _>(a, &PolyLevel { z: a.z, sh }, ctx, band, t),
+        (Job::Probe(frame), _) if sh.flat_part => probe_rim(frame, sh, ctx, band, t),
+        (Job::Probe(_), _) => {}
+    }
+}
+
+/// Books, as engaged, the front-half cells just outside the tool's rim at the end of the cut
+/// (`R < ρ <= R + cell`) where material stands above the rim's lowest point: the periphery is
+/// in contact there. A flat part of a profile advancing by less than a cell removes only a thin
+/// crescent, whose outermost cells the grid may miss; the material beside the rim is always
+/// resolved. (Only for profiles with a horizontal part: elsewhere any forward motion lowers the
+/// whole front half of the contact disc.)
+fn probe_rim(frame: &Frame, sh: &Shape, ctx: &Ctx<'_>, band: &mut Band<'_>, t: &mut Tally) {
+    let Frame::Dir { ex, ey, ez, dx, dy } = *frame else { return };
+    let g = ctx.grid;
+    let (r, outer) = (ctx.r, ctx.r + g.p);
+    let level = ez + sh.h(sh.r2) + RIM_EPS_MM;
+    let Some((row_lo, row_hi)) =
+        index_range(ey - outer, ey + outer, g.y0, g.p, band.row0, band.row0 + band.rows)
+    else {
+        return;
+    };
+    for row in row_lo..=row_hi {
+        let vy = g.y0 + (row as f64 + 0.5) * g.p - ey;
+        let o2 = outer * outer - vy * vy;
+        if o2 < 0.0 {
+            continue;
+        }
+        let (ho, hi) = (o2.sqrt(), (r * r - vy * vy).max(0.0).sqrt());
+        // The front half on this row: rx·dx >= −vy·dy.
+        let (mut flo, mut fhi) = (f64::NEG_INFINITY, f64::INFINITY);
+        if dx > 0.0 {
+            flo = -vy * dy / dx;
+        } else if dx < 0.0 {
+            fhi = -vy * dy / dx;
+        } else if vy * dy < 0.0 {
+            continue;
+        }
+        for (xlo, xhi) in [(-ho, -hi), (hi, ho)] {
+            let (xlo, xhi) = (xlo.max(flo), xhi.min(fhi));
+            if xlo > xhi {
+                continue;
+            }
+            let Some((c_lo, c_hi)) = index_range(ex + xlo, ex + xhi, g.x0, g.p, 0, g.w) else { continue };
+            let base = (row - band.row0) * g.w;
+            for c in c_lo..=c_hi {
+                let rx = g.x0 + (c as f64 + 0.5) * g.p - ex;
+                let rr = rx * rx + vy * vy;
+                let top = band.tops.get(base + c).map_or(f64::NEG_INFINITY, |z| f64::from(*z));
+                if rr <= ctx.r2 || rr > outer * outer || rx * dx + vy * dy < 0.0 || top <= level {
+                    continue;
+                }
+                let e = dx * vy - dy * rx;
+                t.e_max = t.e_max.max(e);
+                t.e_min = t.e_min.min(e);
+                t.rho2_max = t.rho2_max.max(rr);
+                t.engaged += 1;
+                t.axial = t.axial.max(top - ez);
+            }
+        }
     }
 }
 
@@ -1460,6 +1583,10 @@ fn sweep_line<const FAST: bool, E: Env>(
         return;
     };
     let (bxlo, bxhi) = (j.ax.min(j.bx) - r, j.ax.max(j.bx) + r);
+    // Along/across coordinates of column c's centre on a row: s0 + c·ds, e0 + c·de (the same
+    // formula in every code path, so all of them compute the same envelope bit for bit).
+    let (ds, de) = (g.p * j.ux, -g.p * j.uy);
+    let dx0 = g.x0 + 0.5 * g.p - j.ax;
     for row in row_lo..=row_hi {
         let cy = g.y0 + (row as f64 + 0.5) * g.p;
         let (xlo, xhi) = if FAST {
@@ -1472,9 +1599,26 @@ fn sweep_line<const FAST: bool, E: Env>(
         };
         let Some((c_lo, c_hi)) = index_range(xlo, xhi, g.x0, g.p, 0, g.w) else { continue };
         let dyr = cy - j.ay;
+        let (s0, e0) = (dx0 * j.ux + dyr * j.uy, dyr * j.ux - dx0 * j.uy);
+        let at = |c: usize| {
+            // Columns fit in i32 (at most MAX_CELLS cells); i32 → f64 vectorises, usize does not.
+            let cf = f64::from(c as i32);
+            let (s, e) = (s0 + cf * ds, e0 + cf * de);
+            let out = s - s.max(0.0).min(j.len);
+            (s, e, out * out + e * e)
+        };
         let base = (row - band.row0) * g.w;
         let Some(line) = band.tops.get_mut(base + c_lo..=base + c_hi) else { continue };
         t.visited += (c_hi - c_lo + 1) as u64;
+        let mut lower = |cell: &mut f32, c: usize, s: f64, e: f64, d2: f64| {
+            let new = (env.z(s, e, d2) as f32).max(g.bottom);
+            if new < *cell {
+                let old = *cell;
+                *cell = new;
+                let cx = g.x0 + (c as f64 + 0.5) * g.p;
+                record(t, ctx, &j.frame, row * g.w + c, cx, cy, old, new);
+            }
+        };
         if FAST && E::EXACT_TEST {
             // Per chunk of the row: the branch-free, square-root-free test of every cell first,
             // then the envelope only where a cell may be lowered.
@@ -1483,56 +1627,25 @@ fn sweep_line<const FAST: bool, E: Env>(
                 let c0 = c_lo + i * ROW_CHUNK;
                 let mut any = false;
                 for (k, (flag, top)) in need.iter_mut().zip(cells.iter()).enumerate() {
-                    let cx = g.x0 + ((c0 + k) as f64 + 0.5) * g.p;
-                    let dx = cx - j.ax;
-                    let s = dx * j.ux + dyr * j.uy;
-                    let e = dyr * j.ux - dx * j.uy;
-                    let ds = s - s.max(0.0).min(j.len);
-                    let d2 = ds * ds + e * e;
-                    *flag = (d2 <= r2) & !env.above(s, e, d2, with_margin(*top));
+                    let (s, e, d2) = at(c0 + k);
+                    *flag = (d2 <= r2) & !env.above(s, e, d2, skip_level(*top));
                     any |= *flag;
                 }
-                if !any {
-                    continue;
-                }
-                for (k, (cell, flag)) in cells.iter_mut().zip(&need).enumerate() {
-                    if !*flag {
-                        continue;
-                    }
-                    let cx = g.x0 + ((c0 + k) as f64 + 0.5) * g.p;
-                    let dx = cx - j.ax;
-                    let s = dx * j.ux + dyr * j.uy;
-                    let e = dyr * j.ux - dx * j.uy;
-                    let ds = s - s.max(0.0).min(j.len);
-                    let new = (env.z(s, e, ds * ds + e * e) as f32).max(g.bottom);
-                    if new < *cell {
-                        let old = *cell;
-                        *cell = new;
-                        record(t, ctx, &j.frame, row * g.w + c0 + k, cx, cy, old, new);
+                if any {
+                    for (k, (cell, _)) in cells.iter_mut().zip(&need).enumerate().filter(|(_, (_, f))| **f) {
+                        let (s, e, d2) = at(c0 + k);
+                        lower(cell, c0 + k, s, e, d2);
                     }
                 }
             }
             continue;
         }
         for (k, cell) in line.iter_mut().enumerate() {
-            let cx = g.x0 + ((c_lo + k) as f64 + 0.5) * g.p;
-            let dx = cx - j.ax;
-            let s = dx * j.ux + dyr * j.uy;
-            let e = dyr * j.ux - dx * j.uy;
-            let ds = s - s.max(0.0).min(j.len);
-            let d2 = ds * ds + e * e;
-            if d2 > r2 {
+            let (s, e, d2) = at(c_lo + k);
+            if d2 > r2 || (FAST && f64::from(*cell) <= j.zlo + env.lb(d2)) {
                 continue;
             }
-            if FAST && f64::from(*cell) <= j.zlo + env.lb(d2) {
-                continue;
-            }
-            let new = (env.z(s, e, d2) as f32).max(g.bottom);
-            if new < *cell {
-                let old = *cell;
-                *cell = new;
-                record(t, ctx, &j.frame, row * g.w + c_lo + k, cx, cy, old, new);
-            }
+            lower(cell, c_lo + k, s, e, d2);
         }
     }
 }
@@ -1576,7 +1689,13 @@ fn sweep_arc<const FAST: bool, E: Env>(
             if d2 > r2 {
                 continue;
             }
-            if FAST && f64::from(*cell) <= a.z + env.lb(d2) {
+            if FAST
+                && if E::EXACT_TEST {
+                    env.above(0.0, 0.0, d2, skip_level(*cell))
+                } else {
+                    f64::from(*cell) <= a.z + env.lb(d2)
+                }
+            {
                 continue;
             }
             let new = (env.z(0.0, 0.0, d2) as f32).max(g.bottom);
@@ -1992,32 +2111,62 @@ mod tests {
             // Slot through fresh stock, one long move and per revolution.
             let mut s = fresh();
             let slot = s.cut_line(&tool, p(-5.0, 10.0, -1.0), p(20.0, 10.0, -1.0)).expect("slot");
-            assert!((slot.engagement_deg - 180.0).abs() < 4.0, "{name} slot {slot:?}");
+            assert!((slot.engagement_deg - 180.0).abs() < 2.0, "{name} slot {slot:?}");
             assert!((slot.axial_depth_mm - 1.0).abs() < 1e-4, "{name} slot {slot:?}");
             let mut last = Cut::default();
             cut_line_per_rev(&mut s, &tool, p(20.0, 10.0, -1.0), p(22.0, 10.0, -1.0), 0.1, |c| last = *c)
                 .expect("per rev");
-            assert!((last.engagement_deg - 180.0).abs() < 6.0, "{name} slot per rev {last:?}");
+            assert!((last.engagement_deg - 180.0).abs() < 2.0, "{name} slot per rev {last:?}");
             // Half immersion: the axis runs along the wall left by a first pass.
             // (The first pass is a flat end, so nothing is left on that side at the cut's depth.)
             let mut s = fresh();
             let flat: ToolProfile = "flat-6".parse().expect("flat");
             s.cut_line(&flat, p(-5.0, 7.0, -1.0), p(45.0, 7.0, -1.0)).expect("first pass");
             let half = s.cut_line(&tool, p(-5.0, 10.0, -1.0), p(20.0, 10.0, -1.0)).expect("half");
-            assert!((half.engagement_deg - 90.0).abs() < 6.0, "{name} half {half:?}");
+            assert!((half.engagement_deg - 90.0).abs() < 2.0, "{name} half {half:?}");
             cut_line_per_rev(&mut s, &tool, p(20.0, 10.0, -1.0), p(22.0, 10.0, -1.0), 0.1, |c| last = *c)
                 .expect("per rev");
-            assert!((last.engagement_deg - 90.0).abs() < 8.0, "{name} half per rev {last:?}");
+            assert!((last.engagement_deg - 90.0).abs() < 2.0, "{name} half per rev {last:?}");
             // Air.
             let air = s.cut_line(&tool, p(0.0, 10.0, 1.0), p(30.0, 10.0, 1.0)).expect("air");
             assert_eq!((air.engagement_deg, air.volume_mm3, air.cells_updated), (0.0, 0.0, 0), "{name}");
         }
+        // Travel at an angle to the grid: the cells' cross-track offsets no longer line up.
+        for name in ["flat-6", "ball-6"] {
+            let tool: ToolProfile = name.parse().expect("tool");
+            let mut s = Stock::block(p(0.0, 0.0, -10.0), 30.0, 30.0, 10.0, 0.05).expect("stock");
+            let slot = s.cut_line(&tool, p(2.0, 3.0, -1.0), p(20.0, 17.3, -1.0)).expect("slot");
+            let mut last = Cut::default();
+            cut_line_per_rev(&mut s, &tool, p(20.0, 17.3, -1.0), p(21.6, 18.5, -1.0), 0.07, |c| last = *c)
+                .expect("per rev");
+            assert!((slot.engagement_deg - 180.0).abs() < 2.0, "{name} diagonal slot {slot:?}");
+            assert!((last.engagement_deg - 180.0).abs() < 2.0, "{name} diagonal per rev {last:?}");
+            // Half immersion at that angle: a flat end first clears the side to the right.
+            let mut s = Stock::block(p(0.0, 0.0, -10.0), 30.0, 30.0, 10.0, 0.05).expect("stock");
+            let flat: ToolProfile = "flat-6".parse().expect("flat");
+            let (ux, uy) = (18.0f64, 14.3f64); // the direction of travel
+            let n = ux.hypot(uy);
+            let (nx, ny) = (uy / n * 3.0, -ux / n * 3.0); // 3 mm to the right
+            let (a, b) = (p(2.0 + nx, 3.0 + ny, -1.0), p(2.0 + 1.3 * ux + nx, 3.0 + 1.3 * uy + ny, -1.0));
+            s.cut_line(&flat, a, b).expect("clear");
+            let half = s.cut_line(&tool, p(2.0, 3.0, -1.0), p(20.0, 17.3, -1.0)).expect("half");
+            cut_line_per_rev(&mut s, &tool, p(20.0, 17.3, -1.0), p(21.6, 18.5, -1.0), 0.07, |c| last = *c)
+                .expect("per rev");
+            assert!((half.engagement_deg - 90.0).abs() < 3.0, "{name} diagonal half {half:?}");
+            assert!((last.engagement_deg - 90.0).abs() < 3.0, "{name} diagonal half per rev {last:?}");
+        }
+        // Grazing a wall removes nothing: no engagement, although the rim touches material.
+        let flat: ToolProfile = "flat-6".parse().expect("flat");
+        let mut s = Stock::block(p(0.0, 0.0, -10.0), 30.0, 30.0, 10.0, 0.05).expect("stock");
+        s.cut_line(&flat, p(-5.0, 5.0, -1.0), p(35.0, 5.0, -1.0)).expect("slot");
+        let graze = s.cut_line(&flat, p(5.0, 5.0, -1.0), p(25.0, 5.0, -1.0)).expect("graze");
+        assert_eq!((graze.cells_updated, graze.engagement_deg, graze.axial_depth_mm), (0, 0.0, 0.0));
         // A side cut of radial width ae = R/2 with a flat end: acos(1 − ae/R) = 60°.
         let tool: ToolProfile = "flat-6".parse().expect("flat");
         let mut s = Stock::block(p(0.0, 0.0, -10.0), 40.0, 20.0, 10.0, 0.05).expect("stock");
         s.cut_line(&tool, p(-5.0, 8.5, -1.0), p(45.0, 8.5, -1.0)).expect("first pass");
         let side = s.cut_line(&tool, p(-5.0, 10.0, -1.0), p(20.0, 10.0, -1.0)).expect("side");
-        assert!((side.engagement_deg - 60.0).abs() < 4.0, "{side:?}");
+        assert!((side.engagement_deg - 60.0).abs() < 2.0, "{side:?}");
     }
 
     #[test]
@@ -2053,47 +2202,82 @@ mod tests {
 
     #[test]
     fn paths_baseline_and_parallel_sweeps_agree_with_single_moves() {
-        let tool: ToolProfile = "ball-3".parse().expect("ball");
         let mut rng = StdRng::seed_from_u64(9);
-        let mut path = vec![p(1.0, 1.0, 0.5)];
-        for _ in 0..300 {
-            let q = path[path.len() - 1];
-            path.push(p(
-                (q.x + rng.random_range(-1.0..1.0)).clamp(-1.0, 21.0),
-                (q.y + rng.random_range(-1.0..1.0)).clamp(-1.0, 41.0),
-                rng.random_range(-2.0..0.2),
-            ));
+        for (name, tool) in tools() {
+            let mut path = vec![p(1.0, 1.0, 0.5)];
+            for _ in 0..120 {
+                let q = path[path.len() - 1];
+                path.push(p(
+                    (q.x + rng.random_range(-1.0..1.0)).clamp(-1.0, 21.0),
+                    (q.y + rng.random_range(-1.5..1.5)).clamp(-1.0, 41.0),
+                    if rng.random_bool(0.3) { q.z } else { rng.random_range(-2.0..0.2) },
+                ));
+            }
+            let fresh = || Stock::block(p(0.0, 0.0, -5.0), 20.0, 40.0, 5.0, 0.1).expect("stock");
+            let (mut seq, mut base, mut par) = (fresh(), fresh(), fresh());
+            let mut cuts = Vec::new();
+            for w in path.windows(2) {
+                cuts.push(seq.cut_line(&tool, w[0], w[1]).expect("seq"));
+                base.cut_line_baseline(&tool, w[0], w[1]).expect("base");
+            }
+            let batch = par.cut_path(&tool, &path).expect("path");
+            assert!(seq.height_map().data() == base.height_map().data(), "{name}: baseline differs");
+            assert!(seq.height_map().data() == par.height_map().data(), "{name}: cut_path differs");
+            assert_eq!(batch.len(), cuts.len());
+            for (a, b) in cuts.iter().zip(&batch) {
+                assert_eq!((a.cells_visited, a.cells_updated), (b.cells_visited, b.cells_updated), "{name}");
+                assert!((a.volume_mm3 - b.volume_mm3).abs() <= 1e-9 * (1.0 + a.volume_mm3), "{a:?} {b:?}");
+                assert!((a.engagement_deg - b.engagement_deg).abs() < 1e-9, "{name}: {a:?} {b:?}");
+                assert_eq!((a.max_depth_mm, a.axial_depth_mm), (b.max_depth_mm, b.axial_depth_mm));
+            }
         }
-        let fresh = || Stock::block(p(0.0, 0.0, -5.0), 20.0, 40.0, 5.0, 0.1).expect("stock");
-        let (mut seq, mut base, mut par) = (fresh(), fresh(), fresh());
-        let mut cuts = Vec::new();
-        for w in path.windows(2) {
-            cuts.push(seq.cut_line(&tool, w[0], w[1]).expect("seq"));
-            base.cut_line_baseline(&tool, w[0], w[1]).expect("base");
-        }
-        let batch = par.cut_path(&tool, &path).expect("path");
-        assert_eq!(seq.height_map().data(), base.height_map().data());
-        assert_eq!(seq.height_map().data(), par.height_map().data());
-        assert_eq!(batch.len(), cuts.len());
-        for (a, b) in cuts.iter().zip(&batch) {
-            assert_eq!((a.cells_visited, a.cells_updated), (b.cells_visited, b.cells_updated));
-            assert!((a.volume_mm3 - b.volume_mm3).abs() <= 1e-9 * (1.0 + a.volume_mm3), "{a:?} {b:?}");
-            assert!((a.engagement_deg - b.engagement_deg).abs() < 1e-9, "{a:?} {b:?}");
-            assert_eq!((a.max_depth_mm, a.axial_depth_mm), (b.max_depth_mm, b.axial_depth_mm));
-        }
-        // A footprint above PAR_CELLS is swept in parallel bands; same result as sequentially.
-        let big: ToolProfile = "flat-20".parse().expect("flat");
-        let mut one = Stock::block(p(0.0, 0.0, -5.0), 60.0, 60.0, 5.0, 0.05).expect("stock");
-        let mut two = one.clone();
-        let cut = one.cut_line(&big, p(-5.0, 20.0, -1.0), p(65.0, 40.0, -2.0)).expect("big");
+        // A footprint above PAR_CELLS is swept in parallel bands: check it cell by cell.
+        let big: ToolProfile = "bull-20-4".parse().expect("bull");
+        let mut stock = Stock::block(p(0.0, 0.0, -5.0), 60.0, 60.0, 5.0, 0.05).expect("stock");
+        let (a, b) = (p(-5.0, 20.0, -1.5), p(65.0, 40.0, -1.5));
+        let before = stock.volume_mm3();
+        let cut = stock.cut_line(&big, a, b).expect("big");
         assert!(cut.cells_visited > PAR_CELLS, "{cut:?}");
-        let mut parts = Cut::default();
-        for (a, b) in [(-5.0, 20.0), (30.0, 30.0)].iter().zip([(30.0, 30.0), (65.0, 40.0)]) {
-            let za = -1.0 - (a.0 + 5.0) / 70.0;
-            let zb = -1.0 - (b.0 + 5.0) / 70.0;
-            parts.accumulate(&two.cut_line(&big, p(a.0, a.1, za), p(b.0, b.1, zb)).expect("half"));
+        for ((x, y), z) in centres(&stock).iter().zip(stock.height_map().data()) {
+            let want = h_ref(&big, dist_to_segment(*x, *y, a, b)).map_or(0.0, |h| (-1.5 + h).min(0.0));
+            assert!((f64::from(*z) - want).abs() <= 1e-5, "({x}, {y}): {z} vs {want}");
         }
-        assert!((cut.volume_mm3 - parts.volume_mm3).abs() < 1e-6 * cut.volume_mm3);
+        assert!((before - stock.volume_mm3() - cut.volume_mm3).abs() < 1e-9 * before);
+    }
+
+    #[test]
+    fn square_root_free_skip_tests_are_exact() {
+        // `above(t)` must hold exactly when the envelope is at least `t` (up to rounding).
+        let mut rng = StdRng::seed_from_u64(13);
+        let (r, mut wrong) = (1.5f64, 0);
+        for i in 0..200_000 {
+            let len = if i % 4 == 0 { 0.0 } else { rng.random_range(0.0..3.0) };
+            let m: f64 = [0.0, rng.random_range(-3.0..3.0), rng.random_range(-0.2..0.2)][i % 3];
+            let k = (1.0 + m * m).sqrt();
+            let slope = BallSlope { az: 0.3, r, r2: r * r, inv2r: 0.5 / r, len, m, mk: m / k, k2: k * k };
+            let level = BallLevel { z: 0.3, r, r2: r * r, inv2r: 0.5 / r };
+            let (s, e): (f64, f64) = (rng.random_range(-2.0..5.0), rng.random_range(-1.6..1.6));
+            let out = s - s.max(0.0).min(len);
+            let d2 = out * out + e * e;
+            if d2 > r * r {
+                continue;
+            }
+            let t = rng.random_range(-1.0..2.0);
+            let z = slope.z(s, e, d2);
+            if (z - t).abs() > 1e-9 && slope.above(s, e, d2, t) != (z >= t) {
+                wrong += 1;
+            }
+            let z = level.z(s, e, d2);
+            if (z - t).abs() > 1e-9 && level.above(s, e, d2, t) != (z >= t) {
+                wrong += 1;
+            }
+        }
+        assert_eq!(wrong, 0);
+        // The skip level: anything at or above it rounds to an f32 at or above the top.
+        for top in [0.0f32, 1.0, -1.0, 2.0, 0.75, -3.1, 1e-30, 49.99, -0.015625] {
+            let lvl = skip_level(top);
+            assert!((lvl as f32) >= top && lvl <= f64::from(top) + 1e-8, "{top}: {lvl}");
+        }
     }
 
     #[test]

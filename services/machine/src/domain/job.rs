@@ -1,0 +1,496 @@
+//! The execute stage as a library call: a program (re-openable, it is read in several passes,
+//! each streaming), the job's `execute` options and an optional target depth map in; the final
+//! stock, the deviation from the target, telemetry (CSV and an SVG plot) and a report out.
+//!
+//! Passes: (1) the tool list of the program's header comments (`(T1 flat-6: flat D6.0000 mm, 2
+//! flutes - ...)`, what the CAM service writes) merged over the machine's tool table; (2) the
+//! run with the chosen policy (material removal, telemetry); (3) the comparison runs on the same
+//! program: motion only with no adaptation (its cycle time does not depend on the cut), and the
+//! other adaptive policy with removal, in parallel with (2).
+//!
+//! The stock: given, or from the target map exactly as the CAM service sized it (the map's extent,
+//! bottom at its `z_min`, top at `z_min + stock_z_mm` or at the highest point), or, with neither,
+//! the XY extent of the program's feed moves plus the largest tool radius, from 1 mm below the
+//! deepest feed move up to Z 0 (the common hand-written convention: work Z 0 on the stock top).
+
+use std::io::BufRead;
+
+use depthmill_common::plot::{Chart, Panel, Series};
+use depthmill_geometry::{HeightMap, HeightMapMeta, ToolProfile, ToolSpec};
+use serde::Serialize;
+
+use super::cutting::{Material, material, materials};
+use super::gcode::{Canon, InterpConfig, run};
+use super::profile::MachineProfile;
+use super::sim::{
+    Inclusion, MachineTool, PolicyKind, SimError, SimReport, SimSetup, StockSpec, TelemetryRow, active_names,
+    simulate,
+};
+
+/// Default Z-map cell, mm.
+pub const DEFAULT_CELL_MM: f64 = 0.1;
+
+/// The `execute` object of a job, plus what the CLI can give.
+#[derive(Debug, Clone)]
+pub struct ExecuteOptions {
+    pub machine: String,
+    pub policy: PolicyKind,
+    pub material: Option<String>,
+    /// Stock height above the target map's `z_min`.
+    pub stock_z_mm: Option<f64>,
+    /// Explicit stock (work frame), overriding the target-derived one.
+    pub stock: Option<StockSpec>,
+    pub cell_mm: Option<f64>,
+    pub clamp: bool,
+    pub inclusions: Vec<Inclusion>,
+    /// Also run the comparison policies (cycle times with and without adaptation).
+    pub compare: bool,
+    pub seed: u64,
+}
+
+impl Default for ExecuteOptions {
+    fn default() -> Self {
+        ExecuteOptions {
+            machine: "emco-f1".into(),
+            policy: PolicyKind::Aco,
+            material: None,
+            stock_z_mm: None,
+            stock: None,
+            cell_mm: None,
+            clamp: false,
+            inclusions: Vec::new(),
+            compare: true,
+            seed: 1,
+        }
+    }
+}
+
+/// Deviation of the machined part from the target map (positive = material left).
+#[derive(Debug, Clone, Serialize)]
+pub struct Deviation {
+    pub max_gouge_mm: f64,
+    pub max_leftover_mm: f64,
+    pub mean_leftover_mm: f64,
+    pub rms_deviation_mm: f64,
+    pub cells: usize,
+    #[serde(skip)]
+    pub map: HeightMap,
+}
+
+/// The stage's report (stored as JSON).
+#[derive(Debug, Clone, Serialize)]
+pub struct ExecuteReport {
+    pub machine: String,
+    pub material: String,
+    pub stock: StockSpec,
+    pub tools: Vec<ToolLine>,
+    pub run: SimReport,
+    pub cycle_time_s: f64,
+    /// The same program with the programmed feeds and speeds.
+    pub cycle_time_no_adaptive_s: f64,
+    /// The other adaptive policy on the same program.
+    pub cycle_time_other_s: Option<f64>,
+    pub other_policy: Option<&'static str>,
+    pub deviation: Option<Deviation>,
+    pub telemetry_rows: usize,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct ToolLine {
+    pub number: u32,
+    pub name: String,
+    pub teeth: u32,
+    pub length_mm: f64,
+}
+
+/// Everything the stage produces.
+pub struct ExecuteOutput {
+    pub report: ExecuteReport,
+    pub final_stock: HeightMap,
+    pub telemetry_csv: String,
+    pub telemetry_svg: String,
+}
+
+/// Errors of the stage.
+#[derive(Debug, thiserror::Error)]
+pub enum ExecuteError {
+    #[error(transparent)]
+    Sim(#[from] SimError),
+    #[error(transparent)]
+    Profile(#[from] super::profile::ProfileError),
+    #[error("invalid {field} = {value}: {reason}")]
+    Invalid { field: String, value: String, reason: String },
+    #[error("cannot read the program: {0}")]
+    Io(#[from] std::io::Error),
+}
+
+fn invalid(field: &str, value: impl std::fmt::Display, reason: &str) -> ExecuteError {
+    ExecuteError::Invalid { field: field.into(), value: value.to_string(), reason: reason.into() }
+}
+
+/// Tool lines of the CAM header: `(T<n> <name>: <kind> D<d> mm, <z> flutes - ...)`.
+pub fn header_tools(program: impl BufRead) -> Vec<(u32, String, Option<f64>, Option<u32>)> {
+    let mut out: Vec<(u32, String, Option<f64>, Option<u32>)> = Vec::new();
+    for line in program.lines().map_while(Result::ok).take(20_000) {
+        let t = line.trim();
+        let Some(rest) = t.strip_prefix("(T") else { continue };
+        let Some((num, rest)) = rest.split_once(' ') else { continue };
+        let Ok(number) = num.parse::<u32>() else { continue };
+        let Some((name, rest)) = rest.split_once(':') else { continue };
+        let diameter =
+            rest.split_whitespace().find_map(|w| w.strip_prefix('D')).and_then(|d| d.parse::<f64>().ok());
+        let teeth = rest
+            .split(',')
+            .nth(1)
+            .and_then(|s| s.split_whitespace().next())
+            .and_then(|n| n.parse::<u32>().ok());
+        if !out.iter().any(|(n, ..)| *n == number) {
+            out.push((number, name.trim().to_string(), diameter, teeth));
+        }
+    }
+    out
+}
+
+fn tool_profile(name: &str, diameter: Option<f64>) -> Option<ToolProfile> {
+    if let Ok(spec) = name.parse::<ToolSpec>() {
+        return spec.profile().ok();
+    }
+    // A library name: take the kind from its first part and the diameter from the header.
+    let kind = name.split('-').next()?.to_ascii_lowercase();
+    let d = diameter?;
+    match kind.as_str() {
+        "ball" => ToolProfile::ball(d).ok(),
+        "flat" => ToolProfile::flat(d).ok(),
+        _ => None,
+    }
+}
+
+/// The machine's tools for a program: the profile's table overridden by the program's header.
+pub fn tools_for(
+    profile: &MachineProfile,
+    header: &[(u32, String, Option<f64>, Option<u32>)],
+) -> Result<Vec<MachineTool>, ExecuteError> {
+    let mut tools: Vec<MachineTool> = Vec::new();
+    for t in &profile.tools {
+        let p = tool_profile(&t.name, None)
+            .ok_or_else(|| invalid(&format!("tools[T{}].name", t.number), &t.name, "is not a tool spec"))?;
+        tools.push(MachineTool {
+            number: t.number,
+            name: t.name.clone(),
+            profile: p,
+            teeth: 2,
+            length_mm: t.length_mm,
+        });
+    }
+    for (number, name, d, teeth) in header {
+        let Some(p) = tool_profile(name, *d) else {
+            return Err(invalid(
+                &format!("T{number}"),
+                name,
+                "unknown tool: name a spec (ball-6, flat-3, bull-6-1, v-6-90)",
+            ));
+        };
+        // Gauge length: the table's for that number, else a stick-out of 4 diameters + 25 mm holder.
+        let length = profile.tool(*number).map_or(25.0 + 4.0 * p.diameter_mm(), |t| t.length_mm);
+        let tool = MachineTool {
+            number: *number,
+            name: name.clone(),
+            profile: p,
+            teeth: teeth.unwrap_or(2),
+            length_mm: length,
+        };
+        match tools.iter_mut().find(|t| t.number == *number) {
+            Some(slot) => *slot = tool,
+            None => tools.push(tool),
+        }
+    }
+    Ok(tools)
+}
+
+fn stock_spec(
+    opts: &ExecuteOptions,
+    target: Option<&HeightMap>,
+    extent: Option<([f64; 3], [f64; 3])>,
+    max_radius: f64,
+    cell: f64,
+) -> Result<StockSpec, ExecuteError> {
+    if let Some(s) = opts.stock {
+        return Ok(StockSpec { cell_mm: cell, ..s });
+    }
+    if let Some(map) = target {
+        let m = map.meta();
+        let floor = m.z_min_mm;
+        let highest = map.z_range_of_data().map_or(m.z_max_mm, |(_, hi)| f64::from(hi));
+        let top = match opts.stock_z_mm {
+            Some(z) if z.is_finite() && z > 0.0 => floor + z,
+            Some(z) => return Err(invalid("execute.stock_z_mm", z, "must be positive")),
+            None => highest,
+        };
+        return Ok(StockSpec {
+            min_x_mm: m.origin_x_mm,
+            min_y_mm: m.origin_y_mm,
+            min_z_mm: floor,
+            x_mm: m.width_mm(),
+            y_mm: m.height_mm(),
+            z_mm: (top - floor).max(cell),
+            cell_mm: cell,
+        });
+    }
+    let Some((lo, hi)) = extent else {
+        return Err(invalid("execute.stock", "none", "the program has no feed moves and no stock was given"));
+    };
+    let top = 0.0f64.max(lo[2] + 0.5);
+    Ok(StockSpec {
+        min_x_mm: lo[0] - max_radius,
+        min_y_mm: lo[1] - max_radius,
+        min_z_mm: lo[2] - 1.0,
+        x_mm: hi[0] - lo[0] + 2.0 * max_radius,
+        y_mm: hi[1] - lo[1] + 2.0 * max_radius,
+        z_mm: top - (lo[2] - 1.0),
+        cell_mm: cell,
+    })
+}
+
+/// Tip extents of the feed moves (work frame), by interpreting the program once.
+fn feed_extent(
+    program: impl BufRead,
+    cfg: InterpConfig,
+    profile: &MachineProfile,
+) -> Result<Option<([f64; 3], [f64; 3])>, ExecuteError> {
+    let w = profile.work_offset;
+    let mut tlo = 0.0;
+    let mut ext: Option<([f64; 3], [f64; 3])> = None;
+    run(program, cfg, |c| match c {
+        Canon::ToolLengthOffset { mm, .. } => tlo = mm,
+        Canon::Feed { to, .. } | Canon::Arc { end: to, .. } => {
+            let p = [to.x - w.x_mm, to.y - w.y_mm, to.z - tlo - w.z_mm];
+            ext = Some(match ext {
+                None => (p, p),
+                Some((lo, hi)) => ([0, 1, 2].map(|i| lo[i].min(p[i])), [0, 1, 2].map(|i| hi[i].max(p[i]))),
+            });
+        }
+        _ => {}
+    })
+    .map_err(SimError::from)?;
+    Ok(ext)
+}
+
+/// Runs the stage. `open` re-opens the program for each pass; `stop` is polled; `observe` sees
+/// the main run's telemetry rows as they are made.
+pub fn execute(
+    open: &(dyn Fn() -> std::io::Result<Box<dyn BufRead + Send>> + Sync),
+    opts: &ExecuteOptions,
+    target: Option<&HeightMap>,
+    stop: &(dyn Fn() -> bool + Sync),
+    observe: &mut (dyn FnMut(&TelemetryRow) + Send),
+) -> Result<ExecuteOutput, ExecuteError> {
+    let profile = MachineProfile::builtin(&opts.machine)?;
+    let material: Material = match &opts.material {
+        None => material("aluminium").ok_or_else(|| invalid("execute.material", "aluminium", "missing"))?,
+        Some(m) => material(m).ok_or_else(|| {
+            let known: Vec<String> = materials().into_iter().map(|m| m.name).collect();
+            invalid("execute.material", m, &format!("unknown; expected one of {}", known.join(", ")))
+        })?,
+    };
+    let cell =
+        opts.cell_mm.unwrap_or_else(|| target.map_or(DEFAULT_CELL_MM, |m| m.pixel_mm().min(DEFAULT_CELL_MM)));
+    if !(cell.is_finite() && cell >= 0.005 && cell <= 10.0) {
+        return Err(invalid("execute.cell_mm", cell, "must be in [0.005, 10] mm"));
+    }
+    let header = header_tools(open()?);
+    let tools = tools_for(&profile, &header)?;
+    let max_radius = tools.iter().map(|t| t.profile.radius_mm()).fold(0.0, f64::max);
+    let mut setup = SimSetup {
+        profile: profile.clone(),
+        material: material.clone(),
+        stock: StockSpec {
+            min_x_mm: 0.0,
+            min_y_mm: 0.0,
+            min_z_mm: 0.0,
+            x_mm: 1.0,
+            y_mm: 1.0,
+            z_mm: 1.0,
+            cell_mm: cell,
+        },
+        tools: tools.clone(),
+        policy: opts.policy,
+        clamp: opts.clamp,
+        inclusions: opts.inclusions.clone(),
+        seed: opts.seed,
+        telemetry_interval_s: 0.05,
+        motion_only: false,
+    };
+    // The interpreter configuration a machine with these tools uses.
+    let cfg = super::sim::Machine::new(&SimSetup { motion_only: true, ..setup.clone() })?.interp_config();
+    let extent =
+        if target.is_none() && opts.stock.is_none() { feed_extent(open()?, cfg, &profile)? } else { None };
+    setup.stock = stock_spec(opts, target, extent, max_radius, cell)?;
+
+    let other = match (opts.compare, opts.policy) {
+        (true, PolicyKind::Aco) => Some(PolicyKind::FeedOnly),
+        (true, PolicyKind::FeedOnly) => Some(PolicyKind::Aco),
+        _ => None,
+    };
+    let mut rows: Vec<TelemetryRow> = Vec::new();
+    let main_setup = setup.clone();
+    let (main, (other_run, plain)) = rayon::join(
+        || -> Result<_, ExecuteError> {
+            let mut sink = |r: &TelemetryRow| {
+                rows.push(*r);
+                observe(r);
+            };
+            Ok(simulate(open()?, &main_setup, stop, &mut sink)?)
+        },
+        || {
+            let other_run = other.map(|p| -> Result<SimReport, ExecuteError> {
+                let s = SimSetup { policy: p, ..setup.clone() };
+                Ok(simulate(open()?, &s, stop, &mut |_| {})?.0)
+            });
+            let plain = if opts.compare || opts.policy != PolicyKind::Off {
+                let s = SimSetup { policy: PolicyKind::Off, motion_only: true, ..setup.clone() };
+                Some(open().map_err(ExecuteError::from).and_then(|p| {
+                    simulate(p, &s, stop, &mut |_| {}).map(|r| r.0).map_err(ExecuteError::from)
+                }))
+            } else {
+                None
+            };
+            (other_run.transpose(), plain.transpose())
+        },
+    );
+    let (run_report, stock) = main?;
+    let other_run = other_run?;
+    let plain = plain?;
+    let final_stock = stock.ok_or_else(|| invalid("stock", "none", "the run kept no stock"))?;
+    let deviation = target.map(|t| deviation(t, &final_stock));
+    let cycle = run_report.cycle_time_s;
+    let report = ExecuteReport {
+        machine: profile.name.clone(),
+        material: material.name.clone(),
+        stock: setup.stock,
+        tools: tools
+            .iter()
+            .map(|t| ToolLine {
+                number: t.number,
+                name: t.name.clone(),
+                teeth: t.teeth,
+                length_mm: t.length_mm,
+            })
+            .collect(),
+        cycle_time_s: cycle,
+        cycle_time_no_adaptive_s: plain.as_ref().map_or(cycle, |p| p.cycle_time_s),
+        cycle_time_other_s: other_run.as_ref().map(|r| r.cycle_time_s),
+        other_policy: other.map(PolicyKind::as_str),
+        run: run_report,
+        deviation,
+        telemetry_rows: rows.len(),
+    };
+    let telemetry_csv = telemetry_csv(&rows);
+    let telemetry_svg = telemetry_chart(&rows, report.run.policy).to_svg();
+    Ok(ExecuteOutput { report, final_stock, telemetry_csv, telemetry_svg })
+}
+
+/// Signed deviation `stock − target` on the target's grid (NaN where the target has no data),
+/// with its statistics. The stock is sampled at the nearest cell.
+pub fn deviation(target: &HeightMap, stock: &HeightMap) -> Deviation {
+    let meta = *target.meta();
+    let mut data = vec![f32::NAN; target.data().len()];
+    let (mut max_gouge, mut max_left, mut sum_left, mut sum_sq, mut n) = (0.0f64, 0.0f64, 0.0, 0.0, 0usize);
+    for row in 0..meta.height {
+        for col in 0..meta.width {
+            let Some(t) = target.get(col, row).filter(|t| t.is_finite()) else { continue };
+            let (x, y) = meta.cell_center(col, row);
+            let Some(s) = stock.cell_of(x, y).and_then(|(c, r)| stock.get(c, r)) else { continue };
+            let d = f64::from(s) - f64::from(t);
+            data[(row * meta.width + col) as usize] = d as f32;
+            max_gouge = max_gouge.max(-d);
+            max_left = max_left.max(d);
+            sum_left += d.max(0.0);
+            sum_sq += d * d;
+            n += 1;
+        }
+    }
+    let range = max_gouge.max(max_left).max(0.01);
+    let dev_meta = HeightMapMeta { z_min_mm: -range, z_max_mm: range, ..meta };
+    let map = HeightMap::new(dev_meta, data).unwrap_or_else(|_| target.clone());
+    let nf = n.max(1) as f64;
+    Deviation {
+        max_gouge_mm: max_gouge,
+        max_leftover_mm: max_left,
+        mean_leftover_mm: sum_left / nf,
+        rms_deviation_mm: (sum_sq / nf).sqrt(),
+        cells: n,
+        map,
+    }
+}
+
+/// Telemetry rows as CSV with a header line.
+pub fn telemetry_csv(rows: &[TelemetryRow]) -> String {
+    use std::fmt::Write as _;
+    let mut s = String::from(
+        "time_s,line,x_mm,y_mm,z_mm,a_deg,feed_mm_min,spindle_rpm,torque_true_nm,torque_adc_nm,torque_counts,current_a,torque_from_current_nm,power_w,removal_mm3_s,active\n",
+    );
+    for r in rows {
+        let _ = writeln!(
+            s,
+            "{:.4},{},{:.4},{:.4},{:.4},{:.3},{:.2},{:.1},{:.5},{:.4},{},{:.5},{:.5},{:.3},{:.4},{}",
+            r.time_s,
+            r.line,
+            r.x_mm,
+            r.y_mm,
+            r.z_mm,
+            r.a_deg,
+            r.feed_mm_min,
+            r.spindle_rpm,
+            r.torque_true_nm,
+            r.torque_adc_nm,
+            r.torque_counts,
+            r.current_a,
+            r.torque_from_current_nm,
+            r.power_w,
+            r.removal_mm3_s,
+            active_names(r.active)
+        );
+    }
+    s
+}
+
+/// Feed, speed, torque (truth, ADC, from current) and power over time.
+pub fn telemetry_chart(rows: &[TelemetryRow], policy: &str) -> Chart {
+    let series = |label: &str, color: &str, f: &dyn Fn(&TelemetryRow) -> f64| Series {
+        label: label.into(),
+        color: color.into(),
+        points: rows.iter().map(|r| (r.time_s, f(r))).collect(),
+    };
+    Chart {
+        title: format!("Spindle and feed over time ({policy})"),
+        x_label: "time [s]".into(),
+        width: 900,
+        panel_height: 120,
+        panels: vec![
+            Panel {
+                title: "feed".into(),
+                unit: "mm/min".into(),
+                series: vec![series("feed", "#1f77b4", &|r| r.feed_mm_min)],
+            },
+            Panel {
+                title: "spindle speed".into(),
+                unit: "rpm".into(),
+                series: vec![series("speed", "#2ca02c", &|r| r.spindle_rpm)],
+            },
+            Panel {
+                title: "torque".into(),
+                unit: "N·m".into(),
+                series: vec![
+                    series("ADC (0.139 N·m/count)", "#bbbbbb", &|r| r.torque_adc_nm),
+                    series("from current", "#d62728", &|r| r.torque_from_current_nm),
+                    series("model", "#000000", &|r| r.torque_true_nm),
+                ],
+            },
+            Panel {
+                title: "cutting power".into(),
+                unit: "W".into(),
+                series: vec![series("power", "#ff7f0e", &|r| r.power_w)],
+            },
+        ],
+    }
+}
