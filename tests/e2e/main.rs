@@ -4,6 +4,7 @@ mod api;
 mod deploy;
 mod jobs;
 mod plan;
+mod reconstruct;
 mod recovery;
 mod rs274;
 

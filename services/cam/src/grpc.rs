@@ -156,6 +156,36 @@ fn face_angle(face: &str) -> Result<Option<f64>, Status> {
     }
 }
 
+/// Faces without an explicit `A=` take their angle from the view recorded in the depth map:
+/// `A=a` is `a`; with several faces `+Z`, `+Y`, `-Z`, `-Y` are 0, 90, 180, -90 (one program turns
+/// the part between them) and a view the A axis cannot reach (`±X`, other normals) is an error.
+/// A single named-view face is a plain 3-axis job (the part clamped with that face up).
+fn resolve_angles(faces: &mut [FaceInput]) -> Result<(), Status> {
+    use depthmill_geometry::Face;
+    let several = faces.len() > 1;
+    for (i, f) in faces.iter_mut().enumerate() {
+        if f.a_deg.is_some() {
+            continue;
+        }
+        let view = f.map.face();
+        f.a_deg = match view {
+            Face::A { angle_deg } => Some(angle_deg),
+            _ if !several => None,
+            Face::PosZ => Some(0.0),
+            Face::PosY => Some(90.0),
+            Face::NegZ => Some(180.0),
+            Face::NegY => Some(-90.0),
+            other => {
+                return Err(ErrorCode::InvalidArgument.status(format!(
+                    "faces[{i}]: the view {other} cannot be reached by turning the part about the A axis; \
+                     plan it as a job of its own (the part re-clamped)"
+                )));
+            }
+        };
+    }
+    Ok(())
+}
+
 type UpdateStream = Pin<Box<dyn tokio_stream::Stream<Item = Result<pb::PlanToolpathsUpdate, Status>> + Send>>;
 
 fn progress_update(fraction: f64, message: &str) -> pb::PlanToolpathsUpdate {
@@ -213,8 +243,10 @@ impl pb::cam_service_server::CamService for CamServiceImpl {
                 Some(r) => Some(load(r, format!("faces[{i}].roughing_map")).await?),
                 None => None,
             };
-            faces.push(FaceInput { a_deg: face_angle(&f.face)?, map, roughing_map });
+            let explicit = face_angle(&f.face)?;
+            faces.push(FaceInput { a_deg: explicit, map, roughing_map });
         }
+        resolve_angles(&mut faces)?;
         let opts = options(req.params.unwrap_or_default())?;
         let guard = self.running.start(&job_id);
         let (tx, rx) = mpsc::channel(32);

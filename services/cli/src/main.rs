@@ -3,6 +3,8 @@
 mod cam;
 mod client;
 mod embedded;
+mod machine;
+mod raster;
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -130,6 +132,33 @@ enum Command {
         #[arg(short, long)]
         output: PathBuf,
     },
+    /// Rasterise a point cloud (XYZ/PLY) or mesh (STL/PLY) into depth maps (no server).
+    ///
+    /// Writes OUTPUT (.png or .npy), <stem>.coverage.png, <stem>.roughing.<ext> and
+    /// <stem>.report.json; several --face flags give one map per face (<stem>.face1.<ext>, ...).
+    Raster {
+        input: PathBuf,
+        #[command(flatten)]
+        args: raster::RasterArgs,
+        #[arg(short, long)]
+        output: PathBuf,
+    },
+    /// Interpret and validate a program without cutting (no server): blocks, moves, extents,
+    /// travel, feeds and speeds, estimated cycle time; errors name the line and column.
+    Check {
+        program: PathBuf,
+        #[command(flatten)]
+        args: machine::MachineArgs,
+    },
+    /// Run a program on the simulated mill (no server): final stock, telemetry CSV and plot,
+    /// deviation from a target depth map, report.json, in OUTDIR.
+    Simulate {
+        program: PathBuf,
+        #[command(flatten)]
+        args: machine::SimulateArgs,
+        #[arg(short, long)]
+        output: PathBuf,
+    },
     /// Download a job's artifacts and its JSON into a folder.
     Fetch {
         id: String,
@@ -191,6 +220,18 @@ fn main() -> anyhow::Result<()> {
                         &output,
                     )
                 })
+            }
+            Command::Check { program, args } => {
+                depthmill_common::telemetry::init_tracing(cli.log_json);
+                tokio::task::block_in_place(|| machine::run_check(&program, &args))
+            }
+            Command::Simulate { program, args, output } => {
+                depthmill_common::telemetry::init_tracing(cli.log_json);
+                tokio::task::block_in_place(|| machine::run_simulate(&program, &args, &output))
+            }
+            Command::Raster { input, args, output } => {
+                depthmill_common::telemetry::init_tracing(cli.log_json);
+                tokio::task::block_in_place(|| raster::run(&input, &args, &output))
             }
             Command::Plan { map, options, roughing_map, map_args, tools_dir, output } => {
                 depthmill_common::telemetry::init_tracing(cli.log_json);

@@ -105,8 +105,11 @@ impl FromStr for Face {
             "+Y" => Face::PosY,
             "-Y" => Face::NegY,
             u if u.starts_with("N=") => {
-                let parts: Vec<f64> =
-                    u[2..].split(',').map(|c| c.trim().parse::<f64>()).collect::<Result<_, _>>().map_err(|_| err())?;
+                let parts: Vec<f64> = u[2..]
+                    .split(',')
+                    .map(|c| c.trim().parse::<f64>())
+                    .collect::<Result<_, _>>()
+                    .map_err(|_| err())?;
                 match parts[..] {
                     [x, y, z] => Face::normal(Vector3::new(x, y, z)).ok_or_else(err)?,
                     _ => return Err(err()),
@@ -162,7 +165,20 @@ mod tests {
 
     #[test]
     fn bad_text_is_rejected() {
-        for bad in ["", "Z", "+W", "A=", "A=abc", "A=inf", "A=NaN", "B=3", "N=0,0,0", "N=1,2", "N=1,x,2", "N=1,2,3,4"] {
+        for bad in [
+            "",
+            "Z",
+            "+W",
+            "A=",
+            "A=abc",
+            "A=inf",
+            "A=NaN",
+            "B=3",
+            "N=0,0,0",
+            "N=1,2",
+            "N=1,x,2",
+            "N=1,2,3,4",
+        ] {
             let e = bad.parse::<Face>().expect_err(bad);
             assert!(e.to_string().contains("cannot parse face"), "{e}");
         }

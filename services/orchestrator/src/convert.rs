@@ -8,11 +8,12 @@ use depthmill_proto::reconstruction::v1 as rec;
 use depthmill_proto::scanning::v1 as scan;
 
 use crate::domain::spec::{
-    AdaptiveMode, Dialect, ExecuteParams, FaceSpec, FillMethod, FillParams, Finishing, FinishingStrategy,
-    InputKind, JobInput, PlanParams, ReconstructParams, Roughing, RoughingDirection, ScanMode, ScanParams,
-    Stock,
+    AdaptiveMode, Dialect, ExecuteParams, FaceSpec, FillMethod, FillParams, Filters, Finishing,
+    FinishingStrategy, InputKind, IntensityWindow, JobInput, PlanParams, RadiusFilter, ReconstructParams,
+    Roi, Roughing, RoughingDirection, ScanMode, ScanParams, StatisticalFilter, Stock,
 };
 use crate::domain::{Job, JobSpec, JobStatus, SpecError, Stage};
+use depthmill_proto::types::v1::Vec3;
 
 fn spec_err(field: &str, message: &str) -> SpecError {
     SpecError { field: field.to_string(), message: message.to_string() }
@@ -34,13 +35,19 @@ pub fn scan_params(p: &ScanParams) -> scan::ScanParams {
     }
 }
 
+fn vec3(v: [f64; 3]) -> Vec3 {
+    Vec3 { x: v[0], y: v[1], z: v[2] }
+}
+
 pub fn face(f: &FaceSpec) -> rec::FaceSpec {
     rec::FaceSpec {
-        face: match (&f.view, f.a_deg) {
-            (Some(v), _) => Some(rec::face_spec::Face::View(v.clone())),
-            (None, Some(a)) => Some(rec::face_spec::Face::ADeg(a)),
-            (None, None) => None,
+        face: match (&f.view, f.a_deg, f.normal) {
+            (Some(v), _, _) => Some(rec::face_spec::Face::View(v.clone())),
+            (None, Some(a), _) => Some(rec::face_spec::Face::ADeg(a)),
+            (None, None, Some(n)) => Some(rec::face_spec::Face::Normal(vec3(n))),
+            (None, None, None) => None,
         },
+        origin: f.origin.map(vec3),
     }
 }
 
@@ -55,7 +62,32 @@ pub fn reconstruct_params(p: &ReconstructParams) -> rec::ReconstructParams {
                 Some(FillMethod::Max) => rec::FillMethod::Max,
             } as i32,
             max_hole_mm: f.max_hole_mm,
+            radius_mm: f.radius_mm,
+            power: f.power,
         }),
+        roi: p.roi.map(|r| rec::Roi {
+            x_min_mm: r.x_min_mm,
+            y_min_mm: r.y_min_mm,
+            x_max_mm: r.x_max_mm,
+            y_max_mm: r.y_max_mm,
+        }),
+        margin_mm: p.margin_mm,
+        z_min_mm: p.z_min_mm,
+        z_max_mm: p.z_max_mm,
+        filters: p.filters.as_ref().map(|f| rec::FilterParams {
+            intensity: f.intensity.map(|w| rec::IntensityWindow { min: w.min, max: w.max }),
+            voxel_mm: f.voxel_mm,
+            statistical: f.statistical.map(|s| rec::StatisticalOutlierParams {
+                k: s.k.min(u32::MAX as usize) as u32,
+                n_sigma: s.n_sigma,
+            }),
+            radius: f.radius.map(|r| rec::RadiusOutlierParams {
+                radius_mm: r.radius_mm,
+                min_neighbours: r.min_neighbours.min(u32::MAX as usize) as u32,
+            }),
+            transform: f.transform.map(|m| m.iter().flatten().copied().collect()).unwrap_or_default(),
+        }),
+        roughing_factor: p.roughing_factor,
     }
 }
 
@@ -109,7 +141,26 @@ pub fn execute_params(p: &ExecuteParams) -> machine::ExecuteParams {
             Some(AdaptiveMode::FeedOnly) => machine::AdaptiveMode::FeedOnly,
             Some(AdaptiveMode::Off) => machine::AdaptiveMode::Off,
         } as i32,
+        material: p.material.clone(),
+        stock_z_mm: p.stock_z_mm,
+        cell_mm: p.cell_mm,
+        clamp: p.clamp.unwrap_or(false),
+        compare: p.compare,
     }
+}
+
+/// The execute stage's parameters, the plan's stock filling what the job's `execute` leaves open.
+pub fn execute_params_for_job(spec: &JobSpec) -> machine::ExecuteParams {
+    let mut p = execute_params(&spec.execute.clone().unwrap_or_default());
+    if let Some(stock) = spec.plan.as_ref().and_then(|pl| pl.stock.as_ref()) {
+        if p.material.is_none() {
+            p.material = stock.material.clone();
+        }
+        if p.stock_z_mm.is_none() {
+            p.stock_z_mm = stock.z_mm;
+        }
+    }
+    p
 }
 
 pub fn input_kind(k: InputKind) -> pb::InputKind {
@@ -246,15 +297,59 @@ pub fn job_spec_from_pb(s: pb::JobSpec) -> Result<JobSpec, SpecError> {
     let reconstruct = s
         .reconstruct
         .map(|p| -> Result<ReconstructParams, SpecError> {
+            let arr = |v: Vec3| [v.x, v.y, v.z];
             let faces: Vec<FaceSpec> = p
                 .faces
                 .into_iter()
-                .map(|f| match f.face {
-                    Some(rec::face_spec::Face::View(v)) => FaceSpec { view: Some(v), a_deg: None },
-                    Some(rec::face_spec::Face::ADeg(a)) => FaceSpec { view: None, a_deg: Some(a) },
-                    None => FaceSpec::default(),
+                .map(|f| {
+                    let origin = f.origin.map(arr);
+                    match f.face {
+                        Some(rec::face_spec::Face::View(v)) => {
+                            FaceSpec { view: Some(v), origin, ..Default::default() }
+                        }
+                        Some(rec::face_spec::Face::ADeg(a)) => {
+                            FaceSpec { a_deg: Some(a), origin, ..Default::default() }
+                        }
+                        Some(rec::face_spec::Face::Normal(n)) => {
+                            FaceSpec { normal: Some(arr(n)), origin, ..Default::default() }
+                        }
+                        None => FaceSpec { origin, ..Default::default() },
+                    }
                 })
                 .collect();
+            let filters = p
+                .filters
+                .map(|f| -> Result<Filters, SpecError> {
+                    let transform = match f.transform.len() {
+                        0 => None,
+                        16 => {
+                            let mut m = [[0.0; 4]; 4];
+                            for (i, v) in f.transform.iter().enumerate() {
+                                m[i / 4][i % 4] = *v;
+                            }
+                            Some(m)
+                        }
+                        n => {
+                            return Err(spec_err(
+                                "reconstruct.filters.transform",
+                                &format!("needs 16 numbers (a row-major 4x4 matrix), got {n}"),
+                            ));
+                        }
+                    };
+                    Ok(Filters {
+                        intensity: f.intensity.map(|w| IntensityWindow { min: w.min, max: w.max }),
+                        voxel_mm: f.voxel_mm,
+                        statistical: f
+                            .statistical
+                            .map(|s| StatisticalFilter { k: s.k as usize, n_sigma: s.n_sigma }),
+                        radius: f.radius.map(|r| RadiusFilter {
+                            radius_mm: r.radius_mm,
+                            min_neighbours: r.min_neighbours as usize,
+                        }),
+                        transform,
+                    })
+                })
+                .transpose()?;
             Ok(ReconstructParams {
                 pixel_mm: p.pixel_mm,
                 faces: (!faces.is_empty()).then_some(faces),
@@ -269,9 +364,22 @@ pub fn job_spec_from_pb(s: pb::JobSpec) -> Result<JobSpec, SpecError> {
                                 rec::FillMethod::Max => Some(FillMethod::Max),
                             },
                             max_hole_mm: f.max_hole_mm,
+                            radius_mm: f.radius_mm,
+                            power: f.power,
                         })
                     })
                     .transpose()?,
+                roi: p.roi.map(|r| Roi {
+                    x_min_mm: r.x_min_mm,
+                    y_min_mm: r.y_min_mm,
+                    x_max_mm: r.x_max_mm,
+                    y_max_mm: r.y_max_mm,
+                }),
+                margin_mm: p.margin_mm,
+                z_min_mm: p.z_min_mm,
+                z_max_mm: p.z_max_mm,
+                filters,
+                roughing_factor: p.roughing_factor,
             })
         })
         .transpose()?;
@@ -339,6 +447,11 @@ pub fn job_spec_from_pb(s: pb::JobSpec) -> Result<JobSpec, SpecError> {
         .map(|p| -> Result<ExecuteParams, SpecError> {
             Ok(ExecuteParams {
                 machine: p.machine,
+                material: p.material,
+                stock_z_mm: p.stock_z_mm,
+                cell_mm: p.cell_mm,
+                clamp: Some(p.clamp).filter(|c| *c),
+                compare: p.compare,
                 adaptive: match enum_value::<machine::AdaptiveMode>("execute.adaptive", p.adaptive)? {
                     machine::AdaptiveMode::Unspecified => None,
                     machine::AdaptiveMode::Aco => Some(AdaptiveMode::Aco),

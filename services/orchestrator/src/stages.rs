@@ -328,7 +328,7 @@ impl StageRunner for GrpcStages {
                         context: context(call),
                         gcode: Some(need(call, "gcode")?),
                         target_map: call.artifacts.get("depth_map").cloned().map(Into::into),
-                        params: Some(convert::execute_params(&call.spec.execute.clone().unwrap_or_default())),
+                        params: Some(convert::execute_params_for_job(&call.spec)),
                     };
                     let mut client = machine::machine_service_client::MachineServiceClient::new(channel);
                     let stream =
@@ -342,7 +342,13 @@ impl StageRunner for GrpcStages {
                     put(&mut out, "final_stock", r.final_stock);
                     put(&mut out, "deviation_map", r.deviation_map);
                     put(&mut out, "telemetry", r.telemetry);
+                    put(&mut out, "telemetry_plot", r.telemetry_plot);
+                    put(&mut out, "machine_report", r.machine_report);
                     if let Some(m) = r.metrics {
+                        if let Some(other) = m.cycle_time_other_s {
+                            out.metrics.insert("cycle_time_other_policy_s".into(), other);
+                        }
+                        out.metrics.insert("removed_mm3".into(), m.removed_mm3);
                         for (k, v) in [
                             ("max_gouge_mm", m.max_gouge_mm),
                             ("max_leftover_mm", m.max_leftover_mm),

@@ -1,42 +1,304 @@
-//! tonic adapter of the reconstruction service.
+//! tonic adapter of the reconstruction service: reads the cloud or mesh from the artifact store
+//! (streaming, on a blocking thread), runs [`reconstruct`], streams progress and stores the maps
+//! (16-bit PNG with depthmill metadata; the coverage map as 8-bit PNG) and a JSON report.
 
+use std::io::BufReader;
 use std::pin::Pin;
+use std::sync::Arc;
 
+use depthmill_common::artifacts::{ArtifactError, ArtifactStore, LocalStore};
 use depthmill_common::stage::StageRegistry;
+use depthmill_geometry::{HeightMap, PngDepth};
 use depthmill_proto::ErrorCode;
 use depthmill_proto::reconstruction::v1 as pb;
-use depthmill_proto::types::v1::{CancelStageRequest, CancelStageResponse};
+use depthmill_proto::types::v1::{CancelStageRequest, CancelStageResponse, Diagnostic, Progress, Vec3};
+use tokio::sync::mpsc;
 use tonic::{Request, Response, Status};
+
+use crate::domain::error::ReconError;
+use crate::domain::io::{ReadLimits, read_any_from};
+use crate::domain::pipeline::{
+    FaceFrame, FaceOptions, FillOptions, FilterOptions, IntensityOptions, RadiusOptions, ReconstructOptions,
+    RoiOptions, StatisticalOptions, reconstruct,
+};
 
 pub(crate) const SERVICE_NAME: &str = "depthmill.reconstruction.v1.ReconstructionService";
 
-#[derive(Default)]
 struct ReconstructionServiceImpl {
     running: StageRegistry,
+    store: Arc<LocalStore>,
+    limits: ReadLimits,
 }
 
-pub(crate) fn routes() -> tonic::service::Routes {
+pub(crate) fn routes(store: LocalStore, limits: ReadLimits) -> tonic::service::Routes {
     tonic::service::Routes::new(pb::reconstruction_service_server::ReconstructionServiceServer::new(
-        ReconstructionServiceImpl::default(),
+        ReconstructionServiceImpl { running: StageRegistry::default(), store: Arc::new(store), limits },
     ))
+}
+
+impl From<ReconError> for Status {
+    fn from(e: ReconError) -> Self {
+        let code = match &e {
+            ReconError::Cancelled => ErrorCode::Cancelled,
+            ReconError::Io { .. } => ErrorCode::Internal,
+            _ => ErrorCode::InvalidArgument,
+        };
+        code.status(e.to_string())
+    }
+}
+
+fn artifact_status(e: ArtifactError) -> Status {
+    match e {
+        ArtifactError::NotFound { .. } | ArtifactError::BadDigest { .. } | ArtifactError::TooLarge { .. } => {
+            ErrorCode::InvalidArgument.status(e.to_string())
+        }
+        other => {
+            tracing::error!(error = %depthmill_common::ErrorChain(&other), "artifact store failed");
+            ErrorCode::Internal.status("the artifact store failed")
+        }
+    }
+}
+
+fn vec3(v: &Vec3) -> [f64; 3] {
+    [v.x, v.y, v.z]
+}
+
+/// Wire parameters -> the options of a job's `reconstruct` object.
+pub(crate) fn options(p: pb::ReconstructParams) -> Result<ReconstructOptions, Status> {
+    let faces = p
+        .faces
+        .iter()
+        .enumerate()
+        .map(|(i, f)| {
+            let mut o = FaceOptions { origin: f.origin.as_ref().map(vec3), ..Default::default() };
+            match &f.face {
+                Some(pb::face_spec::Face::View(v)) => o.view = Some(v.clone()),
+                Some(pb::face_spec::Face::ADeg(a)) => o.a_deg = Some(*a),
+                Some(pb::face_spec::Face::Normal(n)) => o.normal = Some(vec3(n)),
+                None => {
+                    return Err(ErrorCode::InvalidArgument
+                        .status(format!("reconstruct.faces[{i}]: give one of view, a_deg and normal")));
+                }
+            }
+            Ok(o)
+        })
+        .collect::<Result<Vec<_>, Status>>()?;
+    let fill = p.fill.map(|f| FillOptions {
+        method: match pb::FillMethod::try_from(f.method) {
+            Ok(pb::FillMethod::Idw) => Some("idw".into()),
+            Ok(pb::FillMethod::Max) => Some("max".into()),
+            _ => None,
+        },
+        max_hole_mm: f.max_hole_mm,
+        radius_mm: f.radius_mm,
+        power: f.power,
+    });
+    let filters = match p.filters {
+        None => None,
+        Some(f) => {
+            let transform = match f.transform.len() {
+                0 => None,
+                16 => {
+                    let mut m = [[0.0; 4]; 4];
+                    for (i, v) in f.transform.iter().enumerate() {
+                        m[i / 4][i % 4] = *v;
+                    }
+                    Some(m)
+                }
+                n => {
+                    return Err(ErrorCode::InvalidArgument
+                        .status(format!("reconstruct.filters.transform: needs 16 numbers, got {n}")));
+                }
+            };
+            Some(FilterOptions {
+                intensity: f.intensity.map(|w| IntensityOptions { min: w.min, max: w.max }),
+                voxel_mm: f.voxel_mm,
+                statistical: f
+                    .statistical
+                    .map(|s| StatisticalOptions { k: s.k as usize, n_sigma: s.n_sigma }),
+                radius: f.radius.map(|r| RadiusOptions {
+                    radius_mm: r.radius_mm,
+                    min_neighbours: r.min_neighbours as usize,
+                }),
+                transform,
+            })
+        }
+    };
+    Ok(ReconstructOptions {
+        pixel_mm: p.pixel_mm,
+        faces: if faces.is_empty() { None } else { Some(faces) },
+        fill,
+        roi: p.roi.map(|r| RoiOptions {
+            x_min_mm: r.x_min_mm,
+            y_min_mm: r.y_min_mm,
+            x_max_mm: r.x_max_mm,
+            y_max_mm: r.y_max_mm,
+        }),
+        margin_mm: p.margin_mm,
+        z_min_mm: p.z_min_mm,
+        z_max_mm: p.z_max_mm,
+        filters,
+        roughing_factor: p.roughing_factor,
+    })
+}
+
+fn face_spec(frame: &FaceFrame) -> pb::FaceSpec {
+    use depthmill_geometry::Face;
+    let face = match frame.face {
+        Face::A { angle_deg } => pb::face_spec::Face::ADeg(angle_deg),
+        Face::Normal { x, y, z } => pb::face_spec::Face::Normal(Vec3 { x, y, z }),
+        named => pb::face_spec::Face::View(named.to_string()),
+    };
+    pb::FaceSpec { face: Some(face), origin: frame.origin.map(|o| Vec3 { x: o.x, y: o.y, z: o.z }) }
 }
 
 type UpdateStream =
     Pin<Box<dyn tokio_stream::Stream<Item = Result<pb::BuildDepthMapsUpdate, Status>> + Send>>;
 
+fn progress_update(fraction: f64, message: &str) -> pb::BuildDepthMapsUpdate {
+    pb::BuildDepthMapsUpdate {
+        update: Some(pb::build_depth_maps_update::Update::Progress(Progress {
+            fraction,
+            message: message.to_string(),
+        })),
+    }
+}
+
+fn png(map: &HeightMap, depth: PngDepth) -> Result<Vec<u8>, Status> {
+    let mut out = Vec::new();
+    depthmill_geometry::write_png_to(map, &mut out, depth)
+        .map_err(|e| ErrorCode::Internal.status(format!("encoding a map failed: {e}")))?;
+    Ok(out)
+}
+
 #[tonic::async_trait]
 impl pb::reconstruction_service_server::ReconstructionService for ReconstructionServiceImpl {
     type BuildDepthMapsStream = UpdateStream;
 
+    #[tracing::instrument(skip_all, fields(job_id))]
     async fn build_depth_maps(
         &self,
         request: Request<pb::BuildDepthMapsRequest>,
     ) -> Result<Response<Self::BuildDepthMapsStream>, Status> {
-        let job_id = request.get_ref().context.as_ref().map(|c| c.job_id.clone()).unwrap_or_default();
-        tracing::warn!(%job_id, "reconstruction stage requested but not available");
-        Err(ErrorCode::StageNotAvailable.status(
-            "stage not available: the reconstruction service does not implement BuildDepthMaps yet (see issue #4)",
-        ))
+        let req = request.into_inner();
+        let job_id = req.context.as_ref().map(|c| c.job_id.clone()).unwrap_or_default();
+        tracing::Span::current().record("job_id", job_id.as_str());
+        let input =
+            req.input.ok_or_else(|| ErrorCode::InvalidArgument.status("input: an artifact is required"))?;
+        let opts = options(req.params.unwrap_or_default())?;
+        // Check the options before reading a possibly large file.
+        opts.resolve()?;
+        let stat = self.store.stat(&input.sha256).await.map_err(artifact_status)?.ok_or_else(|| {
+            ErrorCode::InvalidArgument.status(format!("input: no artifact {}", input.sha256))
+        })?;
+        let path = self.store.local_path(&input.sha256).ok_or_else(|| {
+            ErrorCode::Internal.status("the artifact store has no local file for the input")
+        })?;
+        let name = format!("input {} ({})", &input.sha256[..12.min(input.sha256.len())], stat.media_type);
+        let guard = self.running.start(&job_id);
+        let (tx, rx) = mpsc::channel(32);
+        let store = self.store.clone();
+        let limits = self.limits.clone();
+        let span = tracing::Span::current();
+        tokio::spawn(async move {
+            let token = guard.token().clone();
+            let progress_tx = tx.clone();
+            let _ = progress_tx.try_send(Ok(progress_update(0.0, "reading the input")));
+            let worked = tokio::task::spawn_blocking(move || {
+                span.in_scope(|| {
+                    let file = std::fs::File::open(&path)
+                        .map_err(|source| ReconError::Io { file: name.clone(), source })?;
+                    let (geometry, stats) = read_any_from(
+                        BufReader::with_capacity(1 << 20, file),
+                        &name,
+                        Some(stat.size),
+                        &limits,
+                    )?;
+                    tracing::info!(points = stats.points, triangles = stats.triangles, "input read");
+                    let progress = move |f: f64, m: &str| {
+                        let _ = progress_tx.try_send(Ok(progress_update(0.1 + 0.8 * f, m)));
+                    };
+                    let cancelled = move || token.is_cancelled();
+                    let out = reconstruct(geometry, &opts, &progress, &cancelled)?;
+                    // Encode on this thread too; the async side only stores bytes.
+                    let mut encoded = Vec::with_capacity(out.faces.len());
+                    for f in &out.faces {
+                        encoded.push((
+                            png(&f.depth_map, PngDepth::Bits16)?,
+                            png(&f.coverage_map, PngDepth::Bits8)?,
+                            png(&f.roughing_map, PngDepth::Bits16)?,
+                        ));
+                    }
+                    Ok::<_, Status>((stats, out, encoded))
+                })
+            })
+            .await;
+            let (stats, out, encoded) = match worked {
+                Ok(Ok(v)) => v,
+                Ok(Err(status)) => {
+                    tracing::info!(error = %status.message(), "reconstruction failed");
+                    let _ = tx.send(Err(status)).await;
+                    return;
+                }
+                Err(e) => {
+                    let _ = tx.send(Err(Status::internal(format!("reconstruction panicked: {e}")))).await;
+                    return;
+                }
+            };
+            let result = async {
+                let mut faces = Vec::with_capacity(out.faces.len());
+                for (f, (depth, cov, rough)) in out.faces.iter().zip(encoded) {
+                    let c = &f.stats.coverage;
+                    faces.push(pb::FaceMaps {
+                        face: Some(face_spec(&f.face)),
+                        depth_map: Some(store.put_bytes("image/png", &depth).await?.into()),
+                        coverage_map: Some(store.put_bytes("image/png", &cov).await?.into()),
+                        roughing_map: Some(store.put_bytes("image/png", &rough).await?.into()),
+                        coverage_pct: c.covered_pct,
+                        largest_hole_mm2: c.largest_hole.as_ref().map_or(0.0, |h| h.area_mm2),
+                        holes: c.holes as u64,
+                        largest_hole_x_mm: c.largest_hole.as_ref().map_or(0.0, |h| h.center_x_mm),
+                        largest_hole_y_mm: c.largest_hole.as_ref().map_or(0.0, |h| h.center_y_mm),
+                        cells_filled: f.stats.fill.filled as u64,
+                    });
+                }
+                let report_json = serde_json::to_vec_pretty(&out.report).unwrap_or_default();
+                let report = store.put_bytes("application/json", &report_json).await?;
+                let mut diagnostics = Vec::new();
+                if stats.dropped_non_finite > 0 {
+                    diagnostics.push(Diagnostic {
+                        code: "non_finite_points".into(),
+                        message: format!(
+                            "{} points with NaN or infinite coordinates dropped",
+                            stats.dropped_non_finite
+                        ),
+                    });
+                }
+                for r in &out.report.filters {
+                    diagnostics.push(Diagnostic {
+                        code: format!("filter_{}", r.filter),
+                        message: format!("{}: kept {}, removed {}", r.filter, r.kept, r.removed),
+                    });
+                }
+                Ok::<_, ArtifactError>(pb::BuildDepthMapsResult {
+                    faces,
+                    points_in: out.report.points_in as u64,
+                    points_kept: out.report.points_kept as u64,
+                    diagnostics,
+                    report: Some(report.into()),
+                })
+            }
+            .await;
+            let msg = match result {
+                Ok(r) => Ok(pb::BuildDepthMapsUpdate {
+                    update: Some(pb::build_depth_maps_update::Update::Result(r)),
+                }),
+                Err(e) => Err(artifact_status(e)),
+            };
+            let _ = tx.send(msg).await;
+            drop(guard);
+        });
+        Ok(Response::new(Box::pin(tokio_stream::wrappers::ReceiverStream::new(rx))))
     }
 
     async fn cancel_stage(

@@ -1,14 +1,17 @@
 //! Reconstruction service: registered point clouds and meshes to depth maps, coverage and roughing maps.
 //!
-//! The reconstruction stage is not provided yet: `BuildDepthMaps` answers UNIMPLEMENTED ("stage not available"),
-//! which the orchestrator reports as a failed job with code `stage_not_available`. The service
-//! already serves health, reflection and `CancelStage`.
+//! `BuildDepthMaps` reads the input artifact (XYZ/PLY cloud or STL/PLY mesh), cleans the cloud,
+//! and writes per face a depth map, a coverage map and a roughing map (PNG with depthmill
+//! metadata) plus a JSON report; see [`domain::pipeline`].
 //!
 //! # Layout
-//! - [`Config`]: listen address and artifact folder.
+//! - [`domain`]: the library (readers, filters, rasterisation, fills, mesh z-buffer, roughing
+//!   maps, image operations, the stage pipeline).
+//! - [`Config`]: listen address, artifact folder, input limits.
 //! - [`serve`]: the gRPC server on a bound listener.
 //! - `grpc`: the tonic adapter (the only module that knows proto types).
 
+pub mod domain;
 mod grpc;
 
 use std::future::Future;
@@ -27,6 +30,20 @@ pub struct Config {
     /// Folder of the artifact store shared with the orchestrator.
     #[serde(default = "default_artifacts_dir")]
     pub artifacts_dir: PathBuf,
+    /// Largest input accepted, in points (clouds) or vertices.
+    #[serde(default = "default_max_points")]
+    pub max_points: u64,
+    /// Largest mesh accepted, in triangles.
+    #[serde(default = "default_max_triangles")]
+    pub max_triangles: u64,
+}
+
+fn default_max_points() -> u64 {
+    domain::io::ReadLimits::default().max_points
+}
+
+fn default_max_triangles() -> u64 {
+    domain::io::ReadLimits::default().max_triangles
 }
 
 fn default_grpc_addr() -> SocketAddr {
@@ -39,7 +56,12 @@ fn default_artifacts_dir() -> PathBuf {
 
 impl Default for Config {
     fn default() -> Self {
-        Self { grpc_addr: default_grpc_addr(), artifacts_dir: default_artifacts_dir() }
+        Self {
+            grpc_addr: default_grpc_addr(),
+            artifacts_dir: default_artifacts_dir(),
+            max_points: default_max_points(),
+            max_triangles: default_max_triangles(),
+        }
     }
 }
 
@@ -49,8 +71,24 @@ pub const SERVICE_NAMES: &[&str] = &[grpc::SERVICE_NAME];
 /// Serves the reconstruction service on `listener` until `shutdown` completes.
 pub async fn serve(
     listener: tokio::net::TcpListener,
-    _config: Config,
+    config: Config,
     shutdown: impl Future<Output = ()> + Send,
-) -> Result<(), ServeError> {
-    depthmill_common::grpc::serve_grpc(listener, grpc::routes(), SERVICE_NAMES, shutdown).await
+) -> Result<(), ReconServeError> {
+    let store = depthmill_common::artifacts::LocalStore::open(&config.artifacts_dir).await?;
+    let limits = domain::io::ReadLimits {
+        max_points: config.max_points,
+        max_triangles: config.max_triangles,
+        ..Default::default()
+    };
+    let routes = grpc::routes(store, limits);
+    Ok(depthmill_common::grpc::serve_grpc(listener, routes, SERVICE_NAMES, shutdown).await?)
+}
+
+/// Why the service could not start or stopped.
+#[derive(Debug, thiserror::Error)]
+pub enum ReconServeError {
+    #[error(transparent)]
+    Serve(#[from] ServeError),
+    #[error("cannot open the artifact store")]
+    Artifacts(#[from] depthmill_common::artifacts::ArtifactError),
 }

@@ -117,7 +117,10 @@ pub enum ScanMode {
     StopAndMove,
 }
 
-/// Reconstruct stage parameters. Defaults: pixel 0.1 mm, one face `+Z`, IDW fill of holes up to 2 mm.
+/// Reconstruct stage parameters. Defaults: pixel 0.1 mm, one face `+Z`, IDW fill (power 2) of
+/// holes up to 2 mm, region of interest = the points' extent plus 2 pixels, Z range from robust
+/// quantiles of the data, statistical outlier removal (k 12, 3 σ) when `filters` is absent,
+/// roughing lattice of 4 pixels.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct ReconstructParams {
@@ -127,9 +130,28 @@ pub struct ReconstructParams {
     pub faces: Option<Vec<FaceSpec>>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub fill: Option<FillParams>,
+    /// Region of interest in the face frame (default: the points' extent plus `margin_mm`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub roi: Option<Roi>,
+    /// Margin around the points' extent (default 2 pixels).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub margin_mm: Option<f64>,
+    /// Z of black in the depth image (default: robust low quantile of the data).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub z_min_mm: Option<f64>,
+    /// Z of white in the depth image (default: robust high quantile of the data).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub z_max_mm: Option<f64>,
+    /// Clean-up filters; when given, exactly the filters named run.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub filters: Option<Filters>,
+    /// Lattice of the continuous roughing map, in pixels (default 4).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub roughing_factor: Option<u32>,
 }
 
-/// A face to cut from above: a named view or an angle about the machine's A axis (exactly one).
+/// A face to cut from above: exactly one of a named view, an angle about the machine's A axis,
+/// or an outward normal (optionally with a point of the face put at the frame's origin).
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct FaceSpec {
@@ -138,16 +160,84 @@ pub struct FaceSpec {
     pub view: Option<String>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub a_deg: Option<f64>,
+    /// Outward normal `[x, y, z]` in the part frame.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub normal: Option<[f64; 3]>,
+    /// With `normal`: a point of the face, mm, that becomes the face frame's origin.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub origin: Option<[f64; 3]>,
 }
 
-/// How holes in the raw depth map are filled.
+/// How holes in the raw depth map are filled: only holes enclosed by data, up to `max_hole_mm`.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct FillParams {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub method: Option<FillMethod>,
+    /// Largest hole filled, mm across (default 2; 0 disables filling).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub max_hole_mm: Option<f64>,
+    /// Neighbourhood searched for values, mm (default derived from `max_hole_mm`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub radius_mm: Option<f64>,
+    /// IDW weight exponent (default 2).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub power: Option<f64>,
+}
+
+/// Region of interest in the face frame, mm.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct Roi {
+    pub x_min_mm: f64,
+    pub y_min_mm: f64,
+    pub x_max_mm: f64,
+    pub y_max_mm: f64,
+}
+
+/// Clean-up filters, applied in this order: transform, intensity, voxel, statistical, radius.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct Filters {
+    /// Keep points whose intensity lies in `[min, max]`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub intensity: Option<IntensityWindow>,
+    /// Voxel-grid decimation: per voxel the point nearest the centroid.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub voxel_mm: Option<f64>,
+    /// Statistical outlier removal.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub statistical: Option<StatisticalFilter>,
+    /// Radius outlier removal.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub radius: Option<RadiusFilter>,
+    /// Rigid transform applied first: a row-major 4x4 matrix.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub transform: Option<[[f64; 4]; 4]>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct IntensityWindow {
+    pub min: f32,
+    pub max: f32,
+}
+
+/// Removes points whose mean distance to their `k` nearest neighbours exceeds the mean of that
+/// distance over the cloud by more than `n_sigma` standard deviations.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct StatisticalFilter {
+    pub k: usize,
+    pub n_sigma: f64,
+}
+
+/// Removes points with fewer than `min_neighbours` other points within `radius_mm`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct RadiusFilter {
+    pub radius_mm: f64,
+    pub min_neighbours: usize,
 }
 
 /// Hole filling method.
@@ -254,10 +344,27 @@ pub enum Dialect {
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct ExecuteParams {
+    /// Machine profile (default `emco-f1`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub machine: Option<String>,
+    /// Feed/speed policy (default `aco`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub adaptive: Option<AdaptiveMode>,
+    /// Work material (default: the plan's stock material, else aluminium).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub material: Option<String>,
+    /// Stock height above the depth map's z_min (default: the plan's stock height, else up to the highest point).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stock_z_mm: Option<f64>,
+    /// Z-map cell of the simulated stock, mm (default: the depth map's pixel, at most 0.1).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cell_mm: Option<f64>,
+    /// Clamp F and S to the machine's ranges with a warning instead of refusing the program.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub clamp: Option<bool>,
+    /// Also time the program without adaptation and with the other policy (default true).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub compare: Option<bool>,
 }
 
 /// Adaptive feed/speed control while cutting.
@@ -317,8 +424,6 @@ fn tool_name(field: &str, v: Option<&String>) -> Result<(), SpecError> {
         _ => Ok(()),
     }
 }
-
-const NAMED_VIEWS: [&str; 6] = ["+Z", "-Z", "+X", "-X", "+Y", "-Y"];
 
 impl JobSpec {
     /// The stage this job starts at.
@@ -389,31 +494,30 @@ impl JobSpec {
             }
         }
         if let Some(rec) = &self.reconstruct {
-            positive("reconstruct.pixel_mm", rec.pixel_mm, 100.0)?;
-            if let Some(faces) = &rec.faces {
-                if faces.is_empty() || faces.len() > 36 {
-                    return Err(err(
-                        "reconstruct.faces",
-                        format!("needs 1 to 36 faces, got {}", faces.len()),
-                    ));
-                }
-                for (i, f) in faces.iter().enumerate() {
-                    let field = format!("reconstruct.faces[{i}]");
-                    match (&f.view, f.a_deg) {
-                        (Some(v), None) if NAMED_VIEWS.contains(&v.as_str()) => {}
-                        (Some(v), None) => {
-                            return Err(err(
-                                &format!("{field}.view"),
-                                format!("unknown view '{v}' (expected one of {})", NAMED_VIEWS.join(", ")),
-                            ));
-                        }
-                        (None, Some(a)) => finite(&format!("{field}.a_deg"), Some(a))?,
-                        _ => return Err(err(&field, "give exactly one of view and a_deg")),
-                    }
-                }
+            // The reconstruction library's own checks, so a bad value fails here, not mid-job.
+            let opts = serde_json::to_value(rec)
+                .and_then(
+                    serde_json::from_value::<depthmill_reconstruction::domain::pipeline::ReconstructOptions>,
+                )
+                .map_err(|e| err("reconstruct", e.to_string()))?;
+            if let Err(e) = opts.resolve() {
+                return Err(match e {
+                    depthmill_reconstruction::domain::ReconError::InvalidParameter {
+                        field,
+                        value,
+                        reason,
+                    } => SpecError { field, message: format!("{reason} (got {value})") },
+                    other => err("reconstruct", other.to_string()),
+                });
             }
-            if let Some(fill) = &rec.fill {
-                non_negative("reconstruct.fill.max_hole_mm", fill.max_hole_mm, 1000.0)?;
+        }
+        if let Some(ex) = &self.execute {
+            positive("execute.stock_z_mm", ex.stock_z_mm, 10_000.0)?;
+            positive("execute.cell_mm", ex.cell_mm, 10.0)?;
+            if let Some(c) = ex.cell_mm
+                && c < 0.005
+            {
+                return Err(err("execute.cell_mm", format!("must be at least 0.005 mm, got {c}")));
             }
         }
         if let Some(plan) = &self.plan {

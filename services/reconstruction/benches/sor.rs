@@ -1,0 +1,344 @@
+//! Statistical outlier removal speed on 10^6 points, against Open3D's `remove_statistical_outlier`
+//! on the same cloud in the same run (through `scripts/compare_open3d.py`, which also checks that
+//! both remove exactly the same points).
+//!
+//! ```text
+//! cargo bench -p depthmill-reconstruction --bench sor -- [--points 1000000] [--k 20] [--n-sigma 2]
+//!     [--repeat 3] [--seed 7] [--python python3] [--script PATH] [--no-open3d]
+//! cargo bench -p depthmill-reconstruction --bench sor -- --cloud IN.npy --keep-out KEEP.npy
+//!     [--k 20] [--n-sigma 2] [--repeat 3]
+//! ```
+//!
+//! First form: builds a scanned-like cloud (a wavy height field sampled on a jittered 0.1 mm grid
+//! with 10 µm noise, plus 1 % outliers spread over the box around it), times
+//! `statistical_outlier_removal` (best of `--repeat`, the cloud clone excluded), writes the cloud
+//! (`<f8`, shape `(n, 3)`) and the keep mask (`|b1`, shape `(n,)`) as `.npy` to a temporary folder
+//! and runs `python3 scripts/compare_open3d.py --cloud .. --keep .. --k .. --n-sigma .. --repeat ..`,
+//! then prints both times and the ratio. Needs `pip install open3d numpy`; without them it prints
+//! how to install and skips the comparison.
+//!
+//! Second form (used by the script when run on its own): reads a cloud `.npy`, runs the filter,
+//! writes the keep mask and prints `sor_ms=<best ms>` and `kept=<count>`.
+
+use std::io::{BufWriter, Read, Write};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::Instant;
+
+use depthmill_geometry::PointCloud;
+use depthmill_reconstruction::domain::filters::{statistical_outlier_mask, statistical_outlier_removal};
+use nalgebra::Point3;
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+
+type BoxResult<T> = Result<T, Box<dyn std::error::Error>>;
+
+struct Args {
+    points: usize,
+    k: usize,
+    n_sigma: f64,
+    repeat: u32,
+    seed: u64,
+    python: String,
+    script: Option<PathBuf>,
+    open3d: bool,
+    cloud: Option<PathBuf>,
+    keep_out: Option<PathBuf>,
+}
+
+fn parse_args() -> BoxResult<Args> {
+    let mut a = Args {
+        points: 1_000_000,
+        k: 20,
+        n_sigma: 2.0,
+        repeat: 3,
+        seed: 7,
+        python: "python3".into(),
+        script: None,
+        open3d: true,
+        cloud: None,
+        keep_out: None,
+    };
+    let mut it = std::env::args().skip(1);
+    while let Some(flag) = it.next() {
+        let mut value = || it.next().ok_or_else(|| format!("{flag} needs a value"));
+        match flag.as_str() {
+            "--points" => a.points = value()?.parse()?,
+            "--k" => a.k = value()?.parse()?,
+            "--n-sigma" => a.n_sigma = value()?.parse()?,
+            "--repeat" => a.repeat = value()?.parse::<u32>()?.max(1),
+            "--seed" => a.seed = value()?.parse()?,
+            "--python" => a.python = value()?,
+            "--script" => a.script = Some(value()?.into()),
+            "--no-open3d" => a.open3d = false,
+            "--cloud" => a.cloud = Some(value()?.into()),
+            "--keep-out" => a.keep_out = Some(value()?.into()),
+            "--bench" => {} // cargo bench passes this
+            other => return Err(format!("unknown argument {other}").into()),
+        }
+    }
+    Ok(a)
+}
+
+/// Standard normal sample (Box–Muller).
+fn gauss(rng: &mut StdRng) -> f64 {
+    let u1 = 1.0 - rng.random::<f64>();
+    let u2 = rng.random::<f64>();
+    (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+}
+
+/// A wavy height field on a jittered 0.1 mm grid (10 µm noise) plus 1 % outliers in its box
+/// widened by 5 mm.
+fn scan_like_cloud(n: usize, seed: u64) -> PointCloud {
+    let mut rng = StdRng::seed_from_u64(seed);
+    let outliers = n / 100;
+    let surface = n - outliers;
+    let side = (surface as f64).sqrt().ceil() as usize;
+    let pitch = 0.1;
+    let mut points = Vec::with_capacity(n);
+    'rows: for r in 0..side {
+        for c in 0..side {
+            if points.len() == surface {
+                break 'rows;
+            }
+            let x = (c as f64 + 0.5) * pitch + rng.random_range(-0.03..0.03);
+            let y = (r as f64 + 0.5) * pitch + rng.random_range(-0.03..0.03);
+            let z = 2.0 * (x * 0.1).sin() * (y * 0.13).cos()
+                + 0.4 * (x * 0.9 + y * 0.4).sin()
+                + 0.01 * gauss(&mut rng);
+            points.push(Point3::new(x, y, z));
+        }
+    }
+    let extent = side as f64 * pitch;
+    for _ in 0..outliers {
+        points.push(Point3::new(
+            rng.random_range(-5.0..extent + 5.0),
+            rng.random_range(-5.0..extent + 5.0),
+            rng.random_range(-7.5..7.5),
+        ));
+    }
+    PointCloud::from_points(points)
+}
+
+/// CPU time of this process so far (all threads, user + system), from `/proc/self/stat`
+/// (clock ticks of 1/100 s, Linux's fixed USER_HZ); `None` elsewhere.
+fn cpu_seconds() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    let mut fields = stat.rsplit_once(')')?.1.split_whitespace();
+    let utime: f64 = fields.nth(11)?.parse().ok()?;
+    let stime: f64 = fields.next()?.parse().ok()?;
+    Some((utime + stime) / 100.0)
+}
+
+/// Timing of `repeat` runs: best wall time and mean CPU time per run (ms).
+struct Timing {
+    best_ms: f64,
+    cpu_ms: Option<f64>,
+}
+
+/// Times `repeat` runs of `statistical_outlier_removal` (the input clone not timed) and returns
+/// the keep mask (from `statistical_outlier_mask`, the same rule, run once untimed).
+fn time_sor(cloud: &PointCloud, k: usize, n_sigma: f64, repeat: u32) -> BoxResult<(Timing, Vec<bool>)> {
+    let mut best_ms = f64::INFINITY;
+    let mut cpu = 0.0;
+    for _ in 0..repeat {
+        let input = cloud.clone();
+        let (c0, t) = (cpu_seconds(), Instant::now());
+        let (out, report) = statistical_outlier_removal(input, k, n_sigma)?;
+        let ms = t.elapsed().as_secs_f64() * 1e3;
+        cpu += cpu_seconds().zip(c0).map_or(f64::NAN, |(b, a)| b - a);
+        best_ms = best_ms.min(ms);
+        assert_eq!(out.len(), report.kept);
+    }
+    let cpu_ms = Some(cpu * 1e3 / f64::from(repeat)).filter(|c| c.is_finite());
+    let keep = statistical_outlier_mask(&cloud.points, k, n_sigma)?;
+    Ok((Timing { best_ms, cpu_ms }, keep))
+}
+
+fn npy_header(descr: &str, shape: &str) -> Vec<u8> {
+    let mut dict = format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': {shape}, }}");
+    while (10 + dict.len() + 1) % 64 != 0 {
+        dict.push(' ');
+    }
+    dict.push('\n');
+    let mut out = b"\x93NUMPY\x01\x00".to_vec();
+    out.extend_from_slice(&(dict.len() as u16).to_le_bytes());
+    out.extend_from_slice(dict.as_bytes());
+    out
+}
+
+fn write_cloud_npy(path: &Path, cloud: &PointCloud) -> BoxResult<()> {
+    let mut w = BufWriter::new(std::fs::File::create(path)?);
+    w.write_all(&npy_header("<f8", &format!("({}, 3)", cloud.len())))?;
+    for p in &cloud.points {
+        for c in [p.x, p.y, p.z] {
+            w.write_all(&c.to_le_bytes())?;
+        }
+    }
+    w.flush()?;
+    Ok(())
+}
+
+fn write_mask_npy(path: &Path, keep: &[bool]) -> BoxResult<()> {
+    let mut w = BufWriter::new(std::fs::File::create(path)?);
+    w.write_all(&npy_header("|b1", &format!("({},)", keep.len())))?;
+    w.write_all(&keep.iter().map(|&k| u8::from(k)).collect::<Vec<_>>())?;
+    w.flush()?;
+    Ok(())
+}
+
+/// Reads an `(n, 3)` little-endian f64 C-order `.npy` (what `np.save` writes for such an array).
+fn read_cloud_npy(path: &Path) -> BoxResult<PointCloud> {
+    let mut bytes = Vec::new();
+    std::fs::File::open(path)?.read_to_end(&mut bytes)?;
+    if bytes.len() < 10 || &bytes[..6] != b"\x93NUMPY" {
+        return Err(format!("{}: not a .npy file", path.display()).into());
+    }
+    let (header_len, data_at) = match bytes[6] {
+        1 => (usize::from(u16::from_le_bytes([bytes[8], bytes[9]])), 10),
+        _ => {
+            let b = bytes.get(8..12).ok_or("truncated header")?;
+            (u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize, 12)
+        }
+    };
+    let header = std::str::from_utf8(bytes.get(data_at..data_at + header_len).ok_or("truncated header")?)?;
+    if !header.contains("'<f8'") || header.contains("'fortran_order': True") {
+        return Err(format!("{}: expected a C-order <f8 array, header {header}", path.display()).into());
+    }
+    let data = &bytes[data_at + header_len..];
+    if data.len() % 24 != 0 {
+        return Err(format!(
+            "{}: {} data bytes is not a whole number of (x, y, z)",
+            path.display(),
+            data.len()
+        )
+        .into());
+    }
+    let f = |c: &[u8]| f64::from_le_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]]);
+    let points =
+        data.chunks_exact(24).map(|p| Point3::new(f(&p[0..8]), f(&p[8..16]), f(&p[16..24]))).collect();
+    Ok(PointCloud::from_points(points))
+}
+
+fn script_path(args: &Args) -> PathBuf {
+    if let Some(p) = &args.script {
+        return p.clone();
+    }
+    let by_manifest = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/compare_open3d.py");
+    if by_manifest.exists() {
+        return by_manifest;
+    }
+    // The bench source's own crate (when built from a scratch manifest that points at it).
+    let src = Path::new(file!());
+    src.parent()
+        .and_then(Path::parent)
+        .map_or(by_manifest.clone(), |crate_dir| crate_dir.join("scripts/compare_open3d.py"))
+}
+
+fn field<'a>(out: &'a str, key: &str) -> Option<&'a str> {
+    out.lines().find_map(|l| l.trim().strip_prefix(key)?.strip_prefix('='))
+}
+
+fn main() -> BoxResult<()> {
+    let args = parse_args()?;
+    let threads = rayon::current_num_threads();
+
+    if let Some(cloud_path) = &args.cloud {
+        let cloud = read_cloud_npy(cloud_path)?;
+        let (timing, keep) = time_sor(&cloud, args.k, args.n_sigma, args.repeat)?;
+        if let Some(out) = &args.keep_out {
+            write_mask_npy(out, &keep)?;
+        }
+        println!("points={}", cloud.len());
+        println!("threads={threads}");
+        println!("sor_ms={:.3}", timing.best_ms);
+        println!("sor_cpu_ms={:.0}", timing.cpu_ms.unwrap_or(f64::NAN));
+        println!("kept={}", keep.iter().filter(|&&k| k).count());
+        return Ok(());
+    }
+
+    let t = Instant::now();
+    let cloud = scan_like_cloud(args.points, args.seed);
+    println!(
+        "cloud: {} points (wavy height field on a jittered 0.1 mm grid + 1 % outliers), built in {:.0} ms",
+        cloud.len(),
+        t.elapsed().as_secs_f64() * 1e3
+    );
+    let (timing, keep) = time_sor(&cloud, args.k, args.n_sigma, args.repeat)?;
+    let ms = timing.best_ms;
+    let kept = keep.iter().filter(|&&k| k).count();
+    println!(
+        "depthmill statistical_outlier_removal k={} n_sigma={}: best of {} = {:.1} ms ({:.2} Mpoints/s, {} rayon threads; \
+         {:.0} ms CPU per run), kept {}, removed {}",
+        args.k,
+        args.n_sigma,
+        args.repeat,
+        ms,
+        cloud.len() as f64 / ms / 1e3,
+        threads,
+        timing.cpu_ms.unwrap_or(f64::NAN),
+        kept,
+        cloud.len() - kept
+    );
+    if !args.open3d {
+        return Ok(());
+    }
+
+    let dir = tempfile::tempdir()?;
+    let cloud_path = dir.path().join("cloud.npy");
+    let keep_path = dir.path().join("keep.npy");
+    write_cloud_npy(&cloud_path, &cloud)?;
+    write_mask_npy(&keep_path, &keep)?;
+    let script = script_path(&args);
+    let output = Command::new(&args.python)
+        .arg(&script)
+        .arg("--cloud")
+        .arg(&cloud_path)
+        .arg("--keep")
+        .arg(&keep_path)
+        .args(["--k", &args.k.to_string(), "--n-sigma", &args.n_sigma.to_string()])
+        .args(["--repeat", &args.repeat.to_string()])
+        .output();
+    let output = match output {
+        Ok(o) => o,
+        Err(e) => {
+            println!("open3d: cannot run {} ({e}); skipped", args.python);
+            return Ok(());
+        }
+    };
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    for line in stdout.lines() {
+        println!("  | {line}");
+    }
+    if output.status.code() == Some(3) {
+        println!(
+            "open3d: not importable by {}; install with `{} -m pip install open3d numpy`",
+            args.python, args.python
+        );
+        return Ok(());
+    }
+    if !output.status.success() {
+        print!("{}", String::from_utf8_lossy(&output.stderr));
+    }
+    match field(&stdout, "open3d_ms").and_then(|v| v.parse::<f64>().ok()) {
+        Some(o3d_ms) => {
+            println!(
+                "open3d remove_statistical_outlier: best of {} = {:.1} ms; depthmill is {:.2}x faster (target >= 5x); \
+                 mismatched points: {}",
+                args.repeat,
+                o3d_ms,
+                o3d_ms / ms,
+                field(&stdout, "mismatches").unwrap_or("?")
+            );
+            let o3d_cpu = field(&stdout, "open3d_cpu_ms").and_then(|v| v.parse::<f64>().ok());
+            if let (Some(theirs), Some(ours)) = (o3d_cpu, timing.cpu_ms) {
+                println!(
+                    "CPU time per run: open3d {theirs:.0} ms, depthmill {ours:.0} ms, ratio {:.2}x",
+                    theirs / ours
+                );
+            }
+        }
+        None => println!("open3d: no timing from {} (exit {:?})", script.display(), output.status.code()),
+    }
+    Ok(())
+}

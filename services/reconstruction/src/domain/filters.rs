@@ -1,0 +1,2475 @@
+//! Clean-up filters for point clouds, sphere fitting for spherical reference beacons, the frame
+//! three beacons define, and rigid user transforms.
+//!
+//! Every filter takes the cloud by value and returns the filtered cloud (intensity and normals
+//! follow their points, see [`retain`]) with a [`FilterReport`] of points kept and removed. Order
+//! of the surviving points is always their original order. An empty cloud is fine (report 0/0).
+//!
+//! # Conventions
+//!
+//! - A point is *usable* when its three coordinates are finite. The outlier filters and the voxel
+//!   decimation remove points that are not usable (they count as removed) and ignore them as
+//!   neighbours; [`intensity_window`] looks at the intensity only.
+//! - Parameter errors are [`ReconError::InvalidParameter`] with the job JSON's field name
+//!   (`reconstruct.filters.statistical.k`, `reconstruct.filters.radius.radius_mm`,
+//!   `reconstruct.filters.voxel_mm`, `reconstruct.filters.intensity.min`, ...).
+//!
+//! # Statistical outlier removal: the same rule as Open3D
+//!
+//! [`statistical_outlier_mask`] follows Open3D's `remove_statistical_outlier(nb_neighbors = k,
+//! std_ratio = n_sigma)` (checked against Open3D 0.20's `PointCloud::RemoveStatisticalOutliers`
+//! and by experiment, see `scripts/compare_open3d.py`):
+//!
+//! - `d_i` = mean Euclidean distance from point `i` to its `k` nearest usable points, **the point
+//!   itself included** (its distance 0 is the first of the `k`), summed in ascending order and
+//!   divided by `k`. With fewer than `k` usable points, all of them are used.
+//! - `μ` = mean of the `d_i` and `σ` = their **sample** standard deviation (Bessel, divide by
+//!   `m − 1`), both accumulated in point order like Open3D, so thresholds agree to the last bit.
+//! - A point is kept iff `d_i < μ + n_sigma·σ` (strict).
+//!
+//! Two deliberate differences, both outside what a real scan produces: Open3D drops every point
+//! whose `d_i` is exactly 0 (a point with `k − 1` exact duplicates) and leaves those points out of
+//! `μ`'s sum but not its count; here such points are ordinary inliers. And when `σ = 0` (every
+//! `d_i` equal) or fewer than 2 points are usable, Open3D keeps nothing; here every usable point is
+//! kept (no point stands out). On a cloud without `k` coincident points the kept sets are equal.
+//!
+//! # Radius outlier removal
+//!
+//! [`radius_outlier_mask`] keeps a point iff at least `min_neighbours` *other* usable points lie at
+//! a distance strictly below `radius_mm` (Open3D's `remove_radius_outlier(nb_points, radius)`
+//! counts the point itself and keeps it iff the count exceeds `nb_points`: the same rule).
+//!
+//! # The neighbour search
+//!
+//! Both outlier filters use a uniform grid: usable points are sorted by cell (radix sort on a key
+//! made of the 2-D Morton code of the cell's (x, y) column followed by its z layer), so that each
+//! cell is a contiguous run and each column a contiguous run of cells. A cell is processed as a
+//! batch against its 3 × 3 × 3 block, which lies in at most 9 contiguous runs (one per column).
+//!
+//! - Radius search: the cell edge is at least the radius, so the block holds the whole ball and
+//!   the count is exact (it stops as soon as `min_neighbours + 1` points are found).
+//! - k nearest neighbours: the cell edge is chosen on a random sample so that a typical point's
+//!   cell holds about `0.4·k` points. For each query the block's squared distances are filtered
+//!   (branch-free) to those below the previous query's k-th distance² · 1.44 and below the
+//!   block margin² (the distance from the query to the block's boundary: every point outside the
+//!   block is at least that far), then sorted. When at least `k` survive they are provably the
+//!   `k` nearest of the whole cloud. Queries that fail (isolated points, sparse regions) or whose
+//!   block is overfull (heaps of duplicates) go to a bounding-volume hierarchy over the points in
+//!   3-D Morton order (leaves of at most 24 points, nearest-child-first search with box
+//!   pruning), built only when needed.
+//!
+//! Only distances are kept, never neighbour identities, so ties need no tie-break: the multiset of
+//! the `k` smallest distances is unique and the result is deterministic, bit for bit the same as
+//! the O(n²) reference of the tests. Work is split over cells with rayon; per-point results do
+//! not depend on the split.
+//!
+//! # Voxel decimation
+//!
+//! [`voxel_decimate`] uses voxels of edge `voxel_mm` anchored at the origin (voxel
+//! `floor(p / voxel_mm)`), so a point's voxel does not depend on the rest of the cloud. Per
+//! occupied voxel it keeps the original point nearest the centroid of the voxel's points (ties: the
+//! lowest index), with its attributes; points stay in their original order.
+//!
+//! # Spheres and beacons
+//!
+//! [`fit_sphere`] solves the algebraic least-squares problem (`|p|² = 2 c·p + d`, on centred and
+//! scaled coordinates) and refines centre and radius by Levenberg–Marquardt on the geometric
+//! residuals `|p − c| − r`. [`fit_beacon`] selects the points near an approximate centre, finds a
+//! robust start by least median of squares over random 4-point spheres (so points of the table or
+//! the part around the beacon do not bias it, as long as at least half of the selected points lie
+//! on the sphere), then refits on the points whose residual is within 3·rms until the set is
+//! stable. [`beacon_frame`] builds the frame of three beacon centres.
+
+use std::cmp::Ordering;
+use std::collections::BinaryHeap;
+use std::ops::Range;
+
+use depthmill_geometry::PointCloud;
+use depthmill_geometry::pose::rotation_from_ypr_deg;
+use nalgebra::{
+    Isometry3, Matrix3, Matrix4, Point3, Rotation3, Translation3, UnitQuaternion, Vector3, Vector4,
+};
+use rayon::prelude::*;
+use serde::Serialize;
+
+use crate::domain::error::{ReconError, Result};
+
+/// What one filter did: its name (`intensity`, `voxel`, `statistical`, `radius`, the keys of the
+/// job's `filters` object) and how many points it kept and removed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+pub struct FilterReport {
+    pub filter: &'static str,
+    pub kept: usize,
+    pub removed: usize,
+}
+
+impl FilterReport {
+    fn from_mask(filter: &'static str, keep: &[bool]) -> Self {
+        let kept = keep.iter().filter(|&&k| k).count();
+        FilterReport { filter, kept, removed: keep.len() - kept }
+    }
+}
+
+/// Keeps the points whose `keep` entry is true, with their intensity/normals.
+///
+/// Order is preserved. A point without a `keep` entry (when `keep` is shorter than the cloud) is
+/// dropped; extra entries are ignored.
+pub fn retain(mut cloud: PointCloud, keep: &[bool]) -> PointCloud {
+    fn retain_vec<T>(v: &mut Vec<T>, keep: &[bool]) {
+        let mut it = keep.iter();
+        // Vec::retain visits every element exactly once, in order.
+        v.retain(|_| it.next().copied().unwrap_or(false));
+    }
+    retain_vec(&mut cloud.points, keep);
+    if let Some(i) = &mut cloud.intensity {
+        retain_vec(i, keep);
+    }
+    if let Some(n) = &mut cloud.normals {
+        retain_vec(n, keep);
+    }
+    cloud
+}
+
+/// Keeps the points whose intensity lies in `[min, max]` (inclusive; a NaN intensity is outside).
+///
+/// Errors: [`ReconError::MissingAttribute`] when the cloud has no intensity;
+/// [`ReconError::InvalidParameter`] (`reconstruct.filters.intensity.min`/`max`) when a bound is
+/// not finite or `min > max`; a geometry error when the cloud's arrays differ in length.
+pub fn intensity_window(cloud: PointCloud, min: f32, max: f32) -> Result<(PointCloud, FilterReport)> {
+    if !min.is_finite() {
+        return Err(ReconError::param("reconstruct.filters.intensity.min", min, "must be finite"));
+    }
+    if !max.is_finite() {
+        return Err(ReconError::param("reconstruct.filters.intensity.max", max, "must be finite"));
+    }
+    if min > max {
+        return Err(ReconError::param(
+            "reconstruct.filters.intensity.max",
+            max,
+            format!("must be at least min = {min}"),
+        ));
+    }
+    cloud.validate()?;
+    let Some(intensity) = &cloud.intensity else {
+        return Err(ReconError::MissingAttribute { operation: "the intensity window", what: "intensity" });
+    };
+    let keep: Vec<bool> = intensity.iter().map(|&i| i >= min && i <= max).collect();
+    let report = FilterReport::from_mask("intensity", &keep);
+    Ok((retain(cloud, &keep), report))
+}
+
+fn check_k(k: usize) -> Result<()> {
+    if k == 0 {
+        return Err(ReconError::param("reconstruct.filters.statistical.k", k, "must be at least 1"));
+    }
+    Ok(())
+}
+
+/// Mean distance from each point to its `k` nearest usable points, the point itself included
+/// (distance 0), summed in ascending order; `NaN` for points that are not usable. With fewer than
+/// `k` usable points, the mean is over all of them. This is the `d_i` of
+/// [`statistical_outlier_mask`] (see the module docs).
+///
+/// Errors: `reconstruct.filters.statistical.k` when `k = 0`.
+pub fn knn_mean_distances(points: &[Point3<f64>], k: usize) -> Result<Vec<f64>> {
+    check_k(k)?;
+    Ok(knn_means(points, k))
+}
+
+/// Which points statistical outlier removal keeps (Open3D's rule, see the module docs): `true`
+/// iff the point is usable and its mean distance to its `k` nearest neighbours (itself included)
+/// is below `μ + n_sigma·σ` over the cloud (`σ` the sample standard deviation).
+///
+/// Errors: `reconstruct.filters.statistical.k` when `k = 0`; `reconstruct.filters.statistical.n_sigma`
+/// when `n_sigma` is not finite and positive.
+pub fn statistical_outlier_mask(points: &[Point3<f64>], k: usize, n_sigma: f64) -> Result<Vec<bool>> {
+    check_k(k)?;
+    if !(n_sigma.is_finite() && n_sigma > 0.0) {
+        return Err(ReconError::param(
+            "reconstruct.filters.statistical.n_sigma",
+            n_sigma,
+            "must be finite and positive",
+        ));
+    }
+    let means = knn_means(points, k);
+    Ok(sor_mask_from_means(&means, n_sigma))
+}
+
+/// The keep rule on per-point mean distances (`NaN` = unusable point), in point order like Open3D.
+fn sor_mask_from_means(means: &[f64], n_sigma: f64) -> Vec<bool> {
+    let mut count = 0usize;
+    let mut sum = 0.0f64;
+    for &d in means.iter().filter(|d| !d.is_nan()) {
+        count += 1;
+        sum += d;
+    }
+    if count < 2 {
+        return means.iter().map(|d| !d.is_nan()).collect();
+    }
+    let mean = sum / count as f64;
+    let mut sq_sum = 0.0f64;
+    for &d in means.iter().filter(|d| !d.is_nan()) {
+        sq_sum += (d - mean) * (d - mean);
+    }
+    let std_dev = (sq_sum / (count - 1) as f64).sqrt();
+    let threshold = mean + n_sigma * std_dev;
+    // `d <= mean` only matters when σ = 0 (then everything is kept); otherwise it implies
+    // `d < threshold`.
+    means.iter().map(|&d| !d.is_nan() && (d < threshold || d <= mean)).collect()
+}
+
+/// Statistical outlier removal (report name `statistical`): [`statistical_outlier_mask`] applied
+/// with [`retain`].
+pub fn statistical_outlier_removal(
+    cloud: PointCloud,
+    k: usize,
+    n_sigma: f64,
+) -> Result<(PointCloud, FilterReport)> {
+    cloud.validate()?;
+    let keep = statistical_outlier_mask(&cloud.points, k, n_sigma)?;
+    let report = FilterReport::from_mask("statistical", &keep);
+    Ok((retain(cloud, &keep), report))
+}
+
+/// Which points radius outlier removal keeps: `true` iff the point is usable and at least
+/// `min_neighbours` other usable points lie at a distance strictly below `radius_mm`.
+///
+/// Errors: `reconstruct.filters.radius.radius_mm` when the radius is not finite and positive;
+/// `reconstruct.filters.radius.min_neighbours` when it is 0 (that would keep every point).
+pub fn radius_outlier_mask(
+    points: &[Point3<f64>],
+    radius_mm: f64,
+    min_neighbours: usize,
+) -> Result<Vec<bool>> {
+    if !(radius_mm.is_finite() && radius_mm > 0.0) {
+        return Err(ReconError::param(
+            "reconstruct.filters.radius.radius_mm",
+            radius_mm,
+            "must be finite and positive",
+        ));
+    }
+    if min_neighbours == 0 {
+        return Err(ReconError::param(
+            "reconstruct.filters.radius.min_neighbours",
+            min_neighbours,
+            "must be at least 1 (0 keeps every point)",
+        ));
+    }
+    let Some(bbox) = UsableBox::of(points) else {
+        return Ok(vec![false; points.len()]);
+    };
+    // Cells at least as large as the radius (plus rounding slack): the block holds the whole ball.
+    let h = (radius_mm * (1.0 + 1e-6) + bbox.tol).max(bbox.min_cell());
+    let grid = Grid::build(points, &bbox, h, false);
+    let r2 = radius_mm * radius_mm;
+    let need = min_neighbours.saturating_add(1); // the point itself is among the hits
+    let mut keep_sorted = vec![false; grid.xyz.len()];
+    let chunks = grid.chunks();
+    let slices = split_by_chunks(&mut keep_sorted, &grid, &chunks);
+    chunks.into_par_iter().zip(slices).for_each(|(cells, out)| {
+        let base = grid.starts[cells.start];
+        let mut ranges = Vec::with_capacity(9);
+        for c in cells {
+            grid.block_ranges(c, &mut ranges);
+            for s in grid.starts[c]..grid.starts[c + 1] {
+                let q = &grid.xyz[s];
+                let mut count = 0usize;
+                'search: for r in &ranges {
+                    for p in &grid.xyz[r.clone()] {
+                        if dist2(q, p) < r2 {
+                            count += 1;
+                            if count >= need {
+                                break 'search;
+                            }
+                        }
+                    }
+                }
+                out[s - base] = count >= need;
+            }
+        }
+    });
+    let mut keep = vec![false; points.len()];
+    for (s, &k) in keep_sorted.iter().enumerate() {
+        keep[grid.order[s]] = k;
+    }
+    Ok(keep)
+}
+
+/// Radius outlier removal (report name `radius`): [`radius_outlier_mask`] applied with [`retain`].
+pub fn radius_outlier_removal(
+    cloud: PointCloud,
+    radius_mm: f64,
+    min_neighbours: usize,
+) -> Result<(PointCloud, FilterReport)> {
+    cloud.validate()?;
+    let keep = radius_outlier_mask(&cloud.points, radius_mm, min_neighbours)?;
+    let report = FilterReport::from_mask("radius", &keep);
+    Ok((retain(cloud, &keep), report))
+}
+
+/// Largest voxel index magnitude accepted (integers up to 2^53 are exact in f64).
+const MAX_VOXEL_INDEX: f64 = 9_007_199_254_740_992.0;
+
+/// The voxel of `p` (edge `voxel`, anchored at the origin), `None` when beyond ±2^53 voxels.
+fn voxel_of(p: &Point3<f64>, voxel: f64) -> Option<[i64; 3]> {
+    let mut out = [0i64; 3];
+    for (o, c) in out.iter_mut().zip(p.coords.iter()) {
+        let v = (c / voxel).floor();
+        if v.is_nan() || v.abs() > MAX_VOXEL_INDEX {
+            return None;
+        }
+        *o = v as i64;
+    }
+    Some(out)
+}
+
+/// The point of `members` (indices into `points`, ascending) nearest the members' centroid; the
+/// first one on ties. The centroid is `p₀ + Σ(pᵢ − p₀)/m`, summed in index order.
+fn nearest_to_centroid(
+    points: &[Point3<f64>],
+    members: impl Iterator<Item = usize> + Clone,
+) -> Option<usize> {
+    let mut it = members.clone();
+    let first = it.next()?;
+    let p0 = points[first];
+    let mut sum = Vector3::zeros();
+    let mut m = 0usize;
+    for i in members.clone() {
+        sum += points[i] - p0;
+        m += 1;
+    }
+    let centroid = p0 + sum / m as f64;
+    let mut best = (first, f64::INFINITY);
+    for i in members {
+        let d = (points[i] - centroid).norm_squared();
+        if d < best.1 {
+            best = (i, d);
+        }
+    }
+    Some(best.0)
+}
+
+/// Which points voxel decimation keeps: per occupied voxel the point nearest its centroid (see
+/// the module docs).
+///
+/// Errors: `reconstruct.filters.voxel_mm` when the voxel is not finite and positive, or so small
+/// that a point lies more than 2^53 voxels from the origin.
+pub fn voxel_keep_mask(points: &[Point3<f64>], voxel_mm: f64) -> Result<Vec<bool>> {
+    if !(voxel_mm.is_finite() && voxel_mm > 0.0) {
+        return Err(ReconError::param(
+            "reconstruct.filters.voxel_mm",
+            voxel_mm,
+            "must be finite and positive",
+        ));
+    }
+    let mut pairs: Vec<([i64; 3], usize)> = points
+        .par_iter()
+        .enumerate()
+        .filter(|(_, p)| usable(p))
+        .map(|(i, p)| voxel_of(p, voxel_mm).map(|v| (v, i)).ok_or(i))
+        .collect::<std::result::Result<_, usize>>()
+        .map_err(|i| {
+            let p = points[i];
+            ReconError::param(
+                "reconstruct.filters.voxel_mm",
+                voxel_mm,
+                format!(
+                    "too small: point {i} at ({}, {}, {}) mm lies more than 2^53 voxels from the origin",
+                    p.x, p.y, p.z
+                ),
+            )
+        })?;
+    pairs.par_sort_unstable();
+    let mut runs = Vec::new();
+    let mut start = 0usize;
+    for j in 1..=pairs.len() {
+        if j == pairs.len() || pairs[j].0 != pairs[start].0 {
+            runs.push(start..j);
+            start = j;
+        }
+    }
+    let kept: Vec<usize> = runs
+        .into_par_iter()
+        .filter_map(|r| nearest_to_centroid(points, pairs[r].iter().map(|&(_, i)| i)))
+        .collect();
+    let mut keep = vec![false; points.len()];
+    for i in kept {
+        keep[i] = true;
+    }
+    Ok(keep)
+}
+
+/// Voxel-grid decimation that keeps shape (report name `voxel`): per occupied voxel of edge
+/// `voxel_mm`, the original point nearest the voxel's centroid, with its attributes; original
+/// order. Unusable points are removed. Errors as [`voxel_keep_mask`].
+pub fn voxel_decimate(cloud: PointCloud, voxel_mm: f64) -> Result<(PointCloud, FilterReport)> {
+    cloud.validate()?;
+    let keep = voxel_keep_mask(&cloud.points, voxel_mm)?;
+    let report = FilterReport::from_mask("voxel", &keep);
+    Ok((retain(cloud, &keep), report))
+}
+
+// ---------------------------------------------------------------------------------------------
+// Neighbour search: usable box, grid, k-best buffers, bounding-volume hierarchy.
+// ---------------------------------------------------------------------------------------------
+
+fn usable(p: &Point3<f64>) -> bool {
+    p.x.is_finite() && p.y.is_finite() && p.z.is_finite()
+}
+
+/// Squared distance, accumulated x, y, z in that order (as Open3D's nanoflann adaptor does).
+#[inline(always)]
+fn dist2(a: &[f64; 3], b: &[f64; 3]) -> f64 {
+    let dx = a[0] - b[0];
+    let dy = a[1] - b[1];
+    let dz = a[2] - b[2];
+    dx * dx + dy * dy + dz * dz
+}
+
+/// Most cells along one axis (so the mixed-radix cell key stays below 2^60).
+const MAX_CELLS_PER_AXIS: u64 = 1 << 20;
+/// Points per rayon work item (cells are never split).
+const CHUNK_POINTS: usize = 2048;
+/// Points per leaf of the bounding-volume hierarchy.
+const LEAF: usize = 16;
+
+/// Bounding box and count of the usable points.
+#[derive(Debug, Clone, Copy)]
+struct UsableBox {
+    lo: [f64; 3],
+    hi: [f64; 3],
+    count: usize,
+    /// Absolute slack for rounding of coordinates of this magnitude.
+    tol: f64,
+}
+
+impl UsableBox {
+    fn of(points: &[Point3<f64>]) -> Option<Self> {
+        let empty = || ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3], 0usize);
+        let (lo, hi, count) = points
+            .par_iter()
+            .filter(|p| usable(p))
+            .fold(empty, |(mut lo, mut hi, n), p| {
+                for a in 0..3 {
+                    lo[a] = lo[a].min(p[a]);
+                    hi[a] = hi[a].max(p[a]);
+                }
+                (lo, hi, n + 1)
+            })
+            .reduce(empty, |(l1, h1, n1), (l2, h2, n2)| {
+                (
+                    [l1[0].min(l2[0]), l1[1].min(l2[1]), l1[2].min(l2[2])],
+                    [h1[0].max(h2[0]), h1[1].max(h2[1]), h1[2].max(h2[2])],
+                    n1 + n2,
+                )
+            });
+        if count == 0 {
+            return None;
+        }
+        let scale = (0..3).map(|a| lo[a].abs().max(hi[a].abs())).fold(0.0, f64::max);
+        Some(UsableBox { lo, hi, count, tol: 1e-14 * scale })
+    }
+
+    fn max_extent(&self) -> f64 {
+        (0..3).map(|a| self.hi[a] - self.lo[a]).fold(0.0, f64::max)
+    }
+
+    /// Smallest cell edge for which every axis has at most [`MAX_CELLS_PER_AXIS`] cells.
+    fn min_cell(&self) -> f64 {
+        self.max_extent() / (MAX_CELLS_PER_AXIS - 2) as f64
+    }
+}
+
+/// Cell coordinates of `p` on a grid at `origin` with `1/h = inv_h` and `dims` cells per axis.
+#[inline]
+fn cell_of(p: &[f64; 3], origin: &[f64; 3], inv_h: f64, dims: &[u64; 3]) -> [u64; 3] {
+    // `as u64` saturates (negative and NaN give 0), so no input can wrap.
+    let c = |a: usize| (((p[a] - origin[a]) * inv_h).floor() as u64).min(dims[a] - 1);
+    [c(0), c(1), c(2)]
+}
+
+/// Spreads the low 20 bits of `v` to the even bits.
+fn spread2(v: u64) -> u64 {
+    let mut x = v & 0xF_FFFF;
+    x = (x | (x << 16)) & 0x0000_FFFF_0000_FFFF;
+    x = (x | (x << 8)) & 0x00FF_00FF_00FF_00FF;
+    x = (x | (x << 4)) & 0x0F0F_0F0F_0F0F_0F0F;
+    x = (x | (x << 2)) & 0x3333_3333_3333_3333;
+    x = (x | (x << 1)) & 0x5555_5555_5555_5555;
+    x
+}
+
+/// Inverse of [`spread2`]: the even bits of `v`, packed.
+fn compact2(v: u64) -> u64 {
+    let mut x = v & 0x5555_5555_5555_5555;
+    x = (x | (x >> 1)) & 0x3333_3333_3333_3333;
+    x = (x | (x >> 2)) & 0x0F0F_0F0F_0F0F_0F0F;
+    x = (x | (x >> 4)) & 0x00FF_00FF_00FF_00FF;
+    x = (x | (x >> 8)) & 0x0000_FFFF_0000_FFFF;
+    (x | (x >> 16)) & 0xF_FFFF
+}
+
+/// Bits for the z coordinate of a cell key on a grid with `dims_z` layers.
+fn z_bits(dims_z: u64) -> u32 {
+    64 - (dims_z.max(2) - 1).leading_zeros()
+}
+
+/// Cell key: the 2-D Morton code of the (x, y) column, then z (`zbits` bits). The cells of one
+/// column are consecutive (z fastest), and a common key prefix is a box of columns and layers.
+#[inline]
+fn cell_key(c: [u64; 3], zbits: u32) -> u64 {
+    ((spread2(c[0]) | (spread2(c[1]) << 1)) << zbits) | c[2]
+}
+
+fn grid_dims(bbox: &UsableBox, inv_h: f64) -> [u64; 3] {
+    let d = |a: usize| (((bbox.hi[a] - bbox.lo[a]) * inv_h).floor() as u64).saturating_add(1);
+    [d(0), d(1), d(2)].map(|d| d.clamp(1, MAX_CELLS_PER_AXIS))
+}
+
+/// Stable LSD radix sort of `items` by bits `shift0..shift0 + bits` (11 bits per pass).
+fn radix_sort_bits(items: &mut Vec<u64>, shift0: u32, bits: u32) {
+    const DIGIT: u32 = 11;
+    let mut tmp = vec![0u64; items.len()];
+    let mut counts = vec![0usize; 1 << DIGIT];
+    let end = shift0 + bits;
+    let mut shift = shift0;
+    while shift < end {
+        let width = DIGIT.min(end - shift);
+        let mask = (1u64 << width) - 1;
+        let counts = &mut counts[..1 << width];
+        counts.fill(0);
+        for &v in items.iter() {
+            counts[((v >> shift) & mask) as usize] += 1;
+        }
+        if !counts.contains(&items.len()) {
+            let mut sum = 0usize;
+            for c in counts.iter_mut() {
+                let here = *c;
+                *c = sum;
+                sum += here;
+            }
+            for &v in items.iter() {
+                let b = ((v >> shift) & mask) as usize;
+                tmp[counts[b]] = v;
+                counts[b] += 1;
+            }
+            std::mem::swap(items, &mut tmp);
+        }
+        shift += width;
+    }
+}
+
+/// Reorders `pts` by recursive median splits along the widest axis, splitting at multiples of
+/// [`LEAF`] from the start, so that every run of [`LEAF`] points is a compact kd-tree leaf.
+fn kd_order(pts: &mut [([f64; 3], usize)]) {
+    if pts.len() <= LEAF {
+        return;
+    }
+    let mut lo = [f64::INFINITY; 3];
+    let mut hi = [f64::NEG_INFINITY; 3];
+    for (p, _) in pts.iter() {
+        for a in 0..3 {
+            lo[a] = lo[a].min(p[a]);
+            hi[a] = hi[a].max(p[a]);
+        }
+    }
+    let axis = (0..3).max_by(|&a, &b| (hi[a] - lo[a]).total_cmp(&(hi[b] - lo[b]))).unwrap_or(0);
+    let mid = LEAF * pts.len().div_ceil(2 * LEAF);
+    pts.select_nth_unstable_by(mid, |p, q| p.0[axis].total_cmp(&q.0[axis]).then(p.1.cmp(&q.1)));
+    let (l, r) = pts.split_at_mut(mid);
+    kd_order(l);
+    kd_order(r);
+}
+
+/// Usable points sorted by grid cell, cells as contiguous runs.
+struct Grid {
+    origin: [f64; 3],
+    h: f64,
+    dims: [u64; 3],
+    /// Bits of z in a cell key ([`cell_key`]).
+    zbits: u32,
+    tol: f64,
+    /// Key ([`cell_key`]) of every occupied cell, ascending.
+    keys: Vec<u64>,
+    /// `xyz[starts[c]..starts[c + 1]]` are cell `c`'s points; `starts.len() == keys.len() + 1`.
+    starts: Vec<usize>,
+    /// Usable points grouped by cell.
+    xyz: Vec<[f64; 3]>,
+    /// Original index of `xyz[s]`.
+    order: Vec<usize>,
+}
+
+impl Grid {
+    /// The grid of edge `h`; with `kd_cells`, cells of more than [`LEAF`] points are put in
+    /// [`kd_order`] (for [`Bvh`] leaves).
+    fn build(points: &[Point3<f64>], bbox: &UsableBox, h: f64, kd_cells: bool) -> Grid {
+        let h = if h.is_finite() && h > 0.0 { h } else { 1.0 };
+        let inv_h = 1.0 / h;
+        let dims = grid_dims(bbox, inv_h);
+        let origin = bbox.lo;
+        let zbits = z_bits(dims[2]);
+        let key_of = |p: &Point3<f64>| cell_key(cell_of(&[p.x, p.y, p.z], &origin, inv_h, &dims), zbits);
+        // Every key is below this (all-ones x and y bits, then z).
+        let key_limit =
+            cell_key([dims[0].next_power_of_two() - 1, dims[1].next_power_of_two() - 1, 0], zbits)
+                + (1 << zbits);
+        let mut keys = Vec::new();
+        let mut starts = Vec::new();
+        let mut add_cell = |s: usize, key: u64| {
+            if keys.last() != Some(&key) {
+                keys.push(key);
+                starts.push(s);
+            }
+        };
+        // Original indices sorted by (cell key, index).
+        let mut order: Vec<usize> = if key_limit < 1 << 32 && points.len() <= 1 << 32 {
+            // (key << 32) | index, radix-sorted on the key bits; unusable points get the key
+            // `key_limit`, which sorts after every real key, and are cut off.
+            let mut items: Vec<u64> = points
+                .par_iter()
+                .enumerate()
+                .map(|(i, p)| (if usable(p) { key_of(p) } else { key_limit } << 32) | i as u64)
+                .collect();
+            let key_bits = 64 - key_limit.leading_zeros();
+            radix_sort_bits(&mut items, 32, key_bits);
+            items.truncate(bbox.count);
+            items.iter().enumerate().for_each(|(s, &v)| add_cell(s, v >> 32));
+            items.into_par_iter().map(|v| (v & 0xFFFF_FFFF) as usize).collect()
+        } else {
+            let mut pairs: Vec<(u64, usize)> = points
+                .par_iter()
+                .enumerate()
+                .filter(|(_, p)| usable(p))
+                .map(|(i, p)| (key_of(p), i))
+                .collect();
+            pairs.par_sort_unstable();
+            pairs.iter().enumerate().for_each(|(s, &(key, _))| add_cell(s, key));
+            pairs.into_par_iter().map(|(_, i)| i).collect()
+        };
+        starts.push(order.len());
+        let mut xyz: Vec<[f64; 3]> = order
+            .par_iter()
+            .map(|&i| {
+                let p = &points[i];
+                [p.x, p.y, p.z]
+            })
+            .collect();
+        if kd_cells {
+            let big: Vec<Range<usize>> =
+                (0..keys.len()).map(|c| starts[c]..starts[c + 1]).filter(|r| r.len() > LEAF).collect();
+            split_ranges_mut(&mut xyz, &big)
+                .into_par_iter()
+                .zip(split_ranges_mut(&mut order, &big))
+                .for_each(|(xyz, order)| {
+                    let mut pts: Vec<([f64; 3], usize)> =
+                        xyz.iter().copied().zip(order.iter().copied()).collect();
+                    kd_order(&mut pts);
+                    for ((x, o), (p, i)) in xyz.iter_mut().zip(order.iter_mut()).zip(pts) {
+                        *x = p;
+                        *o = i;
+                    }
+                });
+        }
+        Grid { origin, h, dims, zbits, tol: bbox.tol, keys, starts, xyz, order }
+    }
+
+    fn coords(&self, key: u64) -> [u64; 3] {
+        let column = key >> self.zbits;
+        [compact2(column), compact2(column >> 1), key & ((1 << self.zbits) - 1)]
+    }
+
+    /// The first cell whose key is at least `target`, searched outwards from cell `from`
+    /// (galloping: cost logarithmic in the distance).
+    fn seek(&self, from: usize, target: u64) -> usize {
+        let keys = &self.keys;
+        let from = from.min(keys.len());
+        if from < keys.len() && keys[from] < target {
+            let mut lo = from; // keys[lo] < target
+            let mut step = 1;
+            while lo + step < keys.len() && keys[lo + step] < target {
+                lo += step;
+                step *= 2;
+            }
+            let hi = (lo + step).min(keys.len());
+            lo + 1 + keys[lo + 1..hi].partition_point(|&k| k < target)
+        } else {
+            // keys[from] >= target (or from == len): go back.
+            let mut hi = from;
+            let mut step = 1;
+            while hi >= step && keys[hi - step] >= target {
+                hi -= step;
+                step *= 2;
+            }
+            let lo = hi.saturating_sub(step);
+            lo + keys[lo..hi].partition_point(|&k| k < target)
+        }
+    }
+
+    /// Ranges of cells holding about [`CHUNK_POINTS`] points each.
+    fn chunks(&self) -> Vec<Range<usize>> {
+        let mut out = Vec::new();
+        let mut first = 0usize;
+        for c in 0..self.keys.len() {
+            if self.starts[c + 1] - self.starts[first] >= CHUNK_POINTS {
+                out.push(first..c + 1);
+                first = c + 1;
+            }
+        }
+        if first < self.keys.len() {
+            out.push(first..self.keys.len());
+        }
+        out
+    }
+
+    /// The point ranges of cell `c`'s 3 × 3 × 3 block (at most 9 runs, one per column; its own
+    /// column first).
+    fn block_ranges(&self, c: usize, out: &mut Vec<Range<usize>>) {
+        out.clear();
+        let [cx, cy, cz] = self.coords(self.keys[c]);
+        let z0 = cz.saturating_sub(1);
+        let z1 = (cz + 1).min(self.dims[2] - 1);
+        for dx in [0i64, -1, 1] {
+            let Some(x) = cx.checked_add_signed(dx).filter(|&x| x < self.dims[0]) else { continue };
+            for dy in [0i64, -1, 1] {
+                let Some(y) = cy.checked_add_signed(dy).filter(|&y| y < self.dims[1]) else { continue };
+                let lo_key = cell_key([x, y, z0], self.zbits);
+                let hi_key = cell_key([x, y, z1], self.zbits);
+                let first = self.seek(c, lo_key);
+                let mut last = first;
+                while last < self.keys.len() && self.keys[last] <= hi_key {
+                    last += 1;
+                }
+                if last > first {
+                    out.push(self.starts[first]..self.starts[last]);
+                }
+            }
+        }
+    }
+
+    /// A lower bound on the distance from `q` (in the cell at `cell`) to any point outside the
+    /// cell's block (infinite towards sides where the grid ends).
+    fn block_margin(&self, cell: [u64; 3], q: &[f64; 3]) -> f64 {
+        let mut m = f64::INFINITY;
+        for a in 0..3 {
+            if cell[a] > 0 {
+                let lo = self.origin[a] + (cell[a] - 1) as f64 * self.h;
+                m = m.min(q[a] - lo);
+            }
+            if cell[a] + 1 < self.dims[a] {
+                let hi = self.origin[a] + (cell[a] + 2) as f64 * self.h;
+                m = m.min(hi - q[a]);
+            }
+        }
+        m - (1e-6 * self.h + self.tol)
+    }
+}
+
+/// Disjoint mutable slices of `data` for `ranges` (ascending, non-overlapping).
+fn split_ranges_mut<'a, T>(mut data: &'a mut [T], ranges: &[Range<usize>]) -> Vec<&'a mut [T]> {
+    let mut out = Vec::with_capacity(ranges.len());
+    let mut at = 0usize;
+    for r in ranges {
+        let (_, rest) = data.split_at_mut(r.start - at);
+        let (mine, rest) = rest.split_at_mut(r.len());
+        out.push(mine);
+        data = rest;
+        at = r.end;
+    }
+    out
+}
+
+/// Splits `out` (one entry per sorted point) into one slice per chunk of cells.
+fn split_by_chunks<'a, T>(out: &'a mut [T], grid: &Grid, chunks: &[Range<usize>]) -> Vec<&'a mut [T]> {
+    let ranges: Vec<Range<usize>> = chunks.iter().map(|r| grid.starts[r.start]..grid.starts[r.end]).collect();
+    split_ranges_mut(out, &ranges)
+}
+
+/// `k` values in the sorted buffer up to this, a max-heap beyond.
+const SMALL_K: usize = 64;
+
+/// A squared distance ordered totally, for the max-heap.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Sq(f64);
+impl Eq for Sq {}
+impl PartialOrd for Sq {
+    fn partial_cmp(&self, other: &Self) -> Option<Ordering> {
+        Some(self.cmp(other))
+    }
+}
+impl Ord for Sq {
+    fn cmp(&self, other: &Self) -> Ordering {
+        self.0.total_cmp(&other.0)
+    }
+}
+
+/// The `k` smallest squared distances pushed so far (a multiset: ties need no tie-break).
+enum KBest {
+    /// Ascending, `+inf`-padded, length `k`; `len` real entries.
+    Sorted {
+        d: Vec<f64>,
+        len: usize,
+    },
+    Heap {
+        k: usize,
+        heap: BinaryHeap<Sq>,
+        scratch: Vec<f64>,
+    },
+}
+
+impl KBest {
+    fn new(k: usize) -> Self {
+        if k <= SMALL_K {
+            KBest::Sorted { d: vec![f64::INFINITY; k], len: 0 }
+        } else {
+            KBest::Heap { k, heap: BinaryHeap::with_capacity(k + 1), scratch: Vec::with_capacity(k) }
+        }
+    }
+
+    fn reset(&mut self) {
+        match self {
+            KBest::Sorted { d, len } => {
+                d.fill(f64::INFINITY);
+                *len = 0;
+            }
+            KBest::Heap { heap, .. } => heap.clear(),
+        }
+    }
+
+    /// Values not below this cannot enter (`+inf` until `k` values are in).
+    #[inline(always)]
+    fn worst(&self) -> f64 {
+        match self {
+            KBest::Sorted { d, .. } => d.last().copied().unwrap_or(f64::NEG_INFINITY),
+            KBest::Heap { k, heap, .. } => {
+                if heap.len() < *k {
+                    f64::INFINITY
+                } else {
+                    heap.peek().map_or(f64::INFINITY, |s| s.0)
+                }
+            }
+        }
+    }
+
+    /// Inserts `x`; the caller has checked `x < self.worst()`.
+    #[inline(always)]
+    fn push(&mut self, x: f64) {
+        match self {
+            KBest::Sorted { d, len } => {
+                let mut i = d.len() - 1;
+                while i > 0 && d[i - 1] > x {
+                    d[i] = d[i - 1];
+                    i -= 1;
+                }
+                d[i] = x;
+                *len = (*len + 1).min(d.len());
+            }
+            KBest::Heap { k, heap, .. } => {
+                heap.push(Sq(x));
+                if heap.len() > *k {
+                    heap.pop();
+                }
+            }
+        }
+    }
+
+    /// Mean of the square roots, summed in ascending order.
+    fn mean_distance(&mut self) -> f64 {
+        let vals: &[f64] = match self {
+            KBest::Sorted { d, len } => &d[..*len],
+            KBest::Heap { heap, scratch, .. } => {
+                scratch.clear();
+                scratch.extend(heap.iter().map(|s| s.0));
+                scratch.sort_unstable_by(f64::total_cmp);
+                scratch
+            }
+        };
+        mean_sqrt(vals.iter().copied())
+    }
+}
+
+/// `Σ sqrt(v) / count`, summed in the given order (the callers give ascending order).
+#[inline]
+fn mean_sqrt(vals: impl ExactSizeIterator<Item = f64>) -> f64 {
+    let n = vals.len();
+    let mut sum = 0.0f64;
+    for v in vals {
+        sum += v.sqrt();
+    }
+    sum / n as f64
+}
+
+/// An axis-aligned box.
+#[derive(Debug, Clone, Copy)]
+struct Box3 {
+    lo: [f64; 3],
+    hi: [f64; 3],
+}
+
+impl Box3 {
+    fn of(pts: &[[f64; 3]]) -> Box3 {
+        let mut b = Box3 { lo: [f64::INFINITY; 3], hi: [f64::NEG_INFINITY; 3] };
+        for p in pts {
+            for ((lo, hi), &c) in b.lo.iter_mut().zip(b.hi.iter_mut()).zip(p) {
+                *lo = lo.min(c);
+                *hi = hi.max(c);
+            }
+        }
+        b
+    }
+
+    fn union(&self, o: &Box3) -> Box3 {
+        Box3 {
+            lo: [self.lo[0].min(o.lo[0]), self.lo[1].min(o.lo[1]), self.lo[2].min(o.lo[2])],
+            hi: [self.hi[0].max(o.hi[0]), self.hi[1].max(o.hi[1]), self.hi[2].max(o.hi[2])],
+        }
+    }
+
+    /// Squared distance from `q` to the box, summed x, y, z like [`dist2`] so that it never
+    /// exceeds the computed distance to a point inside.
+    fn dist2(&self, q: &[f64; 3]) -> f64 {
+        let e = |a: usize| (self.lo[a] - q[a]).max(q[a] - self.hi[a]).max(0.0);
+        let (ex, ey, ez) = (e(0), e(1), e(2));
+        ex * ex + ey * ey + ez * ez
+    }
+}
+
+/// A subtree of at most this many points becomes one leaf of the hierarchy.
+const LEAF_MAX: usize = 24;
+
+#[derive(Debug, Clone)]
+struct BvhNode {
+    bounds: Box3,
+    /// The subtree's points: `pts[points]`.
+    points: Range<usize>,
+    /// Index of the right child (the left child follows the node); 0 for a leaf.
+    right: usize,
+}
+
+/// Spreads the low 21 bits of `v` to every third bit.
+fn spread3(v: u64) -> u64 {
+    let mut x = v & 0x1F_FFFF;
+    x = (x | (x << 32)) & 0x001F_0000_0000_FFFF;
+    x = (x | (x << 16)) & 0x001F_0000_FF00_00FF;
+    x = (x | (x << 8)) & 0x100F_00F0_0F00_F00F;
+    x = (x | (x << 4)) & 0x10C3_0C30_C30C_30C3;
+    x = (x | (x << 2)) & 0x1249_2492_4924_9249;
+    x
+}
+
+/// 3-D Morton (Z-order) code of cell coordinates below 2^21.
+fn morton3(c: [u64; 3]) -> u64 {
+    spread3(c[0]) | (spread3(c[1]) << 1) | (spread3(c[2]) << 2)
+}
+
+/// A bounding-volume hierarchy over its own copy of a [`Grid`]'s points, laid out in 3-D Morton
+/// order of the cells (kd order inside big cells). A node covers a run of cells with a common
+/// Morton prefix (an octree box, so its points are contiguous) and splits it where the highest
+/// differing bit changes; a run of one big cell splits between its kd-ordered runs of [`LEAF`].
+/// Subtrees of at most [`LEAF_MAX`] points are leaves. Built in O(n) after a sort of the cells;
+/// used for the k-NN queries the grid cannot answer.
+struct Bvh {
+    pts: Vec<[f64; 3]>,
+    /// Preorder.
+    nodes: Vec<BvhNode>,
+}
+
+impl Bvh {
+    fn build(grid: &Grid) -> Bvh {
+        let mut cells: Vec<(u64, usize)> =
+            (0..grid.keys.len()).map(|c| (morton3(grid.coords(grid.keys[c])), c)).collect();
+        cells.par_sort_unstable();
+        // Where each cell goes in the copy, then the copy in parallel.
+        let mut at = Vec::with_capacity(cells.len() + 1);
+        let mut total = 0usize;
+        for &(_, c) in &cells {
+            at.push(total);
+            total += grid.starts[c + 1] - grid.starts[c];
+        }
+        at.push(total);
+        let mut pts = vec![[0.0f64; 3]; total];
+        let dest: Vec<Range<usize>> = (0..cells.len()).map(|i| at[i]..at[i + 1]).collect();
+        split_ranges_mut(&mut pts, &dest).into_par_iter().zip(&cells).for_each(|(out, &(_, c))| {
+            out.copy_from_slice(&grid.xyz[grid.starts[c]..grid.starts[c + 1]]);
+        });
+        // Runs: (Morton code, point range in `pts`); a big cell gives one run per kd leaf.
+        let mut runs = Vec::with_capacity(cells.len());
+        for (i, &(m, _)) in cells.iter().enumerate() {
+            let mut a = at[i];
+            while a < at[i + 1] {
+                let b = (a + LEAF).min(at[i + 1]);
+                runs.push((m, a..b));
+                a = b;
+            }
+        }
+        let nodes = if runs.is_empty() { Vec::new() } else { Self::build_par(&pts, &runs) };
+        Bvh { pts, nodes }
+    }
+
+    /// Where to split `runs` (at least 2): at the highest differing key bit, or in the middle of
+    /// one cell's runs.
+    fn split(runs: &[(u64, Range<usize>)]) -> usize {
+        let (first, last) = (runs[0].0, runs[runs.len() - 1].0);
+        if first == last {
+            runs.len().div_ceil(2)
+        } else {
+            let bit = 63 - (first ^ last).leading_zeros();
+            runs.partition_point(|r| (r.0 >> bit) & 1 == 0)
+        }
+    }
+
+    /// Builds the subtree of `runs` in preorder; big subtrees in parallel.
+    fn build_par(pts: &[[f64; 3]], runs: &[(u64, Range<usize>)]) -> Vec<BvhNode> {
+        let points = runs[0].1.start..runs[runs.len() - 1].1.end;
+        if runs.len() < 4096 || points.len() <= LEAF_MAX {
+            let mut nodes = Vec::with_capacity(2 * runs.len());
+            Self::build_seq(pts, runs, &mut nodes);
+            return nodes;
+        }
+        let split = Self::split(runs);
+        let (left, right) =
+            rayon::join(|| Self::build_par(pts, &runs[..split]), || Self::build_par(pts, &runs[split..]));
+        let bounds = left[0].bounds.union(&right[0].bounds);
+        let right_at = 1 + left.len();
+        let mut nodes = Vec::with_capacity(right_at + right.len());
+        nodes.push(BvhNode { bounds, points, right: right_at });
+        let shift = |off: usize| {
+            move |mut n: BvhNode| {
+                if n.right != 0 {
+                    n.right += off;
+                }
+                n
+            }
+        };
+        nodes.extend(left.into_iter().map(shift(1)));
+        nodes.extend(right.into_iter().map(shift(right_at)));
+        nodes
+    }
+
+    fn build_seq(pts: &[[f64; 3]], runs: &[(u64, Range<usize>)], nodes: &mut Vec<BvhNode>) -> Box3 {
+        let points = runs[0].1.start..runs[runs.len() - 1].1.end;
+        let me = nodes.len();
+        if runs.len() == 1 || points.len() <= LEAF_MAX {
+            let bounds = Box3::of(&pts[points.clone()]);
+            nodes.push(BvhNode { bounds, points, right: 0 });
+            return bounds;
+        }
+        let split = Self::split(runs);
+        nodes.push(BvhNode { bounds: Box3::of(&[]), points, right: 0 });
+        let left = Self::build_seq(pts, &runs[..split], nodes);
+        nodes[me].right = nodes.len();
+        let right = Self::build_seq(pts, &runs[split..], nodes);
+        let bounds = left.union(&right);
+        nodes[me].bounds = bounds;
+        bounds
+    }
+
+    fn knn(&self, q: &[f64; 3], best: &mut KBest) {
+        if !self.nodes.is_empty() {
+            self.visit(0, q, best);
+        }
+    }
+
+    fn visit(&self, node: usize, q: &[f64; 3], best: &mut KBest) {
+        let n = &self.nodes[node];
+        if n.right == 0 {
+            for p in &self.pts[n.points.clone()] {
+                let d = dist2(q, p);
+                if d < best.worst() {
+                    best.push(d);
+                }
+            }
+            return;
+        }
+        let (a, b) = (node + 1, n.right);
+        let (da, db) = (self.nodes[a].bounds.dist2(q), self.nodes[b].bounds.dist2(q));
+        let ((first, d_first), (second, d_second)) =
+            if da <= db { ((a, da), (b, db)) } else { ((b, db), (a, da)) };
+        if d_first < best.worst() {
+            self.visit(first, q, best);
+        }
+        if d_second < best.worst() {
+            self.visit(second, q, best);
+        }
+    }
+}
+
+/// Sample size for choosing the k-NN cell edge.
+const SAMPLE: usize = 1 << 14;
+
+/// SplitMix64: a small deterministic generator for sampling.
+fn splitmix(mut x: u64) -> u64 {
+    x = x.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    x = (x ^ (x >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    x = (x ^ (x >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    x ^ (x >> 31)
+}
+
+/// A cell edge for which a typical point's cell holds about `target` points (itself included),
+/// estimated on a random sample (pairs of sample points sharing a cell, scaled by the inverse
+/// sampling fraction squared) and assuming points on surfaces (population ∝ edge²).
+fn knn_cell_size(points: &[Point3<f64>], bbox: &UsableBox, target: f64) -> f64 {
+    let n = points.len();
+    // Distinct indices: all of them for small clouds, else uniformly random ones (a stratified or
+    // strided sample would under-count pairs in scan-ordered clouds).
+    let mut idx: Vec<usize> = if n <= SAMPLE {
+        (0..n).collect()
+    } else {
+        (0..SAMPLE as u64).map(|j| (splitmix(j) % n as u64) as usize).collect()
+    };
+    idx.sort_unstable();
+    idx.dedup();
+    let sample: Vec<[f64; 3]> =
+        idx.iter().map(|&i| &points[i]).filter(|p| usable(p)).map(|p| [p.x, p.y, p.z]).collect();
+    let h_min = bbox.min_cell();
+    let m = bbox.count as f64;
+    let s = sample.len();
+    if s < 2 {
+        return h_min.max(1.0);
+    }
+    // Start: the area of the largest face of the central 98 % box.
+    let mut ext = [0.0f64; 3];
+    let mut coord = Vec::with_capacity(s);
+    for (a, e) in ext.iter_mut().enumerate() {
+        coord.clear();
+        coord.extend(sample.iter().map(|p| p[a]));
+        coord.sort_unstable_by(f64::total_cmp);
+        *e = coord[s - 1 - s / 100] - coord[s / 100];
+    }
+    ext.sort_unstable_by(|a, b| b.total_cmp(a));
+    let mut h = if ext[1] > 0.0 {
+        (target * ext[0] * ext[1] / m).sqrt()
+    } else if ext[0] > 0.0 {
+        target * ext[0] / m
+    } else {
+        bbox.max_extent() / 2.0
+    };
+    if !(h.is_finite() && h > 0.0) {
+        h = 1.0;
+    }
+    h = h.max(h_min);
+    let mut keys = Vec::with_capacity(s);
+    for _ in 0..8 {
+        let inv_h = 1.0 / h;
+        let dims = grid_dims(bbox, inv_h);
+        keys.clear();
+        let zbits = z_bits(dims[2]);
+        keys.extend(sample.iter().map(|p| cell_key(cell_of(p, &bbox.lo, inv_h, &dims), zbits)));
+        keys.sort_unstable();
+        let mut pairs = 0.0f64;
+        let mut run = 1.0f64;
+        for j in 1..=s {
+            if j < s && keys[j] == keys[j - 1] {
+                run += 1.0;
+            } else {
+                pairs += run * (run - 1.0);
+                run = 1.0;
+            }
+        }
+        let population = 1.0 + pairs * (m - 1.0) / (s as f64 * (s as f64 - 1.0)).max(1.0);
+        let ratio = if population > 1.0 { (target - 1.0) / (population - 1.0) } else { 16.0 };
+        if (0.85..=1.18).contains(&ratio) || (ratio < 1.0 && h <= h_min) {
+            break;
+        }
+        h = (h * ratio.sqrt().clamp(0.25, 4.0)).max(h_min);
+    }
+    h
+}
+
+/// Per-point k-NN mean distances (`NaN` for unusable points); see [`knn_mean_distances`].
+fn knn_means(points: &[Point3<f64>], k: usize) -> Vec<f64> {
+    knn_means_with_stats(points, k).0
+}
+
+/// How the k-NN queries were answered.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+struct KnnStats {
+    /// Answered from the grid block.
+    grid: usize,
+    /// Answered by the hierarchy (isolated points, sparse regions, overfull blocks).
+    tree: usize,
+    /// Cells whose block was overfull.
+    overfull_cells: usize,
+}
+
+/// Threshold factor on the previous query's k-th squared distance (1.2 in distance).
+const HINT_FACTOR: f64 = 1.44;
+
+/// One pass over the block's points for `N` queries at once: for query `i`, writes the bit
+/// patterns of the squared distances (which order like the non-negative values) that are at most
+/// `t2[i]` to the front of `bufs[i]` (branch-free compaction) and returns how many there are.
+/// Each buffer holds at least as many entries as the block has points.
+#[inline(always)]
+fn block_filter<const N: usize>(
+    xyz: &[[f64; 3]],
+    ranges: &[Range<usize>],
+    qs: [&[f64; 3]; N],
+    t2: [f64; N],
+    bufs: [&mut [u64]; N],
+) -> [usize; N] {
+    let mut cnt = [0usize; N];
+    for r in ranges {
+        for p in &xyz[r.clone()] {
+            for i in 0..N {
+                let d = dist2(qs[i], p);
+                bufs[i][cnt[i]] = d.to_bits();
+                cnt[i] += usize::from(d <= t2[i]);
+            }
+        }
+    }
+    cnt
+}
+
+/// Sorts the `k` smallest of the `cnt ≥ k` filtered values to the front of `buf`; returns the
+/// k-th squared distance and the mean distance (square roots summed in ascending order).
+#[inline]
+fn finish_knn(buf: &mut [u64], cnt: usize, k: usize) -> (f64, f64) {
+    let v = &mut buf[..cnt];
+    if cnt > 2 * k + 8 {
+        v.select_nth_unstable(k - 1);
+        v[..k].sort_unstable();
+    } else {
+        v.sort_unstable();
+    }
+    let best = &buf[..k];
+    let kth2 = best.last().map_or(f64::INFINITY, |&b| f64::from_bits(b));
+    // Square roots in a separate pass (vectorised), then the ordered sum.
+    let mut roots = [0.0f64; 32];
+    let mut sum = 0.0f64;
+    for part in best.chunks(32) {
+        for (r, &b) in roots.iter_mut().zip(part) {
+            *r = f64::from_bits(b).sqrt();
+        }
+        for &r in &roots[..part.len()] {
+            sum += r;
+        }
+    }
+    (kth2, sum / k as f64)
+}
+
+/// The k-NN mean of query `q` from its block, if its `k` nearest provably lie there: filters to
+/// `d² ≤ min(hint2·HINT_FACTOR, margin2)`, then (too few left) to `d² ≤ margin2`. `None` when
+/// fewer than `k` points lie within the margin. Returns (k-th squared distance, mean).
+fn block_knn(
+    xyz: &[[f64; 3]],
+    ranges: &[Range<usize>],
+    q: &[f64; 3],
+    k: usize,
+    margin2: f64,
+    hint2: f64,
+    buf: &mut [u64],
+) -> Option<(f64, f64)> {
+    let mut t2 = margin2.min(hint2 * HINT_FACTOR);
+    loop {
+        let [cnt] = block_filter(xyz, ranges, [q], [t2], [&mut *buf]);
+        if cnt >= k {
+            return Some(finish_knn(buf, cnt, k));
+        }
+        if t2 >= margin2 {
+            return None;
+        }
+        t2 = margin2;
+    }
+}
+
+fn knn_means_with_stats(points: &[Point3<f64>], k: usize) -> (Vec<f64>, KnnStats) {
+    let mut means = vec![f64::NAN; points.len()];
+    let mut stats = KnnStats::default();
+    let Some(bbox) = UsableBox::of(points) else {
+        return (means, stats);
+    };
+    let k = k.min(bbox.count);
+    // About 0.4·k points per cell: for points on a surface the k-th neighbour then lies at about
+    // 0.9 cell edges, inside the block's margin (at least one edge) for nearly every query, while
+    // the block holds ~4k candidates.
+    let target = (k as f64 * 0.4).max(2.0);
+    let h = knn_cell_size(points, &bbox, target);
+    let grid = Grid::build(points, &bbox, h, true);
+    // A block with more candidates than this goes to the hierarchy (heaps of duplicates).
+    let cap = 48 * k + 2048;
+
+    let mut sorted = vec![f64::NAN; grid.xyz.len()];
+    let chunks = grid.chunks();
+    let slices = split_by_chunks(&mut sorted, &grid, &chunks);
+    let per_chunk: Vec<(Vec<usize>, usize)> = chunks
+        .into_par_iter()
+        .zip(slices)
+        .map(|(cells, out)| {
+            let base = grid.starts[cells.start];
+            let mut fallback = Vec::new();
+            let mut overfull = 0usize;
+            let mut ranges = Vec::with_capacity(9);
+            let mut buf = vec![0u64; 2 * (cap + 1)];
+            let mut hint2 = f64::INFINITY;
+            for c in cells {
+                let own = grid.starts[c]..grid.starts[c + 1];
+                grid.block_ranges(c, &mut ranges);
+                let total: usize = ranges.iter().map(|r| r.len()).sum();
+                if total > cap {
+                    overfull += 1;
+                }
+                if total > cap || total < k {
+                    fallback.extend(own);
+                    continue;
+                }
+                let cell = grid.coords(grid.keys[c]);
+                let margin2 = |q: &[f64; 3]| {
+                    let m = grid.block_margin(cell, q);
+                    if m > 0.0 { m * m } else { 0.0 }
+                };
+                let mut s = own.start;
+                // Two queries per pass over the block while there are two with a margin.
+                while s + 1 < own.end {
+                    let (qa, qb) = (&grid.xyz[s], &grid.xyz[s + 1]);
+                    let (ma, mb) = (margin2(qa), margin2(qb));
+                    if ma == 0.0 || mb == 0.0 {
+                        break;
+                    }
+                    let (ta, tb) = (ma.min(hint2 * HINT_FACTOR), mb.min(hint2 * HINT_FACTOR));
+                    let (ba, bb) = buf.split_at_mut(cap + 1);
+                    let [ca, cb] = block_filter(&grid.xyz, &ranges, [qa, qb], [ta, tb], [ba, bb]);
+                    for (j, q, m, t, cnt, b) in
+                        [(s, qa, ma, ta, ca, &mut *ba), (s + 1, qb, mb, tb, cb, &mut *bb)]
+                    {
+                        let found = if cnt >= k {
+                            Some(finish_knn(b, cnt, k))
+                        } else if t < m {
+                            block_knn(&grid.xyz, &ranges, q, k, m, m, b)
+                        } else {
+                            None
+                        };
+                        match found {
+                            Some((kth2, mean)) => {
+                                hint2 = kth2;
+                                out[j - base] = mean;
+                            }
+                            None => fallback.push(j),
+                        }
+                    }
+                    s += 2;
+                }
+                for s in s..own.end {
+                    let q = &grid.xyz[s];
+                    let m = margin2(q);
+                    let found = if m > 0.0 {
+                        block_knn(&grid.xyz, &ranges, q, k, m, hint2, &mut buf[..=cap])
+                    } else {
+                        None
+                    };
+                    match found {
+                        Some((kth2, mean)) => {
+                            hint2 = kth2;
+                            out[s - base] = mean;
+                        }
+                        None => fallback.push(s),
+                    }
+                }
+            }
+            (fallback, overfull)
+        })
+        .collect();
+    stats.overfull_cells = per_chunk.iter().map(|f| f.1).sum();
+    // In grid order, so consecutive queries are near each other and share cache.
+    let fallback: Vec<usize> = per_chunk.into_iter().flat_map(|f| f.0).collect();
+    stats.tree = fallback.len();
+    stats.grid = grid.xyz.len() - fallback.len();
+    if !fallback.is_empty() {
+        let bvh = Bvh::build(&grid);
+        let results: Vec<(usize, f64)> = fallback
+            .par_chunks(256)
+            .flat_map_iter(|part| {
+                let mut best = KBest::new(k);
+                part.iter()
+                    .map(|&s| {
+                        best.reset();
+                        bvh.knn(&grid.xyz[s], &mut best);
+                        (s, best.mean_distance())
+                    })
+                    .collect::<Vec<_>>()
+            })
+            .collect();
+        for (s, d) in results {
+            sorted[s] = d;
+        }
+    }
+    for (s, &d) in sorted.iter().enumerate() {
+        means[grid.order[s]] = d;
+    }
+    (means, stats)
+}
+
+// ---------------------------------------------------------------------------------------------
+// Spheres, beacons, frames, user transforms.
+// ---------------------------------------------------------------------------------------------
+
+/// A fitted sphere: centre and radius (mm), RMS of the geometric residuals `|p − c| − r` (mm),
+/// and the number of points the fit used.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct SphereFit {
+    pub center: Point3<f64>,
+    pub radius_mm: f64,
+    pub rms_mm: f64,
+    pub points: usize,
+}
+
+fn sphere_param(n: usize, reason: impl Into<String>) -> ReconError {
+    ReconError::param("sphere_fit.points", n, reason)
+}
+
+/// Fits a sphere to `points` (mm) by algebraic least squares, refined by Levenberg–Marquardt on
+/// the geometric distance.
+///
+/// Errors ([`ReconError::InvalidParameter`], field `sphere_fit.points`): fewer than 4 points, a
+/// point that is not finite, points that are coplanar or collinear (no unique sphere).
+pub fn fit_sphere(points: &[Point3<f64>]) -> Result<SphereFit> {
+    let n = points.len();
+    if n < 4 {
+        return Err(sphere_param(n, "a sphere fit needs at least 4 points"));
+    }
+    if let Some((i, p)) = points.iter().enumerate().find(|(_, p)| !usable(p)) {
+        return Err(ReconError::param(
+            format!("sphere_fit.points[{i}]"),
+            format!("({}, {}, {})", p.x, p.y, p.z),
+            "must be finite",
+        ));
+    }
+    // Centre and scale for conditioning: u = (p − mean) / scale.
+    let mean = points.iter().fold(Vector3::zeros(), |s, p| s + p.coords) / n as f64;
+    let scale = (points.iter().map(|p| (p.coords - mean).norm_squared()).sum::<f64>() / n as f64).sqrt();
+    if !(scale > 0.0 && scale.is_finite()) {
+        return Err(sphere_param(n, "all points coincide"));
+    }
+    let u: Vec<Vector3<f64>> = points.iter().map(|p| (p.coords - mean) / scale).collect();
+    let cov = u.iter().fold(Matrix3::zeros(), |c, v| c + v * v.transpose()) / n as f64;
+    let eig = cov.symmetric_eigenvalues();
+    let (emin, emax) = (eig.min(), eig.max());
+    if !matches!(emin.partial_cmp(&(1e-12 * emax)), Some(Ordering::Greater)) {
+        return Err(sphere_param(n, "the points are coplanar or collinear, so no unique sphere fits them"));
+    }
+    // Algebraic fit: |u|² = 2 c·u + d, d = r² − |c|².
+    let mut ata = Matrix4::<f64>::zeros();
+    let mut atb = Vector4::<f64>::zeros();
+    for v in &u {
+        let row = Vector4::new(2.0 * v.x, 2.0 * v.y, 2.0 * v.z, 1.0);
+        ata += row * row.transpose();
+        atb += row * v.norm_squared();
+    }
+    let sol = ata.lu().solve(&atb).ok_or_else(|| sphere_param(n, "the algebraic sphere fit is singular"))?;
+    let c0 = Vector3::new(sol.x, sol.y, sol.z);
+    let r0_sq = sol.w + c0.norm_squared();
+    if !(r0_sq > 0.0 && r0_sq.is_finite()) {
+        return Err(sphere_param(n, "no sphere fits these points (degenerate configuration)"));
+    }
+    let (c, r) = refine_sphere(&u, c0, r0_sq.sqrt());
+    let center = Point3::from(mean + c * scale);
+    let radius_mm = r * scale;
+    if !(radius_mm > 0.0 && radius_mm.is_finite() && center.coords.iter().all(|v| v.is_finite())) {
+        return Err(sphere_param(n, "no sphere fits these points (degenerate configuration)"));
+    }
+    let rms_mm =
+        (points.iter().map(|p| ((p - center).norm() - radius_mm).powi(2)).sum::<f64>() / n as f64).sqrt();
+    Ok(SphereFit { center, radius_mm, rms_mm, points: n })
+}
+
+/// Sum of squared geometric residuals.
+fn sphere_cost(u: &[Vector3<f64>], c: &Vector3<f64>, r: f64) -> f64 {
+    u.iter().map(|v| ((v - c).norm() - r).powi(2)).sum()
+}
+
+/// Levenberg–Marquardt on `Σ (|u − c| − r)²`, from `(c, r)`.
+fn refine_sphere(u: &[Vector3<f64>], mut c: Vector3<f64>, mut r: f64) -> (Vector3<f64>, f64) {
+    let mut lambda = 1e-3;
+    let mut cost = sphere_cost(u, &c, r);
+    for _ in 0..100 {
+        let mut jtj = Matrix4::<f64>::zeros();
+        let mut jtr = Vector4::<f64>::zeros();
+        for v in u {
+            let d = v - c;
+            let dist = d.norm();
+            let dir = if dist > 0.0 { d / dist } else { Vector3::zeros() };
+            let j = Vector4::new(-dir.x, -dir.y, -dir.z, -1.0);
+            let res = dist - r;
+            jtj += j * j.transpose();
+            jtr += j * res;
+        }
+        let mut improved = false;
+        for _ in 0..10 {
+            let mut a = jtj;
+            for i in 0..4 {
+                a[(i, i)] += lambda * jtj[(i, i)].max(1e-12);
+            }
+            let Some(step) = a.lu().solve(&(-jtr)) else {
+                lambda *= 10.0;
+                continue;
+            };
+            let c_new = c + Vector3::new(step.x, step.y, step.z);
+            let r_new = r + step.w;
+            let cost_new = sphere_cost(u, &c_new, r_new);
+            if cost_new.is_finite() && cost_new <= cost {
+                let small = step.norm() <= 1e-13 * (1.0 + r.abs());
+                c = c_new;
+                r = r_new;
+                cost = cost_new;
+                lambda = (lambda / 10.0).max(1e-12);
+                improved = !small;
+                break;
+            }
+            lambda *= 10.0;
+        }
+        if !improved {
+            break;
+        }
+    }
+    (c, r)
+}
+
+/// The sphere through 4 points (algebraic), if they are not (nearly) coplanar.
+fn sphere_through(p: [&Point3<f64>; 4]) -> Option<(Point3<f64>, f64)> {
+    let o = p[0].coords;
+    let mut a = Matrix3::zeros();
+    let mut b = Vector3::zeros();
+    // |x − c|² = r² for all four: 2 (pᵢ − p₀)·(c − p₀) = |pᵢ − p₀|².
+    for i in 1..4 {
+        let d = p[i].coords - o;
+        a.set_row(i - 1, &(2.0 * d).transpose());
+        b[i - 1] = d.norm_squared();
+    }
+    let scale = b.max();
+    if scale.is_nan() || scale <= 0.0 || a.determinant().abs() <= 1e-9 * scale.powf(1.5) {
+        return None;
+    }
+    let c = a.lu().solve(&b)?;
+    let center = Point3::from(o + c);
+    let r = c.norm();
+    (r.is_finite() && r > 0.0).then_some((center, r))
+}
+
+/// Points of `pts` whose residual to the sphere `(c, r)` is at most `thr`.
+fn sphere_inliers(pts: &[Point3<f64>], c: &Point3<f64>, r: f64, thr: f64) -> Vec<Point3<f64>> {
+    pts.iter().filter(|p| ((*p - c).norm() - r).abs() <= thr).copied().collect()
+}
+
+/// Fits a beacon sphere among the points within `search_radius_mm` of `approx_center`, robustly:
+/// least median of squares over deterministic random 4-point spheres whose centre lies in the
+/// search ball (tolerates up to half of the selected points off the sphere, e.g. table or part
+/// around it), then least-squares refits on the points within 3·rms of the current sphere until
+/// that set is stable. `points` in the result is the number of inliers used.
+///
+/// Errors: `beacon.search_radius_mm` / `beacon.approx_center` when not finite (and positive), or
+/// when fewer than 4 points lie in the search ball; [`fit_sphere`]'s errors.
+pub fn fit_beacon(
+    points: &[Point3<f64>],
+    approx_center: Point3<f64>,
+    search_radius_mm: f64,
+) -> Result<SphereFit> {
+    if !(search_radius_mm.is_finite() && search_radius_mm > 0.0) {
+        return Err(ReconError::param(
+            "beacon.search_radius_mm",
+            search_radius_mm,
+            "must be finite and positive",
+        ));
+    }
+    if !usable(&approx_center) {
+        return Err(ReconError::param(
+            "beacon.approx_center",
+            format!("({}, {}, {})", approx_center.x, approx_center.y, approx_center.z),
+            "must be finite",
+        ));
+    }
+    let r2 = search_radius_mm * search_radius_mm;
+    let sel: Vec<Point3<f64>> =
+        points.iter().filter(|p| (*p - approx_center).norm_squared() <= r2).copied().collect();
+    let m = sel.len();
+    if m < 4 {
+        return Err(ReconError::param(
+            "beacon.search_radius_mm",
+            search_radius_mm,
+            format!(
+                "only {m} points lie within it of ({}, {}, {}); a sphere fit needs at least 4",
+                approx_center.x, approx_center.y, approx_center.z
+            ),
+        ));
+    }
+    // Scoring subset: at most 2000 points, evenly spread over the selection.
+    let stride = m.div_ceil(2000);
+    let score: Vec<Point3<f64>> = sel.iter().step_by(stride).copied().collect();
+    let mut res2 = Vec::with_capacity(score.len());
+    let mut best: Option<(f64, Point3<f64>, f64)> = None;
+    let mut state = 0x5EED_u64 ^ m as u64;
+    for _ in 0..600 {
+        let mut pick = [0usize; 4];
+        for slot in &mut pick {
+            state = splitmix(state);
+            *slot = (state % m as u64) as usize;
+        }
+        let [a, b, c, d] = pick;
+        if a == b || a == c || a == d || b == c || b == d || c == d {
+            continue;
+        }
+        let Some((center, r)) = sphere_through([&sel[a], &sel[b], &sel[c], &sel[d]]) else { continue };
+        if (center - approx_center).norm_squared() > r2 {
+            continue;
+        }
+        res2.clear();
+        res2.extend(score.iter().map(|p| ((p - center).norm() - r).powi(2)));
+        let mid = res2.len() / 2;
+        let (_, med, _) = res2.select_nth_unstable_by(mid, f64::total_cmp);
+        let med = *med;
+        if best.is_none_or(|(b, _, _)| med < b) {
+            best = Some((med, center, r));
+        }
+    }
+    let mut inliers = match best {
+        Some((med, center, r)) => {
+            let ms = score.len() as f64;
+            let sigma = 1.4826 * (1.0 + 5.0 / (ms - 4.0).max(1.0)) * med.sqrt();
+            let set = sphere_inliers(&sel, &center, r, (2.5 * sigma).max(1e-9 * r));
+            if set.len() >= 4 { set } else { sel.clone() }
+        }
+        None => sel.clone(),
+    };
+    let mut fit = fit_sphere(&inliers)?;
+    for _ in 0..20 {
+        let thr = (3.0 * fit.rms_mm).max(1e-9 * fit.radius_mm);
+        let next = sphere_inliers(&sel, &fit.center, fit.radius_mm, thr);
+        if next.len() < 4 || next == inliers {
+            break;
+        }
+        inliers = next;
+        fit = fit_sphere(&inliers)?;
+    }
+    Ok(fit)
+}
+
+/// Smallest sine of the angle at `c[0]` between the directions to `c[1]` and `c[2]` that
+/// [`beacon_frame`] accepts (about 0.57°): the frame's Y axis is only as good as
+/// `centre error / (distance · sine)`.
+pub const MIN_BEACON_SINE: f64 = 1e-2;
+
+/// The frame three beacon centres define: origin at c[0], X towards c[1], Z along
+/// (c1-c0)×(c2-c0), Y = Z×X. Returns `beacon_from_cloud`, the isometry that maps cloud
+/// coordinates into that frame (apply with PointCloud::transform). Error if the centres are
+/// (nearly) collinear.
+///
+/// In the beacon frame the centres land at `(0, 0, 0)`, `(|c1 − c0|, 0, 0)` and `(x, y, 0)` with
+/// `y > 0`. Errors (`beacon_frame.centers`): a centre that is not finite, or a sine of the angle
+/// at `c[0]` below [`MIN_BEACON_SINE`] (which includes coincident centres).
+pub fn beacon_frame(c: [Point3<f64>; 3]) -> Result<Isometry3<f64>> {
+    let shown = || c.iter().map(|p| format!("({}, {}, {})", p.x, p.y, p.z)).collect::<Vec<_>>().join(", ");
+    if !c.iter().all(usable) {
+        return Err(ReconError::param("beacon_frame.centers", shown(), "must be finite"));
+    }
+    let a = c[1] - c[0];
+    let b = c[2] - c[0];
+    let z = a.cross(&b);
+    let denom = a.norm() * b.norm();
+    let sine = if denom > 0.0 { z.norm() / denom } else { 0.0 };
+    if sine.is_nan() || sine < MIN_BEACON_SINE {
+        return Err(ReconError::param(
+            "beacon_frame.centers",
+            shown(),
+            format!(
+                "are (nearly) collinear: sine of the angle at the first centre {sine:.3e} < {MIN_BEACON_SINE}"
+            ),
+        ));
+    }
+    let x = a.normalize();
+    let z = z.normalize();
+    let y = z.cross(&x);
+    // Rows of beacon_from_cloud's rotation are the frame's axes in cloud coordinates.
+    let rot =
+        Rotation3::from_matrix_unchecked(Matrix3::from_rows(&[x.transpose(), y.transpose(), z.transpose()]));
+    let q = UnitQuaternion::from_rotation_matrix(&rot);
+    let q = UnitQuaternion::new_normalize(q.into_inner());
+    let t = -(q * c[0].coords);
+    Ok(Isometry3::from_parts(Translation3::from(t), q))
+}
+
+/// Tolerance of [`rigid_from_matrix`]'s checks.
+pub const RIGID_TOLERANCE: f64 = 1e-6;
+
+/// Parses/validates a user transform given as a 4x4 row-major matrix `m[row][col]` (`p ↦ R·p + t`
+/// with `R = m[0..3][0..3]`, `t = m[0..3][3]`): every entry finite, `R` orthonormal (`|RᵀR − I|`
+/// entrywise) and `det R = +1` within 1e-6, last row `0 0 0 1` within 1e-6. The rotation is
+/// re-orthonormalised.
+///
+/// Errors: [`ReconError::InvalidParameter`] on `reconstruct.filters.transform`, naming the entry
+/// or the check that failed.
+pub fn rigid_from_matrix(m: [[f64; 4]; 4]) -> Result<Isometry3<f64>> {
+    const FIELD: &str = "reconstruct.filters.transform";
+    for (r, row) in m.iter().enumerate() {
+        for (col, v) in row.iter().enumerate() {
+            if !v.is_finite() {
+                return Err(ReconError::param(format!("{FIELD}[{r}][{col}]"), v, "must be finite"));
+            }
+        }
+    }
+    let last = [0.0, 0.0, 0.0, 1.0];
+    if let Some(col) = (0..4).find(|&col| (m[3][col] - last[col]).abs() > RIGID_TOLERANCE) {
+        return Err(ReconError::param(
+            format!("{FIELD}[3][{col}]"),
+            m[3][col],
+            format!("the last row must be 0 0 0 1 (within {RIGID_TOLERANCE})"),
+        ));
+    }
+    let rot = Matrix3::from_fn(|r, c| m[r][c]);
+    let err = (rot.transpose() * rot - Matrix3::identity()).abs().max();
+    if err > RIGID_TOLERANCE {
+        return Err(ReconError::param(
+            FIELD,
+            format!("{m:?}"),
+            format!("the rotation part is not orthonormal: |RᵀR − I| = {err:.3e} > {RIGID_TOLERANCE}"),
+        ));
+    }
+    let det = rot.determinant();
+    if (det - 1.0).abs() > RIGID_TOLERANCE {
+        return Err(ReconError::param(
+            FIELD,
+            format!("{m:?}"),
+            format!("the rotation part has determinant {det} (a reflection), not +1"),
+        ));
+    }
+    let q = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(rot));
+    let q = UnitQuaternion::new_normalize(q.into_inner());
+    Ok(Isometry3::from_parts(Translation3::new(m[0][3], m[1][3], m[2][3]), q))
+}
+
+/// A user transform given as a translation (mm) and yaw/pitch/roll (degrees, ZYX:
+/// `R = Rz(yaw)·Ry(pitch)·Rx(roll)`, as [`depthmill_geometry::XyzYpr`]): `p ↦ R·p + t`.
+///
+/// Errors: `reconstruct.filters.transform.<x_mm|y_mm|z_mm|yaw_deg|pitch_deg|roll_deg>` when not
+/// finite.
+pub fn rigid_from_xyz_ypr(
+    translation_mm: [f64; 3],
+    yaw_deg: f64,
+    pitch_deg: f64,
+    roll_deg: f64,
+) -> Result<Isometry3<f64>> {
+    let fields = [
+        ("x_mm", translation_mm[0]),
+        ("y_mm", translation_mm[1]),
+        ("z_mm", translation_mm[2]),
+        ("yaw_deg", yaw_deg),
+        ("pitch_deg", pitch_deg),
+        ("roll_deg", roll_deg),
+    ];
+    if let Some((name, v)) = fields.into_iter().find(|(_, v)| !v.is_finite()) {
+        return Err(ReconError::param(format!("reconstruct.filters.transform.{name}"), v, "must be finite"));
+    }
+    Ok(Isometry3::from_parts(
+        Translation3::new(translation_mm[0], translation_mm[1], translation_mm[2]),
+        rotation_from_ypr_deg(yaw_deg, pitch_deg, roll_deg),
+    ))
+}
+
+#[cfg(test)]
+mod tests {
+    use std::collections::HashMap;
+
+    use depthmill_geometry::XyzYpr;
+    use nalgebra::{Matrix4, Point3, Vector3};
+    use proptest::prelude::*;
+    use rand::rngs::StdRng;
+    use rand::{Rng, SeedableRng};
+
+    use super::*;
+
+    fn p(x: f64, y: f64, z: f64) -> Point3<f64> {
+        Point3::new(x, y, z)
+    }
+
+    fn gauss(rng: &mut StdRng) -> f64 {
+        let u1 = 1.0 - rng.random::<f64>();
+        let u2 = rng.random::<f64>();
+        (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+    }
+
+    // ----- Slow, obviously correct references -----------------------------------------------
+
+    /// O(n²): every squared distance to a usable point, sorted; the `k` smallest (the point
+    /// itself included) as square roots summed in ascending order, over `k`. One result per `k`.
+    fn brute_means_multi(points: &[Point3<f64>], ks: &[usize]) -> Vec<Vec<f64>> {
+        let all: Vec<[f64; 3]> = points.iter().filter(|q| usable(q)).map(|q| [q.x, q.y, q.z]).collect();
+        let kmax = ks.iter().copied().max().unwrap_or(1).min(all.len()).max(1);
+        let mut out = vec![Vec::with_capacity(points.len()); ks.len()];
+        for q in points {
+            if !usable(q) {
+                out.iter_mut().for_each(|o| o.push(f64::NAN));
+                continue;
+            }
+            let q = [q.x, q.y, q.z];
+            let mut d: Vec<f64> = all.iter().map(|o| dist2(&q, o)).collect();
+            if d.len() > kmax {
+                d.select_nth_unstable_by(kmax - 1, f64::total_cmp);
+            }
+            d.truncate(kmax);
+            d.sort_by(f64::total_cmp);
+            for (o, &k) in out.iter_mut().zip(ks) {
+                let k = k.min(all.len());
+                let mut sum = 0.0;
+                for v in &d[..k] {
+                    sum += v.sqrt();
+                }
+                o.push(sum / k as f64);
+            }
+        }
+        out
+    }
+
+    fn brute_means(points: &[Point3<f64>], k: usize) -> Vec<f64> {
+        brute_means_multi(points, &[k]).remove(0)
+    }
+
+    /// Open3D's rule on the brute-force means (sample σ), with the two documented differences.
+    fn brute_sor_mask(points: &[Point3<f64>], k: usize, n_sigma: f64) -> Vec<bool> {
+        let means = brute_means(points, k);
+        let valid: Vec<f64> = means.iter().copied().filter(|d| !d.is_nan()).collect();
+        if valid.len() < 2 {
+            return means.iter().map(|d| !d.is_nan()).collect();
+        }
+        let mean = valid.iter().fold(0.0, |a, d| a + d) / valid.len() as f64;
+        let var = valid.iter().fold(0.0, |a, d| a + (d - mean) * (d - mean)) / (valid.len() - 1) as f64;
+        let threshold = mean + n_sigma * var.sqrt();
+        means.iter().map(|&d| !d.is_nan() && (d < threshold || d <= mean)).collect()
+    }
+
+    /// O(n²): per point, the sorted squared distances to every usable point (itself included);
+    /// empty for unusable points.
+    fn brute_sorted_d2(points: &[Point3<f64>]) -> Vec<Vec<f64>> {
+        let xyz = |q: &Point3<f64>| [q.x, q.y, q.z];
+        points
+            .iter()
+            .map(|q| {
+                if !usable(q) {
+                    return Vec::new();
+                }
+                let mut d: Vec<f64> =
+                    points.iter().filter(|o| usable(o)).map(|o| dist2(&xyz(q), &xyz(o))).collect();
+                d.sort_by(f64::total_cmp);
+                d
+            })
+            .collect()
+    }
+
+    /// At least `min` other usable points strictly within `r` (the point itself is one of the
+    /// distances below `r²`).
+    fn brute_ror_mask(sorted_d2: &[Vec<f64>], r: f64, min: usize) -> Vec<bool> {
+        sorted_d2.iter().map(|d| !d.is_empty() && d.partition_point(|&v| v < r * r) > min).collect()
+    }
+
+    /// Group by voxel in a hash map (members in index order), keep the member nearest the
+    /// centroid `p₀ + Σ(p − p₀)/m`, the lowest index on ties.
+    fn brute_voxel_mask(points: &[Point3<f64>], voxel: f64) -> Vec<bool> {
+        let mut groups: HashMap<[i64; 3], Vec<usize>> = HashMap::new();
+        for (i, q) in points.iter().enumerate().filter(|(_, q)| usable(q)) {
+            let key =
+                [(q.x / voxel).floor() as i64, (q.y / voxel).floor() as i64, (q.z / voxel).floor() as i64];
+            groups.entry(key).or_default().push(i);
+        }
+        let mut keep = vec![false; points.len()];
+        for members in groups.values() {
+            let p0 = points[members[0]];
+            let sum = members.iter().fold(Vector3::zeros(), |s, &i| s + (points[i] - p0));
+            let centroid = p0 + sum / members.len() as f64;
+            let mut best = members[0];
+            for &i in members {
+                if (points[i] - centroid).norm_squared() < (points[best] - centroid).norm_squared() {
+                    best = i;
+                }
+            }
+            keep[best] = true;
+        }
+        keep
+    }
+
+    // ----- Random clouds ----------------------------------------------------------------------
+
+    /// A wavy height field on a jittered grid (pitch 0.5 mm) with 20 µm noise.
+    fn surface(rng: &mut StdRng, n: usize) -> Vec<Point3<f64>> {
+        let side = (n as f64).sqrt().ceil() as usize;
+        (0..n)
+            .map(|i| {
+                let x = (i % side) as f64 * 0.5 + rng.random_range(-0.15..0.15);
+                let y = (i / side) as f64 * 0.5 + rng.random_range(-0.15..0.15);
+                p(x, y, 2.0 * (x / 7.0).sin() * (y / 5.0).cos() + 0.02 * gauss(rng))
+            })
+            .collect()
+    }
+
+    /// `n` uniformly random points in a box of side `size`.
+    fn uniform(rng: &mut StdRng, n: usize, size: f64) -> Vec<Point3<f64>> {
+        (0..n)
+            .map(|_| p(rng.random::<f64>() * size, rng.random::<f64>() * size, rng.random::<f64>() * size))
+            .collect()
+    }
+
+    /// Points on a coarse integer lattice: many exact duplicates and tied distances.
+    fn lattice(rng: &mut StdRng, n: usize, side: i32) -> Vec<Point3<f64>> {
+        (0..n)
+            .map(|_| {
+                let c = |rng: &mut StdRng| f64::from(rng.random_range(0..side)) * 0.5;
+                p(c(rng), c(rng), c(rng))
+            })
+            .collect()
+    }
+
+    /// Tight clusters, a heap of exact duplicates, scattered points.
+    fn clustered(rng: &mut StdRng, n: usize) -> Vec<Point3<f64>> {
+        let centres: Vec<Point3<f64>> =
+            (0..5).map(|_| p(rng.random::<f64>() * 50.0, rng.random::<f64>() * 50.0, 0.0)).collect();
+        let mut pts: Vec<Point3<f64>> = (0..n)
+            .map(|i| match i % 10 {
+                0 => p(rng.random::<f64>() * 60.0, rng.random::<f64>() * 60.0, rng.random::<f64>() * 20.0),
+                1 => p(7.0, 7.0, 7.0),
+                _ => {
+                    let c = centres[i % 5];
+                    p(c.x + 0.3 * gauss(rng), c.y + 0.3 * gauss(rng), c.z + 0.3 * gauss(rng))
+                }
+            })
+            .collect();
+        pts.swap(0, n / 2);
+        pts
+    }
+
+    fn same_means(fast: &[f64], slow: &[f64]) -> bool {
+        fast.len() == slow.len()
+            && fast.iter().zip(slow).all(|(a, b)| a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan()))
+    }
+
+    // ----- retain, intensity, reports, errors --------------------------------------------------
+
+    #[test]
+    fn retain_keeps_attributes_in_order() {
+        let cloud = PointCloud::new(
+            (0..5).map(|i| p(f64::from(i), 0.0, 0.0)).collect(),
+            Some(vec![0.0, 1.0, 2.0, 3.0, 4.0]),
+            Some((0..5).map(|i| Vector3::new(i as f32, 0.0, 0.0)).collect()),
+        )
+        .expect("valid");
+        let out = retain(cloud.clone(), &[true, false, true, false, true]);
+        assert_eq!(out.points.iter().map(|q| q.x).collect::<Vec<_>>(), vec![0.0, 2.0, 4.0]);
+        assert_eq!(out.intensity, Some(vec![0.0, 2.0, 4.0]));
+        assert_eq!(
+            out.normals.as_ref().map(|n| n.iter().map(|v| v.x).collect::<Vec<_>>()),
+            Some(vec![0.0, 2.0, 4.0])
+        );
+        // A short mask drops the points it does not cover.
+        let out = retain(cloud, &[true, true]);
+        assert_eq!(out.len(), 2);
+        assert_eq!(out.intensity.map(|i| i.len()), Some(2));
+    }
+
+    #[test]
+    fn intensity_window_is_inclusive_and_checks_its_input() {
+        let cloud = PointCloud::new(
+            (0..6).map(|i| p(f64::from(i), 0.0, 0.0)).collect(),
+            Some(vec![0.5, 1.0, 1.5, 2.0, f32::NAN, 3.0]),
+            None,
+        )
+        .expect("valid");
+        let (out, report) = intensity_window(cloud.clone(), 1.0, 2.0).expect("window");
+        assert_eq!(out.points.iter().map(|q| q.x).collect::<Vec<_>>(), vec![1.0, 2.0, 3.0]);
+        assert_eq!(report, FilterReport { filter: "intensity", kept: 3, removed: 3 });
+
+        let e = intensity_window(cloud.clone(), 2.0, 1.0).expect_err("min > max");
+        assert_eq!(e.to_string(), "invalid reconstruct.filters.intensity.max = 1: must be at least min = 2");
+        let e = intensity_window(cloud.clone(), f32::NAN, 1.0).expect_err("NaN");
+        assert!(e.to_string().starts_with("invalid reconstruct.filters.intensity.min = NaN"), "{e}");
+        let bare = PointCloud::from_points(cloud.points.clone());
+        let e = intensity_window(bare, 0.0, 1.0).expect_err("no intensity");
+        assert!(matches!(e, ReconError::MissingAttribute { what: "intensity", .. }), "{e}");
+        let mut broken = cloud;
+        broken.intensity = Some(vec![1.0]);
+        assert!(matches!(intensity_window(broken, 0.0, 1.0), Err(ReconError::Geometry(_))));
+    }
+
+    #[test]
+    fn empty_clouds_report_zero() {
+        let empty = PointCloud::default();
+        let reports = [
+            statistical_outlier_removal(empty.clone(), 8, 2.0).expect("sor").1,
+            radius_outlier_removal(empty.clone(), 1.0, 3).expect("ror").1,
+            voxel_decimate(empty.clone(), 1.0).expect("voxel").1,
+        ];
+        for r in reports {
+            assert_eq!((r.kept, r.removed), (0, 0), "{r:?}");
+        }
+        let with_intensity = PointCloud::new(vec![], Some(vec![]), None).expect("valid");
+        assert_eq!(intensity_window(with_intensity, 0.0, 1.0).expect("window").1.kept, 0);
+    }
+
+    #[test]
+    fn parameter_errors_name_the_field() {
+        let pts = vec![p(0.0, 0.0, 0.0); 3];
+        let msg = |r: Result<Vec<bool>>| r.expect_err("must fail").to_string();
+        assert_eq!(
+            msg(statistical_outlier_mask(&pts, 0, 2.0)),
+            "invalid reconstruct.filters.statistical.k = 0: must be at least 1"
+        );
+        assert!(
+            msg(statistical_outlier_mask(&pts, 4, 0.0))
+                .starts_with("invalid reconstruct.filters.statistical.n_sigma = 0")
+        );
+        assert!(msg(statistical_outlier_mask(&pts, 4, f64::INFINITY)).contains("n_sigma = inf"));
+        assert!(
+            msg(radius_outlier_mask(&pts, -1.0, 2))
+                .starts_with("invalid reconstruct.filters.radius.radius_mm = -1")
+        );
+        assert!(msg(radius_outlier_mask(&pts, f64::NAN, 2)).contains("radius_mm = NaN"));
+        assert!(
+            msg(radius_outlier_mask(&pts, 1.0, 0))
+                .starts_with("invalid reconstruct.filters.radius.min_neighbours = 0")
+        );
+        assert!(msg(voxel_keep_mask(&pts, 0.0)).starts_with("invalid reconstruct.filters.voxel_mm = 0"));
+        assert!(knn_mean_distances(&pts, 0).is_err());
+        // Voxels too small for the coordinates: an error, not an overflow.
+        let far = vec![p(0.0, 0.0, 0.0), p(1e12, 0.0, 0.0)];
+        let e = msg(voxel_keep_mask(&far, 1e-6));
+        assert!(e.contains("point 1 at (1000000000000, 0, 0) mm lies more than 2^53 voxels"), "{e}");
+    }
+
+    // ----- statistical outlier removal ---------------------------------------------------------
+
+    #[test]
+    fn sor_rule_matches_open3d_on_a_hand_example() {
+        // x = 0, 1, 2, 3, 10 with k = 2 (the point itself and its nearest neighbour):
+        // d = 0.5, 0.5, 0.5, 0.5, 3.5; μ = 1.1; sample σ = sqrt(1.8) = 1.342.
+        // n_sigma = 1: threshold 2.44 drops x = 10. n_sigma = 2: threshold 3.78 keeps it (a
+        // population σ = 1.2 would give 3.5 and drop it). Open3D 0.20 gives the same:
+        // remove_statistical_outlier(2, 1.0) keeps [0, 1, 2, 3], (2, 2.0) keeps all five.
+        let pts: Vec<Point3<f64>> = [0.0, 1.0, 2.0, 3.0, 10.0].iter().map(|&x| p(x, 0.0, 0.0)).collect();
+        assert_eq!(knn_mean_distances(&pts, 2).expect("means"), vec![0.5, 0.5, 0.5, 0.5, 3.5]);
+        assert_eq!(
+            statistical_outlier_mask(&pts, 2, 1.0).expect("mask"),
+            vec![true, true, true, true, false]
+        );
+        assert_eq!(statistical_outlier_mask(&pts, 2, 2.0).expect("mask"), vec![true; 5]);
+        // k larger than the cloud: the mean is over all points.
+        assert_eq!(knn_mean_distances(&pts[..2], 10).expect("means"), vec![0.5, 0.5]);
+    }
+
+    #[test]
+    fn sor_degenerate_clouds_keep_their_usable_points() {
+        // Every mean equal (σ = 0): nothing stands out.
+        let same = vec![p(1.0, 2.0, 3.0); 50];
+        assert_eq!(statistical_outlier_mask(&same, 8, 2.0).expect("mask"), vec![true; 50]);
+        // One usable point; non-finite points are removed.
+        let one = vec![p(1.0, 2.0, 3.0), p(f64::NAN, 0.0, 0.0), p(0.0, f64::INFINITY, 0.0)];
+        assert_eq!(statistical_outlier_mask(&one, 8, 2.0).expect("mask"), vec![true, false, false]);
+        let (out, report) = statistical_outlier_removal(PointCloud::from_points(one), 8, 2.0).expect("sor");
+        assert_eq!((out.len(), report.kept, report.removed), (1, 1, 2));
+    }
+
+    #[test]
+    fn knn_means_match_brute_force_on_random_clouds() {
+        let mut rng = StdRng::seed_from_u64(11);
+        let mut clouds: Vec<(&str, Vec<Point3<f64>>)> = vec![
+            ("surface", surface(&mut rng, 2500)),
+            ("uniform", uniform(&mut rng, 2000, 10.0)),
+            ("lattice", lattice(&mut rng, 2000, 6)),
+            ("clustered", clustered(&mut rng, 2000)),
+        ];
+        // Surface with 1 % far outliers, two non-finite points and a huge offset.
+        let mut s = surface(&mut rng, 2000);
+        s.extend(uniform(&mut rng, 20, 40.0).into_iter().map(|q| q + Vector3::new(-5.0, -5.0, 5.0)));
+        s.push(p(f64::NAN, 1.0, 1.0));
+        s.push(p(1.0, f64::NEG_INFINITY, 1.0));
+        clouds.push(("outliers", s.clone()));
+        clouds.push(("offset", s.iter().map(|q| q + Vector3::new(1e6, -2e6, 5e5)).collect()));
+        let mut far = uniform(&mut rng, 1000, 5.0);
+        far.push(p(1e9, 1e9, 0.0));
+        far.push(p(-3e8, 0.0, 7e8));
+        clouds.push(("huge extent", far));
+
+        let mut tree_used = false;
+        let ks = [1, 2, 5, 20, 70];
+        for (name, pts) in &clouds {
+            let slow = brute_means_multi(pts, &ks);
+            for (k, slow) in ks.into_iter().zip(&slow) {
+                let (fast, stats) = knn_means_with_stats(pts, k);
+                assert!(same_means(&fast, slow), "{name}, k = {k}");
+                assert_eq!(stats.grid + stats.tree, pts.iter().filter(|q| usable(q)).count(), "{name}");
+                tree_used |= stats.tree > 0;
+                if *name == "surface" && k == 20 {
+                    assert!(stats.tree * 10 < stats.grid, "{name}: {stats:?}");
+                }
+            }
+        }
+        assert!(tree_used);
+    }
+
+    #[test]
+    fn knn_means_with_a_heap_of_duplicates() {
+        let mut rng = StdRng::seed_from_u64(5);
+        let mut pts = vec![p(3.0, 3.0, 3.0); 4000];
+        pts.extend(uniform(&mut rng, 500, 6.0));
+        let ks = [5, 20];
+        for (k, slow) in ks.into_iter().zip(brute_means_multi(&pts, &ks)) {
+            let (fast, stats) = knn_means_with_stats(&pts, k);
+            assert!(stats.overfull_cells > 0, "{stats:?}");
+            assert!(same_means(&fast, &slow), "k = {k}");
+            assert_eq!(fast[0], 0.0);
+        }
+        // The duplicates are the densest points: kept (Open3D would drop them, see the module docs).
+        let keep = statistical_outlier_mask(&pts, 20, 2.0).expect("mask");
+        assert!(keep[..4000].iter().all(|&k| k));
+    }
+
+    #[test]
+    fn sor_mask_matches_reference() {
+        let mut rng = StdRng::seed_from_u64(21);
+        let mut pts = surface(&mut rng, 1500);
+        pts.extend(uniform(&mut rng, 30, 25.0));
+        pts.extend(lattice(&mut rng, 300, 4));
+        for (k, n_sigma) in [(1, 1.0), (8, 0.5), (12, 3.0), (20, 2.0)] {
+            assert_eq!(
+                statistical_outlier_mask(&pts, k, n_sigma).expect("mask"),
+                brute_sor_mask(&pts, k, n_sigma),
+                "k = {k}, n_sigma = {n_sigma}"
+            );
+        }
+    }
+
+    /// A plane-like surface or a sphere, with noise, plus 1 % far outliers.
+    fn planted(rng: &mut StdRng, sphere: bool) -> (Vec<Point3<f64>>, usize) {
+        let mut pts = if sphere {
+            (0..20_000)
+                .map(|_| {
+                    let v = Vector3::new(gauss(rng), gauss(rng), gauss(rng)).normalize();
+                    Point3::from(v * (20.0 + 0.02 * gauss(rng)))
+                })
+                .collect()
+        } else {
+            surface(rng, 20_000)
+        };
+        let n = pts.len();
+        let lo = pts.iter().fold(Vector3::repeat(f64::INFINITY), |a, q| a.inf(&q.coords));
+        let hi = pts.iter().fold(Vector3::repeat(f64::NEG_INFINITY), |a, q| a.sup(&q.coords));
+        while pts.len() < n + n / 100 {
+            let q = Point3::from(
+                lo - Vector3::repeat(10.0)
+                    + (hi - lo + Vector3::repeat(20.0)).component_mul(&Vector3::new(
+                        rng.random::<f64>(),
+                        rng.random::<f64>(),
+                        rng.random::<f64>(),
+                    )),
+            );
+            // Far: at least 3 mm from the surface.
+            let off = if sphere {
+                (q.coords.norm() - 20.0).abs()
+            } else {
+                (q.z - 2.0 * (q.x / 7.0).sin() * (q.y / 5.0).cos()).abs()
+            };
+            if off >= 3.0 {
+                pts.push(q);
+            }
+        }
+        (pts, n)
+    }
+
+    #[test]
+    fn planted_outliers_are_removed() {
+        let mut rng = StdRng::seed_from_u64(3);
+        for sphere in [false, true] {
+            let (pts, n) = planted(&mut rng, sphere);
+            let keep = statistical_outlier_mask(&pts, 20, 2.0).expect("sor");
+            assert!(keep[n..].iter().all(|&k| !k), "sphere = {sphere}: an outlier survived SOR");
+            let lost = keep[..n].iter().filter(|&&k| !k).count();
+            assert!(lost * 200 <= n, "sphere = {sphere}: SOR removed {lost} of {n} surface points");
+
+            let radius = if sphere { 2.0 } else { 1.5 };
+            let keep = radius_outlier_mask(&pts, radius, 8).expect("ror");
+            assert!(keep[n..].iter().all(|&k| !k), "sphere = {sphere}: an outlier survived ROR");
+            let lost = keep[..n].iter().filter(|&&k| !k).count();
+            assert!(lost * 1000 <= n, "sphere = {sphere}: ROR removed {lost} of {n} surface points");
+        }
+    }
+
+    // ----- radius outlier removal --------------------------------------------------------------
+
+    #[test]
+    fn ror_matches_brute_force() {
+        let mut rng = StdRng::seed_from_u64(8);
+        let mut outliers = surface(&mut rng, 1500);
+        outliers.extend(uniform(&mut rng, 40, 30.0));
+        outliers.push(p(f64::NAN, 0.0, 0.0));
+        let clouds =
+            [outliers, lattice(&mut rng, 1500, 7), clustered(&mut rng, 1500), uniform(&mut rng, 1000, 8.0)];
+        for pts in &clouds {
+            let sorted = brute_sorted_d2(pts);
+            for (r, min) in [(0.5, 1), (0.5, 4), (1.0, 10), (3.0, 30), (1e-3, 1), (100.0, 2)] {
+                assert_eq!(
+                    radius_outlier_mask(pts, r, min).expect("mask"),
+                    brute_ror_mask(&sorted, r, min),
+                    "r = {r}, min = {min}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn ror_radius_is_strict_and_counts_others() {
+        // Open3D 0.20: remove_radius_outlier(1, 1.0) on (0,0,0), (1,0,0), (5,0,0) keeps none;
+        // with radius 1.0000001 it keeps the first two.
+        let pts = vec![p(0.0, 0.0, 0.0), p(1.0, 0.0, 0.0), p(5.0, 0.0, 0.0)];
+        assert_eq!(radius_outlier_mask(&pts, 1.0, 1).expect("mask"), vec![false; 3]);
+        assert_eq!(radius_outlier_mask(&pts, 1.000_000_1, 1).expect("mask"), vec![true, true, false]);
+        let (out, report) =
+            radius_outlier_removal(PointCloud::from_points(pts), 1.000_000_1, 1).expect("ror");
+        assert_eq!((out.len(), report), (2, FilterReport { filter: "radius", kept: 2, removed: 1 }));
+    }
+
+    // ----- voxel decimation --------------------------------------------------------------------
+
+    #[test]
+    fn voxel_decimation_matches_brute_force() {
+        let mut rng = StdRng::seed_from_u64(13);
+        let mut with_nan = surface(&mut rng, 2000);
+        with_nan.push(p(0.0, f64::NAN, 0.0));
+        let clouds =
+            [with_nan, lattice(&mut rng, 2000, 9), clustered(&mut rng, 2000), uniform(&mut rng, 2000, 3.0)];
+        for pts in &clouds {
+            for voxel in [0.1, 0.7, 2.0, 50.0] {
+                assert_eq!(
+                    voxel_keep_mask(pts, voxel).expect("mask"),
+                    brute_voxel_mask(pts, voxel),
+                    "voxel {voxel}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn voxel_decimation_keeps_original_points_and_attributes() {
+        // Voxel 1: (0.1, 0.1), (0.5, 0.5), (0.9, 0.9) -> centroid (0.5, 0.5) -> the middle point.
+        // Voxel 2: one point. Voxel 3: two points equally far from their centroid -> the first.
+        let pts = vec![
+            p(0.1, 0.1, 0.0),
+            p(5.5, 0.5, 0.5),
+            p(0.5, 0.5, 0.0),
+            p(-0.2, 0.0, 0.0),
+            p(0.9, 0.9, 0.0),
+            p(-0.8, 0.0, 0.0),
+        ];
+        let cloud = PointCloud::new(pts, Some(vec![0.0, 1.0, 2.0, 3.0, 4.0, 5.0]), None).expect("valid");
+        let (out, report) = voxel_decimate(cloud, 1.0).expect("voxel");
+        assert_eq!(out.intensity, Some(vec![1.0, 2.0, 3.0]));
+        assert_eq!(out.points[1], p(0.5, 0.5, 0.0));
+        assert_eq!(report, FilterReport { filter: "voxel", kept: 3, removed: 3 });
+        // Huge extents with a reasonable voxel are fine.
+        let far = vec![p(-1e12, 0.0, 0.0), p(1e12, 0.0, 0.0), p(1e12, 0.0, 0.5)];
+        assert_eq!(voxel_keep_mask(&far, 1.0).expect("mask"), vec![true, true, false]);
+    }
+
+    #[test]
+    fn radix_sort_is_a_stable_sort_on_the_key_bits() {
+        let mut rng = StdRng::seed_from_u64(2);
+        let mut items: Vec<u64> = (0..5000u64).map(|i| (rng.random_range(0..3000u64) << 32) | i).collect();
+        let mut expected = items.clone();
+        expected.sort_unstable();
+        radix_sort_bits(&mut items, 32, 12);
+        assert_eq!(items, expected);
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(48))]
+
+        #[test]
+        fn fast_filters_match_references_on_lattice_clouds(
+            coords in proptest::collection::vec((0i32..6, 0i32..6, 0i32..4), 1..160),
+            k in 1usize..30,
+            n_sigma in 0.1f64..3.0,
+            radius in 0.2f64..2.5,
+            min in 1usize..12,
+            voxel in 0.3f64..3.0,
+        ) {
+            let pts: Vec<Point3<f64>> =
+                coords.iter().map(|&(x, y, z)| p(f64::from(x) * 0.5, f64::from(y) * 0.5, f64::from(z) * 0.75)).collect();
+            prop_assert!(same_means(&knn_mean_distances(&pts, k).expect("means"), &brute_means(&pts, k)));
+            prop_assert_eq!(statistical_outlier_mask(&pts, k, n_sigma).expect("sor"), brute_sor_mask(&pts, k, n_sigma));
+            prop_assert_eq!(
+                radius_outlier_mask(&pts, radius, min).expect("ror"),
+                brute_ror_mask(&brute_sorted_d2(&pts), radius, min)
+            );
+            prop_assert_eq!(voxel_keep_mask(&pts, voxel).expect("voxel"), brute_voxel_mask(&pts, voxel));
+        }
+    }
+
+    // ----- spheres and beacons -------------------------------------------------------------------
+
+    /// Points on the cap of polar angle up to `cap_deg` (from +Z) of a sphere, with radial
+    /// Gaussian noise `sigma`.
+    fn cap(rng: &mut StdRng, c: Point3<f64>, r: f64, cap_deg: f64, n: usize, sigma: f64) -> Vec<Point3<f64>> {
+        let cos_max = cap_deg.to_radians().cos();
+        (0..n)
+            .map(|_| {
+                // Uniform on the cap: cos θ uniform in [cos_max, 1].
+                let ct = cos_max + (1.0 - cos_max) * rng.random::<f64>();
+                let st = (1.0 - ct * ct).max(0.0).sqrt();
+                let ph = rng.random::<f64>() * std::f64::consts::TAU;
+                let dir = Vector3::new(st * ph.cos(), st * ph.sin(), ct);
+                c + dir * (r + sigma * gauss(rng))
+            })
+            .collect()
+    }
+
+    #[test]
+    fn fit_sphere_exact_points() {
+        let c = p(1.0, -2.0, 3.0);
+        let pts: Vec<Point3<f64>> =
+            [Vector3::x(), -Vector3::x(), Vector3::y(), Vector3::z(), Vector3::new(0.6, 0.0, 0.8)]
+                .iter()
+                .map(|d| c + d * 4.0)
+                .collect();
+        let fit = fit_sphere(&pts).expect("fit");
+        assert!((fit.center - c).norm() < 1e-9 && (fit.radius_mm - 4.0).abs() < 1e-9, "{fit:?}");
+        assert!(fit.rms_mm < 1e-9 && fit.points == 5);
+    }
+
+    #[test]
+    fn fit_sphere_on_a_noisy_120_degree_cap() {
+        let mut rng = StdRng::seed_from_u64(17);
+        let (c, r) = (p(10.0, -5.0, 30.0), 12.7);
+        let pts = cap(&mut rng, c, r, 60.0, 5000, 0.035);
+        let fit = fit_sphere(&pts).expect("fit");
+        assert!((fit.center - c).norm() < 0.02, "centre off by {}", (fit.center - c).norm());
+        assert!((fit.radius_mm - r).abs() < 0.01, "radius {}", fit.radius_mm);
+        assert!((fit.rms_mm - 0.035).abs() < 0.003, "rms {}", fit.rms_mm);
+    }
+
+    #[test]
+    fn fit_sphere_rejects_bad_input() {
+        let e = fit_sphere(&[p(0.0, 0.0, 0.0); 3]).expect_err("3 points");
+        assert_eq!(e.to_string(), "invalid sphere_fit.points = 3: a sphere fit needs at least 4 points");
+        let plane: Vec<Point3<f64>> = (0..20).map(|i| p(f64::from(i % 5), f64::from(i / 5), 2.0)).collect();
+        assert!(fit_sphere(&plane).expect_err("coplanar").to_string().contains("coplanar"));
+        let line: Vec<Point3<f64>> = (0..20).map(|i| p(f64::from(i), 2.0 * f64::from(i), 0.0)).collect();
+        assert!(fit_sphere(&line).is_err());
+        assert!(fit_sphere(&[p(1.0, 1.0, 1.0); 6]).is_err());
+        let e = fit_sphere(&[p(0.0, 0.0, 0.0), p(1.0, 0.0, 0.0), p(0.0, f64::NAN, 0.0), p(0.0, 0.0, 1.0)])
+            .expect_err("NaN");
+        assert!(e.to_string().starts_with("invalid sphere_fit.points[2] = (0, NaN, 0)"), "{e}");
+    }
+
+    #[test]
+    fn fit_beacon_ignores_the_table_around_it() {
+        let mut rng = StdRng::seed_from_u64(29);
+        // A 20 mm ball on a table (z = 0), scanned from above: 4 points/mm² on what is visible.
+        let (c, r) = (p(50.0, 20.0, 10.0), 10.0);
+        let mut pts = cap(&mut rng, c, r, 107.0, 3300, 0.035);
+        for _ in 0..6400 {
+            let (x, y) = (30.0 + 40.0 * rng.random::<f64>(), 40.0 * rng.random::<f64>());
+            if (x - c.x).hypot(y - c.y) > r {
+                pts.push(p(x, y, 0.035 * gauss(&mut rng)));
+            }
+        }
+        // Some clutter inside the search ball.
+        for _ in 0..30 {
+            pts.push(c + Vector3::new(gauss(&mut rng), gauss(&mut rng), gauss(&mut rng)) * 4.0);
+        }
+        let approx = p(50.8, 19.5, 10.6);
+        let fit = fit_beacon(&pts, approx, 16.0).expect("beacon");
+        assert!((fit.center - c).norm() < 0.02, "centre off by {}", (fit.center - c).norm());
+        assert!((fit.radius_mm - r).abs() < 0.01, "radius {}", fit.radius_mm);
+        assert!(fit.rms_mm < 0.045, "rms {}", fit.rms_mm);
+        // A plain least-squares fit of the same selection is pulled off by the table.
+        let sel: Vec<Point3<f64>> = pts.iter().filter(|q| (*q - approx).norm() <= 16.0).copied().collect();
+        let plain = fit_sphere(&sel).expect("plain");
+        assert!((plain.center - c).norm() > 0.1, "plain fit unexpectedly good: {plain:?}");
+
+        let e = fit_beacon(&pts, p(500.0, 0.0, 0.0), 5.0).expect_err("nothing there");
+        assert!(e.to_string().contains("only 0 points lie within it of (500, 0, 0)"), "{e}");
+        assert!(fit_beacon(&pts, approx, 0.0).is_err());
+    }
+
+    #[test]
+    fn beacon_frame_places_the_centres() {
+        let mut rng = StdRng::seed_from_u64(31);
+        for _ in 0..20 {
+            let canon = [
+                p(0.0, 0.0, 0.0),
+                p(120.0, 0.0, 0.0),
+                p(rng.random_range(-50.0..150.0), rng.random_range(20.0..90.0), 0.0),
+            ];
+            let cloud_from_beacon = Isometry3::from_parts(
+                Translation3::new(
+                    rng.random_range(-100.0..100.0),
+                    rng.random_range(-100.0..100.0),
+                    rng.random_range(-100.0..100.0),
+                ),
+                UnitQuaternion::from_euler_angles(
+                    rng.random_range(-3.0..3.0),
+                    rng.random_range(-1.5..1.5),
+                    rng.random_range(-3.0..3.0),
+                ),
+            );
+            let seen = canon.map(|q| cloud_from_beacon * q);
+            let iso = beacon_frame(seen).expect("frame");
+            for (s, c) in seen.iter().zip(&canon) {
+                assert!((iso * s - c).norm() < 1e-9, "{} vs {}", iso * s, c);
+            }
+            assert!((iso * cloud_from_beacon).to_homogeneous().relative_eq(&Matrix4::identity(), 1e-9, 1e-9));
+        }
+        // Swapping the last two centres flips Z and still puts the third at y > 0.
+        let iso = beacon_frame([p(0.0, 0.0, 0.0), p(0.0, 10.0, 0.0), p(5.0, 0.0, 0.0)]).expect("frame");
+        let third = iso * p(5.0, 0.0, 0.0);
+        assert!(third.y > 0.0 && third.z.abs() < 1e-12, "{third}");
+    }
+
+    #[test]
+    fn beacon_frame_rejects_collinear_centres() {
+        let e =
+            beacon_frame([p(0.0, 0.0, 0.0), p(10.0, 0.0, 0.0), p(20.0, 0.01, 0.0)]).expect_err("collinear");
+        assert!(e.to_string().contains("(nearly) collinear"), "{e}");
+        assert!(beacon_frame([p(1.0, 1.0, 1.0); 3]).is_err());
+        assert!(beacon_frame([p(0.0, 0.0, 0.0), p(1.0, 0.0, 0.0), p(f64::NAN, 1.0, 0.0)]).is_err());
+    }
+
+    // ----- user transforms -------------------------------------------------------------------------
+
+    fn rows(m: Matrix4<f64>) -> [[f64; 4]; 4] {
+        std::array::from_fn(|r| std::array::from_fn(|c| m[(r, c)]))
+    }
+
+    #[test]
+    fn rigid_from_matrix_accepts_rigid_transforms_only() {
+        let iso = Isometry3::from_parts(
+            Translation3::new(1.0, -2.0, 3.5),
+            rotation_from_ypr_deg(30.0, -10.0, 75.0),
+        );
+        let got = rigid_from_matrix(rows(iso.to_homogeneous())).expect("rigid");
+        assert!(got.to_homogeneous().relative_eq(&iso.to_homogeneous(), 1e-12, 1e-12));
+        // Within the tolerance.
+        let mut m = rows(iso.to_homogeneous());
+        m[0][1] += 1e-8;
+        assert!(rigid_from_matrix(m).is_ok());
+
+        let scaled = rows(Matrix4::new_scaling(2.0));
+        assert!(rigid_from_matrix(scaled).expect_err("scale").to_string().contains("not orthonormal"));
+        let mut mirror = rows(Matrix4::identity());
+        mirror[2][2] = -1.0;
+        assert!(rigid_from_matrix(mirror).expect_err("mirror").to_string().contains("determinant -1"));
+        let mut last = rows(Matrix4::identity());
+        last[3][0] = 0.5;
+        assert_eq!(
+            rigid_from_matrix(last).expect_err("last row").to_string(),
+            "invalid reconstruct.filters.transform[3][0] = 0.5: the last row must be 0 0 0 1 (within 0.000001)"
+        );
+        let mut nan = rows(Matrix4::identity());
+        nan[1][2] = f64::NAN;
+        assert!(
+            rigid_from_matrix(nan)
+                .expect_err("NaN")
+                .to_string()
+                .starts_with("invalid reconstruct.filters.transform[1][2] = NaN")
+        );
+    }
+
+    #[test]
+    fn rigid_from_xyz_ypr_matches_the_geometry_pose() {
+        let v = XyzYpr { x_mm: 5.0, y_mm: -1.0, z_mm: 2.0, yaw_deg: 90.0, pitch_deg: 10.0, roll_deg: -20.0 };
+        let got = rigid_from_xyz_ypr([5.0, -1.0, 2.0], 90.0, 10.0, -20.0).expect("pose");
+        assert!(got.to_homogeneous().relative_eq(&v.to_pose().expect("pose").to_homogeneous(), 1e-12, 1e-12));
+        let e = rigid_from_xyz_ypr([0.0, 0.0, 0.0], 0.0, f64::NAN, 0.0).expect_err("NaN");
+        assert_eq!(e.to_string(), "invalid reconstruct.filters.transform.pitch_deg = NaN: must be finite");
+    }
+}

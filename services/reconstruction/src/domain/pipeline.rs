@@ -1,0 +1,590 @@
+//! The reconstruct stage: a point cloud (or a mesh) and options -> one depth map, coverage map,
+//! roughing map and statistics per face.
+//!
+//! Order, for a cloud: rigid user transform -> intensity window -> voxel decimation -> statistical
+//! outlier removal -> radius outlier removal -> per face: rotate into the face frame, region of
+//! interest (given, or the points' extent plus a margin), max-Z rasterisation, hole filling
+//! (enclosed holes only), coverage, robust Z range (after the filters, quantiles: one stray point
+//! does not set `z_max`), roughing map. A mesh skips the filters and is z-buffered per face.
+//!
+//! Options mirror the `reconstruct` object of a job request (DESIGN.md §7), extended with `roi`,
+//! `margin_mm`, `z_min_mm`/`z_max_mm`, `filters` and `roughing_factor`. Defaults: pixel 0.1 mm,
+//! one face `+Z`, IDW fill (power 2) of holes up to 2 mm, margin 2 pixels, statistical outlier
+//! removal with k = 12 and n·σ = 3 (when `filters` is absent; a given `filters` object runs
+//! exactly the filters it names), roughing lattice of 4 pixels.
+
+use std::time::Instant;
+
+use depthmill_geometry::{Face, HeightMap, PointCloud};
+use nalgebra::{Isometry3, Point3, Translation3, Vector3};
+use serde::{Deserialize, Serialize};
+
+use super::error::{ReconError, Result};
+use super::filters::{
+    FilterReport, intensity_window, radius_outlier_removal, rigid_from_matrix, statistical_outlier_removal,
+    voxel_decimate,
+};
+use super::io::Geometry;
+use super::mesh::Mesh;
+use super::mesh_raster::rasterize_mesh_with_stats;
+use super::raster::{
+    CoverageStats, FillMethod, FillParams, FillReport, Roi, auto_z_range, coverage, fill_holes, grid_for_roi,
+    rasterize_max,
+};
+use super::roughing::continuous_over;
+
+/// Default pixel size, mm.
+pub const DEFAULT_PIXEL_MM: f64 = 0.1;
+/// Default largest hole filled, mm.
+pub const DEFAULT_MAX_HOLE_MM: f64 = 2.0;
+/// Default roughing lattice, pixels.
+pub const DEFAULT_ROUGHING_FACTOR: u32 = 4;
+
+/// The `reconstruct` object of a job request.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ReconstructOptions {
+    #[serde(default)]
+    pub pixel_mm: Option<f64>,
+    #[serde(default)]
+    pub faces: Option<Vec<FaceOptions>>,
+    #[serde(default)]
+    pub fill: Option<FillOptions>,
+    #[serde(default)]
+    pub roi: Option<RoiOptions>,
+    /// Margin around the points' extent when `roi` is not given (default 2 pixels).
+    #[serde(default)]
+    pub margin_mm: Option<f64>,
+    #[serde(default)]
+    pub z_min_mm: Option<f64>,
+    #[serde(default)]
+    pub z_max_mm: Option<f64>,
+    #[serde(default)]
+    pub filters: Option<FilterOptions>,
+    #[serde(default)]
+    pub roughing_factor: Option<u32>,
+}
+
+/// A face: exactly one of `view`, `a_deg` and `normal`; `origin` only with `normal`.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FaceOptions {
+    /// `+Z`, `-Z`, `+X`, `-X`, `+Y` or `-Y`.
+    #[serde(default)]
+    pub view: Option<String>,
+    #[serde(default)]
+    pub a_deg: Option<f64>,
+    /// Outward normal in the part frame (any length but zero).
+    #[serde(default)]
+    pub normal: Option<[f64; 3]>,
+    /// A point of the face; the face frame puts it at the origin.
+    #[serde(default)]
+    pub origin: Option<[f64; 3]>,
+}
+
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FillOptions {
+    /// `idw` or `max`.
+    #[serde(default)]
+    pub method: Option<String>,
+    #[serde(default)]
+    pub max_hole_mm: Option<f64>,
+    #[serde(default)]
+    pub radius_mm: Option<f64>,
+    #[serde(default)]
+    pub power: Option<f64>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RoiOptions {
+    pub x_min_mm: f64,
+    pub y_min_mm: f64,
+    pub x_max_mm: f64,
+    pub y_max_mm: f64,
+}
+
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FilterOptions {
+    #[serde(default)]
+    pub intensity: Option<IntensityOptions>,
+    #[serde(default)]
+    pub voxel_mm: Option<f64>,
+    #[serde(default)]
+    pub statistical: Option<StatisticalOptions>,
+    #[serde(default)]
+    pub radius: Option<RadiusOptions>,
+    /// Rigid transform applied first: a row-major 4x4 matrix.
+    #[serde(default)]
+    pub transform: Option<[[f64; 4]; 4]>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct IntensityOptions {
+    pub min: f32,
+    pub max: f32,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StatisticalOptions {
+    pub k: usize,
+    pub n_sigma: f64,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RadiusOptions {
+    pub radius_mm: f64,
+    pub min_neighbours: usize,
+}
+
+impl FilterOptions {
+    /// What runs when a job names no filters.
+    pub fn defaults() -> Self {
+        FilterOptions { statistical: Some(StatisticalOptions { k: 12, n_sigma: 3.0 }), ..Default::default() }
+    }
+}
+
+/// A face resolved from [`FaceOptions`]: the view and the optional origin.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FaceFrame {
+    pub face: Face,
+    pub origin: Option<Point3<f64>>,
+}
+
+impl FaceFrame {
+    /// `face_from_part`: `p ↦ R·(p − origin)` with `R` the face's rotation ([`Face::view_from_part`]).
+    pub fn face_from_part(&self) -> Isometry3<f64> {
+        let rot = Isometry3::from_parts(Translation3::identity(), self.face.view_from_part());
+        match self.origin {
+            Some(o) => rot * Translation3::new(-o.x, -o.y, -o.z),
+            None => rot,
+        }
+    }
+}
+
+impl FaceOptions {
+    /// Resolves and checks the face; `field` names it in errors (`reconstruct.faces[0]`).
+    pub fn resolve(&self, field: &str) -> Result<FaceFrame> {
+        let face = match (&self.view, self.a_deg, self.normal) {
+            (Some(v), None, None) => {
+                let face: Face = v.parse().map_err(|_| {
+                    ReconError::param(format!("{field}.view"), v, "expected +Z, -Z, +X, -X, +Y or -Y")
+                })?;
+                if !Face::NAMED.contains(&face) {
+                    return Err(ReconError::param(
+                        format!("{field}.view"),
+                        v,
+                        "expected +Z, -Z, +X, -X, +Y or -Y (use a_deg or normal for other faces)",
+                    ));
+                }
+                face
+            }
+            (None, Some(a), None) if a.is_finite() => Face::A { angle_deg: a },
+            (None, Some(a), None) => {
+                return Err(ReconError::param(format!("{field}.a_deg"), a, "must be finite"));
+            }
+            (None, None, Some([x, y, z])) => Face::normal(Vector3::new(x, y, z)).ok_or_else(|| {
+                ReconError::param(
+                    format!("{field}.normal"),
+                    format!("[{x}, {y}, {z}]"),
+                    "must be finite and non-zero",
+                )
+            })?,
+            _ => return Err(ReconError::param(field, "{..}", "give exactly one of view, a_deg and normal")),
+        };
+        let origin = match self.origin {
+            None => None,
+            Some(_) if self.normal.is_none() => {
+                return Err(ReconError::param(format!("{field}.origin"), "[..]", "only allowed with normal"));
+            }
+            Some(o) if o.iter().all(|c| c.is_finite()) => Some(Point3::from(o)),
+            Some(o) => {
+                return Err(ReconError::param(format!("{field}.origin"), format!("{o:?}"), "must be finite"));
+            }
+        };
+        Ok(FaceFrame { face, origin })
+    }
+}
+
+/// Options after defaults and checks.
+#[derive(Debug, Clone)]
+pub struct Resolved {
+    pub pixel_mm: f64,
+    pub faces: Vec<FaceFrame>,
+    pub fill: FillParams,
+    pub roi: Option<Roi>,
+    pub margin_mm: f64,
+    pub z_range: (Option<f64>, Option<f64>),
+    pub filters: FilterOptions,
+    pub roughing_factor: u32,
+}
+
+impl ReconstructOptions {
+    /// Applies defaults and checks every value, naming the field of the job JSON at fault.
+    pub fn resolve(&self) -> Result<Resolved> {
+        let pixel_mm = self.pixel_mm.unwrap_or(DEFAULT_PIXEL_MM);
+        if !(pixel_mm.is_finite() && pixel_mm > 0.0 && pixel_mm <= 100.0) {
+            return Err(ReconError::param(
+                "reconstruct.pixel_mm",
+                pixel_mm,
+                "must be positive and at most 100 mm",
+            ));
+        }
+        let faces = match &self.faces {
+            None => vec![FaceFrame { face: Face::PosZ, origin: None }],
+            Some(f) if f.is_empty() || f.len() > 36 => {
+                return Err(ReconError::param("reconstruct.faces", f.len(), "needs 1 to 36 faces"));
+            }
+            Some(f) => f
+                .iter()
+                .enumerate()
+                .map(|(i, face)| face.resolve(&format!("reconstruct.faces[{i}]")))
+                .collect::<Result<_>>()?,
+        };
+        let fill_opts = self.fill.clone().unwrap_or_default();
+        let method = match fill_opts.method.as_deref() {
+            None | Some("idw") => {
+                let power = fill_opts.power.unwrap_or(2.0);
+                if !(power.is_finite() && (0.0..=16.0).contains(&power)) {
+                    return Err(ReconError::param("reconstruct.fill.power", power, "must be in [0, 16]"));
+                }
+                FillMethod::Idw { power }
+            }
+            Some("max") => FillMethod::Max,
+            Some(m) => return Err(ReconError::param("reconstruct.fill.method", m, "expected idw or max")),
+        };
+        let max_hole_mm = fill_opts.max_hole_mm.unwrap_or(DEFAULT_MAX_HOLE_MM);
+        if !(max_hole_mm.is_finite() && (0.0..=1000.0).contains(&max_hole_mm)) {
+            return Err(ReconError::param(
+                "reconstruct.fill.max_hole_mm",
+                max_hole_mm,
+                "must be in [0, 1000] mm",
+            ));
+        }
+        if let Some(r) = fill_opts.radius_mm
+            && !(r.is_finite() && r > 0.0 && r <= 1000.0)
+        {
+            return Err(ReconError::param("reconstruct.fill.radius_mm", r, "must be in (0, 1000] mm"));
+        }
+        let fill = FillParams { method, max_hole_mm, radius_mm: fill_opts.radius_mm };
+        let roi = self
+            .roi
+            .map(|r| {
+                let roi = Roi {
+                    x_min_mm: r.x_min_mm,
+                    y_min_mm: r.y_min_mm,
+                    x_max_mm: r.x_max_mm,
+                    y_max_mm: r.y_max_mm,
+                };
+                roi.validate().map(|()| roi)
+            })
+            .transpose()?;
+        let margin_mm = self.margin_mm.unwrap_or(2.0 * pixel_mm);
+        if !(margin_mm.is_finite() && (0.0..=1000.0).contains(&margin_mm)) {
+            return Err(ReconError::param("reconstruct.margin_mm", margin_mm, "must be in [0, 1000] mm"));
+        }
+        for (field, v) in [("reconstruct.z_min_mm", self.z_min_mm), ("reconstruct.z_max_mm", self.z_max_mm)] {
+            if let Some(v) = v
+                && !v.is_finite()
+            {
+                return Err(ReconError::param(field, v, "must be finite"));
+            }
+        }
+        if let (Some(lo), Some(hi)) = (self.z_min_mm, self.z_max_mm)
+            && lo >= hi
+        {
+            return Err(ReconError::param(
+                "reconstruct.z_max_mm",
+                hi,
+                format!("must exceed z_min_mm = {lo}"),
+            ));
+        }
+        let filters = self.filters.clone().unwrap_or_else(FilterOptions::defaults);
+        if let Some(s) = filters.statistical
+            && !(1..=256).contains(&s.k)
+        {
+            return Err(ReconError::param("reconstruct.filters.statistical.k", s.k, "must be in 1..=256"));
+        }
+        if let Some(r) = filters.radius
+            && r.min_neighbours > 10_000
+        {
+            return Err(ReconError::param(
+                "reconstruct.filters.radius.min_neighbours",
+                r.min_neighbours,
+                "must be at most 10000",
+            ));
+        }
+        let roughing_factor = self.roughing_factor.unwrap_or(DEFAULT_ROUGHING_FACTOR);
+        if !(1..=256).contains(&roughing_factor) {
+            return Err(ReconError::param(
+                "reconstruct.roughing_factor",
+                roughing_factor,
+                "must be in 1..=256",
+            ));
+        }
+        Ok(Resolved {
+            pixel_mm,
+            faces,
+            fill,
+            roi,
+            margin_mm,
+            z_range: (self.z_min_mm, self.z_max_mm),
+            filters,
+            roughing_factor,
+        })
+    }
+}
+
+/// One face's outputs.
+#[derive(Debug, Clone)]
+pub struct FaceOutput {
+    pub face: FaceFrame,
+    /// Max-Z map before filling (NaN = no data).
+    pub raw: HeightMap,
+    /// The depth map: `raw` with enclosed holes filled.
+    pub depth_map: HeightMap,
+    /// 1 measured, 0.5 filled, 0 hole, NaN outside the footprint; z range [0, 1].
+    pub coverage_map: HeightMap,
+    /// Continuous over-approximation of `depth_map` for roughing.
+    pub roughing_map: HeightMap,
+    pub stats: FaceStats,
+}
+
+/// Numbers of one face, as they go into the report.
+#[derive(Debug, Clone, Serialize)]
+pub struct FaceStats {
+    /// The face as text (`+Z`, `A=90`, `N=0,0.6,0.8`).
+    pub face: String,
+    pub width: u32,
+    pub height: u32,
+    pub pixel_mm: f64,
+    pub origin_x_mm: f64,
+    pub origin_y_mm: f64,
+    pub z_min_mm: f64,
+    pub z_max_mm: f64,
+    pub points_binned: usize,
+    pub points_outside: usize,
+    pub coverage: CoverageStats,
+    pub fill: FillReport,
+    pub seconds: f64,
+}
+
+/// What [`reconstruct`] produced.
+#[derive(Debug, Clone)]
+pub struct ReconstructOutput {
+    pub faces: Vec<FaceOutput>,
+    pub report: ReconstructReport,
+}
+
+/// The stage's report (stored as JSON).
+#[derive(Debug, Clone, Serialize)]
+pub struct ReconstructReport {
+    /// `point_cloud` or `mesh`.
+    pub input: &'static str,
+    pub points_in: usize,
+    pub points_kept: usize,
+    pub triangles: usize,
+    pub filters: Vec<FilterReport>,
+    pub faces: Vec<FaceStats>,
+    pub seconds: f64,
+}
+
+/// Progress callback: fraction in [0, 1] and a short message.
+pub type ProgressFn<'a> = &'a (dyn Fn(f64, &str) + Sync);
+/// Cancellation check.
+pub type CancelFn<'a> = &'a (dyn Fn() -> bool + Sync);
+
+fn check_cancel(cancelled: CancelFn<'_>) -> Result<()> {
+    if cancelled() { Err(ReconError::Cancelled) } else { Ok(()) }
+}
+
+/// Runs the clean-up filters of `opts` on `cloud`, in the documented order.
+pub fn clean(mut cloud: PointCloud, opts: &FilterOptions) -> Result<(PointCloud, Vec<FilterReport>)> {
+    let mut reports = Vec::new();
+    if let Some(m) = opts.transform {
+        let iso = rigid_from_matrix(m)?;
+        cloud.transform(&iso);
+    }
+    if let Some(w) = opts.intensity {
+        let (c, r) = intensity_window(cloud, w.min, w.max)?;
+        cloud = c;
+        reports.push(r);
+    }
+    if let Some(v) = opts.voxel_mm {
+        let (c, r) = voxel_decimate(cloud, v)?;
+        cloud = c;
+        reports.push(r);
+    }
+    if let Some(s) = opts.statistical {
+        let (c, r) = statistical_outlier_removal(cloud, s.k, s.n_sigma)?;
+        cloud = c;
+        reports.push(r);
+    }
+    if let Some(s) = opts.radius {
+        let (c, r) = radius_outlier_removal(cloud, s.radius_mm, s.min_neighbours)?;
+        cloud = c;
+        reports.push(r);
+    }
+    Ok((cloud, reports))
+}
+
+/// The whole stage on an already-read input.
+pub fn reconstruct(
+    input: Geometry,
+    opts: &ReconstructOptions,
+    progress: ProgressFn<'_>,
+    cancelled: CancelFn<'_>,
+) -> Result<ReconstructOutput> {
+    let started = Instant::now();
+    let r = opts.resolve()?;
+    let n_faces = r.faces.len() as f64;
+    let (points_in, triangles) = match &input {
+        Geometry::Cloud(c) => (c.len(), 0),
+        Geometry::Mesh(m) => (m.vertices.len(), m.triangles.len()),
+    };
+    let mut faces = Vec::with_capacity(r.faces.len());
+    let (kind, points_kept, filter_reports) = match input {
+        Geometry::Cloud(cloud) => {
+            progress(0.02, "cleaning the point cloud");
+            let (cloud, reports) = clean(cloud, &r.filters)?;
+            if cloud.is_empty() {
+                return Err(ReconError::Empty("no points left after the clean-up filters".into()));
+            }
+            check_cancel(cancelled)?;
+            let kept = cloud.len();
+            for (i, frame) in r.faces.iter().enumerate() {
+                progress(0.3 + 0.7 * i as f64 / n_faces, &format!("face {}: rasterising", frame.face));
+                let iso = frame.face_from_part();
+                let points: Vec<Point3<f64>> = cloud.points.iter().map(|p| iso * p).collect();
+                faces.push(cloud_face(&points, *frame, &r, i, cancelled)?);
+            }
+            ("point_cloud", kept, reports)
+        }
+        Geometry::Mesh(mesh) => {
+            for (i, frame) in r.faces.iter().enumerate() {
+                progress(
+                    0.05 + 0.95 * i as f64 / n_faces,
+                    &format!("face {}: z-buffering the mesh", frame.face),
+                );
+                let mut m = mesh.clone();
+                m.transform(&frame.face_from_part());
+                faces.push(mesh_face(&m, *frame, &r, i, cancelled)?);
+            }
+            ("mesh", points_in, Vec::new())
+        }
+    };
+    progress(1.0, "depth maps ready");
+    let report = ReconstructReport {
+        input: kind,
+        points_in,
+        points_kept,
+        triangles,
+        filters: filter_reports,
+        faces: faces.iter().map(|f| f.stats.clone()).collect(),
+        seconds: started.elapsed().as_secs_f64(),
+    };
+    Ok(ReconstructOutput { faces, report })
+}
+
+fn face_roi(r: &Resolved, points: &[Point3<f64>], index: usize) -> Result<Roi> {
+    match r.roi {
+        Some(roi) => Ok(roi),
+        None => Roi::around(points, r.margin_mm).ok_or_else(|| {
+            ReconError::Empty(format!(
+                "reconstruct.faces[{index}]: no finite points to take a region of interest from"
+            ))
+        }),
+    }
+}
+
+fn cloud_face(
+    points: &[Point3<f64>],
+    frame: FaceFrame,
+    r: &Resolved,
+    index: usize,
+    cancelled: CancelFn<'_>,
+) -> Result<FaceOutput> {
+    let started = Instant::now();
+    let roi = face_roi(r, points, index)?;
+    let mut grid = grid_for_roi(&roi, r.pixel_mm)?;
+    grid.face = frame.face;
+    let (raw, raster) = rasterize_max(points, &grid);
+    if raster.points_binned == 0 {
+        return Err(ReconError::Empty(format!(
+            "reconstruct.faces[{index}]: no point falls inside the region of interest"
+        )));
+    }
+    check_cancel(cancelled)?;
+    finish_face(raw, frame, r, raster.points_binned, raster.points_outside, started, cancelled)
+}
+
+fn mesh_face(
+    mesh: &Mesh,
+    frame: FaceFrame,
+    r: &Resolved,
+    index: usize,
+    cancelled: CancelFn<'_>,
+) -> Result<FaceOutput> {
+    let started = Instant::now();
+    let roi = face_roi(r, &mesh.vertices, index)?;
+    let mut grid = grid_for_roi(&roi, r.pixel_mm)?;
+    grid.face = frame.face;
+    let (raw, _) = rasterize_mesh_with_stats(mesh, &grid)?;
+    if raw.valid_count() == 0 {
+        return Err(ReconError::Empty(format!(
+            "reconstruct.faces[{index}]: the mesh covers no cell centre of the region of interest"
+        )));
+    }
+    check_cancel(cancelled)?;
+    finish_face(raw, frame, r, 0, 0, started, cancelled)
+}
+
+fn finish_face(
+    mut raw: HeightMap,
+    frame: FaceFrame,
+    r: &Resolved,
+    points_binned: usize,
+    points_outside: usize,
+    started: Instant,
+    cancelled: CancelFn<'_>,
+) -> Result<FaceOutput> {
+    // Robust range of the measured heights; the user's values win.
+    let (auto_lo, auto_hi) = auto_z_range(raw.data().iter().copied()).unwrap_or((0.0, 1.0));
+    let z_min = r.z_range.0.unwrap_or(auto_lo);
+    let mut z_max = r.z_range.1.unwrap_or(auto_hi);
+    if z_max <= z_min {
+        z_max = z_min + 1.0;
+    }
+    raw.set_z_range(z_min, z_max)?;
+    let (depth_map, fill) = if r.fill.max_hole_mm > 0.0 {
+        fill_holes(&raw, &r.fill)?
+    } else {
+        (raw.clone(), FillReport::default())
+    };
+    check_cancel(cancelled)?;
+    let (coverage_map, coverage) = coverage(&raw, &depth_map);
+    let mut roughing_map = continuous_over(&depth_map, r.roughing_factor)?;
+    roughing_map.set_z_range(z_min, z_max)?;
+    let m = depth_map.meta();
+    let stats = FaceStats {
+        face: frame.face.to_string(),
+        width: m.width,
+        height: m.height,
+        pixel_mm: m.pixel_mm,
+        origin_x_mm: m.origin_x_mm,
+        origin_y_mm: m.origin_y_mm,
+        z_min_mm: z_min,
+        z_max_mm: z_max,
+        points_binned,
+        points_outside,
+        coverage,
+        fill,
+        seconds: started.elapsed().as_secs_f64(),
+    };
+    Ok(FaceOutput { face: frame, raw, depth_map, coverage_map, roughing_map, stats })
+}
