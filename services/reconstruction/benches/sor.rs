@@ -4,7 +4,7 @@
 //!
 //! ```text
 //! cargo bench -p depthmill-reconstruction --bench sor -- [--points 1000000] [--k 20] [--n-sigma 2]
-//!     [--repeat 3] [--seed 7] [--python python3] [--script PATH] [--no-open3d]
+//!     [--repeat 3] [--seed 7] [--shape surface] [--python python3] [--script PATH] [--no-open3d]
 //! cargo bench -p depthmill-reconstruction --bench sor -- --cloud IN.npy --keep-out KEEP.npy
 //!     [--k 20] [--n-sigma 2] [--repeat 3]
 //! ```
@@ -16,6 +16,10 @@
 //! and runs `python3 scripts/compare_open3d.py --cloud .. --keep .. --k .. --n-sigma .. --repeat ..`,
 //! then prints both times and the ratio. Needs `pip install open3d numpy`; without them it prints
 //! how to install and skips the comparison.
+//!
+//! `--shape cube|line|duplicates` replaces the cloud for robustness runs (uniform in a 100 mm
+//! cube; a noisy 100 mm segment; the surface with every tenth point moved to one spot, where
+//! Open3D and depthmill differ by design, see the filters module docs).
 //!
 //! Second form (used by the script when run on its own): reads a cloud `.npy`, runs the filter,
 //! writes the keep mask and prints `sor_ms=<best ms>` and `kept=<count>`.
@@ -44,6 +48,7 @@ struct Args {
     open3d: bool,
     cloud: Option<PathBuf>,
     keep_out: Option<PathBuf>,
+    shape: String,
 }
 
 fn parse_args() -> BoxResult<Args> {
@@ -58,6 +63,7 @@ fn parse_args() -> BoxResult<Args> {
         open3d: true,
         cloud: None,
         keep_out: None,
+        shape: "surface".into(),
     };
     let mut it = std::env::args().skip(1);
     while let Some(flag) = it.next() {
@@ -73,6 +79,7 @@ fn parse_args() -> BoxResult<Args> {
             "--no-open3d" => a.open3d = false,
             "--cloud" => a.cloud = Some(value()?.into()),
             "--keep-out" => a.keep_out = Some(value()?.into()),
+            "--shape" => a.shape = value()?,
             "--bench" => {} // cargo bench passes this
             other => return Err(format!("unknown argument {other}").into()),
         }
@@ -118,6 +125,32 @@ fn scan_like_cloud(n: usize, seed: u64) -> PointCloud {
         ));
     }
     PointCloud::from_points(points)
+}
+
+/// Other clouds for robustness runs: `cube` (uniform in a 100 mm cube), `line` (a noisy
+/// 100 mm segment), `duplicates` (the surface with every tenth point moved to one spot).
+fn other_cloud(shape: &str, n: usize, seed: u64) -> BoxResult<PointCloud> {
+    let mut rng = StdRng::seed_from_u64(seed);
+    let points = match shape {
+        "cube" => (0..n)
+            .map(|_| Point3::new(rng.random::<f64>(), rng.random::<f64>(), rng.random::<f64>()) * 100.0)
+            .collect(),
+        "line" => (0..n)
+            .map(|_| {
+                let t = rng.random::<f64>() * 100.0;
+                Point3::new(t, 0.01 * gauss(&mut rng), 0.01 * gauss(&mut rng))
+            })
+            .collect(),
+        "duplicates" => {
+            let mut c = scan_like_cloud(n, seed);
+            for p in c.points.iter_mut().step_by(10) {
+                *p = Point3::new(20.0, 20.0, 0.0);
+            }
+            c.points
+        }
+        other => return Err(format!("unknown --shape {other} (surface, cube, line, duplicates)").into()),
+    };
+    Ok(PointCloud::from_points(points))
 }
 
 /// CPU time of this process so far (all threads, user + system), from `/proc/self/stat`
@@ -258,10 +291,18 @@ fn main() -> BoxResult<()> {
     }
 
     let t = Instant::now();
-    let cloud = scan_like_cloud(args.points, args.seed);
+    let cloud = match args.shape.as_str() {
+        "surface" => scan_like_cloud(args.points, args.seed),
+        other => other_cloud(other, args.points, args.seed)?,
+    };
     println!(
-        "cloud: {} points (wavy height field on a jittered 0.1 mm grid + 1 % outliers), built in {:.0} ms",
+        "cloud: {} points ({}), built in {:.0} ms",
         cloud.len(),
+        if args.shape == "surface" {
+            "wavy height field on a jittered 0.1 mm grid + 1 % outliers"
+        } else {
+            args.shape.as_str()
+        },
         t.elapsed().as_secs_f64() * 1e3
     );
     let (timing, keep) = time_sor(&cloud, args.k, args.n_sigma, args.repeat)?;

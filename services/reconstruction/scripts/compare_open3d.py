@@ -22,8 +22,10 @@ Two ways to run it:
    builds a scanned-like cloud with numpy (a wavy height field on a jittered 0.1 mm grid with
    10 um noise, plus 1 % outliers), runs the Rust bench binary on it in its file mode
    (`cargo bench --manifest-path M -p depthmill-reconstruction --bench sor -- --cloud IN.npy
-   --keep-out OUT.npy --k K --n-sigma S --repeat R`, which prints `sor_ms=`), then Open3D, and
-   prints both times, the speed-up and the mismatches.
+   --keep-out OUT.npy --k K --n-sigma S --repeat R`, which prints `sor_ms=` and `sor_cpu_ms=`),
+   then Open3D, and prints both wall times, the speed-up, both CPU times per run (all threads;
+   the fairer figure on a busy machine) and the mismatches. From a scratch crate, pass its
+   manifest with --manifest and set CARGO_TARGET_DIR as usual.
 
 Before timing, both modes check on a small random cloud that the installed Open3D follows the rule
 depthmill implements (brute force in numpy): the mean distance to the k nearest points counts the
@@ -131,7 +133,7 @@ def compare(points, ours, k, n_sigma, repeat):
     print(f"mismatches={len(diff)}")
     if len(diff):
         print(f"first mismatched indices: {diff[:20].tolist()}")
-    return ms, len(diff)
+    return ms, cpu_ms, len(diff)
 
 
 def main():
@@ -155,7 +157,7 @@ def main():
             ours = np.load(a.keep).astype(bool)
         else:
             ours = np.zeros(len(points), dtype=bool)
-        _, mismatches = compare(points, ours, a.k, a.n_sigma, a.repeat)
+        _, _, mismatches = compare(points, ours, a.k, a.n_sigma, a.repeat)
         sys.exit(1 if a.keep and mismatches else 0)
 
     points = scan_like_cloud(a.points, a.seed)
@@ -173,11 +175,15 @@ def main():
             print(out)
             sys.exit("no sor_ms= in the bench output")
         rust_ms = float(m.group(1))
+        c = re.search(r"^sor_cpu_ms=([0-9.]+)", out, re.M)
+        rust_cpu = float(c.group(1)) if c else float("nan")
         ours = np.load(keep_path).astype(bool)
     print(f"depthmill_ms={rust_ms:.3f}")
-    o3d_ms, mismatches = compare(points, ours, a.k, a.n_sigma, a.repeat)
+    print(f"depthmill_cpu_ms={rust_cpu:.0f}")
+    o3d_ms, o3d_cpu, mismatches = compare(points, ours, a.k, a.n_sigma, a.repeat)
     print(f"{len(points)} points, k={a.k}, n_sigma={a.n_sigma}: depthmill {rust_ms:.1f} ms, "
-          f"open3d {o3d_ms:.1f} ms, speed-up {o3d_ms / rust_ms:.2f}x (target >= 5x), mismatches {mismatches}")
+          f"open3d {o3d_ms:.1f} ms, speed-up {o3d_ms / rust_ms:.2f}x (target >= 5x); CPU per run "
+          f"{rust_cpu:.0f} vs {o3d_cpu:.0f} ms ({o3d_cpu / rust_cpu:.2f}x); mismatches {mismatches}")
     sys.exit(1 if mismatches else 0)
 
 

@@ -49,14 +49,16 @@
 //! - Radius search: the cell edge is at least the radius, so the block holds the whole ball and
 //!   the count is exact (it stops as soon as `min_neighbours + 1` points are found).
 //! - k nearest neighbours: the cell edge is chosen on a random sample so that a typical point's
-//!   cell holds about `0.4·k` points. For each query the block's squared distances are filtered
-//!   (branch-free) to those below the previous query's k-th distance² · 1.44 and below the
+//!   cell holds about `0.4·k` points on a surface (`0.55·k` on a curve, `0.33·k` in a volume;
+//!   the local dimension is estimated on the sample, and exact duplicates are left out of the
+//!   estimate). For each query the block's squared distances are filtered (branch-free, two
+//!   queries per pass) to those below the previous query's k-th distance² · 1.25 and below the
 //!   block margin² (the distance from the query to the block's boundary: every point outside the
 //!   block is at least that far), then sorted. When at least `k` survive they are provably the
-//!   `k` nearest of the whole cloud. Queries that fail (isolated points, sparse regions) or whose
-//!   block is overfull (heaps of duplicates) go to a bounding-volume hierarchy over the points in
-//!   3-D Morton order (leaves of at most 24 points, nearest-child-first search with box
-//!   pruning), built only when needed.
+//!   `k` nearest of the whole cloud. Queries that fail get a second chance on the 5 × 5 × 5
+//!   block; the rest (isolated points) and the queries of overfull blocks (heaps of duplicates)
+//!   go to a bounding-volume hierarchy over the points in 3-D Morton order (leaves of at most
+//!   24 points, nearest-child-first search with box pruning), built only when needed.
 //!
 //! Only distances are kept, never neighbour identities, so ties need no tie-break: the multiset of
 //! the `k` smallest distances is unique and the result is deterministic, bit for bit the same as
@@ -270,7 +272,7 @@ pub fn radius_outlier_mask(
         let base = grid.starts[cells.start];
         let mut ranges = Vec::with_capacity(9);
         for c in cells {
-            grid.block_ranges(c, &mut ranges);
+            grid.block_ranges(c, 1, &mut ranges);
             for s in grid.starts[c]..grid.starts[c + 1] {
                 let q = &grid.xyz[s];
                 let mut count = 0usize;
@@ -721,16 +723,18 @@ impl Grid {
         out
     }
 
-    /// The point ranges of cell `c`'s 3 × 3 × 3 block (at most 9 runs, one per column; its own
-    /// column first).
-    fn block_ranges(&self, c: usize, out: &mut Vec<Range<usize>>) {
+    /// The point ranges of the block of cells within `ring` cells of cell `c` (3 × 3 × 3 for
+    /// ring 1): one run per column, its own column first.
+    fn block_ranges(&self, c: usize, ring: u64, out: &mut Vec<Range<usize>>) {
         out.clear();
         let [cx, cy, cz] = self.coords(self.keys[c]);
-        let z0 = cz.saturating_sub(1);
-        let z1 = (cz + 1).min(self.dims[2] - 1);
-        for dx in [0i64, -1, 1] {
+        let z0 = cz.saturating_sub(ring);
+        let z1 = (cz + ring).min(self.dims[2] - 1);
+        let r = ring as i64;
+        let offsets = std::iter::once(0).chain((-r..=r).filter(|&o| o != 0));
+        for dx in offsets.clone() {
             let Some(x) = cx.checked_add_signed(dx).filter(|&x| x < self.dims[0]) else { continue };
-            for dy in [0i64, -1, 1] {
+            for dy in offsets.clone() {
                 let Some(y) = cy.checked_add_signed(dy).filter(|&y| y < self.dims[1]) else { continue };
                 let lo_key = cell_key([x, y, z0], self.zbits);
                 let hi_key = cell_key([x, y, z1], self.zbits);
@@ -747,16 +751,16 @@ impl Grid {
     }
 
     /// A lower bound on the distance from `q` (in the cell at `cell`) to any point outside the
-    /// cell's block (infinite towards sides where the grid ends).
-    fn block_margin(&self, cell: [u64; 3], q: &[f64; 3]) -> f64 {
+    /// block of cells within `ring` of it (infinite towards sides where the grid ends).
+    fn block_margin(&self, cell: [u64; 3], ring: u64, q: &[f64; 3]) -> f64 {
         let mut m = f64::INFINITY;
         for a in 0..3 {
-            if cell[a] > 0 {
-                let lo = self.origin[a] + (cell[a] - 1) as f64 * self.h;
+            if cell[a] >= ring {
+                let lo = self.origin[a] + (cell[a] - ring) as f64 * self.h;
                 m = m.min(q[a] - lo);
             }
-            if cell[a] + 1 < self.dims[a] {
-                let hi = self.origin[a] + (cell[a] + 2) as f64 * self.h;
+            if cell[a] + ring < self.dims[a] {
+                let hi = self.origin[a] + (cell[a] + ring + 1) as f64 * self.h;
                 m = m.min(hi - q[a]);
             }
         }
@@ -1104,10 +1108,20 @@ fn splitmix(mut x: u64) -> u64 {
     x ^ (x >> 31)
 }
 
-/// A cell edge for which a typical point's cell holds about `target` points (itself included),
-/// estimated on a random sample (pairs of sample points sharing a cell, scaled by the inverse
-/// sampling fraction squared) and assuming points on surfaces (population ∝ edge²).
-fn knn_cell_size(points: &[Point3<f64>], bbox: &UsableBox, target: f64) -> f64 {
+/// Points per cell aimed at for `k` neighbours on data of local dimension `d` (1 to 3): the
+/// k-th neighbour then lies at about 0.9 cell edges, inside the block's margin (at least one
+/// edge) for nearly every query, while the block holds few candidates (~4k on a surface).
+fn knn_target(k: usize, d: f64) -> f64 {
+    let per_k = if d <= 2.0 { 0.55 - 0.15 * (d - 1.0) } else { 0.4 - 0.07 * (d - 2.0) };
+    (k as f64 * per_k).max(2.0)
+}
+
+/// A cell edge for which a typical point's cell holds about [`knn_target`] points (itself
+/// included), estimated on a random sample: pairs of sample points sharing a cell, scaled by the
+/// inverse sampling fraction squared, not counting pairs of identical points (a heap of exact
+/// duplicates would otherwise shrink the cells for everyone). The local dimension (population ∝
+/// edge^d) is estimated from successive trials, starting from surfaces (d = 2).
+fn knn_cell_size(points: &[Point3<f64>], bbox: &UsableBox, k: usize) -> f64 {
     let n = points.len();
     // Distinct indices: all of them for small clouds, else uniformly random ones (a stratified or
     // strided sample would under-count pairs in scan-ordered clouds).
@@ -1126,6 +1140,7 @@ fn knn_cell_size(points: &[Point3<f64>], bbox: &UsableBox, target: f64) -> f64 {
     if s < 2 {
         return h_min.max(1.0);
     }
+    let mut d = 2.0f64;
     // Start: the area of the largest face of the central 98 % box.
     let mut ext = [0.0f64; 3];
     let mut coord = Vec::with_capacity(s);
@@ -1136,6 +1151,7 @@ fn knn_cell_size(points: &[Point3<f64>], bbox: &UsableBox, target: f64) -> f64 {
         *e = coord[s - 1 - s / 100] - coord[s / 100];
     }
     ext.sort_unstable_by(|a, b| b.total_cmp(a));
+    let target = knn_target(k, d);
     let mut h = if ext[1] > 0.0 {
         (target * ext[0] * ext[1] / m).sqrt()
     } else if ext[0] > 0.0 {
@@ -1147,30 +1163,49 @@ fn knn_cell_size(points: &[Point3<f64>], bbox: &UsableBox, target: f64) -> f64 {
         h = 1.0;
     }
     h = h.max(h_min);
-    let mut keys = Vec::with_capacity(s);
+    let mut keyed: Vec<(u64, [u64; 3])> = Vec::with_capacity(s);
+    let mut previous: Option<(f64, f64)> = None; // (edge, population − 1)
     for _ in 0..8 {
         let inv_h = 1.0 / h;
         let dims = grid_dims(bbox, inv_h);
-        keys.clear();
         let zbits = z_bits(dims[2]);
-        keys.extend(sample.iter().map(|p| cell_key(cell_of(p, &bbox.lo, inv_h, &dims), zbits)));
-        keys.sort_unstable();
+        keyed.clear();
+        keyed.extend(
+            sample.iter().map(|p| (cell_key(cell_of(p, &bbox.lo, inv_h, &dims), zbits), p.map(f64::to_bits))),
+        );
+        keyed.sort_unstable();
+        // Pairs in a cell minus pairs of identical points.
         let mut pairs = 0.0f64;
-        let mut run = 1.0f64;
+        let (mut run, mut same) = (1.0f64, 1.0f64);
         for j in 1..=s {
-            if j < s && keys[j] == keys[j - 1] {
+            let same_cell = j < s && keyed[j].0 == keyed[j - 1].0;
+            if same_cell && keyed[j].1 == keyed[j - 1].1 {
+                same += 1.0;
+            } else {
+                pairs -= same * (same - 1.0);
+                same = 1.0;
+            }
+            if same_cell {
                 run += 1.0;
             } else {
                 pairs += run * (run - 1.0);
                 run = 1.0;
             }
         }
-        let population = 1.0 + pairs * (m - 1.0) / (s as f64 * (s as f64 - 1.0)).max(1.0);
-        let ratio = if population > 1.0 { (target - 1.0) / (population - 1.0) } else { 16.0 };
+        let excess = pairs * (m - 1.0) / (s as f64 * (s as f64 - 1.0)).max(1.0);
+        if let Some((h0, e0)) = previous
+            && e0 > 0.0
+            && excess > 0.0
+            && (h / h0 - 1.0).abs() > 0.05
+        {
+            d = ((excess / e0).ln() / (h / h0).ln()).clamp(1.0, 3.0);
+        }
+        previous = Some((h, excess));
+        let ratio = if excess > 0.0 { (knn_target(k, d) - 1.0) / excess } else { 64.0 };
         if (0.85..=1.18).contains(&ratio) || (ratio < 1.0 && h <= h_min) {
             break;
         }
-        h = (h * ratio.sqrt().clamp(0.25, 4.0)).max(h_min);
+        h = (h * ratio.powf(1.0 / d).clamp(0.25, 4.0)).max(h_min);
     }
     h
 }
@@ -1183,16 +1218,19 @@ fn knn_means(points: &[Point3<f64>], k: usize) -> Vec<f64> {
 /// How the k-NN queries were answered.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 struct KnnStats {
-    /// Answered from the grid block.
+    /// Answered from the grid block (3 × 3 × 3 or 5 × 5 × 5).
     grid: usize,
+    /// Of those, answered from the 5 × 5 × 5 block.
+    second_chance: usize,
     /// Answered by the hierarchy (isolated points, sparse regions, overfull blocks).
     tree: usize,
     /// Cells whose block was overfull.
     overfull_cells: usize,
 }
 
-/// Threshold factor on the previous query's k-th squared distance (1.2 in distance).
-const HINT_FACTOR: f64 = 1.44;
+/// Threshold factor on the previous query's k-th squared distance (about 1.12 in distance): on
+/// a scanned surface ~24 points pass for k = 20 and 1 % of the queries need a second pass.
+const HINT_FACTOR: f64 = 1.25;
 
 /// One pass over the block's points for `N` queries at once: for query `i`, writes the bit
 /// patterns of the squared distances (which order like the non-negative values) that are at most
@@ -1278,11 +1316,7 @@ fn knn_means_with_stats(points: &[Point3<f64>], k: usize) -> (Vec<f64>, KnnStats
         return (means, stats);
     };
     let k = k.min(bbox.count);
-    // About 0.4·k points per cell: for points on a surface the k-th neighbour then lies at about
-    // 0.9 cell edges, inside the block's margin (at least one edge) for nearly every query, while
-    // the block holds ~4k candidates.
-    let target = (k as f64 * 0.4).max(2.0);
-    let h = knn_cell_size(points, &bbox, target);
+    let h = knn_cell_size(points, &bbox, k);
     let grid = Grid::build(points, &bbox, h, true);
     // A block with more candidates than this goes to the hierarchy (heaps of duplicates).
     let cap = 48 * k + 2048;
@@ -1290,68 +1324,104 @@ fn knn_means_with_stats(points: &[Point3<f64>], k: usize) -> (Vec<f64>, KnnStats
     let mut sorted = vec![f64::NAN; grid.xyz.len()];
     let chunks = grid.chunks();
     let slices = split_by_chunks(&mut sorted, &grid, &chunks);
-    let per_chunk: Vec<(Vec<usize>, usize)> = chunks
+    let per_chunk: Vec<(Vec<usize>, usize, usize)> = chunks
         .into_par_iter()
         .zip(slices)
         .map(|(cells, out)| {
             let base = grid.starts[cells.start];
             let mut fallback = Vec::new();
             let mut overfull = 0usize;
+            let mut second_chance = 0usize;
             let mut ranges = Vec::with_capacity(9);
             let mut buf = vec![0u64; 2 * (cap + 1)];
             let mut hint2 = f64::INFINITY;
+            let mut failed = Vec::new();
             for c in cells {
                 let own = grid.starts[c]..grid.starts[c + 1];
-                grid.block_ranges(c, &mut ranges);
+                grid.block_ranges(c, 1, &mut ranges);
                 let total: usize = ranges.iter().map(|r| r.len()).sum();
                 if total > cap {
                     overfull += 1;
-                }
-                if total > cap || total < k {
                     fallback.extend(own);
                     continue;
                 }
                 let cell = grid.coords(grid.keys[c]);
-                let margin2 = |q: &[f64; 3]| {
-                    let m = grid.block_margin(cell, q);
-                    if m > 0.0 { m * m } else { 0.0 }
-                };
-                let mut s = own.start;
-                // Two queries per pass over the block while there are two with a margin.
-                while s + 1 < own.end {
-                    let (qa, qb) = (&grid.xyz[s], &grid.xyz[s + 1]);
-                    let (ma, mb) = (margin2(qa), margin2(qb));
-                    if ma == 0.0 || mb == 0.0 {
-                        break;
+                failed.clear();
+                if total < k {
+                    failed.extend(own);
+                } else {
+                    let margin2 = |q: &[f64; 3]| {
+                        let m = grid.block_margin(cell, 1, q);
+                        if m > 0.0 { m * m } else { 0.0 }
+                    };
+                    let mut s = own.start;
+                    // Two queries per pass over the block while there are two with a margin.
+                    while s + 1 < own.end {
+                        let (qa, qb) = (&grid.xyz[s], &grid.xyz[s + 1]);
+                        let (ma, mb) = (margin2(qa), margin2(qb));
+                        if ma == 0.0 || mb == 0.0 {
+                            break;
+                        }
+                        let (ta, tb) = (ma.min(hint2 * HINT_FACTOR), mb.min(hint2 * HINT_FACTOR));
+                        let (ba, bb) = buf.split_at_mut(cap + 1);
+                        let [ca, cb] = block_filter(&grid.xyz, &ranges, [qa, qb], [ta, tb], [ba, bb]);
+                        for (j, q, m, t, cnt, b) in
+                            [(s, qa, ma, ta, ca, &mut *ba), (s + 1, qb, mb, tb, cb, &mut *bb)]
+                        {
+                            let found = if cnt >= k {
+                                Some(finish_knn(b, cnt, k))
+                            } else if t < m {
+                                block_knn(&grid.xyz, &ranges, q, k, m, m, b)
+                            } else {
+                                None
+                            };
+                            match found {
+                                Some((kth2, mean)) => {
+                                    hint2 = kth2;
+                                    out[j - base] = mean;
+                                }
+                                None => failed.push(j),
+                            }
+                        }
+                        s += 2;
                     }
-                    let (ta, tb) = (ma.min(hint2 * HINT_FACTOR), mb.min(hint2 * HINT_FACTOR));
-                    let (ba, bb) = buf.split_at_mut(cap + 1);
-                    let [ca, cb] = block_filter(&grid.xyz, &ranges, [qa, qb], [ta, tb], [ba, bb]);
-                    for (j, q, m, t, cnt, b) in
-                        [(s, qa, ma, ta, ca, &mut *ba), (s + 1, qb, mb, tb, cb, &mut *bb)]
-                    {
-                        let found = if cnt >= k {
-                            Some(finish_knn(b, cnt, k))
-                        } else if t < m {
-                            block_knn(&grid.xyz, &ranges, q, k, m, m, b)
+                    for s in s..own.end {
+                        let q = &grid.xyz[s];
+                        let m = margin2(q);
+                        let found = if m > 0.0 {
+                            block_knn(&grid.xyz, &ranges, q, k, m, hint2, &mut buf[..=cap])
                         } else {
                             None
                         };
                         match found {
                             Some((kth2, mean)) => {
                                 hint2 = kth2;
-                                out[j - base] = mean;
+                                out[s - base] = mean;
                             }
-                            None => fallback.push(j),
+                            None => failed.push(s),
                         }
                     }
-                    s += 2;
                 }
-                for s in s..own.end {
+                // A second chance on the 5 × 5 × 5 block (a cell edge chosen a little too small,
+                // a sparse spot), unless even the 3 × 3 × 3 block was nearly empty (isolated
+                // points go straight to the hierarchy).
+                if failed.is_empty() {
+                    continue;
+                }
+                if 4 * total < k {
+                    fallback.extend_from_slice(&failed);
+                    continue;
+                }
+                grid.block_ranges(c, 2, &mut ranges);
+                if ranges.iter().map(|r| r.len()).sum::<usize>() > cap {
+                    fallback.extend_from_slice(&failed);
+                    continue;
+                }
+                for &s in &failed {
                     let q = &grid.xyz[s];
-                    let m = margin2(q);
+                    let m = grid.block_margin(cell, 2, q);
                     let found = if m > 0.0 {
-                        block_knn(&grid.xyz, &ranges, q, k, m, hint2, &mut buf[..=cap])
+                        block_knn(&grid.xyz, &ranges, q, k, m * m, m * m, &mut buf[..=cap])
                     } else {
                         None
                     };
@@ -1359,15 +1429,17 @@ fn knn_means_with_stats(points: &[Point3<f64>], k: usize) -> (Vec<f64>, KnnStats
                         Some((kth2, mean)) => {
                             hint2 = kth2;
                             out[s - base] = mean;
+                            second_chance += 1;
                         }
                         None => fallback.push(s),
                     }
                 }
             }
-            (fallback, overfull)
+            (fallback, overfull, second_chance)
         })
         .collect();
     stats.overfull_cells = per_chunk.iter().map(|f| f.1).sum();
+    stats.second_chance = per_chunk.iter().map(|f| f.2).sum();
     // In grid order, so consecutive queries are near each other and share cache.
     let fallback: Vec<usize> = per_chunk.into_iter().flat_map(|f| f.0).collect();
     stats.tree = fallback.len();
@@ -2080,7 +2152,7 @@ mod tests {
         far.push(p(-3e8, 0.0, 7e8));
         clouds.push(("huge extent", far));
 
-        let mut tree_used = false;
+        let (mut tree_used, mut second_chance_used) = (false, false);
         let ks = [1, 2, 5, 20, 70];
         for (name, pts) in &clouds {
             let slow = brute_means_multi(pts, &ks);
@@ -2089,12 +2161,13 @@ mod tests {
                 assert!(same_means(&fast, slow), "{name}, k = {k}");
                 assert_eq!(stats.grid + stats.tree, pts.iter().filter(|q| usable(q)).count(), "{name}");
                 tree_used |= stats.tree > 0;
+                second_chance_used |= stats.second_chance > 0;
                 if *name == "surface" && k == 20 {
                     assert!(stats.tree * 10 < stats.grid, "{name}: {stats:?}");
                 }
             }
         }
-        assert!(tree_used);
+        assert!(tree_used && second_chance_used);
     }
 
     #[test]
@@ -2268,6 +2341,29 @@ mod tests {
         expected.sort_unstable();
         radix_sort_bits(&mut items, 32, 12);
         assert_eq!(items, expected);
+    }
+
+    #[test]
+    fn cell_keys_round_trip_and_seek_finds_lower_bounds() {
+        let mut rng = StdRng::seed_from_u64(4);
+        let pts = uniform(&mut rng, 3000, 20.0);
+        let bbox = UsableBox::of(&pts).expect("box");
+        let grid = Grid::build(&pts, &bbox, 0.7, false);
+        for &key in &grid.keys {
+            let c = grid.coords(key);
+            assert!(c.iter().zip(&grid.dims).all(|(c, d)| c < d));
+            assert_eq!(cell_key(c, grid.zbits), key);
+        }
+        assert!(grid.keys.windows(2).all(|w| w[0] < w[1]));
+        let max = grid.keys.last().copied().unwrap_or(0) + 3;
+        for _ in 0..2000 {
+            let target = rng.random_range(0..max);
+            let from = rng.random_range(0..=grid.keys.len());
+            assert_eq!(grid.seek(from, target), grid.keys.partition_point(|&k| k < target));
+        }
+        for v in [0, 1, 0xF_FFFF, 0xA_BCDE] {
+            assert_eq!(compact2(spread2(v)), v);
+        }
     }
 
     proptest! {
