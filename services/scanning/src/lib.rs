@@ -9,6 +9,7 @@
 //! - [`serve`]: the gRPC server on a bound listener.
 //! - `grpc`: the tonic adapter (the only module that knows proto types).
 
+pub mod devices;
 pub mod domain;
 mod grpc;
 
