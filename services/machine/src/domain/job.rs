@@ -27,6 +27,9 @@ use super::sim::{
     simulate,
 };
 
+/// A box as (min, max) corners.
+type Extent = ([f64; 3], [f64; 3]);
+
 /// Default Z-map cell, mm.
 pub const DEFAULT_CELL_MM: f64 = 0.1;
 
@@ -210,7 +213,7 @@ pub fn tools_for(
 fn stock_spec(
     opts: &ExecuteOptions,
     target: Option<&HeightMap>,
-    extent: Option<([f64; 3], [f64; 3])>,
+    extent: Option<Extent>,
     max_radius: f64,
     cell: f64,
 ) -> Result<StockSpec, ExecuteError> {
@@ -256,10 +259,10 @@ fn feed_extent(
     program: impl BufRead,
     cfg: InterpConfig,
     profile: &MachineProfile,
-) -> Result<Option<([f64; 3], [f64; 3])>, ExecuteError> {
+) -> Result<Option<Extent>, ExecuteError> {
     let w = profile.work_offset;
     let mut tlo = 0.0;
-    let mut ext: Option<([f64; 3], [f64; 3])> = None;
+    let mut ext: Option<Extent> = None;
     run(program, cfg, |c| match c {
         Canon::ToolLengthOffset { mm, .. } => tlo = mm,
         Canon::Feed { to, .. } | Canon::Arc { end: to, .. } => {
@@ -294,7 +297,7 @@ pub fn execute(
     };
     let cell =
         opts.cell_mm.unwrap_or_else(|| target.map_or(DEFAULT_CELL_MM, |m| m.pixel_mm().min(DEFAULT_CELL_MM)));
-    if !(cell.is_finite() && cell >= 0.005 && cell <= 10.0) {
+    if !(cell.is_finite() && (0.005..=10.0).contains(&cell)) {
         return Err(invalid("execute.cell_mm", cell, "must be in [0.005, 10] mm"));
     }
     let header = header_tools(open()?);
