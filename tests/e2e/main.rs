@@ -3,6 +3,7 @@
 mod api;
 mod deploy;
 mod jobs;
+mod machine;
 mod plan;
 mod reconstruct;
 mod recovery;

@@ -261,6 +261,11 @@ impl pb::machine_service_server::MachineService for MachineServiceImpl {
                 Ok(Ok(v)) => v,
                 Ok(Err(status)) => {
                     tracing::info!(error = %status.message(), "execution failed");
+                    let status = if shared.estop.load(Ordering::SeqCst) {
+                        ErrorCode::Cancelled.status(format!("emergency stop: {}", status.message()))
+                    } else {
+                        status
+                    };
                     let _ = tx.send(Err(status)).await;
                     return;
                 }
