@@ -306,7 +306,36 @@ fn load_average() -> String {
         .unwrap_or_else(|_| "unknown".into())
 }
 
-fn cloudcompare(cloud: &[Point3<f64>], ours_scan: Duration, ours_shuffled: Duration) -> BenchResult<()> {
+/// CloudCompare's rasterisation time on `points` (best of 3 load + rasterize runs minus best of 3
+/// load-only runs) and the grid size it logged.
+fn cc_raster_time(
+    cc: &Path,
+    dir: &Path,
+    points: &[Point3<f64>],
+    name: &str,
+) -> BenchResult<(Duration, String)> {
+    let t = Instant::now();
+    write_ply(&dir.join(name), points)?;
+    println!("  {name}: PLY written in {:.0} ms; load average {}", ms(t.elapsed()), load_average());
+    let (load, _) = cc_best(cc, dir, &["-O", name], 3)?;
+    let (full, log) = cc_best(cc, dir, &["-O", name, "-RASTERIZE", "-GRID_STEP", "0.1", "-PROJ", "MAX"], 3)?;
+    let raster = full.saturating_sub(load);
+    println!("    load only:           {:>9.1} ms (best of 3, wall time incl. start-up)", ms(load));
+    println!("    load + rasterize:    {:>9.1} ms (best of 3; {})", ms(full), grid_line(&log));
+    println!(
+        "    rasterize (diff):    {:>9.1} ms = {:.1} M points/s",
+        ms(raster),
+        points.len() as f64 / raster.as_secs_f64() / 1e6
+    );
+    Ok((raster, grid_line(&log)))
+}
+
+fn cloudcompare(
+    cloud: &[Point3<f64>],
+    shuffled: &[Point3<f64>],
+    ours_scan: Duration,
+    ours_shuffled: Duration,
+) -> BenchResult<()> {
     if std::env::var_os("RASTER_BENCH_NO_CC").is_some() {
         println!("CloudCompare reference skipped (RASTER_BENCH_NO_CC is set)");
         return Ok(());
@@ -319,30 +348,18 @@ fn cloudcompare(cloud: &[Point3<f64>], ours_scan: Duration, ours_shuffled: Durat
         return Ok(());
     };
     let dir = tempfile::tempdir()?;
-    let t = Instant::now();
-    write_ply(&dir.path().join("cloud.ply"), cloud)?;
+    println!("CloudCompare reference ({}), same clouds, -RASTERIZE -GRID_STEP 0.1 -PROJ MAX:", cc.display());
+    let (cc_scan, _) = cc_raster_time(&cc, dir.path(), cloud, "cloud.ply")?;
     println!(
-        "CloudCompare reference ({}): PLY written in {:.0} ms; load average {}",
-        cc.display(),
-        ms(t.elapsed()),
-        load_average()
+        "    ratio CloudCompare / rasterize_max (scan order): {:.1}x",
+        cc_scan.as_secs_f64() / ours_scan.as_secs_f64()
     );
-    let (load, _) = cc_best(&cc, dir.path(), &["-O", "cloud.ply"], 3)?;
-    let (full, log) =
-        cc_best(&cc, dir.path(), &["-O", "cloud.ply", "-RASTERIZE", "-GRID_STEP", "0.1", "-PROJ", "MAX"], 3)?;
-    let raster = full.saturating_sub(load);
-    println!("  load only:           {:>9.1} ms (best of 3, wall time incl. start-up)", ms(load));
-    println!("  load + rasterize:    {:>9.1} ms (best of 3; {})", ms(full), grid_line(&log));
+    let (cc_shuf, _) = cc_raster_time(&cc, dir.path(), shuffled, "shuffled.ply")?;
     println!(
-        "  rasterize (diff):    {:>9.1} ms = {:.1} M points/s",
-        ms(raster),
-        cloud.len() as f64 / raster.as_secs_f64() / 1e6
+        "    ratio CloudCompare / rasterize_max (shuffled):   {:.1}x",
+        cc_shuf.as_secs_f64() / ours_shuffled.as_secs_f64()
     );
-    println!(
-        "  ratio CloudCompare / rasterize_max: {:.1}x (scan order), {:.1}x (shuffled)",
-        raster.as_secs_f64() / ours_scan.as_secs_f64(),
-        raster.as_secs_f64() / ours_shuffled.as_secs_f64()
-    );
+    std::fs::remove_file(dir.path().join("shuffled.ply"))?;
     check_against_cc(&cc, dir.path(), cloud)
 }
 
@@ -364,9 +381,9 @@ fn main() -> BenchResult<()> {
     println!("grid: {} x {} px of {} mm", grid.width, grid.height, grid.pixel_mm);
     let n = cloud.len() as f64;
 
-    let (scan_t, (raw, stats)) = best_of(5, || rasterize_max(&cloud, &grid));
+    let (scan_t, (raw, stats)) = best_of(10, || rasterize_max(&cloud, &grid));
     println!(
-        "rasterize_max, scan order: {:>8.1} ms = {:>6.1} M points/s (best of 5; {} binned, {} cells with data)",
+        "rasterize_max, scan order: {:>8.1} ms = {:>6.1} M points/s (best of 10; {} binned, {} cells with data)",
         ms(scan_t),
         n / scan_t.as_secs_f64() / 1e6,
         stats.points_binned,
@@ -374,10 +391,9 @@ fn main() -> BenchResult<()> {
     );
     let mut shuffled = cloud.clone();
     shuffled.shuffle(&mut StdRng::seed_from_u64(1));
-    let (shuf_t, (raw_s, _)) = best_of(5, || rasterize_max(&shuffled, &grid));
-    drop(shuffled);
+    let (shuf_t, (raw_s, _)) = best_of(10, || rasterize_max(&shuffled, &grid));
     println!(
-        "rasterize_max, shuffled:   {:>8.1} ms = {:>6.1} M points/s (best of 5; same map: {})",
+        "rasterize_max, shuffled:   {:>8.1} ms = {:>6.1} M points/s (best of 10; same map: {})",
         ms(shuf_t),
         n / shuf_t.as_secs_f64() / 1e6,
         raw_s.bitwise_eq(&raw)
@@ -397,18 +413,21 @@ fn main() -> BenchResult<()> {
         raw.set_z_range(lo, hi)?;
     }
 
+    let (mut idw_t, mut cov_t) = (Duration::ZERO, Duration::ZERO);
     for (name, method) in [("IDW p=2", FillMethod::Idw { power: 2.0 }), ("Max", FillMethod::Max)] {
         let params = FillParams { method, max_hole_mm: 2.0, radius_mm: None };
         let radius = params.radius_for(PIXEL_MM)?;
         let (fill_t, filled) = best_of(3, || fill_holes(&raw, &params));
         let (filled, report) = filled?;
         println!(
-            "fill_holes {name:<8} max_hole 2 mm, radius {radius:.3} mm: {:>8.1} ms (best of 3; {report:?})",
+            "fill_holes {name:<8} max_hole 2 mm, radius per cell up to {radius:.3} mm: {:>8.1} ms (best of 3; {report:?})",
             ms(fill_t)
         );
         report_fill_error(&raw, &filled);
         if let FillMethod::Idw { .. } = method {
-            let (cov_t, (_, cov)) = best_of(3, || coverage(&raw, &filled));
+            idw_t = fill_t;
+            let (t, (_, cov)) = best_of(3, || coverage(&raw, &filled));
+            cov_t = t;
             println!("coverage:                  {:>8.1} ms (best of 3)", ms(cov_t));
             println!(
                 "  cells {}, measured {}, filled {}, footprint {}, covered {:.2} %, holes {} (largest {:.2} mm²), still empty {} in {} holes",
@@ -430,7 +449,11 @@ fn main() -> BenchResult<()> {
             }
         }
     }
-    cloudcompare(&cloud, scan_t, shuf_t)
+    println!(
+        "rasterize (scan order) + fill_holes (IDW) + coverage: {:.1} ms",
+        ms(scan_t) + ms(idw_t) + ms(cov_t)
+    );
+    cloudcompare(&cloud, &shuffled, scan_t, shuf_t)
 }
 
 /// How far the filled cells are from the true surface (the generator's height at the cell centre).

@@ -29,7 +29,7 @@ use super::mesh::Mesh;
 use super::mesh_raster::rasterize_mesh_with_stats;
 use super::raster::{
     CoverageStats, FillMethod, FillParams, FillReport, Roi, auto_z_range, coverage, fill_holes, grid_for_roi,
-    rasterize_max,
+    try_rasterize_max,
 };
 use super::roughing::continuous_over;
 
@@ -513,7 +513,7 @@ fn cloud_face(
     let roi = face_roi(r, points, index)?;
     let mut grid = grid_for_roi(&roi, r.pixel_mm)?;
     grid.face = frame.face;
-    let (raw, raster) = rasterize_max(points, &grid);
+    let (raw, raster) = try_rasterize_max(points, &grid)?;
     if raster.points_binned == 0 {
         return Err(ReconError::Empty(format!(
             "reconstruct.faces[{index}]: no point falls inside the region of interest"

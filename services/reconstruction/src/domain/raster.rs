@@ -297,40 +297,41 @@ pub struct RasterStats {
     pub non_finite: usize,
 }
 
+/// `1.5·2^52`: adding and subtracting it rounds an f64 below 2^51 in magnitude to the nearest
+/// integer, and the low 32 bits of the sum are that integer.
+const ROUND_MAGIC: f64 = 6_755_399_441_055_744.0;
+
 /// Binning along one axis: edges `origin + c·pixel`, `n` cells.
 #[derive(Debug, Clone, Copy)]
 struct AxisBins {
     origin: f64,
     pixel: f64,
     inv: f64,
-    n: i32,
     n_f: f64,
 }
 
 impl AxisBins {
     fn new(origin: f64, pixel: f64, n: u32) -> Self {
-        // A valid grid has at most MAX_CELLS = 2^28 cells, so n fits an i32.
-        let n = i32::try_from(n).unwrap_or(i32::MAX);
-        AxisBins { origin, pixel, inv: 1.0 / pixel, n, n_f: f64::from(n) }
+        AxisBins { origin, pixel, inv: 1.0 / pixel, n_f: f64::from(n) }
     }
 
-    /// The `c` with `origin + c·pixel <= v < origin + (c+1)·pixel` for `v` inside the grid or
-    /// within a cell of it; some value outside `0..n` for anything else (NaN included). Branch
-    /// free: the clamped quotient, truncated, is off by at most one cell, and the two exact edge
-    /// tests correct it.
+    /// The `c` (an integer, as f64) with `origin + c·pixel <= v < origin + (c+1)·pixel` for `v`
+    /// inside the grid or within a cell of it; some integer outside `0..n` for anything else (NaN
+    /// included). Branch free: the quotient, clamped to `[-1, n]` and rounded, is off by at most
+    /// one cell, and the two exact edge tests correct it.
     #[inline(always)]
-    fn cell(&self, v: f64) -> i32 {
+    fn cell(&self, v: f64) -> f64 {
         // f64::max maps NaN to -1.
         let t = ((v - self.origin) * self.inv).max(-1.0).min(self.n_f);
-        let mut c = t as i32;
-        c -= i32::from(v < self.origin + f64::from(c) * self.pixel);
-        c += i32::from(v >= self.origin + f64::from(c + 1) * self.pixel);
+        let mut c = (t + ROUND_MAGIC) - ROUND_MAGIC;
+        c -= if v < self.origin + c * self.pixel { 1.0 } else { 0.0 };
+        c += if v >= self.origin + (c + 1.0) * self.pixel { 1.0 } else { 0.0 };
         c
     }
 
     #[inline(always)]
-    fn inside(&self, c: i32) -> bool {
-        (c >= 0) & (c < self.n)
+    fn inside(&self, c: f64) -> bool {
+        (c >= 0.0) & (c < self.n_f)
     }
 }
 
@@ -339,7 +340,7 @@ impl AxisBins {
 struct Binner {
     x: AxisBins,
     y: AxisBins,
-    width: u32,
+    width_f: f64,
     /// Index standing for "not binned": one past the last cell.
     dummy: u32,
 }
@@ -349,7 +350,8 @@ impl Binner {
         Binner {
             x: AxisBins::new(grid.origin_x_mm, grid.pixel_mm, grid.width),
             y: AxisBins::new(grid.origin_y_mm, grid.pixel_mm, grid.height),
-            width: grid.width,
+            width_f: f64::from(grid.width),
+            // A valid grid has at most MAX_CELLS = 2^28 cells.
             dummy: u32::try_from(grid.cell_count()).unwrap_or(u32::MAX),
         }
     }
@@ -399,17 +401,25 @@ fn locate_block(
     idx: &mut [u32; BLOCK],
     key: &mut [u32; BLOCK],
 ) -> Counts {
-    let (mut binned, mut non_finite) = (0usize, 0usize);
+    let mut binned = 0usize;
     for ((p, i), k) in block.iter().zip(idx.iter_mut()).zip(key.iter_mut()) {
         let z = p.z as f32;
-        let finite = p.x.is_finite() & p.y.is_finite() & z.is_finite();
+        // Non-finite X or Y land outside by themselves; the Z test is false for NaN and infinities.
         let (c, r) = (bins.x.cell(p.x), bins.y.cell(p.y));
-        let inside = finite & bins.x.inside(c) & bins.y.inside(r);
-        let at = (r as u32).wrapping_mul(bins.width).wrapping_add(c as u32);
+        let inside = bins.x.inside(c) & bins.y.inside(r) & (z.abs() < f32::INFINITY);
+        // Exact: the index is an integer below 2^28.
+        let at = ((r * bins.width_f + c) + ROUND_MAGIC).to_bits() as u32;
         *i = if inside { at } else { bins.dummy };
         *k = key_of(z);
         binned += usize::from(inside);
-        non_finite += usize::from(!finite);
+    }
+    // Tell the non-finite points from those outside the grid (only when some missed it).
+    let mut non_finite = 0usize;
+    if binned < block.len() {
+        for (p, &i) in block.iter().zip(idx.iter()) {
+            let finite = p.x.is_finite() && p.y.is_finite() && (p.z as f32).is_finite();
+            non_finite += usize::from(i == bins.dummy && !finite);
+        }
     }
     (binned, non_finite)
 }
@@ -481,7 +491,7 @@ const PARTITION_ROUND: usize = 1 << 12;
 fn is_local(points: &[Point3<f64>], bins: &Binner) -> bool {
     let (mut idx, mut key) = ([0u32; BLOCK], [0u32; BLOCK]);
     let (mut near, mut pairs) = (0usize, 0usize);
-    let reach = bins.width.saturating_mul(4);
+    let reach = (bins.width_f * 4.0).min(f64::from(u32::MAX)) as u32;
     for k in 0..64 {
         let start = k * points.len() / 64;
         let window = &points[start..(start + 32).min(points.len())];
@@ -1503,6 +1513,28 @@ mod tests {
         assert!(e.contains("finite"), "{e}");
     }
 
+    proptest::proptest! {
+        /// The grid is the smallest one whose far edges reach the ROI's max, and every point of the
+        /// half-open ROI lands in it.
+        #[test]
+        fn grid_for_roi_is_minimal_and_covers_the_roi(
+            x0 in -500.0f64..500.0, y0 in -500.0f64..500.0,
+            wx in 1e-3f64..50.0, wy in 1e-3f64..50.0,
+            p in 0.01f64..2.0, fx in 0.0f64..1.0, fy in 0.0f64..1.0,
+        ) {
+            let roi = Roi { x_min_mm: x0, y_min_mm: y0, x_max_mm: x0 + wx, y_max_mm: y0 + wy };
+            let g = grid_for_roi(&roi, p).expect("grid");
+            proptest::prop_assert!(x0 + f64::from(g.width) * p >= roi.x_max_mm);
+            proptest::prop_assert!(g.width == 1 || x0 + f64::from(g.width - 1) * p < roi.x_max_mm);
+            proptest::prop_assert!(y0 + f64::from(g.height) * p >= roi.y_max_mm);
+            proptest::prop_assert!(g.height == 1 || y0 + f64::from(g.height - 1) * p < roi.y_max_mm);
+            let (x, y) = (x0 + fx * wx, y0 + fy * wy);
+            if x < roi.x_max_mm && y < roi.y_max_mm {
+                proptest::prop_assert!(raster_cell(&g, x, y).is_some());
+            }
+        }
+    }
+
     #[test]
     fn roi_around_keeps_every_point_inside() {
         let mut rng = StdRng::seed_from_u64(3);
@@ -1976,7 +2008,7 @@ mod tests {
         let (rd, fd) = (raw.data(), filled.data());
         let empty = |i: usize| !rd[i].is_finite() && !fd[i].is_finite();
         let label = brute_labels(w, h, empty);
-        let on_border = |i: usize| i % w == 0 || i % w == w - 1 || i / w == 0 || i / w == h - 1;
+        let on_border = |i: usize| i.is_multiple_of(w) || i % w == w - 1 || i / w == 0 || i / w == h - 1;
         let cov: Vec<f32> = (0..w * h)
             .map(|i| {
                 if rd[i].is_finite() {
