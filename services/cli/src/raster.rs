@@ -102,11 +102,13 @@ pub fn run(input: &Path, args: &RasterArgs, output: &Path) -> anyhow::Result<()>
             .with_context(|| format!("writing {}", cov.display()))?;
         write(&f.roughing_map, &sibling(&main, ".roughing", ext))?;
         let s = &f.stats;
-        let hole = s.coverage.largest_hole.as_ref().map_or("none".to_string(), |h| {
-            format!("{:.2} mm² at ({:.2}, {:.2})", h.area_mm2, h.center_x_mm, h.center_y_mm)
-        });
+        let hole = |h: Option<&depthmill_reconstruction::domain::raster::HoleStats>| {
+            h.map_or("none".to_string(), |h| {
+                format!("{:.2} mm² at ({:.2}, {:.2})", h.area_mm2, h.center_x_mm, h.center_y_mm)
+            })
+        };
         println!(
-            "{}: face {}, {}x{} at {} mm, z {:.3}..{:.3} mm, covered {:.2} %, {} cells filled, {} holes, largest {}",
+            "{}: face {}, {}x{} at {} mm, z {:.3}..{:.3} mm, covered {:.2} %, {} cells filled, {} holes (largest {}), {} still empty (largest {})",
             main.display(),
             s.face,
             s.width,
@@ -117,7 +119,9 @@ pub fn run(input: &Path, args: &RasterArgs, output: &Path) -> anyhow::Result<()>
             s.coverage.covered_pct,
             s.fill.filled,
             s.coverage.holes,
-            hole,
+            hole(s.coverage.largest_hole.as_ref()),
+            s.coverage.unfilled_holes,
+            hole(s.coverage.largest_unfilled_hole.as_ref()),
         );
     }
     let report_path = sibling(output, ".report", "json");

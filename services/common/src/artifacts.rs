@@ -227,6 +227,9 @@ struct BlobMeta {
     size: u64,
 }
 
+/// Age after which a temporary upload file is a leftover of an interrupted upload.
+const STALE_UPLOAD: std::time::Duration = std::time::Duration::from_secs(3600);
+
 /// Blobs in a local folder (the default store, and the one the embedded stack shares between
 /// services).
 #[derive(Debug, Clone)]
@@ -248,10 +251,27 @@ impl LocalStore {
             std::env::current_dir().map_err(io_err(&root))?.join(&root)
         };
         let tmp = root.join("tmp");
-        if tmp.exists() {
-            tokio::fs::remove_dir_all(&tmp).await.map_err(io_err(&tmp))?;
-        }
         tokio::fs::create_dir_all(&tmp).await.map_err(io_err(&tmp))?;
+        // Several services share one store and open it concurrently, and another process may be
+        // uploading right now: remove only leftovers older than an hour, and let a file that
+        // someone else removed first be.
+        let mut entries = tokio::fs::read_dir(&tmp).await.map_err(io_err(&tmp))?;
+        while let Some(entry) = entries.next_entry().await.map_err(io_err(&tmp))? {
+            let stale = entry
+                .metadata()
+                .await
+                .ok()
+                .and_then(|m| m.modified().ok())
+                .and_then(|t| t.elapsed().ok())
+                .is_some_and(|age| age > STALE_UPLOAD);
+            if stale {
+                match tokio::fs::remove_file(entry.path()).await {
+                    Ok(()) => {}
+                    Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+                    Err(e) => return Err(io_err(&entry.path())(e)),
+                }
+            }
+        }
         let blobs = root.join("blobs");
         tokio::fs::create_dir_all(&blobs).await.map_err(io_err(&blobs))?;
         Ok(Self { root })

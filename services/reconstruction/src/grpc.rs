@@ -255,10 +255,11 @@ impl pb::reconstruction_service_server::ReconstructionService for Reconstruction
                         coverage_map: Some(store.put_bytes("image/png", &cov).await?.into()),
                         roughing_map: Some(store.put_bytes("image/png", &rough).await?.into()),
                         coverage_pct: c.covered_pct,
-                        largest_hole_mm2: c.largest_hole.as_ref().map_or(0.0, |h| h.area_mm2),
-                        holes: c.holes as u64,
-                        largest_hole_x_mm: c.largest_hole.as_ref().map_or(0.0, |h| h.center_x_mm),
-                        largest_hole_y_mm: c.largest_hole.as_ref().map_or(0.0, |h| h.center_y_mm),
+                        // What is still missing after filling: what a rescan should aim at.
+                        largest_hole_mm2: c.largest_unfilled_hole.as_ref().map_or(0.0, |h| h.area_mm2),
+                        holes: c.unfilled_holes as u64,
+                        largest_hole_x_mm: c.largest_unfilled_hole.as_ref().map_or(0.0, |h| h.center_x_mm),
+                        largest_hole_y_mm: c.largest_unfilled_hole.as_ref().map_or(0.0, |h| h.center_y_mm),
                         cells_filled: f.stats.fill.filled as u64,
                     });
                 }
