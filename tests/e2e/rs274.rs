@@ -1,6 +1,7 @@
 //! The programs the CAM service writes run in a real interpreter: LinuxCNC's standalone `rs274`
 //! (Debian package `linuxcnc-uspace`, which `.ci/run` installs and then requires with
 //! `DEPTHMILL_REQUIRE_RS274=1`). Without it and without the variable, the test says so and passes.
+//! The machine service's interpreter must produce the same moves as `rs274` on each program.
 
 use std::process::Command;
 
@@ -10,6 +11,7 @@ use depthmill_cam::domain::plan::{
 };
 use depthmill_cam::domain::tool::ToolLibrary;
 use depthmill_geometry::{HeightMap, HeightMapMeta};
+use depthmill_machine::domain::gcode;
 
 fn rs274_available() -> bool {
     Command::new("rs274").arg("-h").output().is_ok()
@@ -41,12 +43,13 @@ fn cam_programs_run_in_linuxcnc_rs274() -> anyhow::Result<()> {
     std::fs::write(&table, "T1 P1 D6.0 Z0 ;roughing\nT2 P2 D3.0 Z0 ;finishing\n")?;
     let library = ToolLibrary::builtin()?;
     let cases = [
-        ("x", "raster_x", None),
-        ("contour", "raster_angle", Some(30.0)),
-        ("y", "iso_level", None),
-        ("x", "raster_y", None),
+        ("x", "raster_x", None, "linuxcnc"),
+        ("contour", "raster_angle", Some(30.0), "linuxcnc"),
+        ("y", "iso_level", None, "linuxcnc"),
+        ("x", "raster_y", None, "linuxcnc"),
+        ("x", "raster_x", None, "fanuc"),
     ];
-    for (direction, strategy, angle) in cases {
+    for (direction, strategy, angle, dialect) in cases {
         let options = PlanOptions {
             stock: Some(StockOptions { z_mm: Some(13.0), ..Default::default() }),
             roughing: Some(RoughingOptions {
@@ -63,7 +66,7 @@ fn cam_programs_run_in_linuxcnc_rs274() -> anyhow::Result<()> {
                 tolerance_mm: Some(0.01),
                 arcs: Some(true),
             }),
-            dialect: Some("linuxcnc".into()),
+            dialect: Some(dialect.into()),
         };
         let out = plan(
             &[FaceInput { a_deg: None, map: dome()?, roughing_map: None }],
@@ -73,7 +76,7 @@ fn cam_programs_run_in_linuxcnc_rs274() -> anyhow::Result<()> {
             &|_, _| {},
             &|| false,
         )?;
-        let program = dir.path().join(format!("{direction}-{strategy}.ngc"));
+        let program = dir.path().join(format!("{direction}-{strategy}-{dialect}.ngc"));
         std::fs::write(&program, &out.gcode)?;
         let canon = dir.path().join("canon.txt");
         let run = Command::new("rs274").arg("-t").arg(&table).arg("-g").arg(&program).arg(&canon).output()?;
@@ -88,12 +91,22 @@ fn cam_programs_run_in_linuxcnc_rs274() -> anyhow::Result<()> {
         let blocks = out
             .gcode
             .lines()
+            .map(|l| l.trim_start_matches(|c: char| c == 'N' || c.is_ascii_digit()).trim_start())
             .filter(|l| l.starts_with('G') || l.starts_with('X') || l.starts_with('Y'))
             .count();
         assert!(
             feeds > 0 && feeds <= blocks + 10,
             "{direction}/{strategy}: {feeds} feed moves for {blocks} blocks"
         );
+        // The machine service's interpreter agrees with rs274 move by move on the same program.
+        let theirs = gcode::rs274::run_rs274(&program, &table)?;
+        let config =
+            gcode::InterpConfig { tools: [(1, 0.0), (2, 0.0)].into_iter().collect(), ..Default::default() };
+        let mut ours = Vec::new();
+        gcode::run(std::io::Cursor::new(out.gcode.as_bytes()), config, |c| ours.push(c))?;
+        let compared = gcode::rs274::compare(&ours, &theirs, 1e-4)
+            .map_err(|m| anyhow::anyhow!("{direction}/{strategy}/{dialect}: {m}"))?;
+        assert!(compared > 100, "{direction}/{strategy}/{dialect}: only {compared} moves compared");
     }
     Ok(())
 }
