@@ -3,10 +3,11 @@
 //! stock, the deviation from the target, telemetry (CSV and an SVG plot) and a report out.
 //!
 //! Passes: (1) the tool list of the program's header comments (`(T1 flat-6: flat D6.0000 mm, 2
-//! flutes - ...)`, what the CAM service writes) merged over the machine's tool table; (2) the
-//! run with the chosen policy (material removal, telemetry); (3) the comparison runs on the same
-//! program: motion only with no adaptation (its cycle time does not depend on the cut), and the
-//! other adaptive policy with removal, in parallel with (2).
+//! flutes - ...)`, what the CAM service writes) merged over the machine's tool table; (2) a
+//! motion-only run with the programmed feeds: every line is checked against the travel, feed,
+//! speed and tool table before anything is cut, and its cycle time is the one without
+//! adaptation; (3) the run with the chosen policy (material removal, telemetry) and, in
+//! parallel, the other adaptive policy on the same program for comparison.
 //!
 //! The stock: given, or from the target map exactly as the CAM service sized it (the map's extent,
 //! bottom at its `z_min`, top at `z_min + stock_z_mm` or at the highest point), or, with neither,
@@ -334,9 +335,16 @@ pub fn execute(
         (true, PolicyKind::FeedOnly) => Some(PolicyKind::Aco),
         _ => None,
     };
+    // Motion only first: travel, feeds, speeds and tools are checked for the whole program
+    // before anything is cut (a refused program changes nothing), and its cycle time is the one
+    // without adaptation.
+    let plain = {
+        let s = SimSetup { policy: PolicyKind::Off, motion_only: true, ..setup.clone() };
+        simulate(open()?, &s, stop, &mut |_| {})?.0
+    };
     let mut rows: Vec<TelemetryRow> = Vec::new();
     let main_setup = setup.clone();
-    let (main, (other_run, plain)) = rayon::join(
+    let (main, other_run) = rayon::join(
         || -> Result<_, ExecuteError> {
             let mut sink = |r: &TelemetryRow| {
                 rows.push(*r);
@@ -345,24 +353,16 @@ pub fn execute(
             Ok(simulate(open()?, &main_setup, stop, &mut sink)?)
         },
         || {
-            let other_run = other.map(|p| -> Result<SimReport, ExecuteError> {
-                let s = SimSetup { policy: p, ..setup.clone() };
-                Ok(simulate(open()?, &s, stop, &mut |_| {})?.0)
-            });
-            let plain = if opts.compare || opts.policy != PolicyKind::Off {
-                let s = SimSetup { policy: PolicyKind::Off, motion_only: true, ..setup.clone() };
-                Some(open().map_err(ExecuteError::from).and_then(|p| {
-                    simulate(p, &s, stop, &mut |_| {}).map(|r| r.0).map_err(ExecuteError::from)
-                }))
-            } else {
-                None
-            };
-            (other_run.transpose(), plain.transpose())
+            other
+                .map(|p| -> Result<SimReport, ExecuteError> {
+                    let s = SimSetup { policy: p, ..setup.clone() };
+                    Ok(simulate(open()?, &s, stop, &mut |_| {})?.0)
+                })
+                .transpose()
         },
     );
     let (run_report, stock) = main?;
     let other_run = other_run?;
-    let plain = plain?;
     let final_stock = stock.ok_or_else(|| invalid("stock", "none", "the run kept no stock"))?;
     let deviation = target.map(|t| deviation(t, &final_stock));
     let cycle = run_report.cycle_time_s;
@@ -380,7 +380,7 @@ pub fn execute(
             })
             .collect(),
         cycle_time_s: cycle,
-        cycle_time_no_adaptive_s: plain.as_ref().map_or(cycle, |p| p.cycle_time_s),
+        cycle_time_no_adaptive_s: plain.cycle_time_s,
         cycle_time_other_s: other_run.as_ref().map(|r| r.cycle_time_s),
         other_policy: other.map(PolicyKind::as_str),
         run: run_report,

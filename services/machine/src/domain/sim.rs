@@ -2,6 +2,10 @@
 //! limits, material removal per spindle revolution, forces, sensors and a feed/speed policy, out
 //! a cut stock, telemetry and a cycle time.
 //!
+//! # Steps
+//! Positions reach the stock on whole motor steps (`step_mm`, 0.01 mm on the F1): each
+//! revolution's piece of a move starts and ends at the commanded point rounded to the step grid.
+//!
 //! # Frames
 //! The interpreter gives machine coordinates of the controlled point (work offset and `G43`
 //! tool length added). The simulated control applies each tool's measured length at `M6` (the
@@ -362,9 +366,16 @@ impl<'a> Machine<'a> {
         self.stock.as_ref()
     }
 
+    /// The tip in the work frame for a commanded machine position, on whole motor steps (the
+    /// steppers move in `step_mm` increments).
     fn work(&self, p: Pos) -> Point3<f64> {
-        let w = self.setup.profile.work_offset;
-        Point3::new(p.x - w.x_mm, p.y - w.y_mm, p.z - self.tlo_mm - w.z_mm)
+        let prof = &self.setup.profile;
+        let w = prof.work_offset;
+        Point3::new(
+            prof.quantise(p.x) - w.x_mm,
+            prof.quantise(p.y) - w.y_mm,
+            prof.quantise(p.z - self.tlo_mm) - w.z_mm,
+        )
     }
 
     fn current_tool(&self) -> Option<&MachineTool> {
