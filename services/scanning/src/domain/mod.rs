@@ -2,9 +2,12 @@
 //!
 //! - [`robot`]: the Adept Viper s650 arm (DH model, forward and inverse kinematics, Jacobian and
 //!   dexterity, the scanner bracket) and its simulated motion controller.
+//! - [`latch`]: the encoder-latching device: positions of the robot and the table stored at
+//!   every scanner sync pulse, with latency and jitter.
 //! - [`table`]: the rotary table's physics (DC motor, 1:480 gearbox, 11520-count encoder, PID on
 //!   trapezoidal profiles) and its ASCII protocol; the socket server and client driver are in
 //!   [`crate::devices`].
 
+pub mod latch;
 pub mod robot;
 pub mod table;
