@@ -190,16 +190,19 @@ impl pb::machine_service_server::MachineService for MachineServiceImpl {
             }
             None => None,
         };
+        // One program at a time: check and claim the machine under one lock.
         {
-            let busy = self.shared.state.lock().map(|s| s.state == "running").unwrap_or(false);
-            if busy {
+            let mut st =
+                self.shared.state.lock().map_err(|_| Status::internal("machine state lock poisoned"))?;
+            if st.state == "running" {
                 return Err(ErrorCode::Unavailable.status("the machine is running another program"));
             }
+            // A new program clears a latched emergency stop (reset, then cycle start).
+            self.shared.estop.store(false, Ordering::SeqCst);
+            self.shared.stop.store(false, Ordering::SeqCst);
+            st.state = "running";
+            st.job_id = job_id.clone();
         }
-        // A new program clears a latched emergency stop (reset, then cycle start).
-        self.shared.estop.store(false, Ordering::SeqCst);
-        self.shared.stop.store(false, Ordering::SeqCst);
-        set_state(&self.shared, "running", Some(&job_id));
         self.shared.line.store(0, Ordering::Relaxed);
         let guard = self.running.start(&job_id);
         let (tx, rx) = mpsc::channel(64);
