@@ -12,7 +12,7 @@ use depthmill_machine::domain::sim::{Machine, PolicyKind, SimSetup, StockSpec, s
 /// Options shared by `check` and `simulate`.
 #[derive(clap::Args, Clone)]
 pub struct MachineArgs {
-    /// Machine profile.
+    /// Machine profile: a shipped name (emco-f1) or a profile file (.toml, see machines/emco-f1.toml).
     #[arg(long, default_value = "emco-f1")]
     pub machine: String,
     /// Clamp F and S to the machine's ranges (with a warning) instead of refusing the program.
@@ -27,7 +27,7 @@ fn opener(path: &Path) -> impl Fn() -> std::io::Result<Box<dyn BufRead + Send>> 
 /// `depthmill check`: interpret and validate without cutting.
 pub fn run_check(program: &Path, args: &MachineArgs) -> anyhow::Result<()> {
     let open = opener(program);
-    let profile = MachineProfile::builtin(&args.machine)?;
+    let profile = MachineProfile::by_name_or_file(&args.machine)?;
     let header = header_tools(open().with_context(|| format!("reading {}", program.display()))?);
     let tools = tools_for(&profile, &header)?;
     let setup = SimSetup {

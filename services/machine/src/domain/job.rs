@@ -288,7 +288,7 @@ pub fn execute(
     stop: &(dyn Fn() -> bool + Sync),
     observe: &mut (dyn FnMut(&TelemetryRow) + Send),
 ) -> Result<ExecuteOutput, ExecuteError> {
-    let profile = MachineProfile::builtin(&opts.machine)?;
+    let profile = MachineProfile::by_name_or_file(&opts.machine)?;
     let material: Material = match &opts.material {
         None => material("aluminium").ok_or_else(|| invalid("execute.material", "aluminium", "missing"))?,
         Some(m) => material(m).ok_or_else(|| {

@@ -157,6 +157,11 @@ impl MachineProfile {
         }
     }
 
+    /// A shipped profile by name, or a profile file when `name` ends in `.toml`.
+    pub fn by_name_or_file(name: &str) -> Result<Self, ProfileError> {
+        if name.ends_with(".toml") { Self::read(Path::new(name)) } else { Self::builtin(name) }
+    }
+
     /// Reads and checks a profile file.
     pub fn read(path: &Path) -> Result<Self, ProfileError> {
         let file = path.display().to_string();
