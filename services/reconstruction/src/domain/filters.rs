@@ -1333,7 +1333,7 @@ fn knn_means_with_stats(points: &[Point3<f64>], k: usize) -> (Vec<f64>, KnnStats
             let mut overfull = 0usize;
             let mut second_chance = 0usize;
             let mut ranges = Vec::with_capacity(9);
-            let mut buf = vec![0u64; 2 * (cap + 1)];
+            let mut buf = vec![0u64; 4 * (cap + 1)];
             let mut hint2 = f64::INFINITY;
             let mut failed = Vec::new();
             for c in cells {
@@ -1355,6 +1355,44 @@ fn knn_means_with_stats(points: &[Point3<f64>], k: usize) -> (Vec<f64>, KnnStats
                         if m > 0.0 { m * m } else { 0.0 }
                     };
                     let mut s = own.start;
+                    // Four queries per pass over the block while there are four with a margin
+                    // (the block's points are read once for all four).
+                    while s + 3 < own.end {
+                        let qs = [&grid.xyz[s], &grid.xyz[s + 1], &grid.xyz[s + 2], &grid.xyz[s + 3]];
+                        let ms = qs.map(|q| margin2(q));
+                        if ms.iter().any(|&m| m == 0.0) {
+                            break;
+                        }
+                        let ts = ms.map(|m| m.min(hint2 * HINT_FACTOR));
+                        let (b01, b23) = buf.split_at_mut(2 * (cap + 1));
+                        let (b0, b1) = b01.split_at_mut(cap + 1);
+                        let (b2, b3) = b23.split_at_mut(cap + 1);
+                        let cnts = block_filter(
+                            &grid.xyz,
+                            &ranges,
+                            qs,
+                            ts,
+                            [&mut *b0, &mut *b1, &mut *b2, &mut *b3],
+                        );
+                        for (i, b) in [b0, b1, b2, b3].into_iter().enumerate() {
+                            let (q, m, t, cnt) = (qs[i], ms[i], ts[i], cnts[i]);
+                            let found = if cnt >= k {
+                                Some(finish_knn(b, cnt, k))
+                            } else if t < m {
+                                block_knn(&grid.xyz, &ranges, q, k, m, m, b)
+                            } else {
+                                None
+                            };
+                            match found {
+                                Some((kth2, mean)) => {
+                                    hint2 = kth2;
+                                    out[s + i - base] = mean;
+                                }
+                                None => failed.push(s + i),
+                            }
+                        }
+                        s += 4;
+                    }
                     // Two queries per pass over the block while there are two with a margin.
                     while s + 1 < own.end {
                         let (qa, qb) = (&grid.xyz[s], &grid.xyz[s + 1]);
