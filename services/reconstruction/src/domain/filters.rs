@@ -1359,8 +1359,8 @@ fn knn_means_with_stats(points: &[Point3<f64>], k: usize) -> (Vec<f64>, KnnStats
                     // (the block's points are read once for all four).
                     while s + 3 < own.end {
                         let qs = [&grid.xyz[s], &grid.xyz[s + 1], &grid.xyz[s + 2], &grid.xyz[s + 3]];
-                        let ms = qs.map(|q| margin2(q));
-                        if ms.iter().any(|&m| m == 0.0) {
+                        let ms = qs.map(&margin2);
+                        if ms.contains(&0.0) {
                             break;
                         }
                         let ts = ms.map(|m| m.min(hint2 * HINT_FACTOR));
