@@ -17,7 +17,7 @@ fn height_field(n: usize) -> Mesh {
         for i in 0..n {
             let x = -100.0 + 200.0 * i as f64 / (n - 1) as f64;
             let y = -100.0 + 200.0 * j as f64 / (n - 1) as f64;
-            let z = 8.0 * (x / 13.0).sin() * (y / 17.0).cos() + 3.0 * (x / 5.0 + y / 7.0).sin();
+            let z = 3.0 * (x / 13.0).sin() * (y / 17.0).cos() + (x / 9.0 + y / 11.0).sin();
             vertices.push(Point3::new(x, y, z));
         }
     }
@@ -89,11 +89,16 @@ fn main() {
     let t0 = Instant::now();
     let mut points = 0usize;
     let mut occl_rays = 0usize;
+    let mut dropped = [0usize; 4];
     for (k, pose) in poses.iter().enumerate() {
         let p = scanner.profile(pose, k as u64);
         points += p.points.len();
         // Every ray that passed the window and incidence checks cast an occlusion ray.
         occl_rays += p.points.len() + p.dropped.occluded as usize;
+        dropped[0] += p.dropped.out_of_window as usize;
+        dropped[1] += p.dropped.incidence as usize;
+        dropped[2] += p.dropped.occluded as usize;
+        dropped[3] += p.dropped.miss as usize;
         black_box(&p);
     }
     let scan_s = t0.elapsed().as_secs_f64();
@@ -110,6 +115,11 @@ fn main() {
         primary,
         occl_rays,
         points as f64 / frames as f64
+    );
+
+    println!(
+        "dropped: {} out of window, {} incidence, {} occluded, {} miss",
+        dropped[0], dropped[1], dropped[2], dropped[3]
     );
 
     // BVH cast alone vs brute force on the same rays.
@@ -138,7 +148,10 @@ fn main() {
     }
     let brute_s = t0.elapsed().as_secs_f64();
     let brute_rate = rays.len() as f64 / brute_s;
-    assert!((acc / reps as f64 - acc_ref).abs() < 1e-6 * acc_ref.abs().max(1.0), "bvh and brute force differ");
+    assert!(
+        (acc / reps as f64 - acc_ref).abs() < 1e-6 * acc_ref.abs().max(1.0),
+        "bvh and brute force differ"
+    );
     println!(
         "cast: bvh {:.2} M rays/s, brute force (reference) {:.0} rays/s, speed-up {:.0}x",
         bvh_rate / 1e6,

@@ -4,10 +4,13 @@
 //!   dexterity, the scanner bracket) and its simulated motion controller.
 //! - [`latch`]: the encoder-latching device: positions of the robot and the table stored at
 //!   every scanner sync pulse, with latency and jitter.
+//! - [`scanner`]: the SLP-400 class laser line scanner cast at the part's mesh (own BVH):
+//!   standoff window, fan, incidence limit, camera occlusion, 35 µm noise, intensity, frame times.
 //! - [`table`]: the rotary table's physics (DC motor, 1:480 gearbox, 11520-count encoder, PID on
 //!   trapezoidal profiles) and its ASCII protocol; the socket server and client driver are in
 //!   [`crate::devices`].
 
 pub mod latch;
 pub mod robot;
+pub mod scanner;
 pub mod table;

@@ -23,7 +23,9 @@
 //! - Triangulation occlusion: the camera sits at a baseline of 60 mm along +Y from the emitter
 //!   (`(0, 60, 0)` in the sensor frame) and looks back at the laser line. For each laser hit a
 //!   second ray is cast from the hit to the camera; if the mesh blocks that line of sight the point
-//!   is dropped (`occluded`). A step whose top is on the camera's side hides the floor next to it.
+//!   is dropped (`occluded`); so is a spot whose surface faces away from the camera (the camera on
+//!   the other side of the triangle's plane than the emitter). A step whose top is on the camera's
+//!   side hides the floor next to it.
 //! - Line rate 50..150 Hz (default 100 Hz); each frame carries a sync pulse time
 //!   `start + frame / rate` ([`frame_times`], [`Profile::time_s`]).
 //!
@@ -104,11 +106,7 @@ pub fn check_line_rate(rate_hz: f64) -> Result<f64, ScannerError> {
 pub fn frame_times(start_s: f64, rate_hz: f64, n: usize) -> Result<Vec<f64>, ScannerError> {
     check_line_rate(rate_hz)?;
     if !start_s.is_finite() {
-        return Err(ScannerError::Parameter {
-            name: "start_s",
-            value: start_s,
-            limit: "finite".to_string(),
-        });
+        return Err(ScannerError::Parameter { name: "start_s", value: start_s, limit: "finite".to_string() });
     }
     Ok((0..n).map(|k| start_s + k as f64 / rate_hz).collect())
 }
@@ -649,7 +647,10 @@ impl Scanner {
                 continue;
             }
             let p_w = origin_w + dw * hit.t;
-            if self.bvh.occluded(&p_w, &camera_w) {
+            // The camera must be on the lit side of the surface (an open sheet seen from behind
+            // hides the spot too), and nothing may block its line of sight.
+            let lit_side = hit.normal.dot(&(origin_w - p_w)) * hit.normal.dot(&(camera_w - p_w)) > 0.0;
+            if !lit_side || self.bvh.occluded(&p_w, &camera_w) {
                 out.dropped.occluded += 1;
                 continue;
             }
@@ -713,10 +714,18 @@ mod tests {
     fn random_soup(rng: &mut StdRng, n: usize, size: f64) -> Mesh {
         let mut m = Mesh::default();
         for _ in 0..n {
-            let c = Vector3::new(rng.random_range(-50.0..50.0), rng.random_range(-50.0..50.0), rng.random_range(-50.0..50.0));
+            let c = Vector3::new(
+                rng.random_range(-50.0..50.0),
+                rng.random_range(-50.0..50.0),
+                rng.random_range(-50.0..50.0),
+            );
             let b = m.vertices.len() as u32;
             for _ in 0..3 {
-                let off = Vector3::new(rng.random_range(-size..size), rng.random_range(-size..size), rng.random_range(-size..size));
+                let off = Vector3::new(
+                    rng.random_range(-size..size),
+                    rng.random_range(-size..size),
+                    rng.random_range(-size..size),
+                );
                 m.vertices.push(Point3::from(c + off));
             }
             m.triangles.push([b, b + 1, b + 2]);
@@ -726,7 +735,11 @@ mod tests {
 
     fn random_dir(rng: &mut StdRng) -> Vector3<f64> {
         loop {
-            let v = Vector3::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0));
+            let v = Vector3::new(
+                rng.random_range(-1.0..1.0),
+                rng.random_range(-1.0..1.0),
+                rng.random_range(-1.0..1.0),
+            );
             if v.norm() > 0.1 && v.norm() < 1.0 {
                 return v.normalize();
             }
@@ -736,13 +749,17 @@ mod tests {
     #[test]
     fn bvh_matches_brute_force_on_random_rays() {
         let mut rng = StdRng::seed_from_u64(7);
-        for (n, size) in [(1, 20.0), (7, 15.0), (300, 12.0), (2000, 4.0)] {
+        for (n, size) in [(1, 20.0), (7, 15.0), (300, 12.0), (1000, 5.0)] {
             let m = random_soup(&mut rng, n, size);
             let bvh = Bvh::build(&m).expect("valid mesh");
             assert_eq!(bvh.triangle_count(), n);
             let mut hits = 0;
-            for _ in 0..1500 {
-                let o = Point3::new(rng.random_range(-80.0..80.0), rng.random_range(-80.0..80.0), rng.random_range(-80.0..80.0));
+            for _ in 0..600 {
+                let o = Point3::new(
+                    rng.random_range(-80.0..80.0),
+                    rng.random_range(-80.0..80.0),
+                    rng.random_range(-80.0..80.0),
+                );
                 // Half the rays aim at a random triangle's centroid, so many hit.
                 let d = if rng.random::<bool>() {
                     let [a, b, c] = m.triangle(rng.random_range(0..n));
@@ -777,7 +794,34 @@ mod tests {
                 let slow_occ = (0..n).any(|t| intersect(&o, &d, &m.triangle(t), eps, len - eps).is_some());
                 assert_eq!(bvh.occluded(&o, &to), slow_occ);
             }
-            assert!(hits > 300, "only {hits} hits for n = {n}");
+            assert!(hits > 150, "only {hits} hits for n = {n}");
+        }
+    }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(48))]
+        /// Random triangle soups and rays: the BVH's nearest `t` equals the brute-force one.
+        #[test]
+        fn bvh_cast_equals_brute_force(
+            coords in proptest::collection::vec(-30.0f64..30.0, 9..360),
+            o in proptest::array::uniform3(-60.0f64..60.0),
+            d in proptest::array::uniform3(-1.0f64..1.0),
+        ) {
+            let n = coords.len() / 9;
+            let vertices: Vec<Point3<f64>> =
+                coords.chunks_exact(3).take(3 * n).map(|c| Point3::new(c[0], c[1], c[2])).collect();
+            let triangles = (0..n as u32).map(|t| [3 * t, 3 * t + 1, 3 * t + 2]).collect();
+            let m = Mesh { vertices, triangles };
+            let bvh = Bvh::build(&m).expect("valid mesh");
+            let o = Point3::from(o);
+            let d = Vector3::from(d);
+            proptest::prop_assume!(d.norm() > 1e-3);
+            let fast = bvh.cast(&o, &d, f64::INFINITY).map(|h| h.t);
+            let slow = brute_cast(&m, &o, &d, f64::INFINITY).map(|h| h.0);
+            match (fast, slow) {
+                (Some(a), Some(b)) => proptest::prop_assert!((a - b).abs() < 1e-9, "{a} vs {b}"),
+                (a, b) => proptest::prop_assert_eq!(a, b),
+            }
         }
     }
 
@@ -817,7 +861,8 @@ mod tests {
         assert!(p.points.len() >= 450);
         assert_eq!(p.dropped.total(), 0);
         assert_eq!(p.intensity.len(), p.points.len());
-        let (lo, hi) = p.points.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), q| (l.min(q.x), h.max(q.x)));
+        let (lo, hi) =
+            p.points.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), q| (l.min(q.x), h.max(q.x)));
         let want = spec.line_length_at(150.0);
         assert!(((hi - lo) - want).abs() < 0.01 * want, "length {} vs {want}", hi - lo);
         assert!(p.points.iter().all(|q| (q.z - 150.0).abs() < 0.25 && q.y.abs() < 1e-9));
@@ -848,7 +893,15 @@ mod tests {
 
     #[test]
     fn nothing_outside_the_standoff_window() {
-        for (z, inside) in [(50.0, false), (64.0, false), (66.0, true), (150.0, true), (244.0, true), (246.0, false), (300.0, false)] {
+        for (z, inside) in [
+            (50.0, false),
+            (64.0, false),
+            (66.0, true),
+            (150.0, true),
+            (244.0, true),
+            (246.0, false),
+            (300.0, false),
+        ] {
             let mut sc = Scanner::new(ScannerSpec::slp400(), &plate(z, 200.0, 0.0), 3).expect("scanner");
             let p = sc.profile(&Isometry3::identity(), 0);
             if inside {
@@ -896,12 +949,40 @@ mod tests {
         assert_eq!(sc2.profile(&Isometry3::identity(), 0).dropped.occluded, 0);
     }
 
+    #[test]
+    fn a_surface_facing_away_from_the_camera_is_hidden() {
+        // Camera 400 mm off the laser plane; a plate at 100 mm tilted 20° about X (within the
+        // incidence limit). Tilted towards the camera it is seen; tilted away, the camera is
+        // behind its plane and sees nothing.
+        let mut spec = ScannerSpec::slp400();
+        spec.camera_baseline_mm = 400.0;
+        for (deg, visible) in [(20.0f64, true), (-20.0, false)] {
+            let mut m = plate(0.0, 100.0, 0.0);
+            m.transform(&Isometry3::from_parts(
+                Translation3::new(0.0, 0.0, 100.0),
+                UnitQuaternion::from_axis_angle(&Vector3::x_axis(), deg.to_radians()),
+            ));
+            let mut sc = Scanner::new(spec.clone(), &m, 4).expect("scanner");
+            let p = sc.profile(&Isometry3::identity(), 0);
+            if visible {
+                assert_eq!(p.points.len(), 450, "{deg}: {:?}", p.dropped);
+            } else {
+                assert_eq!(p.dropped.occluded, 450, "{deg}: {:?}", p.dropped);
+            }
+        }
+    }
+
     fn mean_intensity(z: f64, tilt: f64) -> f64 {
         let mut sc = Scanner::new(ScannerSpec::slp400(), &plate(z, 200.0, tilt), 11).expect("scanner");
         let p = sc.profile(&Isometry3::identity(), 0);
         // Central columns only, so the incidence spread of the fan is small.
-        let v: Vec<f64> =
-            p.column.iter().zip(&p.intensity).filter(|(c, _)| (200..250).contains(*c)).map(|(_, &i)| i as f64).collect();
+        let v: Vec<f64> = p
+            .column
+            .iter()
+            .zip(&p.intensity)
+            .filter(|(c, _)| (200..250).contains(*c))
+            .map(|(_, &i)| i as f64)
+            .collect();
         assert!(!v.is_empty());
         v.iter().sum::<f64>() / v.len() as f64
     }
