@@ -35,7 +35,7 @@ const MAX_MAP_BYTES: u64 = 1 << 30;
 
 #[derive(Debug, Default)]
 struct Shared {
-    state: Mutex<Status_>,
+    state: Mutex<MachineState>,
     stop: AtomicBool,
     estop: AtomicBool,
     line: AtomicU64,
@@ -56,7 +56,7 @@ impl Shared {
 }
 
 #[derive(Debug, Clone, Default)]
-struct Status_ {
+struct MachineState {
     state: &'static str,
     job_id: String,
     pos: [f64; 4],
