@@ -54,15 +54,7 @@ impl From<CamError> for Status {
 }
 
 fn artifact_status(e: ArtifactError) -> Status {
-    match e {
-        ArtifactError::NotFound { .. } | ArtifactError::BadDigest { .. } | ArtifactError::TooLarge { .. } => {
-            ErrorCode::InvalidArgument.status(e.to_string())
-        }
-        other => {
-            tracing::error!(error = %depthmill_common::ErrorChain(&other), "artifact store failed");
-            ErrorCode::Internal.status("the artifact store failed")
-        }
-    }
+    depthmill_common::artifacts::grpc_status(e)
 }
 
 /// Decodes a stored depth map by its media type.

@@ -227,6 +227,22 @@ struct BlobMeta {
     size: u64,
 }
 
+/// The gRPC status a stage service answers when reading or writing an artifact fails: the
+/// caller's fault (unknown digest, bad digest, too large) as `InvalidArgument` with the reason;
+/// anything else logged with its cause chain and answered as `Internal` without internals.
+pub fn grpc_status(e: ArtifactError) -> tonic::Status {
+    use depthmill_proto::ErrorCode;
+    match e {
+        ArtifactError::NotFound { .. } | ArtifactError::BadDigest { .. } | ArtifactError::TooLarge { .. } => {
+            ErrorCode::InvalidArgument.status(e.to_string())
+        }
+        other => {
+            tracing::error!(error = %crate::ErrorChain(&other), "artifact store failed");
+            ErrorCode::Internal.status("the artifact store failed")
+        }
+    }
+}
+
 /// Age after which a temporary upload file is a leftover of an interrupted upload.
 const STALE_UPLOAD: std::time::Duration = std::time::Duration::from_secs(3600);
 

@@ -89,15 +89,7 @@ fn exec_status(e: ExecuteError) -> Status {
 }
 
 fn artifact_status(e: ArtifactError) -> Status {
-    match e {
-        ArtifactError::NotFound { .. } | ArtifactError::BadDigest { .. } | ArtifactError::TooLarge { .. } => {
-            ErrorCode::InvalidArgument.status(e.to_string())
-        }
-        other => {
-            tracing::error!(error = %depthmill_common::ErrorChain(&other), "artifact store failed");
-            ErrorCode::Internal.status("the artifact store failed")
-        }
-    }
+    depthmill_common::artifacts::grpc_status(e)
 }
 
 fn options(p: pb::ExecuteParams) -> Result<ExecuteOptions, Status> {
