@@ -320,22 +320,13 @@ pub fn job_spec_from_pb(s: pb::JobSpec) -> Result<JobSpec, SpecError> {
             let filters = p
                 .filters
                 .map(|f| -> Result<Filters, SpecError> {
-                    let transform = match f.transform.len() {
-                        0 => None,
-                        16 => {
-                            let mut m = [[0.0; 4]; 4];
-                            for (i, v) in f.transform.iter().enumerate() {
-                                m[i / 4][i % 4] = *v;
-                            }
-                            Some(m)
-                        }
-                        n => {
-                            return Err(spec_err(
+                    let transform =
+                        depthmill_proto::convert::matrix4_row_major(&f.transform).map_err(|n| {
+                            spec_err(
                                 "reconstruct.filters.transform",
                                 &format!("needs 16 numbers (a row-major 4x4 matrix), got {n}"),
-                            ));
-                        }
-                    };
+                            )
+                        })?;
                     Ok(Filters {
                         intensity: f.intensity.map(|w| IntensityWindow { min: w.min, max: w.max }),
                         voxel_mm: f.voxel_mm,

@@ -88,20 +88,11 @@ pub(crate) fn options(p: pb::ReconstructParams) -> Result<ReconstructOptions, St
     let filters = match p.filters {
         None => None,
         Some(f) => {
-            let transform = match f.transform.len() {
-                0 => None,
-                16 => {
-                    let mut m = [[0.0; 4]; 4];
-                    for (i, v) in f.transform.iter().enumerate() {
-                        m[i / 4][i % 4] = *v;
-                    }
-                    Some(m)
-                }
-                n => {
-                    return Err(ErrorCode::InvalidArgument
-                        .status(format!("reconstruct.filters.transform: needs 16 numbers, got {n}")));
-                }
-            };
+            let transform = depthmill_proto::convert::matrix4_row_major(&f.transform).map_err(|n| {
+                ErrorCode::InvalidArgument.status(format!(
+                    "reconstruct.filters.transform: needs 16 numbers (a row-major 4x4 matrix), got {n}"
+                ))
+            })?;
             Some(FilterOptions {
                 intensity: f.intensity.map(|w| IntensityOptions { min: w.min, max: w.max }),
                 voxel_mm: f.voxel_mm,
