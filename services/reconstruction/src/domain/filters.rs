@@ -1309,26 +1309,6 @@ fn block_knn(
     }
 }
 
-/// Stores a block query's answer (mean, and the k-th squared distance as the next hint) or marks
-/// the query `j` for the second chance.
-#[inline]
-fn record(
-    found: Option<(f64, f64)>,
-    j: usize,
-    hint2: &mut f64,
-    out: &mut [f64],
-    base: usize,
-    failed: &mut Vec<usize>,
-) {
-    match found {
-        Some((kth2, mean)) => {
-            *hint2 = kth2;
-            out[j - base] = mean;
-        }
-        None => failed.push(j),
-    }
-}
-
 fn knn_means_with_stats(points: &[Point3<f64>], k: usize) -> (Vec<f64>, KnnStats) {
     let mut means = vec![f64::NAN; points.len()];
     let mut stats = KnnStats::default();
@@ -1403,11 +1383,46 @@ fn knn_means_with_stats(points: &[Point3<f64>], k: usize) -> (Vec<f64>, KnnStats
                             } else {
                                 None
                             };
-                            record(found, s + i, &mut hint2, out, base, &mut failed);
+                            match found {
+                                Some((kth2, mean)) => {
+                                    hint2 = kth2;
+                                    out[s + i - base] = mean;
+                                }
+                                None => failed.push(s + i),
+                            }
                         }
                         s += 4;
                     }
-                    // The rest one at a time.
+                    // Two queries per pass over the block while there are two with a margin.
+                    while s + 1 < own.end {
+                        let (qa, qb) = (&grid.xyz[s], &grid.xyz[s + 1]);
+                        let (ma, mb) = (margin2(qa), margin2(qb));
+                        if ma == 0.0 || mb == 0.0 {
+                            break;
+                        }
+                        let (ta, tb) = (ma.min(hint2 * HINT_FACTOR), mb.min(hint2 * HINT_FACTOR));
+                        let (ba, bb) = buf.split_at_mut(cap + 1);
+                        let [ca, cb] = block_filter(&grid.xyz, &ranges, [qa, qb], [ta, tb], [ba, bb]);
+                        for (j, q, m, t, cnt, b) in
+                            [(s, qa, ma, ta, ca, &mut *ba), (s + 1, qb, mb, tb, cb, &mut *bb)]
+                        {
+                            let found = if cnt >= k {
+                                Some(finish_knn(b, cnt, k))
+                            } else if t < m {
+                                block_knn(&grid.xyz, &ranges, q, k, m, m, b)
+                            } else {
+                                None
+                            };
+                            match found {
+                                Some((kth2, mean)) => {
+                                    hint2 = kth2;
+                                    out[j - base] = mean;
+                                }
+                                None => failed.push(j),
+                            }
+                        }
+                        s += 2;
+                    }
                     for s in s..own.end {
                         let q = &grid.xyz[s];
                         let m = margin2(q);
@@ -1416,7 +1431,13 @@ fn knn_means_with_stats(points: &[Point3<f64>], k: usize) -> (Vec<f64>, KnnStats
                         } else {
                             None
                         };
-                        record(found, s, &mut hint2, out, base, &mut failed);
+                        match found {
+                            Some((kth2, mean)) => {
+                                hint2 = kth2;
+                                out[s - base] = mean;
+                            }
+                            None => failed.push(s),
+                        }
                     }
                 }
                 // A second chance on the 5 × 5 × 5 block (a cell edge chosen a little too small,
