@@ -206,8 +206,8 @@ fn one_triangle_stl() -> Vec<u8> {
 
 #[tokio::test]
 async fn a_stage_without_its_service_fails_the_job_clearly() -> anyhow::Result<()> {
-    let stack = TestStack::start().await?;
-    // A mesh goes to the scanning service, which does not scan yet.
+    // A mesh goes to the scanning service, which this stack does not have.
+    let stack = TestStack::start_with(StackOptions { scanning: false, ..StackOptions::default() }).await?;
     let sha = stack.upload("model/stl", one_triangle_stl()).await?;
     let (status, job) = stack.post_job(&json!({"input": {"kind": "mesh", "artifact": sha}}), None).await?;
     assert_eq!(status, 201, "{job}");
@@ -215,7 +215,7 @@ async fn a_stage_without_its_service_fails_the_job_clearly() -> anyhow::Result<(
     assert_eq!(job["status"], "failed");
     assert_eq!(job["error"]["code"], "stage_not_available");
     assert_eq!(job["error"]["stage"], "scan");
-    assert!(job["error"]["message"].as_str().unwrap_or_default().contains("stage not available"), "{job}");
+    assert!(job["error"]["message"].as_str().unwrap_or_default().contains("scanning"), "{job}");
     assert_eq!(outcomes(&job), ["scan:failed"], "no retries for a missing stage");
     assert!(job["artifacts"].get("point_cloud").is_none(), "no fake results");
     stack.shutdown().await

@@ -8,6 +8,7 @@ mod plan;
 mod reconstruct;
 mod recovery;
 mod rs274;
+mod scan;
 
 use serde_json::{Value, json};
 

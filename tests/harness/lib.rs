@@ -42,11 +42,14 @@ pub struct StackOptions {
     pub max_upload_bytes: u64,
     pub max_attempts: u32,
     pub stage_deadline_s: f64,
+    /// Run the scanning service (without it, the orchestrator has no scanning endpoint).
+    pub scanning: bool,
 }
 
 impl Default for StackOptions {
     fn default() -> Self {
         Self {
+            scanning: true,
             machine: MachineBackend::Real,
             max_upload_bytes: 1 << 20,
             max_attempts: 4,
@@ -116,7 +119,9 @@ impl TestStack {
                 services.push(Running { token, handle });
             }};
         }
-        real!(depthmill_scanning, scanning);
+        if opts.scanning {
+            real!(depthmill_scanning, scanning);
+        }
         real!(depthmill_reconstruction, reconstruction);
         real!(depthmill_cam, cam);
         match &opts.machine {

@@ -5,6 +5,7 @@ mod client;
 mod embedded;
 mod machine;
 mod raster;
+mod scan;
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -143,6 +144,17 @@ enum Command {
         #[arg(short, long)]
         output: PathBuf,
     },
+    /// Scan a part's mesh (STL/PLY) on the simulated cell into a point cloud (no server).
+    ///
+    /// Writes OUTPUT (binary PLY: x y z, intensity, pass id, in the mesh's frame) and
+    /// <stem>.report.json (plan, passes, drops, registration error, coverage).
+    Scan {
+        mesh: PathBuf,
+        #[command(flatten)]
+        args: scan::ScanArgs,
+        #[arg(short, long)]
+        output: PathBuf,
+    },
     /// Interpret and validate a program without cutting (no server): blocks, moves, extents,
     /// travel, feeds and speeds, estimated cycle time; errors name the line and column.
     Check {
@@ -228,6 +240,10 @@ fn main() -> anyhow::Result<()> {
             Command::Simulate { program, args, output } => {
                 depthmill_common::telemetry::init_tracing(cli.log_json);
                 tokio::task::block_in_place(|| machine::run_simulate(&program, &args, &output))
+            }
+            Command::Scan { mesh, args, output } => {
+                depthmill_common::telemetry::init_tracing(cli.log_json);
+                scan::run(&mesh, &args, &output).await
             }
             Command::Raster { input, args, output } => {
                 depthmill_common::telemetry::init_tracing(cli.log_json);

@@ -10,7 +10,7 @@ use depthmill_proto::scanning::v1 as scan;
 use crate::domain::spec::{
     AdaptiveMode, Dialect, ExecuteParams, FaceSpec, FillMethod, FillParams, Filters, Finishing,
     FinishingStrategy, InputKind, IntensityWindow, JobInput, PlanParams, RadiusFilter, ReconstructParams,
-    Roi, Roughing, RoughingDirection, ScanMode, ScanParams, StatisticalFilter, Stock,
+    Roi, Roughing, RoughingDirection, ScanMode, ScanParams, ScanPassSpec, StatisticalFilter, Stock,
 };
 use crate::domain::{Job, JobSpec, JobStatus, SpecError, Stage};
 use depthmill_proto::types::v1::Vec3;
@@ -32,6 +32,28 @@ pub fn scan_params(p: &ScanParams) -> scan::ScanParams {
         standoff_mm: p.standoff_mm,
         line_rate_hz: p.line_rate_hz,
         adaptive_rescan: p.adaptive_rescan,
+        line_spacing_mm: p.line_spacing_mm,
+        overlap: p.overlap,
+        margin_mm: p.margin_mm,
+        tilt_deg: p.tilt_deg,
+        stop_and_move_rate_hz: p.stop_and_move_rate_hz,
+        latch_latency_s: p.latch_latency_s,
+        latch_jitter_s: p.latch_jitter_s,
+        compensate_latency: p.compensate_latency,
+        rescan_pixel_mm: p.rescan_pixel_mm,
+        rescan_standoff_mm: p.rescan_standoff_mm,
+        seed: p.seed,
+        max_frames: p.max_frames,
+        passes: p
+            .passes
+            .iter()
+            .flatten()
+            .map(|s| scan::ScanPass {
+                table_deg: s.table_deg,
+                start_mm: Some(vec3(s.start_mm)),
+                end_mm: Some(vec3(s.end_mm)),
+            })
+            .collect(),
     }
 }
 
@@ -230,6 +252,10 @@ pub fn job(j: &Job) -> pb::Job {
             rms_deviation_mm: j.metrics.rms_deviation_mm,
             cycle_time_s: j.metrics.cycle_time_s,
             cycle_time_no_adaptive_s: j.metrics.cycle_time_no_adaptive_s,
+            scan_points: j.metrics.scan_points,
+            scan_time_s: j.metrics.scan_time_s,
+            scan_coverage_pct: j.metrics.scan_coverage_pct,
+            scan_registration_rms_mm: j.metrics.scan_registration_rms_mm,
         }),
         spec: Some(job_spec(&j.spec)),
         created_at_ms: j.created_at_ms,
@@ -291,6 +317,41 @@ pub fn job_spec_from_pb(s: pb::JobSpec) -> Result<JobSpec, SpecError> {
                 standoff_mm: p.standoff_mm,
                 line_rate_hz: p.line_rate_hz,
                 adaptive_rescan: p.adaptive_rescan,
+                line_spacing_mm: p.line_spacing_mm,
+                overlap: p.overlap,
+                margin_mm: p.margin_mm,
+                tilt_deg: p.tilt_deg,
+                stop_and_move_rate_hz: p.stop_and_move_rate_hz,
+                latch_latency_s: p.latch_latency_s,
+                latch_jitter_s: p.latch_jitter_s,
+                compensate_latency: p.compensate_latency,
+                rescan_pixel_mm: p.rescan_pixel_mm,
+                rescan_standoff_mm: p.rescan_standoff_mm,
+                seed: p.seed,
+                max_frames: p.max_frames,
+                passes: if p.passes.is_empty() {
+                    None
+                } else {
+                    Some(
+                        p.passes
+                            .into_iter()
+                            .enumerate()
+                            .map(|(i, s)| {
+                                let v = |x: Option<Vec3>, name: &str| {
+                                    x.map(|v| [v.x, v.y, v.z]).ok_or_else(|| SpecError {
+                                        field: format!("scan.passes[{i}].{name}"),
+                                        message: "required".into(),
+                                    })
+                                };
+                                Ok(ScanPassSpec {
+                                    table_deg: s.table_deg,
+                                    start_mm: v(s.start_mm, "start_mm")?,
+                                    end_mm: v(s.end_mm, "end_mm")?,
+                                })
+                            })
+                            .collect::<Result<Vec<_>, SpecError>>()?,
+                    )
+                },
             })
         })
         .transpose()?;

@@ -247,7 +247,12 @@ impl StageRunner for GrpcStages {
                     })
                     .await?;
                     put(&mut out, "point_cloud", r.point_cloud);
-                    out.metrics.insert("points".into(), r.points as f64);
+                    put(&mut out, "scan_report", r.report);
+                    out.metrics.insert("scan_points".into(), r.points as f64);
+                    out.metrics.insert("scan_frames".into(), r.frames as f64);
+                    out.metrics.insert("scan_time_s".into(), r.scan_time_s);
+                    out.metrics.insert("scan_coverage_pct".into(), r.coverage_pct);
+                    out.metrics.insert("scan_registration_rms_mm".into(), r.registration_rms_mm);
                 }
                 Stage::Reconstruct => {
                     let input = need(call, "point_cloud").or_else(|_| need(call, "mesh"))?;

@@ -1,41 +1,295 @@
-//! tonic adapter of the scanning service.
+//! tonic adapter of the scanning service: `ScanPart` (mesh artifact -> registered PLY cloud and a
+//! JSON report, progress streamed), `PlanScan`, `CancelStage`; the device services are in
+//! [`crate::grpc_devices`].
 
+use std::io::BufReader;
 use std::pin::Pin;
+use std::sync::Arc;
 
+use depthmill_common::artifacts::{ArtifactStore, LocalStore};
 use depthmill_common::stage::StageRegistry;
 use depthmill_proto::ErrorCode;
 use depthmill_proto::scanning::v1 as pb;
-use depthmill_proto::types::v1::{CancelStageRequest, CancelStageResponse};
+use depthmill_proto::types::v1::{CancelStageRequest, CancelStageResponse, Diagnostic, Progress};
+use depthmill_reconstruction::domain::io::{Geometry, PlyEncoding, ReadLimits, read_any_from, write_ply};
+use depthmill_reconstruction::domain::mesh::Mesh;
+use tokio::sync::mpsc;
 use tonic::{Request, Response, Status};
+
+use crate::devices::table::TableClient;
+use crate::domain::scan::{CellLayout, PassSpec, ScanError, ScanMode, ScanOptions, ScanSession};
 
 pub(crate) const SERVICE_NAME: &str = "depthmill.scanning.v1.ScanningService";
 
-#[derive(Default)]
-struct ScanningServiceImpl {
-    running: StageRegistry,
+/// What the scanning service needs to run scans.
+pub(crate) struct Cell {
+    pub store: Arc<LocalStore>,
+    pub limits: ReadLimits,
+    /// Where the rotary table's controller listens.
+    pub table_addr: String,
+    pub layout: CellLayout,
+    /// One scan at a time: the cell is one set of devices.
+    pub busy: tokio::sync::Mutex<()>,
 }
 
-pub(crate) fn routes() -> tonic::service::Routes {
+struct ScanningServiceImpl {
+    running: StageRegistry,
+    cell: Arc<Cell>,
+}
+
+pub(crate) fn routes(cell: Arc<Cell>) -> tonic::service::Routes {
     tonic::service::Routes::new(pb::scanning_service_server::ScanningServiceServer::new(
-        ScanningServiceImpl::default(),
+        ScanningServiceImpl { running: StageRegistry::default(), cell },
     ))
 }
 
+impl From<ScanError> for Status {
+    fn from(e: ScanError) -> Self {
+        let code = match &e {
+            ScanError::Cancelled => ErrorCode::Cancelled,
+            ScanError::Table(_) => ErrorCode::Unavailable,
+            ScanError::Robot(_) | ScanError::Latch(_) | ScanError::Coverage(_) => ErrorCode::Internal,
+            _ => ErrorCode::InvalidArgument,
+        };
+        code.status(e.to_string())
+    }
+}
+
+/// Wire parameters -> the job's `scan` options (defaults for unset fields), checked.
+pub(crate) fn options(p: pb::ScanParams) -> Result<ScanOptions, Status> {
+    let d = ScanOptions::default();
+    let mode = match pb::ScanMode::try_from(p.mode) {
+        Ok(pb::ScanMode::Unspecified) => d.mode,
+        Ok(pb::ScanMode::Dynamic) => ScanMode::Dynamic,
+        Ok(pb::ScanMode::StopAndMove) => ScanMode::StopAndMove,
+        Err(_) => {
+            return Err(ErrorCode::InvalidArgument.status(format!("scan.mode: unknown value {}", p.mode)));
+        }
+    };
+    let passes = if p.passes.is_empty() {
+        None
+    } else {
+        let v = |x: Option<depthmill_proto::types::v1::Vec3>, i: usize, name: &str| {
+            x.map(|v| [v.x, v.y, v.z]).ok_or_else(|| {
+                ErrorCode::InvalidArgument.status(format!("scan.passes[{i}].{name}: required"))
+            })
+        };
+        Some(
+            p.passes
+                .into_iter()
+                .enumerate()
+                .map(|(i, s)| {
+                    Ok(PassSpec {
+                        table_deg: s.table_deg,
+                        start_mm: v(s.start_mm, i, "start_mm")?,
+                        end_mm: v(s.end_mm, i, "end_mm")?,
+                    })
+                })
+                .collect::<Result<Vec<_>, Status>>()?,
+        )
+    };
+    Ok(ScanOptions {
+        mode,
+        table_angles_deg: if p.table_angles_deg.is_empty() { d.table_angles_deg } else { p.table_angles_deg },
+        standoff_mm: p.standoff_mm.unwrap_or(d.standoff_mm),
+        line_rate_hz: p.line_rate_hz.unwrap_or(d.line_rate_hz),
+        adaptive_rescan: p.adaptive_rescan.unwrap_or(d.adaptive_rescan),
+        line_spacing_mm: p.line_spacing_mm.unwrap_or(d.line_spacing_mm),
+        overlap: p.overlap.unwrap_or(d.overlap),
+        margin_mm: p.margin_mm.unwrap_or(d.margin_mm),
+        tilt_deg: p.tilt_deg.unwrap_or(d.tilt_deg),
+        stop_and_move_rate_hz: p.stop_and_move_rate_hz.unwrap_or(d.stop_and_move_rate_hz),
+        latch_latency_s: p.latch_latency_s.unwrap_or(d.latch_latency_s),
+        latch_jitter_s: p.latch_jitter_s.unwrap_or(d.latch_jitter_s),
+        compensate_latency: p.compensate_latency.unwrap_or(d.compensate_latency),
+        rescan_pixel_mm: p.rescan_pixel_mm.unwrap_or(d.rescan_pixel_mm),
+        rescan_standoff_mm: p.rescan_standoff_mm.or(d.rescan_standoff_mm),
+        seed: p.seed.unwrap_or(d.seed),
+        max_frames: p.max_frames.unwrap_or(d.max_frames),
+        passes,
+        ..d
+    })
+}
+
+/// Reads the mesh artifact (on a blocking thread).
+async fn read_mesh(cell: &Cell, sha: &str) -> Result<Mesh, Status> {
+    let stat = cell
+        .store
+        .stat(sha)
+        .await
+        .map_err(depthmill_common::artifacts::grpc_status)?
+        .ok_or_else(|| ErrorCode::InvalidArgument.status(format!("mesh: no artifact {sha}")))?;
+    let path = cell
+        .store
+        .local_path(sha)
+        .ok_or_else(|| ErrorCode::Internal.status("the artifact store has no local file for the mesh"))?;
+    let name = format!("mesh {} ({})", &sha[..12.min(sha.len())], stat.media_type);
+    let limits = cell.limits.clone();
+    tokio::task::spawn_blocking(move || {
+        let file = std::fs::File::open(&path)
+            .map_err(|e| ErrorCode::Internal.status(format!("{name}: cannot open: {e}")))?;
+        let (geometry, _) =
+            read_any_from(BufReader::with_capacity(1 << 20, file), &name, Some(stat.size), &limits)
+                .map_err(|e| ErrorCode::InvalidArgument.status(e.to_string()))?;
+        match geometry {
+            Geometry::Mesh(m) => Ok(m),
+            Geometry::Cloud(_) => Err(ErrorCode::InvalidArgument.status(format!(
+                "{name}: is a point cloud; the simulated scan needs a mesh (STL or PLY with faces)"
+            ))),
+        }
+    })
+    .await
+    .map_err(|e| Status::internal(format!("reading the mesh failed: {e}")))?
+}
+
 type UpdateStream = Pin<Box<dyn tokio_stream::Stream<Item = Result<pb::ScanPartUpdate, Status>> + Send>>;
+
+fn progress_update(fraction: f64, message: String) -> pb::ScanPartUpdate {
+    pb::ScanPartUpdate {
+        update: Some(pb::scan_part_update::Update::Progress(Progress { fraction, message })),
+    }
+}
+
+/// Encodes the cloud as the PLY reconstruction reads (binary, intensity, pass id).
+pub fn encode_cloud(out: &crate::domain::scan::ScanOutput) -> Result<Vec<u8>, ScanError> {
+    let mut bytes = Vec::with_capacity(out.cloud.points.len() * 18 + 1024);
+    let comments = vec![
+        format!("scan mode {:?}", out.report.mode).to_lowercase(),
+        format!(
+            "frames {} passes {}",
+            out.report.frames,
+            out.report.stations.iter().map(|s| s.passes.len()).sum::<usize>()
+        ),
+        "frame part (the mesh's coordinates)".to_string(),
+    ];
+    write_ply(&mut bytes, &out.cloud, Some(&out.pass), PlyEncoding::BinaryLittleEndian, &comments)
+        .map_err(|e| ScanError::Mesh(format!("writing the cloud failed: {e}")))?;
+    Ok(bytes)
+}
 
 #[tonic::async_trait]
 impl pb::scanning_service_server::ScanningService for ScanningServiceImpl {
     type ScanPartStream = UpdateStream;
 
+    #[tracing::instrument(skip_all, fields(job_id))]
     async fn scan_part(
         &self,
         request: Request<pb::ScanPartRequest>,
     ) -> Result<Response<Self::ScanPartStream>, Status> {
-        let job_id = request.get_ref().context.as_ref().map(|c| c.job_id.clone()).unwrap_or_default();
-        tracing::warn!(%job_id, "scanning stage requested but not available");
-        Err(ErrorCode::StageNotAvailable.status(
-            "stage not available: the scanning service does not implement ScanPart yet (see issue #6)",
-        ))
+        let req = request.into_inner();
+        let job_id = req.context.as_ref().map(|c| c.job_id.clone()).unwrap_or_default();
+        tracing::Span::current().record("job_id", job_id.as_str());
+        let mesh_ref =
+            req.mesh.ok_or_else(|| ErrorCode::InvalidArgument.status("mesh: an artifact is required"))?;
+        let opts = options(req.params.unwrap_or_default())?;
+        opts.validate(&crate::domain::scanner::ScannerSpec {
+            line_rate_hz: opts.line_rate_hz,
+            ..Default::default()
+        })?;
+        let mesh = read_mesh(&self.cell, &mesh_ref.sha256).await?;
+        let guard = self.running.start(&job_id);
+        let (tx, rx) = mpsc::channel(64);
+        let cell = self.cell.clone();
+        tokio::spawn(async move {
+            let token = guard.token().clone();
+            let ptx = tx.clone();
+            let progress: crate::session::Progress = Arc::new(move |f, m| {
+                let _ = ptx.try_send(Ok(progress_update(f.clamp(0.0, 1.0) * 0.95, m)));
+            });
+            progress(0.0, "waiting for the cell".into());
+            let result = async {
+                let _cell_lock = tokio::select! {
+                    g = cell.busy.lock() => g,
+                    () = token.cancelled() => return Err(Status::from(ScanError::Cancelled)),
+                };
+                let mut table = TableClient::connect(cell.table_addr.as_str())
+                    .await
+                    .map_err(|e| Status::from(ScanError::Table(format!("connecting to {}: {e}", cell.table_addr))))?;
+                let out = crate::session::run_scan(mesh, opts, cell.layout, &mut table, progress.clone(), token.clone())
+                    .await?;
+                progress(0.97, format!("writing {} points", out.cloud.points.len()));
+                let (out, ply) = tokio::task::spawn_blocking(move || {
+                    let ply = encode_cloud(&out);
+                    (out, ply)
+                })
+                .await
+                .map_err(|e| Status::internal(format!("encoding the cloud failed: {e}")))?;
+                let ply = ply?;
+                let cloud_ref = cell
+                    .store
+                    .put_bytes("application/x-ply", &ply)
+                    .await
+                    .map_err(depthmill_common::artifacts::grpc_status)?;
+                let report_json = serde_json::to_vec_pretty(&out.report)
+                    .map_err(|e| Status::internal(format!("encoding the report failed: {e}")))?;
+                let report_ref = cell
+                    .store
+                    .put_bytes("application/json", &report_json)
+                    .await
+                    .map_err(depthmill_common::artifacts::grpc_status)?;
+                let r = &out.report;
+                let coverage = r.coverage_after_rescan.or(r.coverage_before_rescan).map_or(0.0, |c| c.covered_pct);
+                let mut diagnostics: Vec<Diagnostic> = r
+                    .diagnostics
+                    .iter()
+                    .map(|m| Diagnostic { code: "scan".into(), message: m.clone() })
+                    .collect();
+                diagnostics.push(Diagnostic {
+                    code: "dropped_rays".into(),
+                    message: format!(
+                        "rays without a point: {} out of the window, {} beyond the incidence limit, {} occluded, {} missing the part",
+                        r.dropped.out_of_window, r.dropped.incidence, r.dropped.occluded, r.dropped.miss
+                    ),
+                });
+                tracing::info!(points = r.points, frames = r.frames, scan_time_s = r.scan_time_s, "scan done");
+                Ok(pb::ScanPartResult {
+                    point_cloud: Some(cloud_ref.into()),
+                    points: r.points,
+                    frames: r.frames,
+                    scan_time_s: r.scan_time_s,
+                    diagnostics,
+                    report: Some(report_ref.into()),
+                    coverage_pct: coverage,
+                    registration_rms_mm: r.registration_rms_mm,
+                })
+            }
+            .await;
+            let msg =
+                result.map(|r| pb::ScanPartUpdate { update: Some(pb::scan_part_update::Update::Result(r)) });
+            if let Err(s) = &msg {
+                tracing::info!(error = %s.message(), "scan failed");
+            }
+            let _ = tx.send(msg).await;
+            drop(guard);
+        });
+        Ok(Response::new(Box::pin(tokio_stream::wrappers::ReceiverStream::new(rx))))
+    }
+
+    async fn plan_scan(
+        &self,
+        request: Request<pb::ScanPartRequest>,
+    ) -> Result<Response<pb::ScanPlanResponse>, Status> {
+        let req = request.into_inner();
+        let mesh_ref =
+            req.mesh.ok_or_else(|| ErrorCode::InvalidArgument.status("mesh: an artifact is required"))?;
+        let opts = options(req.params.unwrap_or_default())?;
+        let mesh = read_mesh(&self.cell, &mesh_ref.sha256).await?;
+        let layout = self.cell.layout;
+        let (plan, frames) = tokio::task::spawn_blocking(move || {
+            let mut s = ScanSession::new(&mesh, opts, layout)?;
+            let plan = s.plan()?;
+            let frames = plan.estimated_frames(s.options());
+            Ok::<_, ScanError>((plan, frames))
+        })
+        .await
+        .map_err(|e| Status::internal(format!("planning failed: {e}")))??;
+        Ok(Response::new(pb::ScanPlanResponse {
+            stations: plan.stations.len() as u32,
+            passes: plan.passes() as u32,
+            length_mm: plan.length_mm(),
+            estimated_frames: frames,
+            plan_json: serde_json::to_string(&plan).unwrap_or_default(),
+        }))
     }
 
     async fn cancel_stage(

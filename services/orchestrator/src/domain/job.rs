@@ -134,6 +134,18 @@ pub struct JobMetrics {
     pub cycle_time_s: Option<f64>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub cycle_time_no_adaptive_s: Option<f64>,
+    /// Points of the scanned cloud.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub scan_points: Option<f64>,
+    /// Simulated duration of the scan (table moves excluded), s.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub scan_time_s: Option<f64>,
+    /// Footprint coverage of the scan at the rescan pixel, %.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub scan_coverage_pct: Option<f64>,
+    /// RMS distance between where scanned points were placed and where they truly are, mm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub scan_registration_rms_mm: Option<f64>,
 }
 
 impl JobMetrics {
@@ -147,6 +159,10 @@ impl JobMetrics {
                 "rms_deviation_mm" => &mut self.rms_deviation_mm,
                 "cycle_time_s" => &mut self.cycle_time_s,
                 "cycle_time_no_adaptive_s" => &mut self.cycle_time_no_adaptive_s,
+                "scan_points" => &mut self.scan_points,
+                "scan_time_s" => &mut self.scan_time_s,
+                "scan_coverage_pct" => &mut self.scan_coverage_pct,
+                "scan_registration_rms_mm" => &mut self.scan_registration_rms_mm,
                 _ => continue,
             };
             *slot = Some(*v);

@@ -92,8 +92,9 @@ impl InputKind {
     }
 }
 
-/// Scan stage parameters. Defaults: dynamic mode, table angles 0/90/180/270, standoff 150 mm,
-/// 100 lines/s, no adaptive rescan.
+/// Scan stage parameters (the scanning library's `ScanOptions`; README "Scan options"). Defaults:
+/// dynamic mode, table angles 0/90/180/270, standoff 150 mm, 100 lines/s, 0.25 mm between lines,
+/// 30 % pass overlap, latch latency compensated, no adaptive rescan.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct ScanParams {
@@ -107,6 +108,42 @@ pub struct ScanParams {
     pub line_rate_hz: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub adaptive_rescan: Option<bool>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub line_spacing_mm: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub overlap: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub margin_mm: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tilt_deg: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stop_and_move_rate_hz: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub latch_latency_s: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub latch_jitter_s: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub compensate_latency: Option<bool>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rescan_pixel_mm: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rescan_standoff_mm: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub seed: Option<u64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_frames: Option<u64>,
+    /// Given passes instead of the automatic plan.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub passes: Option<Vec<ScanPassSpec>>,
+}
+
+/// A straight sensor path in the part frame at one table angle.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct ScanPassSpec {
+    pub table_deg: f64,
+    pub start_mm: [f64; 3],
+    pub end_mm: [f64; 3],
 }
 
 /// How the robot and table move while scanning.
@@ -476,21 +513,29 @@ impl JobSpec {
             return Err(err("input.z_max_mm", format!("must be above z_min_mm ({lo}), got {hi}")));
         }
         if let Some(scan) = &self.scan {
-            positive("scan.standoff_mm", scan.standoff_mm, 10_000.0)?;
-            positive("scan.line_rate_hz", scan.line_rate_hz, 100_000.0)?;
-            if let Some(angles) = &scan.table_angles_deg {
-                if angles.is_empty() || angles.len() > 360 {
-                    return Err(err(
-                        "scan.table_angles_deg",
-                        format!("needs 1 to 360 angles, got {}", angles.len()),
-                    ));
-                }
-                if let Some((i, a)) = angles.iter().enumerate().find(|(_, a)| !a.is_finite()) {
-                    return Err(err(
-                        &format!("scan.table_angles_deg[{i}]"),
-                        format!("must be finite, got {a}"),
-                    ));
-                }
+            // The scanning library's own checks, so a bad value fails here, not mid-job.
+            let text = serde_json::to_string(scan).map_err(|e| err("scan", e.to_string()))?;
+            let opts = depthmill_scanning::domain::scan::ScanOptions::from_json(&text).and_then(|o| {
+                let spec = depthmill_scanning::domain::scanner::ScannerSpec {
+                    line_rate_hz: o.line_rate_hz,
+                    ..Default::default()
+                };
+                o.validate(&spec).map(|()| o)
+            });
+            if let Err(e) = opts {
+                return Err(match e {
+                    depthmill_scanning::domain::scan::ScanError::InvalidOption { field, value, reason } => {
+                        SpecError {
+                            field,
+                            message: if value.is_empty() {
+                                reason
+                            } else {
+                                format!("{reason} (got {value})")
+                            },
+                        }
+                    }
+                    other => err("scan", other.to_string()),
+                });
             }
         }
         if let Some(rec) = &self.reconstruct {

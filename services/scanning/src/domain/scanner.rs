@@ -609,15 +609,29 @@ impl Scanner {
         self.apex
     }
 
-    fn gauss(&mut self) -> f64 {
-        // Box–Muller; u1 in (0, 1] keeps the log finite.
-        let u1: f64 = 1.0 - self.rng.random::<f64>();
-        let u2: f64 = self.rng.random::<f64>();
-        (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+    /// Acquire one line with the sensor at `world_from_sensor`; frame number `frame`. The noise
+    /// comes from the scanner's own generator (seeded at construction), so successive calls draw
+    /// successive noise.
+    pub fn profile(&mut self, world_from_sensor: &Isometry3<f64>, frame: u64) -> Profile {
+        let mut rng = std::mem::replace(&mut self.rng, StdRng::seed_from_u64(0));
+        let out = self.acquire(world_from_sensor, frame, &mut rng);
+        self.rng = rng;
+        out
     }
 
-    /// Acquire one line with the sensor at `world_from_sensor`; frame number `frame`.
-    pub fn profile(&mut self, world_from_sensor: &Isometry3<f64>, frame: u64) -> Profile {
+    /// Like [`Scanner::profile`] with the noise drawn from a generator seeded by `(seed, frame)`:
+    /// takes `&self`, so frames can be acquired in parallel and in any order, each replaying the
+    /// same noise for the same seed and frame.
+    pub fn profile_seeded(&self, world_from_sensor: &Isometry3<f64>, frame: u64, seed: u64) -> Profile {
+        // SplitMix64-style mixing so neighbouring frames get unrelated streams.
+        let mut z = seed ^ frame.wrapping_mul(0x9E37_79B9_7F4A_7C15);
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        let mut rng = StdRng::seed_from_u64(z ^ (z >> 31));
+        self.acquire(world_from_sensor, frame, &mut rng)
+    }
+
+    fn acquire(&self, world_from_sensor: &Isometry3<f64>, frame: u64, rng: &mut StdRng) -> Profile {
         let n = self.dirs.len();
         let mut out = Profile {
             frame,
@@ -654,16 +668,23 @@ impl Scanner {
                 out.dropped.occluded += 1;
                 continue;
             }
-            let t = hit.t + self.spec.noise_sigma_mm * self.gauss();
+            let t = hit.t + self.spec.noise_sigma_mm * gauss(rng);
             let r = z / self.spec.intensity_ref_mm;
             let i0 = self.spec.intensity_gain * cos_inc / (r * r);
-            let inten = (i0 + self.spec.intensity_noise * self.gauss()).clamp(0.0, 1.0);
+            let inten = (i0 + self.spec.intensity_noise * gauss(rng)).clamp(0.0, 1.0);
             out.points.push(self.apex + d * t);
             out.intensity.push(inten as f32);
             out.column.push(i as u32);
         }
         out
     }
+}
+
+/// A standard normal deviate (Box–Muller; u1 in (0, 1] keeps the log finite).
+fn gauss(rng: &mut StdRng) -> f64 {
+    let u1: f64 = 1.0 - rng.random::<f64>();
+    let u2: f64 = rng.random::<f64>();
+    (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
 }
 
 #[cfg(test)]

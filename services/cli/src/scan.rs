@@ -1,0 +1,121 @@
+//! `depthmill scan`: a mesh scanned on the simulated cell into a point cloud, on local files.
+//!
+//! The cell is the scanning service's: the arm, latch and scanner simulated in-process, the rotary
+//! table a simulated controller on a loopback socket driven over its ASCII protocol, exactly as
+//! the service does.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use anyhow::{Context as _, bail};
+use depthmill_reconstruction::domain::io::{ReadLimits, read_mesh};
+use depthmill_scanning::devices::table::{SimulatedTable, TableClient};
+use depthmill_scanning::domain::scan::{CellLayout, ScanOptions};
+use depthmill_scanning::domain::table::TableConfig;
+
+/// Options of `depthmill scan` besides the input and output.
+#[derive(clap::Args, Debug)]
+pub struct ScanArgs {
+    /// The job's `scan` object as a JSON file (mode, table_angles_deg, standoff_mm, line_rate_hz,
+    /// adaptive_rescan, line_spacing_mm, ...; README "Scan options").
+    #[arg(long)]
+    pub options: Option<PathBuf>,
+    /// Also write the scan report (JSON) here (default: <output stem>.report.json).
+    #[arg(long)]
+    pub report: Option<PathBuf>,
+}
+
+/// Reads the options file; errors name the file and the field.
+pub fn load_options(path: Option<&Path>) -> anyhow::Result<ScanOptions> {
+    let Some(path) = path else {
+        return Ok(ScanOptions::default());
+    };
+    let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    ScanOptions::from_json(&text).with_context(|| format!("{}", path.display()))
+}
+
+pub async fn run(input: &Path, args: &ScanArgs, output: &Path) -> anyhow::Result<()> {
+    let opts = load_options(args.options.as_deref())?;
+    if output.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase).as_deref() != Some("ply") {
+        bail!("{}: the scan is written as PLY; give an output ending in .ply", output.display());
+    }
+    let path = input.to_path_buf();
+    let (mesh, _) = tokio::task::spawn_blocking(move || read_mesh(&path, &ReadLimits::default()))
+        .await
+        .context("reading the mesh")??;
+    // The table's controller on a loopback socket, driven over its protocol.
+    let listener =
+        tokio::net::TcpListener::bind(("127.0.0.1", 0)).await.context("binding the table's socket")?;
+    let addr = listener.local_addr()?;
+    let stop = tokio_util::sync::CancellationToken::new();
+    let sim = SimulatedTable::new(TableConfig::default()).map_err(|e| anyhow::anyhow!("{e}"))?;
+    let server = tokio::spawn(sim.serve(listener, stop.clone().cancelled_owned()));
+    let mut table = TableClient::connect(addr).await.context("connecting to the table")?;
+    let bar = indicatif::ProgressBar::new(1000);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template("{elapsed_precise} [{bar:30}] {percent:>3}% {msg}")
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+    );
+    let b = bar.clone();
+    let progress: depthmill_scanning::session::Progress = Arc::new(move |f, m| {
+        b.set_position((f * 1000.0) as u64);
+        b.set_message(m);
+    });
+    let started = std::time::Instant::now();
+    let result = depthmill_scanning::session::run_scan(
+        mesh,
+        opts,
+        CellLayout::default(),
+        &mut table,
+        progress,
+        tokio_util::sync::CancellationToken::new(),
+    )
+    .await;
+    bar.finish_and_clear();
+    drop(table);
+    stop.cancel();
+    let _ = server.await;
+    let out = result.with_context(|| format!("scanning {}", input.display()))?;
+    let (out, bytes) = tokio::task::spawn_blocking(move || {
+        let b = depthmill_scanning::encode_cloud(&out);
+        (out, b)
+    })
+    .await?;
+    let bytes = bytes?;
+    std::fs::write(output, &bytes).with_context(|| format!("writing {}", output.display()))?;
+    let report_path = args.report.clone().unwrap_or_else(|| output.with_extension("report.json"));
+    std::fs::write(&report_path, serde_json::to_vec_pretty(&out.report)?)
+        .with_context(|| format!("writing {}", report_path.display()))?;
+    let r = &out.report;
+    println!(
+        "{}: {} points from {} frames in {} passes at {} table angles; simulated scan time {:.1} s, wall {:.1} s",
+        output.display(),
+        r.points,
+        r.frames,
+        r.stations.iter().map(|s| s.passes.len()).sum::<usize>(),
+        r.stations.len(),
+        r.scan_time_s,
+        started.elapsed().as_secs_f64()
+    );
+    println!(
+        "registration error RMS {:.4} mm (max {:.4}); dropped rays: {} out of window, {} incidence, {} occluded, {} missed",
+        r.registration_rms_mm,
+        r.registration_max_mm,
+        r.dropped.out_of_window,
+        r.dropped.incidence,
+        r.dropped.occluded,
+        r.dropped.miss
+    );
+    if let Some(b) = r.coverage_before_rescan {
+        print!("coverage {:.2} % ({} holes)", b.covered_pct, b.holes);
+        if let Some(a) = r.coverage_after_rescan {
+            print!(" -> after rescan {:.2} % ({} holes)", a.covered_pct, a.holes);
+        }
+        println!();
+    }
+    for d in &r.diagnostics {
+        println!("note: {d}");
+    }
+    println!("report: {}", report_path.display());
+    Ok(())
+}

@@ -1,0 +1,823 @@
+//! Scan execution: the simulated cell scanning a part into a registered point cloud.
+//!
+//! # The cell
+//! World frame = the robot's base frame (Z up, millimetres). The rotary table's axis is vertical
+//! at [`CellLayout::table_axis_x_mm`] (500 mm from the robot's Z axis, DESIGN §6), its top at
+//! [`CellLayout::table_top_z_mm`]. The part is the mesh, in its own frame (the *part frame*, where
+//! the output cloud is written): it stands on the table with its bounding box centred on the axis
+//! and its lowest point on the top ([`PartPlacement`]). At table angle θ,
+//! `world_from_part(θ) = T(axis, top) · Rz(θ) · T(−centre, −z_min)`.
+//!
+//! # A scan
+//! A [`plan::ScanPlan`] is a list of stations (one table angle each) of straight passes of the
+//! sensor at the standoff above the part's top, looking down. The caller brings the table to each
+//! station's angle (over the table's protocol, see `crate::session`), reads its encoder and hands
+//! the measured angle to [`ScanSession::run_station`], which for every pass:
+//! - **dynamic**: moves the arm to the pass start, then along the pass in one synchronised joint
+//!   move timed so the sensor travels `line_rate_hz · line_spacing_mm` per second. At every frame
+//!   (the scanner's sync pulse, `1 / line_rate_hz` apart) the encoder latch stores the robot's
+//!   pose and the table angle, late by the latch's latency and jitter; the latched pose is
+//!   corrected for the nominal latency when `compensate_latency` is set, by interpolating between
+//!   neighbouring latches;
+//! - **stop-and-move**: moves the arm (IK, nearest solution) to equally spaced poses on the straight
+//!   pass, waits for it to settle, reads its position (ReadPosition) and takes one frame, at most
+//!   `stop_and_move_rate_hz` frames per second.
+//!
+//! Each frame's profile is ray cast with the sensor's *true* pose (the physics) and placed into
+//! the part frame with the *measured* pose (latched or read) and the measured table angle, the way
+//! the real cell registers its data; the difference is reported as the registration error. Frames
+//! of a pass are acquired in parallel (rayon), each with noise seeded by `(seed, frame)`, so a scan
+//! is reproducible whatever the thread count.
+//!
+//! # Adaptive rescan
+//! [`ScanSession::holes`] rasterises the cloud so far with reconstruction's own raster and
+//! coverage code at `rescan_pixel_mm` and lists the enclosed holes (unmeasured cells of the
+//! footprint). [`ScanSession::rescan_plan`] aims short passes at them from table angles halfway
+//! between the first ones and from farther away (a smaller triangulation angle sees deeper).
+
+pub mod options;
+pub mod plan;
+
+use depthmill_geometry::{HeightMap, PointCloud, XyzYpr};
+use depthmill_reconstruction::domain::mesh::Mesh;
+use depthmill_reconstruction::domain::raster::{
+    COVERAGE_HOLE, Roi, coverage, grid_for_roi, try_rasterize_max,
+};
+use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
+use rayon::prelude::*;
+use serde::Serialize;
+
+pub use options::{PassSpec, ScanMode, ScanOptions};
+pub use plan::{Pass, ScanPlan, Station, plan_scan};
+
+use super::latch::{EncoderLatch, LatchConfig, LatchError, PositionSource};
+use super::robot::controller::{MotionController, RobotError};
+use super::robot::kinematics::ArmModel;
+use super::scanner::{DropCounts, Scanner, ScannerError, ScannerSpec};
+
+/// Arm speed (fraction of the joints' top speeds) between passes.
+const APPROACH_SPEED: f64 = 0.5;
+/// Arm speed of the short stop-and-move steps.
+const STEP_SPEED: f64 = 0.3;
+/// Wait after the arm arrives before a pass or a stop-and-move frame, s.
+const SETTLE_S: f64 = 0.05;
+
+/// Why a scan cannot be planned or run.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ScanError {
+    #[error("invalid {field} = {value}: {reason}")]
+    InvalidOption { field: String, value: String, reason: String },
+    #[error("pass {pass} at table angle {table_deg}°: the robot cannot reach the {reason}")]
+    Unreachable { pass: u16, table_deg: f64, reason: String },
+    #[error("the part mesh: {0}")]
+    Mesh(String),
+    #[error("the part is {size_mm:.1} mm across, more than the table's {limit_mm:.1} mm disc")]
+    PartTooLarge { size_mm: f64, limit_mm: f64 },
+    #[error(
+        "the scan would take about {frames} frames, more than scan.max_frames = {max}; raise line_spacing_mm or max_frames"
+    )]
+    TooManyFrames { frames: u64, max: u64 },
+    #[error("scanner: {0}")]
+    Scanner(#[from] ScannerError),
+    #[error("robot controller: {0}")]
+    Robot(#[from] RobotError),
+    #[error("encoder latch: {0}")]
+    Latch(#[from] LatchError),
+    #[error("rotary table: {0}")]
+    Table(String),
+    #[error("coverage map: {0}")]
+    Coverage(String),
+    #[error("the scan was cancelled")]
+    Cancelled,
+}
+
+/// Where the table stands relative to the robot.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct CellLayout {
+    /// X of the table's axis in the robot's base frame, mm.
+    pub table_axis_x_mm: f64,
+    /// Y of the table's axis, mm.
+    pub table_axis_y_mm: f64,
+    /// Height of the table top in the robot's base frame, mm.
+    pub table_top_z_mm: f64,
+    /// Radius of the table disc, mm.
+    pub table_radius_mm: f64,
+}
+
+impl Default for CellLayout {
+    /// Axis 500 mm from the robot's Z axis, a 400 mm disc (DESIGN §6), top 100 mm below the robot's
+    /// base (an assumption: the arm stands on a pedestal beside the table).
+    fn default() -> Self {
+        Self { table_axis_x_mm: 500.0, table_axis_y_mm: 0.0, table_top_z_mm: -100.0, table_radius_mm: 200.0 }
+    }
+}
+
+impl CellLayout {
+    /// `world_from_table` at table angle `deg` (counter-clockwise seen from above).
+    pub fn world_from_table(&self, deg: f64) -> Isometry3<f64> {
+        Isometry3::from_parts(
+            Translation3::new(self.table_axis_x_mm, self.table_axis_y_mm, self.table_top_z_mm),
+            UnitQuaternion::from_axis_angle(&Vector3::z_axis(), deg.to_radians()),
+        )
+    }
+}
+
+/// The part on the table: its bounds (part frame) and `table_from_part`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PartPlacement {
+    pub min: Point3<f64>,
+    pub max: Point3<f64>,
+    pub table_from_part: Isometry3<f64>,
+}
+
+impl PartPlacement {
+    /// Centred on the axis, lowest point on the top; refuses an empty mesh, non-finite vertices
+    /// and a part wider than the disc.
+    pub fn on_table(mesh: &Mesh, layout: &CellLayout) -> Result<Self, ScanError> {
+        if mesh.triangles.is_empty() {
+            return Err(ScanError::Mesh("the mesh has no triangles".into()));
+        }
+        let mut min = Point3::from(Vector3::repeat(f64::INFINITY));
+        let mut max = Point3::from(Vector3::repeat(f64::NEG_INFINITY));
+        for v in &mesh.vertices {
+            if !(v.x.is_finite() && v.y.is_finite() && v.z.is_finite()) {
+                return Err(ScanError::Mesh(format!("vertex ({}, {}, {}) is not finite", v.x, v.y, v.z)));
+            }
+            min = min.inf(v);
+            max = max.sup(v);
+        }
+        let half = 0.5 * ((max.x - min.x).hypot(max.y - min.y));
+        if half > layout.table_radius_mm {
+            return Err(ScanError::PartTooLarge {
+                size_mm: 2.0 * half,
+                limit_mm: 2.0 * layout.table_radius_mm,
+            });
+        }
+        let table_from_part = Isometry3::translation(-0.5 * (min.x + max.x), -0.5 * (min.y + max.y), -min.z);
+        Ok(Self { min, max, table_from_part })
+    }
+
+    /// `world_from_part` at table angle `deg`.
+    pub fn world_from_part(&self, layout: &CellLayout, deg: f64) -> Isometry3<f64> {
+        layout.world_from_table(deg) * self.table_from_part
+    }
+
+    /// Part height, mm.
+    pub fn height_mm(&self) -> f64 {
+        self.max.z - self.min.z
+    }
+
+    /// World bounds of the part's bounding box at table angle `deg`.
+    pub fn world_extent(&self, layout: &CellLayout, deg: f64) -> (Point3<f64>, Point3<f64>) {
+        let w = self.world_from_part(layout, deg);
+        let mut lo = Point3::from(Vector3::repeat(f64::INFINITY));
+        let mut hi = Point3::from(Vector3::repeat(f64::NEG_INFINITY));
+        for k in 0..8 {
+            let c = Point3::new(
+                if k & 1 == 0 { self.min.x } else { self.max.x },
+                if k & 2 == 0 { self.min.y } else { self.max.y },
+                if k & 4 == 0 { self.min.z } else { self.max.z },
+            );
+            let p = w * c;
+            lo = lo.inf(&p);
+            hi = hi.sup(&p);
+        }
+        (lo, hi)
+    }
+}
+
+/// Rays dropped over the whole scan, by reason.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
+pub struct DropTotals {
+    pub out_of_window: u64,
+    pub incidence: u64,
+    pub occluded: u64,
+    pub miss: u64,
+}
+
+impl DropTotals {
+    fn add(&mut self, d: &DropCounts) {
+        self.out_of_window += u64::from(d.out_of_window);
+        self.incidence += u64::from(d.incidence);
+        self.occluded += u64::from(d.occluded);
+        self.miss += u64::from(d.miss);
+    }
+}
+
+/// What one station did.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct StationReport {
+    /// Angle asked of the table, degrees.
+    pub table_deg_commanded: f64,
+    /// Angle its encoder reported at rest (used to place the data), degrees.
+    pub table_deg_measured: f64,
+    pub passes: Vec<PassReport>,
+    /// Rescan station (aimed at holes).
+    pub rescan: bool,
+}
+
+/// What one pass did.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct PassReport {
+    pub id: u16,
+    pub length_mm: f64,
+    pub frames: u64,
+    pub points: u64,
+    /// Simulated duration of the pass itself (the arm moving along it), s.
+    pub duration_s: f64,
+    /// Mean sensor speed along the pass, mm/s.
+    pub speed_mm_s: f64,
+    pub path_deviation_mm: f64,
+    pub min_dexterity: f64,
+}
+
+/// Coverage of the footprint by the cloud so far.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct CoverageSummary {
+    pub pixel_mm: f64,
+    /// Measured footprint cells / footprint cells, %.
+    pub covered_pct: f64,
+    pub footprint_cells: usize,
+    /// Enclosed holes (8-connected components of unmeasured footprint cells).
+    pub holes: usize,
+    /// Their total area, mm².
+    pub hole_area_mm2: f64,
+}
+
+/// One hole a rescan aims at (part frame).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct HoleTarget {
+    pub center_x_mm: f64,
+    pub center_y_mm: f64,
+    /// Larger side of its bounding box, mm.
+    pub extent_mm: f64,
+    pub area_mm2: f64,
+}
+
+/// The scan's report (written next to the cloud as JSON).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ScanReport {
+    pub mode: ScanMode,
+    pub options: ScanOptions,
+    pub layout: CellLayout,
+    pub mesh_triangles: usize,
+    pub stations: Vec<StationReport>,
+    pub frames: u64,
+    pub points: u64,
+    /// Simulated time from the first command to the last frame, table moves excluded, s.
+    pub scan_time_s: f64,
+    /// Rays that gave no point.
+    pub dropped: DropTotals,
+    /// RMS over all points of the distance between where the point was placed (measured poses)
+    /// and where it truly is (true poses): the registration error, noise excluded, mm.
+    pub registration_rms_mm: f64,
+    /// Largest such distance, mm.
+    pub registration_max_mm: f64,
+    /// Coverage after the first scan.
+    pub coverage_before_rescan: Option<CoverageSummary>,
+    /// Coverage after the rescan.
+    pub coverage_after_rescan: Option<CoverageSummary>,
+    /// Holes the rescan aimed at.
+    pub rescan_targets: Vec<HoleTarget>,
+    /// Things worth knowing (skipped rescan passes, slow passes, ...).
+    pub diagnostics: Vec<String>,
+}
+
+/// The scan's result: the registered cloud (part frame, with intensity), the pass id of every
+/// point, and the report.
+#[derive(Debug, Clone)]
+pub struct ScanOutput {
+    pub cloud: PointCloud,
+    pub pass: Vec<u16>,
+    pub report: ScanReport,
+}
+
+/// One frame's timing and poses before acquisition.
+struct FrameRec {
+    frame: u64,
+    pulse_s: f64,
+    /// `world_from_sensor` as it truly was at the pulse.
+    true_pose: Isometry3<f64>,
+    /// `world_from_sensor` as measured.
+    measured_pose: Isometry3<f64>,
+    /// Table angle as measured (degrees).
+    table_deg: f64,
+}
+
+/// The latch's position source during a station: the robot controller and the table at rest.
+struct StationSource<'a> {
+    robot: &'a MotionController,
+    table_deg: f64,
+}
+
+impl PositionSource for StationSource<'_> {
+    fn robot_pose(&mut self, t_s: f64) -> Result<XyzYpr, LatchError> {
+        self.robot.latch(t_s).map_err(|e| LatchError::Source(e.to_string()))
+    }
+
+    fn table_deg(&mut self, _t_s: f64) -> Result<f64, LatchError> {
+        Ok(self.table_deg)
+    }
+}
+
+/// A scan in progress; see the module doc.
+pub struct ScanSession {
+    opts: ScanOptions,
+    layout: CellLayout,
+    placement: PartPlacement,
+    arm: ArmModel,
+    scanner: Scanner,
+    robot: MotionController,
+    latch: EncoderLatch,
+    t_s: f64,
+    next_frame: u64,
+    points: Vec<Point3<f64>>,
+    intensity: Vec<f32>,
+    pass: Vec<u16>,
+    dropped: DropTotals,
+    err_sq: f64,
+    err_max: f64,
+    stations: Vec<StationReport>,
+    diagnostics: Vec<String>,
+    mesh_triangles: usize,
+    coverage_before: Option<CoverageSummary>,
+    coverage_after: Option<CoverageSummary>,
+    rescan_targets: Vec<HoleTarget>,
+    last_pass_id: u16,
+}
+
+impl ScanSession {
+    /// Checks the options, places the part, builds the scanner's ray-casting structure, powers and
+    /// homes the arm and powers the latch.
+    pub fn new(mesh: &Mesh, opts: ScanOptions, layout: CellLayout) -> Result<Self, ScanError> {
+        let spec = ScannerSpec { line_rate_hz: opts.line_rate_hz, ..ScannerSpec::slp400() };
+        opts.validate(&spec)?;
+        let placement = PartPlacement::on_table(mesh, &layout)?;
+        let scanner = Scanner::new(spec, mesh, opts.seed)?;
+        let mut robot = MotionController::viper_s650();
+        robot.initialize(0.0)?;
+        let t_s = robot.home(0.0, APPROACH_SPEED)?;
+        let arm = robot.model().clone();
+        let mut latch = EncoderLatch::new(LatchConfig {
+            latency_s: opts.latch_latency_s,
+            jitter_s: opts.latch_jitter_s,
+            seed: opts.seed ^ 0x5EED,
+            ..LatchConfig::default()
+        })?;
+        latch.initialize();
+        Ok(Self {
+            opts,
+            layout,
+            placement,
+            arm,
+            scanner,
+            robot,
+            latch,
+            t_s,
+            next_frame: 0,
+            points: Vec::new(),
+            intensity: Vec::new(),
+            pass: Vec::new(),
+            dropped: DropTotals::default(),
+            err_sq: 0.0,
+            err_max: 0.0,
+            stations: Vec::new(),
+            diagnostics: Vec::new(),
+            mesh_triangles: mesh.triangles.len(),
+            coverage_before: None,
+            coverage_after: None,
+            rescan_targets: Vec::new(),
+            last_pass_id: 0,
+        })
+    }
+
+    /// The options.
+    pub fn options(&self) -> &ScanOptions {
+        &self.opts
+    }
+
+    /// Where the part stands.
+    pub fn placement(&self) -> &PartPlacement {
+        &self.placement
+    }
+
+    /// The cell layout.
+    pub fn layout(&self) -> &CellLayout {
+        &self.layout
+    }
+
+    /// Points so far.
+    pub fn points(&self) -> &[Point3<f64>] {
+        &self.points
+    }
+
+    /// The first scan's plan (automatic or given), with the frame guard applied.
+    pub fn plan(&mut self) -> Result<ScanPlan, ScanError> {
+        let plan = plan_scan(&self.placement, &self.layout, &self.arm, self.scanner.spec(), &self.opts)?;
+        let frames = plan.estimated_frames(&self.opts);
+        if frames > self.opts.max_frames {
+            return Err(ScanError::TooManyFrames { frames, max: self.opts.max_frames });
+        }
+        self.last_pass_id = plan.stations.iter().flat_map(|s| &s.passes).map(|p| p.id).max().unwrap_or(0);
+        for p in plan.stations.iter().flat_map(|s| &s.passes) {
+            if p.path_deviation_mm > 5.0 {
+                self.diagnostics.push(format!(
+                    "pass {}: the arm's joint-interpolated path bends up to {:.1} mm from the straight line (points are placed with the latched poses, coverage may shift)",
+                    p.id, p.path_deviation_mm
+                ));
+            }
+        }
+        Ok(plan)
+    }
+
+    /// Runs every pass of `station` with the table at rest at `table_deg_measured` (its encoder
+    /// reading). `progress(pass_done, passes)` after each pass; `cancelled()` is polled between
+    /// passes.
+    pub fn run_station(
+        &mut self,
+        station: &Station,
+        table_deg_measured: f64,
+        rescan: bool,
+        progress: &mut dyn FnMut(usize, usize),
+        cancelled: &dyn Fn() -> bool,
+    ) -> Result<(), ScanError> {
+        let mut report = StationReport {
+            table_deg_commanded: station.table_deg,
+            table_deg_measured,
+            passes: Vec::with_capacity(station.passes.len()),
+            rescan,
+        };
+        for (i, pass) in station.passes.iter().enumerate() {
+            if cancelled() {
+                return Err(ScanError::Cancelled);
+            }
+            let budget = self.opts.max_frames.saturating_sub(self.next_frame);
+            let want = (pass.length_mm / self.opts.line_spacing_mm).ceil() as u64 + 1;
+            if want > budget {
+                return Err(ScanError::TooManyFrames {
+                    frames: self.next_frame + want,
+                    max: self.opts.max_frames,
+                });
+            }
+            let (frames, duration_s) = match self.opts.mode {
+                ScanMode::Dynamic => self.dynamic_frames(pass, table_deg_measured)?,
+                ScanMode::StopAndMove => self.stop_and_move_frames(pass, table_deg_measured)?,
+            };
+            let before = self.points.len();
+            self.acquire(&frames, table_deg_measured, pass.id);
+            report.passes.push(PassReport {
+                id: pass.id,
+                length_mm: pass.length_mm,
+                frames: frames.len() as u64,
+                points: (self.points.len() - before) as u64,
+                duration_s,
+                speed_mm_s: if duration_s > 0.0 { pass.length_mm / duration_s } else { 0.0 },
+                path_deviation_mm: pass.path_deviation_mm,
+                min_dexterity: pass.min_dexterity,
+            });
+            progress(i + 1, station.passes.len());
+        }
+        self.stations.push(report);
+        Ok(())
+    }
+
+    /// Dynamic pass: approach, then one timed joint move with a latch at every frame.
+    fn dynamic_frames(&mut self, pass: &Pass, table_deg: f64) -> Result<(Vec<FrameRec>, f64), ScanError> {
+        let t = self.robot.move_joints(self.t_s, &pass.q_start_deg, APPROACH_SPEED)? + SETTLE_S;
+        let speed = self.opts.line_rate_hz * self.opts.line_spacing_mm;
+        let frac = plan::speed_fraction_for(
+            &self.arm.limits,
+            &pass.q_start_deg,
+            &pass.q_end_deg,
+            pass.length_mm / speed,
+        );
+        let t0 = t;
+        let t1 = self.robot.move_joints(t0, &pass.q_end_deg, frac)?;
+        let period = 1.0 / self.opts.line_rate_hz;
+        let n = ((t1 - t0) / period).floor() as usize + 1;
+        self.latch.begin_latching()?;
+        let mut recs = Vec::with_capacity(n);
+        let mut latched: Vec<(f64, Isometry3<f64>)> = Vec::with_capacity(n);
+        let result = (|| -> Result<(), ScanError> {
+            for k in 0..n {
+                let tk = t0 + k as f64 * period;
+                let q = self.robot.read_position(tk)?;
+                let true_pose = self.arm.fk(&q);
+                let mut src = StationSource { robot: &self.robot, table_deg };
+                let ev = self.latch.sync_pulse(&mut src, tk)?;
+                let super::latch::LatchEvent::Latch { pulse_s, values, .. } = ev else {
+                    continue;
+                };
+                let pose = XyzYpr {
+                    x_mm: values[0],
+                    y_mm: values[1],
+                    z_mm: values[2],
+                    yaw_deg: values[3],
+                    pitch_deg: values[4],
+                    roll_deg: values[5],
+                }
+                .to_pose()
+                .map_err(|e| ScanError::Latch(LatchError::Source(e.to_string())))?;
+                latched.push((pulse_s + self.opts.latch_latency_s, pose));
+                recs.push(FrameRec {
+                    frame: self.next_frame,
+                    pulse_s,
+                    true_pose,
+                    measured_pose: pose,
+                    table_deg: values[6],
+                });
+                self.next_frame += 1;
+            }
+            Ok(())
+        })();
+        self.latch.take_events();
+        self.latch.end_latching()?;
+        result?;
+        if self.opts.compensate_latency && latched.len() >= 2 {
+            for (k, rec) in recs.iter_mut().enumerate() {
+                let (i, j) = if k == 0 { (0, 1) } else { (k - 1, k) };
+                rec.measured_pose = interpolate_pose(&latched[i], &latched[j], rec.pulse_s);
+            }
+        }
+        self.t_s = t1 + SETTLE_S;
+        Ok((recs, t1 - t0))
+    }
+
+    /// Stop-and-move pass: equally spaced stops on the straight line, one frame at rest each.
+    fn stop_and_move_frames(
+        &mut self,
+        pass: &Pass,
+        table_deg: f64,
+    ) -> Result<(Vec<FrameRec>, f64), ScanError> {
+        let mut t = self.robot.move_joints(self.t_s, &pass.q_start_deg, APPROACH_SPEED)? + SETTLE_S;
+        let t_start = t;
+        let a = pass.start.translation.vector;
+        let d = pass.end.translation.vector - a;
+        let stops = (pass.length_mm / self.opts.line_spacing_mm).ceil().max(1.0) as usize + 1;
+        let min_gap = 1.0 / self.opts.stop_and_move_rate_hz;
+        let mut last = f64::NEG_INFINITY;
+        let mut recs = Vec::with_capacity(stops);
+        for k in 0..stops {
+            let s = k as f64 / (stops - 1).max(1) as f64;
+            let target = Isometry3::from_parts(Translation3::from(a + d * s), pass.start.rotation);
+            let arrive = if k == 0 { t } else { self.robot.move_pose(t, &target, STEP_SPEED)? + SETTLE_S };
+            let tk = arrive.max(last + min_gap);
+            let q = self.robot.read_position(tk)?;
+            let pose = self.arm.fk(&q);
+            recs.push(FrameRec {
+                frame: self.next_frame,
+                pulse_s: tk,
+                true_pose: pose,
+                measured_pose: pose,
+                table_deg,
+            });
+            self.next_frame += 1;
+            last = tk;
+            t = tk;
+        }
+        self.t_s = t + SETTLE_S;
+        Ok((recs, t - t_start))
+    }
+
+    /// Ray casts the frames in parallel and appends their points, placed with the measured poses.
+    fn acquire(&mut self, frames: &[FrameRec], table_deg_true: f64, pass_id: u16) {
+        let part_from_world_true = self.placement.world_from_part(&self.layout, table_deg_true).inverse();
+        let scanner = &self.scanner;
+        let seed = self.opts.seed;
+        let placement = &self.placement;
+        let layout = &self.layout;
+        let results: Vec<_> = frames
+            .par_iter()
+            .map(|f| {
+                let truth = part_from_world_true * f.true_pose;
+                let placed = placement.world_from_part(layout, f.table_deg).inverse() * f.measured_pose;
+                let profile = scanner.profile_seeded(&truth, f.frame, seed);
+                let mut sq = 0.0;
+                let mut mx: f64 = 0.0;
+                let pts: Vec<Point3<f64>> = profile
+                    .points
+                    .iter()
+                    .map(|p| {
+                        let q = placed * p;
+                        let e = (q - truth * p).norm_squared();
+                        sq += e;
+                        mx = mx.max(e);
+                        q
+                    })
+                    .collect();
+                (pts, profile.intensity, profile.dropped, sq, mx.sqrt())
+            })
+            .collect();
+        for (pts, inten, dropped, sq, mx) in results {
+            self.pass.extend(std::iter::repeat_n(pass_id, pts.len()));
+            self.points.extend(pts);
+            self.intensity.extend(inten);
+            self.dropped.add(&dropped);
+            self.err_sq += sq;
+            self.err_max = self.err_max.max(mx);
+        }
+    }
+
+    /// Coverage of the cloud so far at `rescan_pixel_mm` and its enclosed holes, largest first.
+    pub fn holes(&self) -> Result<(CoverageSummary, Vec<HoleTarget>), ScanError> {
+        let pixel = self.opts.rescan_pixel_mm;
+        let err = |e: &dyn std::fmt::Display| ScanError::Coverage(e.to_string());
+        let Some(roi) = Roi::around(&self.points, 2.0 * pixel) else {
+            return Ok((
+                CoverageSummary {
+                    pixel_mm: pixel,
+                    covered_pct: 0.0,
+                    footprint_cells: 0,
+                    holes: 0,
+                    hole_area_mm2: 0.0,
+                },
+                Vec::new(),
+            ));
+        };
+        let grid = grid_for_roi(&roi, pixel).map_err(|e| err(&e))?;
+        let (raw, _) = try_rasterize_max(&self.points, &grid).map_err(|e| err(&e))?;
+        let (cov, stats) = coverage(&raw, &raw);
+        let holes = hole_components(&cov);
+        let min_cells = (self.opts.rescan_min_hole_mm2 / (pixel * pixel)).ceil().max(1.0) as usize;
+        let area: f64 = holes.iter().map(|h| h.area_mm2).sum();
+        let summary = CoverageSummary {
+            pixel_mm: pixel,
+            covered_pct: stats.covered_pct,
+            footprint_cells: stats.footprint,
+            holes: holes.len(),
+            hole_area_mm2: area,
+        };
+        let mut targets: Vec<HoleTarget> =
+            holes.into_iter().filter(|h| h.area_mm2 >= min_cells as f64 * pixel * pixel).collect();
+        targets.sort_by(|a, b| b.area_mm2.total_cmp(&a.area_mm2));
+        targets.truncate(self.opts.rescan_max_holes);
+        Ok((summary, targets))
+    }
+
+    /// Passes aimed at `targets`: from each first-scan angle + 45°, farther away, one short pass
+    /// per hole across it. Passes the arm cannot reach are left out with a diagnostic.
+    pub fn rescan_plan(&mut self, targets: &[HoleTarget]) -> ScanPlan {
+        let spec = self.scanner.spec().clone();
+        let standoff = self.opts.rescan_standoff_mm.unwrap_or_else(|| {
+            (spec.standoff_max_mm - self.placement.height_mm() - 10.0).min(220.0).max(self.opts.standoff_mm)
+        });
+        let mut angles: Vec<f64> = Vec::new();
+        let first: Vec<f64> = match &self.opts.passes {
+            Some(p) => p.iter().map(|p| p.table_deg).collect(),
+            None => self.opts.table_angles_deg.clone(),
+        };
+        for a in first {
+            let r = (a + 45.0).rem_euclid(360.0);
+            if !angles.iter().any(|b| (b - r).abs() < 1e-6) {
+                angles.push(r);
+            }
+        }
+        let mut seed = ArmModel::HOME_DEG;
+        let mut stations = Vec::new();
+        for deg in angles {
+            let w = self.placement.world_from_part(&self.layout, deg);
+            let (_, hi) = self.placement.world_extent(&self.layout, deg);
+            let z = hi.z + standoff;
+            let mut passes = Vec::new();
+            for (k, h) in targets.iter().enumerate() {
+                let c = w * Point3::new(h.center_x_mm, h.center_y_mm, self.placement.max.z);
+                let half = 0.5 * h.extent_mm + self.opts.margin_mm + 2.0;
+                let (a, b) = (Point3::new(c.x, c.y - half, z), Point3::new(c.x, c.y + half, z));
+                let (a, b) = if k % 2 == 0 { (a, b) } else { (b, a) };
+                let Some(id) = self.last_pass_id.checked_add(1) else {
+                    self.diagnostics.push("rescan: pass ids exhausted (65535 passes)".into());
+                    break;
+                };
+                match plan::make_pass(&self.arm, &self.opts, id, deg, a, b, &seed) {
+                    Ok(p) => {
+                        self.last_pass_id = id;
+                        seed = p.q_end_deg;
+                        passes.push(p);
+                    }
+                    Err(e) => self.diagnostics.push(format!(
+                        "rescan pass over the hole at ({:.1}, {:.1}) mm skipped: {e}",
+                        h.center_x_mm, h.center_y_mm
+                    )),
+                }
+            }
+            if !passes.is_empty() {
+                stations.push(Station { table_deg: deg, passes });
+            }
+        }
+        ScanPlan { stations }
+    }
+
+    /// Records the coverage before and after the rescan and its targets (for the report).
+    pub fn record_rescan(
+        &mut self,
+        before: CoverageSummary,
+        after: Option<CoverageSummary>,
+        targets: Vec<HoleTarget>,
+    ) {
+        self.coverage_before = Some(before);
+        self.coverage_after = after;
+        self.rescan_targets = targets;
+    }
+
+    /// Adds a diagnostic line to the report.
+    pub fn note(&mut self, line: String) {
+        self.diagnostics.push(line);
+    }
+
+    /// The registered cloud, the pass ids and the report.
+    pub fn finish(self) -> ScanOutput {
+        let n = self.points.len();
+        let report = ScanReport {
+            mode: self.opts.mode,
+            options: self.opts.clone(),
+            layout: self.layout,
+            mesh_triangles: self.mesh_triangles,
+            stations: self.stations,
+            frames: self.next_frame,
+            points: n as u64,
+            scan_time_s: self.t_s,
+            dropped: self.dropped,
+            registration_rms_mm: if n > 0 { (self.err_sq / n as f64).sqrt() } else { 0.0 },
+            registration_max_mm: self.err_max,
+            coverage_before_rescan: self.coverage_before,
+            coverage_after_rescan: self.coverage_after,
+            rescan_targets: self.rescan_targets,
+            diagnostics: self.diagnostics,
+        };
+        ScanOutput {
+            cloud: PointCloud { points: self.points, intensity: Some(self.intensity), normals: None },
+            pass: self.pass,
+            report,
+        }
+    }
+}
+
+/// The pose at time `t` on the line through two timed poses (slerp for the rotation; `t` may lie
+/// outside the two times, which extrapolates).
+fn interpolate_pose(a: &(f64, Isometry3<f64>), b: &(f64, Isometry3<f64>), t: f64) -> Isometry3<f64> {
+    let dt = b.0 - a.0;
+    if dt.abs() < 1e-12 {
+        return a.1;
+    }
+    let u = (t - a.0) / dt;
+    let pa = a.1.translation.vector;
+    let pb = b.1.translation.vector;
+    let ra = a.1.rotation;
+    let rel = ra.inverse() * b.1.rotation;
+    let rot = ra * rel.powf(u);
+    Isometry3::from_parts(Translation3::from(pa + (pb - pa) * u), rot)
+}
+
+/// 8-connected components of the hole cells (value [`COVERAGE_HOLE`]) of a coverage map.
+fn hole_components(cov: &HeightMap) -> Vec<HoleTarget> {
+    let meta = *cov.meta();
+    let (w, h) = (meta.width as usize, meta.height as usize);
+    let data = cov.data();
+    let p = meta.pixel_mm;
+    let mut seen = vec![false; data.len()];
+    let mut out = Vec::new();
+    let mut stack = Vec::new();
+    for start in 0..data.len() {
+        if seen[start] || data[start] != COVERAGE_HOLE {
+            continue;
+        }
+        seen[start] = true;
+        stack.push(start);
+        let (mut n, mut sx, mut sy) = (0usize, 0.0, 0.0);
+        let (mut c0, mut c1, mut r0, mut r1) = (usize::MAX, 0, usize::MAX, 0);
+        while let Some(i) = stack.pop() {
+            let (r, c) = (i / w, i % w);
+            n += 1;
+            sx += c as f64;
+            sy += r as f64;
+            c0 = c0.min(c);
+            c1 = c1.max(c);
+            r0 = r0.min(r);
+            r1 = r1.max(r);
+            for dr in -1i64..=1 {
+                for dc in -1i64..=1 {
+                    let (rr, cc) = (r as i64 + dr, c as i64 + dc);
+                    if rr < 0 || cc < 0 || rr >= h as i64 || cc >= w as i64 {
+                        continue;
+                    }
+                    let j = rr as usize * w + cc as usize;
+                    if !seen[j] && data[j] == COVERAGE_HOLE {
+                        seen[j] = true;
+                        stack.push(j);
+                    }
+                }
+            }
+        }
+        let nf = n as f64;
+        out.push(HoleTarget {
+            center_x_mm: meta.origin_x_mm + (sx / nf + 0.5) * p,
+            center_y_mm: meta.origin_y_mm + (sy / nf + 0.5) * p,
+            extent_mm: ((c1 - c0 + 1).max(r1 - r0 + 1)) as f64 * p,
+            area_mm2: nf * p * p,
+        });
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests;

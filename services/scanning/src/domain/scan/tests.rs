@@ -1,0 +1,339 @@
+#![allow(clippy::unwrap_used)] // tests may unwrap
+
+use super::*;
+use crate::domain::robot::kinematics::pose_distance;
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+
+/// Height field `z = f(x, y)` over `[-hx, hx] × [-hy, hy]` at `step` mm, as a triangle sheet.
+fn height_field(hx: f64, hy: f64, step: f64, f: impl Fn(f64, f64) -> f64) -> Mesh {
+    let nx = (2.0 * hx / step).round() as usize + 1;
+    let ny = (2.0 * hy / step).round() as usize + 1;
+    let mut vertices = Vec::with_capacity(nx * ny);
+    for j in 0..ny {
+        for i in 0..nx {
+            let x = -hx + 2.0 * hx * i as f64 / (nx - 1) as f64;
+            let y = -hy + 2.0 * hy * j as f64 / (ny - 1) as f64;
+            vertices.push(Point3::new(x, y, f(x, y)));
+        }
+    }
+    let mut triangles = Vec::new();
+    for j in 0..ny - 1 {
+        for i in 0..nx - 1 {
+            let a = (j * nx + i) as u32;
+            let b = a + 1;
+            let c = a + nx as u32;
+            let d = c + 1;
+            triangles.push([a, b, d]);
+            triangles.push([a, d, c]);
+        }
+    }
+    Mesh { vertices, triangles }
+}
+
+/// A low dome: `z = 5 + 10·(1 − r²/40²)` inside r < 40, 5 outside (a relief on a base).
+fn dome(x: f64, y: f64) -> f64 {
+    let r2 = x * x + y * y;
+    5.0 + 10.0 * (1.0 - r2 / 1600.0).max(0.0)
+}
+
+/// Distance from `p` to the height field `f` along the normal, to first order:
+/// `|z − f| / sqrt(1 + |∇f|²)` (exact for planes, a fine approximation for the gentle dome).
+fn field_distance(p: &Point3<f64>, f: &impl Fn(f64, f64) -> f64) -> f64 {
+    let h = 1e-4;
+    let gx = (f(p.x + h, p.y) - f(p.x - h, p.y)) / (2.0 * h);
+    let gy = (f(p.x, p.y + h) - f(p.x, p.y - h)) / (2.0 * h);
+    (p.z - f(p.x, p.y)).abs() / (1.0 + gx * gx + gy * gy).sqrt()
+}
+
+fn scan_all(mesh: &Mesh, opts: ScanOptions) -> ScanOutput {
+    let mut s = ScanSession::new(mesh, opts, CellLayout::default()).unwrap();
+    let plan = s.plan().unwrap();
+    for st in &plan.stations {
+        s.run_station(st, st.table_deg, false, &mut |_, _| {}, &|| false).unwrap();
+    }
+    s.finish()
+}
+
+/// RMS and max distance of the points (inside `|x|, |y| < lim`, away from the sheet's border)
+/// from the surface.
+fn distances(out: &ScanOutput, f: impl Fn(f64, f64) -> f64, lim: f64) -> (f64, f64, usize) {
+    let mut sq = 0.0;
+    let mut mx: f64 = 0.0;
+    let mut n = 0;
+    for p in &out.cloud.points {
+        if p.x.abs() > lim || p.y.abs() > lim {
+            continue;
+        }
+        let d = field_distance(p, &f);
+        sq += d * d;
+        mx = mx.max(d);
+        n += 1;
+    }
+    ((sq / n.max(1) as f64).sqrt(), mx, n)
+}
+
+#[test]
+fn automatic_plan_covers_the_part_and_every_pass_is_reachable() {
+    let mesh = height_field(45.0, 30.0, 1.0, dome);
+    let mut s = ScanSession::new(&mesh, ScanOptions::default(), CellLayout::default()).unwrap();
+    let plan = s.plan().unwrap();
+    assert_eq!(plan.stations.len(), 4);
+    let arm = ArmModel::viper_s650();
+    let spec = ScannerSpec::slp400();
+    for st in &plan.stations {
+        assert!(!st.passes.is_empty());
+        let (lo, hi) = s.placement().world_extent(s.layout(), st.table_deg);
+        // The lines together span the part's extent across the passes.
+        let half = 0.5 * spec.line_length_at(150.0);
+        let xs: Vec<f64> = st.passes.iter().map(|p| p.start.translation.vector.x).collect();
+        let min_x = xs.iter().copied().fold(f64::INFINITY, f64::min) - half;
+        let max_x = xs.iter().copied().fold(f64::NEG_INFINITY, f64::max) + half;
+        assert!(min_x <= lo.x + 1e-6 && max_x >= hi.x - 1e-6, "{min_x}..{max_x} vs {}..{}", lo.x, hi.x);
+        for p in &st.passes {
+            // FK of the planned joints is the planned pose.
+            let (dp, da) = pose_distance(&arm.fk(&p.q_start_deg), &p.start);
+            assert!(dp < 1e-6 && da < 1e-6, "start pose off by {dp} mm / {da} rad");
+            let (dp, _) = pose_distance(&arm.fk(&p.q_end_deg), &p.end);
+            assert!(dp < 1e-6);
+            // The sensor is at the standoff above the top and covers Y with margin.
+            assert!((p.start.translation.vector.z - (hi.z + 150.0)).abs() < 1e-9);
+            let (y0, y1) = (p.start.translation.vector.y, p.end.translation.vector.y);
+            assert!(y0.min(y1) < lo.y && y0.max(y1) > hi.y);
+            assert!(p.min_dexterity > 0.0);
+        }
+    }
+}
+
+#[test]
+fn move_duration_matches_the_controllers_timing() {
+    let mut rng = StdRng::seed_from_u64(3);
+    let arm = ArmModel::viper_s650();
+    for _ in 0..200 {
+        let mut c = MotionController::viper_s650();
+        c.initialize(0.0).unwrap();
+        let t0 = c.home(0.0, 1.0).unwrap();
+        let q0 = c.read_position(t0).unwrap();
+        let q1: [f64; 6] = std::array::from_fn(|j| {
+            let l = &arm.limits[j];
+            rng.random_range(l.min_deg..l.max_deg)
+        });
+        let frac = rng.random_range(0.05..1.0);
+        let arrive = c.move_joints(t0, &q1, frac).unwrap();
+        let expect = plan::move_duration(&arm.limits, &q0, &q1, frac);
+        assert!((arrive - t0 - expect).abs() < 1e-9, "{} vs {expect}", arrive - t0);
+        // And the fraction that gives a wanted duration reproduces it.
+        let want = expect * rng.random_range(1.0..3.0);
+        let f = plan::speed_fraction_for(&arm.limits, &q0, &q1, want);
+        assert!((plan::move_duration(&arm.limits, &q0, &q1, f) - want).abs() < 1e-6);
+    }
+}
+
+#[test]
+fn dynamic_scan_lies_on_the_part_within_the_noise() {
+    let mesh = height_field(45.0, 30.0, 0.5, dome);
+    let opts =
+        ScanOptions { table_angles_deg: vec![0.0, 180.0], line_spacing_mm: 0.5, ..ScanOptions::default() };
+    let out = scan_all(&mesh, opts);
+    let (rms, max, n) = distances(&out, dome, 40.0);
+    println!(
+        "dynamic: {n} points, RMS {rms:.4} mm, max {max:.4} mm, registration RMS {:.2e} mm, {} frames",
+        out.report.registration_rms_mm, out.report.frames
+    );
+    assert!(n > 50_000, "{n} points");
+    // Noise is 35 µm along the ray; the default latch (50 µs, compensated) adds < 1 µm.
+    assert!(rms > 0.025 && rms < 0.045, "RMS {rms}");
+    assert!(max < 0.25, "max {max}");
+    assert!(out.report.registration_rms_mm < 0.002);
+    assert_eq!(out.pass.len(), out.cloud.points.len());
+    assert_eq!(out.cloud.intensity.as_ref().map(Vec::len), Some(out.cloud.points.len()));
+    let ids: std::collections::BTreeSet<u16> = out.pass.iter().copied().collect();
+    let planned: usize = out.report.stations.iter().map(|s| s.passes.len()).sum();
+    assert_eq!(ids.len(), planned, "every pass contributed points");
+    // The speed is rate × spacing on the pass.
+    for p in out.report.stations.iter().flat_map(|s| &s.passes) {
+        assert!(p.speed_mm_s <= 100.0 * 0.5 + 1e-6 && p.speed_mm_s > 30.0, "speed {}", p.speed_mm_s);
+    }
+}
+
+#[test]
+fn stop_and_move_scan_lies_on_the_part_and_runs_at_a_few_frames_per_second() {
+    let mesh = height_field(30.0, 20.0, 0.5, dome);
+    let opts = ScanOptions {
+        mode: ScanMode::StopAndMove,
+        table_angles_deg: vec![90.0],
+        line_spacing_mm: 1.0,
+        ..ScanOptions::default()
+    };
+    let out = scan_all(&mesh, opts);
+    let (rms, max, n) = distances(&out, dome, 25.0);
+    println!("stop-and-move: {n} points, RMS {rms:.4} mm, max {max:.4} mm");
+    assert!(n > 5_000);
+    assert!(rms > 0.025 && rms < 0.045, "RMS {rms}");
+    assert!(max < 0.25);
+    assert_eq!(out.report.registration_rms_mm, 0.0, "poses read at rest are exact");
+    // n frames of a pass span n − 1 intervals.
+    let passes = out.report.stations.iter().map(|s| s.passes.len()).sum::<usize>() as f64;
+    let intervals = out.report.frames as f64 - passes;
+    let busy: f64 = out.report.stations.iter().flat_map(|s| &s.passes).map(|p| p.duration_s).sum();
+    let rate = intervals / busy;
+    assert!(rate <= 2.5 * 1.001 && rate > 1.0, "{rate} frames/s");
+}
+
+#[test]
+fn latch_latency_shows_up_as_registration_error_and_is_compensated() {
+    let mesh = height_field(20.0, 15.0, 0.5, dome);
+    let base = ScanOptions {
+        table_angles_deg: vec![0.0],
+        line_spacing_mm: 0.25,
+        latch_latency_s: 0.004,
+        latch_jitter_s: 0.0,
+        ..ScanOptions::default()
+    };
+    let raw = scan_all(&mesh, ScanOptions { compensate_latency: false, ..base.clone() });
+    let fixed = scan_all(&mesh, ScanOptions { compensate_latency: true, ..base });
+    // At 25 mm/s a 4 ms latency places points 0.1 mm along the pass (less in the ramps).
+    let expected = 100.0 * 0.25 * 0.004;
+    println!(
+        "latency 4 ms: registration RMS {:.4} mm (expected ≤ {expected}), compensated {:.2e} mm",
+        raw.report.registration_rms_mm, fixed.report.registration_rms_mm
+    );
+    assert!(raw.report.registration_max_mm <= expected * 1.05 + 1e-6, "{}", raw.report.registration_max_mm);
+    assert!(
+        raw.report.registration_rms_mm > 0.7 * expected && raw.report.registration_rms_mm <= expected * 1.05
+    );
+    assert!(fixed.report.registration_rms_mm < 0.05 * expected, "{}", fixed.report.registration_rms_mm);
+}
+
+#[test]
+fn interpolation_matches_the_pose_at_the_time() {
+    // Poses on a screw motion: interpolation reproduces them exactly in between and beyond.
+    let at = |t: f64| {
+        Isometry3::from_parts(
+            Translation3::new(10.0 * t, -3.0 * t, 2.0),
+            UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 0.3 * t),
+        )
+    };
+    for t in [-0.5, 0.0, 0.25, 0.5, 1.0, 1.7] {
+        let p = interpolate_pose(&(0.0, at(0.0)), &(1.0, at(1.0)), t);
+        let (dp, da) = pose_distance(&p, &at(t));
+        assert!(dp < 1e-9 && da < 1e-9, "t {t}: {dp} {da}");
+    }
+}
+
+#[test]
+fn scans_are_reproducible() {
+    let mesh = height_field(15.0, 10.0, 0.5, dome);
+    let opts = ScanOptions { table_angles_deg: vec![0.0], line_spacing_mm: 1.0, ..ScanOptions::default() };
+    let a = scan_all(&mesh, opts.clone());
+    let b = scan_all(&mesh, opts);
+    assert_eq!(a.cloud.points, b.cloud.points);
+    assert_eq!(a.cloud.intensity, b.cloud.intensity);
+}
+
+/// A base with a tall block in the middle: the camera's line of sight is blocked on one side of
+/// the block (the triangulation shadow), which one table angle cannot fill.
+fn block(x: f64, y: f64) -> f64 {
+    if x.abs() < 6.0 && y.abs() < 6.0 { 25.0 } else { 5.0 }
+}
+
+#[test]
+fn adaptive_rescan_aims_at_the_holes_and_fills_some() {
+    let mesh = height_field(25.0, 25.0, 0.25, block);
+    let opts = ScanOptions { table_angles_deg: vec![0.0], line_spacing_mm: 0.5, ..ScanOptions::default() };
+    let mut s = ScanSession::new(&mesh, opts, CellLayout::default()).unwrap();
+    let plan = s.plan().unwrap();
+    for st in &plan.stations {
+        s.run_station(st, st.table_deg, false, &mut |_, _| {}, &|| false).unwrap();
+    }
+    let (before, targets) = s.holes().unwrap();
+    assert!(before.holes > 0 && !targets.is_empty(), "the shadow leaves a hole: {before:?}");
+    let rescan = s.rescan_plan(&targets);
+    assert!(rescan.passes() > 0);
+    assert!(rescan.stations.iter().all(|st| (st.table_deg - 45.0).abs() < 1e-9));
+    for st in &rescan.stations {
+        s.run_station(st, st.table_deg, true, &mut |_, _| {}, &|| false).unwrap();
+    }
+    let (after, _) = s.holes().unwrap();
+    println!(
+        "coverage {:.2} % ({} holes, {:.1} mm²) -> {:.2} % ({} holes, {:.1} mm²)",
+        before.covered_pct,
+        before.holes,
+        before.hole_area_mm2,
+        after.covered_pct,
+        after.holes,
+        after.hole_area_mm2
+    );
+    assert!(after.hole_area_mm2 < 0.5 * before.hole_area_mm2, "{before:?} -> {after:?}");
+    s.record_rescan(before, Some(after), targets);
+    let out = s.finish();
+    assert!(out.pass.iter().any(|&p| p > plan.passes() as u16), "rescan points carry their own pass ids");
+}
+
+#[test]
+fn bad_options_name_the_field_and_unreachable_passes_are_refused() {
+    let mesh = height_field(10.0, 10.0, 1.0, dome);
+    let spec = ScannerSpec::slp400();
+    let e = ScanOptions { standoff_mm: 300.0, ..ScanOptions::default() }.validate(&spec).unwrap_err();
+    assert!(e.to_string().contains("scan.standoff_mm = 300"), "{e}");
+    let e = ScanOptions { line_rate_hz: 10.0, ..ScanOptions::default() }.validate(&spec).unwrap_err();
+    assert!(e.to_string().contains("scan.line_rate_hz"), "{e}");
+    let e = ScanOptions::from_json(r#"{"mode": "sideways"}"#).unwrap_err();
+    assert!(e.to_string().contains("scan.mode"), "{e}");
+    let e = ScanOptions::from_json(r#"{"standof_mm": 150}"#).unwrap_err();
+    assert!(e.to_string().contains("standof_mm"), "{e}");
+    let o = ScanOptions::from_json(r#"{"mode": "stop_and_move", "table_angles_deg": [0, 90]}"#).unwrap();
+    assert_eq!(o.mode, ScanMode::StopAndMove);
+    assert_eq!(o.standoff_mm, 150.0);
+    // A pass 1.5 m away from the robot.
+    let far = ScanOptions {
+        passes: Some(vec![PassSpec {
+            table_deg: 0.0,
+            start_mm: [1500.0, 0.0, 150.0],
+            end_mm: [1500.0, 50.0, 150.0],
+        }]),
+        ..ScanOptions::default()
+    };
+    let mut s = ScanSession::new(&mesh, far, CellLayout::default()).unwrap();
+    let e = s.plan().unwrap_err();
+    assert!(matches!(e, ScanError::Unreachable { pass: 1, .. }), "{e}");
+    assert!(e.to_string().contains("start of the pass"), "{e}");
+    // Too many frames for the guard.
+    let mut s = ScanSession::new(
+        &mesh,
+        ScanOptions { max_frames: 10, ..ScanOptions::default() },
+        CellLayout::default(),
+    )
+    .unwrap();
+    assert!(matches!(s.plan().unwrap_err(), ScanError::TooManyFrames { .. }));
+    // A part wider than the table.
+    let wide = height_field(300.0, 10.0, 10.0, |_, _| 0.0);
+    assert!(matches!(
+        ScanSession::new(&wide, ScanOptions::default(), CellLayout::default()).err(),
+        Some(ScanError::PartTooLarge { .. })
+    ));
+}
+
+#[test]
+fn given_passes_are_scanned_where_asked() {
+    let mesh = height_field(20.0, 20.0, 0.5, dome);
+    let opts = ScanOptions {
+        passes: Some(vec![PassSpec {
+            table_deg: 30.0,
+            start_mm: [0.0, -25.0, 165.0],
+            end_mm: [0.0, 25.0, 165.0],
+        }]),
+        line_spacing_mm: 0.5,
+        ..ScanOptions::default()
+    };
+    let out = scan_all(&mesh, opts);
+    assert_eq!(out.report.stations.len(), 1);
+    assert_eq!(out.report.stations[0].table_deg_commanded, 30.0);
+    let (rms, _, n) = distances(&out, dome, 18.0);
+    assert!(n > 1000 && rms < 0.045, "{n} {rms}");
+    // The line crosses the centre: points span x about ±half a line length around 0.
+    let xs: Vec<f64> = out.cloud.points.iter().map(|p| p.x).collect();
+    let lo = xs.iter().copied().fold(f64::INFINITY, f64::min);
+    let hi = xs.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    assert!(lo > -40.0 && hi < 40.0 && lo < -15.0 && hi > 15.0, "{lo}..{hi}");
+}

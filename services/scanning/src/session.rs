@@ -1,0 +1,182 @@
+//! A whole scan on the cell: the rotary table driven over its protocol through
+//! [`TableClient`] (a simulated controller on a socket, or a real one on a serial line behind the
+//! same driver), the arm, latch and scanner simulated in [`ScanSession`].
+//!
+//! The table is indexed in real time (it is a device on a line: a 90° index at 45 °/s takes about
+//! 2.3 s), the passes at each station are simulated as fast as the CPU allows, on blocking
+//! threads so the async runtime stays responsive.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use depthmill_reconstruction::domain::mesh::Mesh;
+use tokio::io::{AsyncRead, AsyncWrite};
+use tokio_util::sync::CancellationToken;
+
+use crate::devices::table::TableClient;
+use crate::domain::scan::{CellLayout, ScanError, ScanOptions, ScanOutput, ScanPlan, ScanSession};
+use crate::domain::table::model::shortest_delta_deg;
+
+/// Table speed for indexing, °/s (the controller's maximum).
+pub const TABLE_SPEED_DEG_S: f64 = 45.0;
+/// Table acceleration for indexing, °/s².
+pub const TABLE_ACCEL_DEG_S2: f64 = 120.0;
+/// Largest accepted difference between the settled encoder reading and the asked angle, degrees
+/// (two encoder counts).
+pub const TABLE_TOLERANCE_DEG: f64 = 0.0625;
+/// Longest wait for the table to settle at a station.
+pub const TABLE_TIMEOUT: Duration = Duration::from_secs(60);
+
+/// Progress sink: fraction of the scan done (0..=1) and a message.
+pub type Progress = Arc<dyn Fn(f64, String) + Send + Sync>;
+
+fn internal(e: tokio::task::JoinError) -> ScanError {
+    ScanError::Table(format!("a scan worker thread failed: {e}"))
+}
+
+async fn blocking<T: Send + 'static>(f: impl FnOnce() -> T + Send + 'static) -> Result<T, ScanError> {
+    tokio::task::spawn_blocking(f).await.map_err(internal)
+}
+
+/// Brings the table to `deg` and returns its settled encoder reading.
+async fn index_table<S: AsyncRead + AsyncWrite + Unpin>(
+    table: &mut TableClient<S>,
+    deg: f64,
+    cancel: &CancellationToken,
+) -> Result<f64, ScanError> {
+    let target = deg.rem_euclid(360.0);
+    let terr = |e: crate::devices::table::TableError| ScanError::Table(e.to_string());
+    table.move_to(target).await.map_err(terr)?;
+    let measured = tokio::select! {
+        r = table.wait_settled(TABLE_TOLERANCE_DEG, TABLE_TIMEOUT) => r.map_err(terr)?,
+        () = cancel.cancelled() => return Err(ScanError::Cancelled),
+    };
+    let off = shortest_delta_deg(target, measured);
+    if off.abs() > TABLE_TOLERANCE_DEG {
+        return Err(ScanError::Table(format!(
+            "asked for {target:.4}°, the encoder settled at {measured:.4}° ({off:+.4}°, tolerance {TABLE_TOLERANCE_DEG}°)"
+        )));
+    }
+    Ok(measured)
+}
+
+/// Runs the stations of `plan`, indexing the table before each.
+async fn run_plan<S: AsyncRead + AsyncWrite + Unpin>(
+    mut session: ScanSession,
+    plan: &ScanPlan,
+    rescan: bool,
+    table: &mut TableClient<S>,
+    progress: &Progress,
+    span: (f64, f64),
+    cancel: &CancellationToken,
+) -> Result<ScanSession, ScanError> {
+    let total = plan.passes().max(1);
+    let mut done = 0usize;
+    let n = plan.stations.len();
+    for (k, station) in plan.stations.iter().enumerate() {
+        if cancel.is_cancelled() {
+            return Err(ScanError::Cancelled);
+        }
+        let what = if rescan { "rescan station" } else { "station" };
+        progress(
+            span.0 + (span.1 - span.0) * done as f64 / total as f64,
+            format!("{what} {}/{n}: turning the table to {:.1}°", k + 1, station.table_deg),
+        );
+        let measured = index_table(table, station.table_deg, cancel).await?;
+        let st = station.clone();
+        let p = progress.clone();
+        let c = cancel.clone();
+        let base = done;
+        let (s, r) = blocking(move || {
+            let mut session = session;
+            let r = session.run_station(
+                &st,
+                measured,
+                rescan,
+                &mut |i, m| {
+                    p(
+                        span.0 + (span.1 - span.0) * (base + i) as f64 / total as f64,
+                        format!("{what} {}/{n} at {measured:.2}°: pass {i}/{m} done", k + 1),
+                    )
+                },
+                &|| c.is_cancelled(),
+            );
+            (session, r)
+        })
+        .await?;
+        r?;
+        session = s;
+        done += station.passes.len();
+    }
+    Ok(session)
+}
+
+/// Scans `mesh` with `opts`: plan, stations, and the adaptive rescan when asked.
+pub async fn run_scan<S: AsyncRead + AsyncWrite + Unpin>(
+    mesh: Mesh,
+    opts: ScanOptions,
+    layout: CellLayout,
+    table: &mut TableClient<S>,
+    progress: Progress,
+    cancel: CancellationToken,
+) -> Result<ScanOutput, ScanError> {
+    progress(0.0, format!("planning over a {}-triangle mesh", mesh.triangles.len()));
+    let (session, plan) = blocking(move || {
+        let mut s = ScanSession::new(&mesh, opts, layout)?;
+        let plan = s.plan()?;
+        Ok::<_, ScanError>((s, plan))
+    })
+    .await??;
+    tracing::info!(
+        stations = plan.stations.len(),
+        passes = plan.passes(),
+        length_mm = plan.length_mm(),
+        "scan planned"
+    );
+    let terr = |e: crate::devices::table::TableError| ScanError::Table(e.to_string());
+    table.set_speed(TABLE_SPEED_DEG_S).await.map_err(terr)?;
+    table.set_accel(TABLE_ACCEL_DEG_S2).await.map_err(terr)?;
+    let adaptive = session.options().adaptive_rescan;
+    let first_span = if adaptive { (0.0, 0.75) } else { (0.0, 1.0) };
+    let mut session = run_plan(session, &plan, false, table, &progress, first_span, &cancel).await?;
+    if adaptive {
+        progress(0.75, "coverage map of the first scan".into());
+        let (s, found) = blocking(move || {
+            let mut session = session;
+            let r = session.holes().map(|(before, targets)| {
+                let plan = session.rescan_plan(&targets);
+                (before, targets, plan)
+            });
+            (session, r)
+        })
+        .await?;
+        let (before, targets, rescan) = found?;
+        session = s;
+        tracing::info!(
+            covered_pct = before.covered_pct,
+            holes = before.holes,
+            targets = targets.len(),
+            passes = rescan.passes(),
+            "adaptive rescan"
+        );
+        if rescan.passes() == 0 {
+            session.note(format!(
+                "adaptive rescan: {} holes found, none worth a pass or reachable",
+                before.holes
+            ));
+            session.record_rescan(before, None, targets);
+        } else {
+            session = run_plan(session, &rescan, true, table, &progress, (0.78, 0.98), &cancel).await?;
+            let (s, after) = blocking(move || {
+                let r = session.holes().map(|(a, _)| a);
+                (session, r)
+            })
+            .await?;
+            session = s;
+            session.record_rescan(before, Some(after?), targets);
+        }
+    }
+    let out = session.finish();
+    progress(1.0, format!("{} points from {} frames", out.report.points, out.report.frames));
+    Ok(out)
+}

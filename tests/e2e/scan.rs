@@ -1,0 +1,272 @@
+//! The scan stage over gRPC: a mesh job is scanned on the simulated cell (the rotary table driven
+//! over its protocol on a socket) into a registered cloud that goes on to reconstruction; bad scan
+//! options are refused naming the field; the cell's device services answer.
+
+use std::io::Cursor;
+use std::time::Duration;
+
+use depthmill_proto::scanning::v1 as pb;
+use depthmill_reconstruction::domain::io::read_ply_cloud_with_pass;
+use depthmill_reconstruction::domain::mesh::Mesh;
+use depthmill_tests::scripted::Script;
+use depthmill_tests::{MachineBackend, StackOptions, TestStack};
+use futures::StreamExt as _;
+use serde_json::json;
+
+/// The test part: a 30 × 30 mm sheet at z = 3 with a gentle dome (radius 12, 2.5 mm high, flanks
+/// under 23° so a sensor looking down sees them).
+fn dome(x: f64, y: f64) -> f64 {
+    3.0 + 2.5 * (1.0 - (x * x + y * y) / 144.0).max(0.0)
+}
+
+fn dome_stl() -> Vec<u8> {
+    let n = 81;
+    let mut vertices = Vec::new();
+    for j in 0..n {
+        for i in 0..n {
+            let x = -15.0 + 30.0 * i as f64 / (n - 1) as f64;
+            let y = -15.0 + 30.0 * j as f64 / (n - 1) as f64;
+            vertices.push(nalgebra::Point3::new(x, y, dome(x, y)));
+        }
+    }
+    let mut triangles = Vec::new();
+    for j in 0..n - 1 {
+        for i in 0..n - 1 {
+            let a = (j * n + i) as u32;
+            triangles.push([a, a + 1, a + 1 + n as u32]);
+            triangles.push([a, a + 1 + n as u32, a + n as u32]);
+        }
+    }
+    let mut bytes = Vec::new();
+    depthmill_scanning::domain::sample::write_stl(&mut bytes, &Mesh { vertices, triangles })
+        .expect("writing to memory");
+    bytes
+}
+
+async fn fetch(stack: &TestStack, job: &serde_json::Value, name: &str) -> anyhow::Result<Vec<u8>> {
+    let sha = job["artifacts"][name]["sha256"].as_str().unwrap_or_default();
+    Ok(stack.http.get(stack.url(&format!("/v1/artifacts/{sha}"))).send().await?.bytes().await?.to_vec())
+}
+
+#[tokio::test]
+async fn a_mesh_job_is_scanned_into_a_cloud_on_the_part_and_goes_on_to_reconstruction() -> anyhow::Result<()>
+{
+    let script = Script::default();
+    let stack = TestStack::start_with(StackOptions {
+        machine: MachineBackend::Scripted(script),
+        ..Default::default()
+    })
+    .await?;
+    let sha = stack.upload("model/stl", dome_stl()).await?;
+    let job = json!({
+        "name": "scanned dome",
+        "input": {"kind": "mesh", "artifact": sha},
+        "scan": {"mode": "dynamic", "table_angles_deg": [0, 180], "line_spacing_mm": 0.4,
+                 "line_rate_hz": 150, "adaptive_rescan": true},
+        "reconstruct": {"pixel_mm": 0.3},
+        "plan": {"stock": {"z_mm": 8, "material": "aluminium"},
+                 "roughing": {"tool": "flat-6", "step_down_mm": 3.0},
+                 "finishing": {"tool": "ball-3", "step_over_mm": 1.0}}
+    });
+    let (status, created) = stack.post_job(&job, None).await?;
+    assert_eq!(status, 201, "{created}");
+    let done = stack.wait_for_end(created["id"].as_str().expect("id"), Duration::from_secs(300)).await?;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    for name in ["point_cloud", "scan_report", "depth_map", "coverage_map", "gcode"] {
+        assert!(done["artifacts"][name]["sha256"].is_string(), "{name} missing: {done}");
+    }
+    assert!(done["stage_timings_s"]["scan"].as_f64().unwrap_or(0.0) > 0.0, "{done}");
+    let m = &done["metrics"];
+    assert!(m["scan_points"].as_f64().unwrap_or(0.0) > 20_000.0, "{m}");
+    assert!(m["scan_registration_rms_mm"].as_f64().unwrap_or(1.0) < 0.005, "{m}");
+
+    // The cloud: binary PLY with intensity and pass ids, on the part within the scanner's noise.
+    let ply = fetch(&stack, &done, "point_cloud").await?;
+    let (cloud, pass, _) = read_ply_cloud_with_pass(Cursor::new(ply), "cloud.ply", &Default::default())?;
+    let pass = pass.expect("pass ids");
+    assert_eq!(pass.len(), cloud.points.len());
+    assert!(cloud.intensity.is_some());
+    let (mut sq, mut n, mut max) = (0.0, 0usize, 0.0f64);
+    for p in cloud.points.iter().filter(|p| p.x.abs() < 14.0 && p.y.abs() < 14.0) {
+        // Vertical distance; the dome's flanks are gentle, so this bounds the normal distance.
+        let d = p.z - dome(p.x, p.y);
+        sq += d * d;
+        n += 1;
+        max = max.max(d.abs());
+    }
+    let rms = (sq / n as f64).sqrt();
+    println!("scanned cloud: {n} points on the part, RMS {rms:.4} mm, max {max:.4} mm");
+    assert!(rms < 0.05 && max < 0.3, "RMS {rms} max {max}");
+
+    // The report says what was done, including the rescan.
+    let report: serde_json::Value = serde_json::from_slice(&fetch(&stack, &done, "scan_report").await?)?;
+    assert_eq!(report["stations"][0]["table_deg_commanded"], 0.0);
+    assert!(report["coverage_before_rescan"]["covered_pct"].as_f64().is_some(), "{report}");
+
+    // The depth map of the scan matches the part.
+    let map = depthmill_geometry::read_png_from(Cursor::new(fetch(&stack, &done, "depth_map").await?), None)?;
+    let meta = *map.meta();
+    let mut errs = Vec::new();
+    for row in 0..meta.height {
+        for col in 0..meta.width {
+            let (x, y) = meta.cell_center(col, row);
+            let z = map.get(col, row).unwrap_or(f32::NAN);
+            if x.abs() < 13.0 && y.abs() < 13.0 && z.is_finite() {
+                errs.push((f64::from(z) - dome(x, y)).abs());
+            }
+        }
+    }
+    errs.sort_by(f64::total_cmp);
+    let median = errs[errs.len() / 2];
+    let p99 = errs[errs.len() * 99 / 100];
+    println!(
+        "depth map vs part: median {median:.4} mm, 99th percentile {p99:.4} mm over {} cells",
+        errs.len()
+    );
+    // Max-Z binning keeps the highest of a cell's samples: about +2σ of the noise on a 0.3 mm pixel.
+    assert!(median < 0.1 && p99 < 0.25, "median {median} p99 {p99}");
+    stack.shutdown().await
+}
+
+#[tokio::test]
+async fn bad_scan_options_are_refused_and_the_service_keeps_working() -> anyhow::Result<()> {
+    let script = Script::default();
+    let stack = TestStack::start_with(StackOptions {
+        machine: MachineBackend::Scripted(script),
+        ..Default::default()
+    })
+    .await?;
+    let sha = stack.upload("model/stl", dome_stl()).await?;
+    // At submission: outside the scanner's window.
+    let (status, body) = stack
+        .post_job(&json!({"input": {"kind": "mesh", "artifact": sha}, "scan": {"standoff_mm": 300}}), None)
+        .await?;
+    assert_eq!(status, 400, "{body}");
+    assert_eq!(body["error"]["field"], "scan.standoff_mm", "{body}");
+    // In the stage: a given pass 1.5 m from the robot.
+    let far = json!({"input": {"kind": "mesh", "artifact": sha},
+                     "scan": {"passes": [{"table_deg": 0, "start_mm": [1500, 0, 150], "end_mm": [1500, 40, 150]}]}});
+    let (status, created) = stack.post_job(&far, None).await?;
+    assert_eq!(status, 201, "{created}");
+    let failed = stack.wait_for_end(created["id"].as_str().expect("id"), Duration::from_secs(60)).await?;
+    assert_eq!(failed["status"], "failed", "{failed}");
+    assert_eq!(failed["error"]["stage"], "scan");
+    assert_eq!(failed["error"]["code"], "invalid_argument", "{failed}");
+    assert!(failed["error"]["message"].as_str().unwrap_or_default().contains("cannot reach"), "{failed}");
+    assert!(failed["artifacts"].get("point_cloud").is_none());
+    // The service still scans.
+    let ok = json!({"input": {"kind": "mesh", "artifact": sha},
+                    "scan": {"table_angles_deg": [90], "line_spacing_mm": 1.0, "mode": "stop_and_move"},
+                    "reconstruct": {"pixel_mm": 0.5},
+                    "plan": {"stock": {"z_mm": 8}, "roughing": {"tool": "flat-6", "step_down_mm": 3.0},
+                             "finishing": {"tool": "ball-6", "step_over_mm": 2.0}}});
+    let (_, created) = stack.post_job(&ok, None).await?;
+    let done = stack.wait_for_end(created["id"].as_str().expect("id"), Duration::from_secs(300)).await?;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    stack.shutdown().await
+}
+
+#[tokio::test]
+async fn the_cells_devices_answer_over_grpc() -> anyhow::Result<()> {
+    let stack = TestStack::start().await?;
+    let url = stack
+        .service_urls()
+        .into_iter()
+        .find(|(name, _)| name == "depthmill.scanning.v1.MotionControllerService")
+        .map(|(_, u)| u)
+        .expect("the scanning service serves the motion controller");
+    let channel = tonic::transport::Channel::from_shared(url)?.connect().await?;
+    let mut motion =
+        pb::motion_controller_service_client::MotionControllerServiceClient::new(channel.clone());
+    let mut latch = pb::encoder_latch_service_client::EncoderLatchServiceClient::new(channel);
+    let robot = || pb::MotionRequest { device: "robot".into() };
+    let table = || pb::MotionRequest { device: "table".into() };
+
+    // The arm: moves need Initialize and Home; Reset latches an emergency stop.
+    let refused = motion
+        .r#move(pb::MoveRequest { device: "robot".into(), axis: 1, target_deg: 10.0, ..Default::default() })
+        .await;
+    let status = refused.expect_err("not initialized");
+    assert_eq!(status.code(), tonic::Code::FailedPrecondition, "{status:?}");
+    assert!(motion.initialize(robot()).await?.into_inner().initialized);
+    motion.home(robot()).await?;
+    for _ in 0..100 {
+        if !motion.read_status(robot()).await?.into_inner().moving {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    let bad = motion
+        .r#move(pb::MoveRequest { device: "robot".into(), axis: 2, target_deg: 100.0, ..Default::default() })
+        .await;
+    assert_eq!(bad.expect_err("joint limit").code(), tonic::Code::InvalidArgument);
+    motion
+        .r#move(pb::MoveRequest { device: "robot".into(), axis: 1, target_deg: 10.0, ..Default::default() })
+        .await?;
+    let mut q1 = 0.0;
+    for _ in 0..100 {
+        q1 = motion.read_position(robot()).await?.into_inner().joints_deg[0];
+        if (q1 - 10.0).abs() < 1e-6 {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    assert!((q1 - 10.0).abs() < 1e-6, "joint 1 at {q1}");
+    motion.reset(robot()).await?;
+    let after = motion
+        .r#move(pb::MoveRequest { device: "robot".into(), axis: 1, target_deg: 0.0, ..Default::default() })
+        .await;
+    assert!(after.expect_err("e-stop").message().contains("emergency stop"));
+
+    // The table, over its protocol.
+    motion.initialize(table()).await?;
+    motion
+        .r#move(pb::MoveRequest {
+            device: "table".into(),
+            axis: 1,
+            target_deg: 10.0,
+            speed_deg_s: Some(45.0),
+            accel_deg_s2: Some(120.0),
+        })
+        .await?;
+    let mut a = 0.0;
+    for _ in 0..150 {
+        a = motion.read_position(table()).await?.into_inner().joints_deg[0];
+        if (a - 10.0).abs() < 0.05 {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    assert!((a - 10.0).abs() < 0.05, "table at {a}");
+
+    // The latch: events at the sync pulses with the robot's pose and the table's angle.
+    latch.initialize(pb::LatchRequest {}).await?;
+    let caps = latch.dev_caps(pb::LatchRequest {}).await?.into_inner();
+    assert_eq!(caps.encoders, 7);
+    assert!(latch.latch_encoders(pb::LatchRequest {}).await.is_err(), "not latching yet");
+    latch.begin_latching(pb::LatchRequest {}).await?;
+    let mut events = latch.latch_encoders(pb::LatchRequest {}).await?.into_inner();
+    let mut got = Vec::new();
+    while got.len() < 5 {
+        match tokio::time::timeout(Duration::from_secs(5), events.next()).await? {
+            Some(e) => got.push(e?),
+            None => break,
+        }
+    }
+    assert_eq!(got.len(), 5);
+    assert!(got[0].first_external_clock && !got[1].first_external_clock);
+    assert!(got.windows(2).all(|w| w[1].pulse == w[0].pulse + 1 && w[1].time_s > w[0].time_s));
+    assert!((got[0].table_deg - 10.0).abs() < 0.05);
+    assert!(got[0].robot.as_ref().is_some_and(|p| p.z_mm.is_finite()));
+    latch.end_latching(pb::LatchRequest {}).await?;
+    // The stream ends once latching stops.
+    let rest = tokio::time::timeout(Duration::from_secs(5), async {
+        while let Some(e) = events.next().await {
+            e?;
+        }
+        anyhow::Ok(())
+    })
+    .await;
+    assert!(rest.is_ok(), "the event stream ends after EndLatching");
+    stack.shutdown().await
+}
