@@ -11,12 +11,68 @@ async fn loopback() -> anyhow::Result<TcpListener> {
     TcpListener::bind("127.0.0.1:0").await.context("binding a loopback port for a stage service")
 }
 
+/// The embedded stack, running.
+pub struct Stack {
+    pub rest_addr: SocketAddr,
+    pub grpc_addr: SocketAddr,
+    token: CancellationToken,
+    tasks: tokio::task::JoinSet<anyhow::Result<()>>,
+}
+
+impl Stack {
+    /// Waits until a part of the stack stops (then stops the rest) and returns the first error.
+    pub async fn wait(mut self) -> anyhow::Result<()> {
+        let mut first_error = None;
+        while let Some(joined) = self.tasks.join_next().await {
+            // Any part stopping stops the whole stack.
+            self.token.cancel();
+            match joined {
+                Ok(Ok(())) => {}
+                Ok(Err(e)) => {
+                    tracing::error!(error = format!("{e:#}"), "a part of the stack failed");
+                    first_error.get_or_insert(e);
+                }
+                Err(e) => {
+                    first_error.get_or_insert(anyhow::anyhow!("a part of the stack panicked: {e}"));
+                }
+            }
+        }
+        first_error.map_or(Ok(()), Err)
+    }
+
+    /// Stops every part and waits for them.
+    pub async fn stop(self) -> anyhow::Result<()> {
+        self.token.cancel();
+        self.wait().await
+    }
+}
+
+/// `depthmill serve`: starts the stack, prints where it listens, runs until a signal.
 pub async fn serve(
     data_dir: PathBuf,
     rest_addr: SocketAddr,
     grpc_addr: SocketAddr,
     config: Option<PathBuf>,
 ) -> anyhow::Result<()> {
+    let stack = start(data_dir, rest_addr, grpc_addr, config).await?;
+    println!("REST listening on http://{}", stack.rest_addr);
+    println!("gRPC listening on http://{}", stack.grpc_addr);
+    let stop = stack.token.clone();
+    tokio::spawn(async move {
+        depthmill_common::shutdown::shutdown_signal().await;
+        stop.cancel();
+    });
+    stack.wait().await
+}
+
+/// Starts the orchestrator and the four stage services in this process (stage services on
+/// loopback ports); returns once the REST and gRPC listeners are bound.
+pub async fn start(
+    data_dir: PathBuf,
+    rest_addr: SocketAddr,
+    grpc_addr: SocketAddr,
+    config: Option<PathBuf>,
+) -> anyhow::Result<Stack> {
     let metrics = metrics_exporter_prometheus_handle()?;
     let mut cfg: depthmill_orchestrator::Config =
         depthmill_common::config::load(config.as_deref(), "DEPTHMILL_ORCHESTRATOR")
@@ -65,29 +121,7 @@ pub async fn serve(
             .await
             .context("orchestrator")
     });
-    println!("REST listening on http://{rest_addr}");
-    println!("gRPC listening on http://{grpc_addr}");
-    let stop = token.clone();
-    tokio::spawn(async move {
-        depthmill_common::shutdown::shutdown_signal().await;
-        stop.cancel();
-    });
-    let mut first_error = None;
-    while let Some(joined) = tasks.join_next().await {
-        // Any part stopping stops the whole stack.
-        token.cancel();
-        match joined {
-            Ok(Ok(())) => {}
-            Ok(Err(e)) => {
-                tracing::error!(error = format!("{e:#}"), "a part of the stack failed");
-                first_error.get_or_insert(e);
-            }
-            Err(e) => {
-                first_error.get_or_insert(anyhow::anyhow!("a part of the stack panicked: {e}"));
-            }
-        }
-    }
-    first_error.map_or(Ok(()), Err)
+    Ok(Stack { rest_addr, grpc_addr, token, tasks })
 }
 
 fn metrics_exporter_prometheus_handle() -> anyhow::Result<metrics_exporter_prometheus::PrometheusHandle> {

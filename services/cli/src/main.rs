@@ -2,6 +2,7 @@
 
 mod cam;
 mod client;
+mod demo;
 mod embedded;
 mod machine;
 mod raster;
@@ -144,6 +145,12 @@ enum Command {
         #[arg(short, long)]
         output: PathBuf,
     },
+    /// The whole product on the sample part: starts the embedded stack, scans, reconstructs,
+    /// plans, machines and reports, then writes everything to OUTPUT.
+    Demo {
+        #[command(flatten)]
+        args: demo::DemoArgs,
+    },
     /// Scan a part's mesh (STL/PLY) on the simulated cell into a point cloud (no server).
     ///
     /// Writes OUTPUT (binary PLY: x y z, intensity, pass id, in the mesh's frame) and
@@ -241,8 +248,12 @@ fn main() -> anyhow::Result<()> {
                 depthmill_common::telemetry::init_tracing(cli.log_json);
                 tokio::task::block_in_place(|| machine::run_simulate(&program, &args, &output))
             }
+            Command::Demo { args } => {
+                depthmill_common::telemetry::init_tracing_with_default(cli.log_json, "warn");
+                demo::run(&args).await
+            }
             Command::Scan { mesh, args, output } => {
-                depthmill_common::telemetry::init_tracing(cli.log_json);
+                depthmill_common::telemetry::init_tracing_with_default(cli.log_json, "warn");
                 scan::run(&mesh, &args, &output).await
             }
             Command::Raster { input, args, output } => {

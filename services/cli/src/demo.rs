@@ -1,0 +1,252 @@
+//! `depthmill demo`: the whole product on the sample part, in one command.
+//!
+//! Starts the embedded stack, writes the generated sample part (`part.stl`), submits a
+//! scan-to-part job over REST (dynamic scan with an adaptive rescan, clean-up, depth and roughing
+//! maps, roughing and finishing G-code, execution on the simulated EMCO under the adaptive loop,
+//! report), follows it stage by stage, then writes every artifact, `job.json`, the HTML report and
+//! its pictures into the output folder and prints where everything is and how long each stage
+//! took.
+
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context as _, bail};
+use serde_json::{Value, json};
+
+/// Options of `depthmill demo`.
+#[derive(clap::Args, Debug)]
+pub struct DemoArgs {
+    /// Output folder (artifacts, job.json, report.html, report/).
+    #[arg(short, long, default_value = "depthmill-demo")]
+    pub output: PathBuf,
+    /// Where the stack keeps its database and artifacts (default: OUTPUT/data).
+    #[arg(long)]
+    pub data_dir: Option<PathBuf>,
+    /// Replace the job's sections with those of this JSON file (a job request without `input`).
+    #[arg(long)]
+    pub options: Option<PathBuf>,
+}
+
+/// The demo job, minus its input.
+pub fn demo_job() -> Value {
+    json!({
+        "name": "demo: sample relief",
+        "scan": {"mode": "dynamic", "table_angles_deg": [0, 90, 180, 270], "standoff_mm": 150,
+                 "line_rate_hz": 150, "line_spacing_mm": 0.25, "adaptive_rescan": true},
+        "reconstruct": {"pixel_mm": 0.25, "faces": [{"view": "+Z"}],
+                        "fill": {"method": "idw", "max_hole_mm": 2.0}},
+        "plan": {"stock": {"z_mm": 13, "material": "aluminium"},
+                 "roughing": {"tool": "flat-6", "step_down_mm": 2.5, "stock_to_leave_mm": 0.3},
+                 "finishing": {"tool": "ball-3", "strategy": "raster_x", "step_over_mm": 0.5,
+                               "tolerance_mm": 0.01, "arcs": true},
+                 "dialect": "linuxcnc"},
+        "execute": {"machine": "emco-f1", "adaptive": "aco"}
+    })
+}
+
+fn http() -> anyhow::Result<reqwest::Client> {
+    reqwest::Client::builder().timeout(Duration::from_secs(600)).build().context("building the HTTP client")
+}
+
+async fn json_of(resp: reqwest::Response, what: &str) -> anyhow::Result<Value> {
+    let status = resp.status();
+    let body = resp.text().await.with_context(|| format!("{what}: reading the reply"))?;
+    if !status.is_success() {
+        bail!("{what} failed: {status} {body}");
+    }
+    serde_json::from_str(&body).with_context(|| format!("{what}: the reply is not JSON"))
+}
+
+fn extension(media_type: &str) -> &'static str {
+    match media_type {
+        "model/stl" => "stl",
+        "application/x-ply" => "ply",
+        "text/x-xyz" => "xyz",
+        "image/png" => "png",
+        "application/x-npy" => "npy",
+        "text/x-gcode" => "ngc",
+        "application/json" => "json",
+        "text/html" => "html",
+        "text/csv" => "csv",
+        "image/svg+xml" => "svg",
+        _ => "bin",
+    }
+}
+
+pub async fn run(args: &DemoArgs) -> anyhow::Result<()> {
+    let started = Instant::now();
+    let out = &args.output;
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let data_dir = args.data_dir.clone().unwrap_or_else(|| out.join("data"));
+
+    // The part.
+    let mesh = depthmill_scanning::domain::sample::sample_relief(0.25);
+    let mut stl = Vec::new();
+    depthmill_scanning::domain::sample::write_stl(&mut stl, &mesh)?;
+    let part_path = out.join("part.stl");
+    std::fs::write(&part_path, &stl).with_context(|| format!("writing {}", part_path.display()))?;
+    println!("part: {} ({} triangles, 80 x 60 mm relief)", part_path.display(), mesh.triangles.len());
+
+    // The stack.
+    let stack =
+        crate::embedded::start(data_dir.clone(), "127.0.0.1:0".parse()?, "127.0.0.1:0".parse()?, None)
+            .await?;
+    let base = format!("http://{}", stack.rest_addr);
+    println!("stack: REST on {base}, data in {}", data_dir.display());
+    let result = drive(&base, stl, args, out).await;
+    stack.stop().await.context("stopping the stack")?;
+    let summary = result?;
+    println!("{summary}");
+    println!("demo wall time {:.1} s (target: under 60 s in release)", started.elapsed().as_secs_f64());
+    Ok(())
+}
+
+/// Uploads, submits, follows and collects; returns the closing summary.
+async fn drive(base: &str, stl: Vec<u8>, args: &DemoArgs, out: &Path) -> anyhow::Result<String> {
+    let client = http()?;
+    let up = client
+        .post(format!("{base}/v1/artifacts"))
+        .header("content-type", "model/stl")
+        .body(stl)
+        .send()
+        .await
+        .context("uploading the part")?;
+    let up = json_of(up, "upload").await?;
+    let sha = up["sha256"].as_str().context("upload reply without sha256")?.to_string();
+    let mut job = match &args.options {
+        Some(p) => {
+            let text = std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
+            serde_json::from_str::<Value>(&text).with_context(|| format!("{}: not JSON", p.display()))?
+        }
+        None => demo_job(),
+    };
+    job["input"] = json!({"kind": "mesh", "artifact": sha});
+    std::fs::write(out.join("job-request.json"), serde_json::to_vec_pretty(&job)?)?;
+    let created =
+        json_of(client.post(format!("{base}/v1/jobs")).json(&job).send().await?, "submitting the job")
+            .await?;
+    let id = created["id"].as_str().context("job reply without id")?.to_string();
+    println!("job {id} submitted");
+
+    // Follow it: one line per stage as it ends, progress in between.
+    let mut printed: Vec<String> = Vec::new();
+    let bar = indicatif::ProgressBar::new(1000);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template("  [{elapsed_precise}] {bar:30} {percent:>3}% {msg}")
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+    );
+    let done = loop {
+        let j = json_of(client.get(format!("{base}/v1/jobs/{id}")).send().await?, "reading the job").await?;
+        if let Some(t) = j["stage_timings_s"].as_object() {
+            for (stage, secs) in t {
+                if !printed.contains(stage) {
+                    printed.push(stage.clone());
+                    bar.println(format!("  {stage:<12} done in {:>6.2} s", secs.as_f64().unwrap_or(0.0)));
+                }
+            }
+        }
+        bar.set_position((j["progress"].as_f64().unwrap_or(0.0) * 1000.0) as u64);
+        bar.set_message(format!(
+            "{} {}",
+            j["status"].as_str().unwrap_or("?"),
+            j["stage"].as_str().unwrap_or("?")
+        ));
+        match j["status"].as_str() {
+            Some("succeeded" | "failed" | "cancelled") => break j,
+            _ => tokio::time::sleep(Duration::from_millis(200)).await,
+        }
+    };
+    bar.finish_and_clear();
+    std::fs::write(out.join("job.json"), serde_json::to_vec_pretty(&done)?)?;
+    if done["status"] != "succeeded" {
+        bail!(
+            "job {id} {}: {} ({})",
+            done["status"].as_str().unwrap_or("?"),
+            done["error"]["message"].as_str().unwrap_or("no message"),
+            done["error"]["stage"].as_str().unwrap_or("?")
+        );
+    }
+
+    // Every artifact into OUT/artifacts, the report and its pictures into OUT.
+    let art_dir = out.join("artifacts");
+    std::fs::create_dir_all(&art_dir)?;
+    let mut bytes_of = std::collections::BTreeMap::new();
+    let mut listing = Vec::new();
+    if let Some(arts) = done["artifacts"].as_object() {
+        for (name, a) in arts {
+            let sha = a["sha256"].as_str().unwrap_or_default();
+            let resp = client.get(format!("{base}/v1/artifacts/{sha}")).send().await?;
+            if !resp.status().is_success() {
+                bail!("downloading {name}: {}", resp.status());
+            }
+            let bytes = resp.bytes().await?.to_vec();
+            let safe: String = name
+                .chars()
+                .map(|c| if c.is_ascii_alphanumeric() || c == '_' || c == '-' { c } else { '_' })
+                .collect();
+            let path = art_dir.join(format!("{safe}.{}", extension(a["media_type"].as_str().unwrap_or(""))));
+            std::fs::write(&path, &bytes).with_context(|| format!("writing {}", path.display()))?;
+            listing.push(format!("  {name:<18} {}", path.display()));
+            if name != "report" && name != "report_json" {
+                bytes_of.insert(name.clone(), bytes);
+            }
+        }
+    }
+    let report = tokio::task::spawn_blocking(move || {
+        depthmill_orchestrator::report::render(&depthmill_orchestrator::report::ReportInput {
+            job: &done,
+            artifacts: &bytes_of,
+        })
+        .map(|r| (r, done))
+    })
+    .await??;
+    let (report, done) = report;
+    let report_path = out.join("report.html");
+    std::fs::write(&report_path, report.html.as_bytes())?;
+    let pics = out.join("report");
+    std::fs::create_dir_all(&pics)?;
+    for (name, bytes) in &report.files {
+        std::fs::write(pics.join(name), bytes)?;
+    }
+
+    let m = &done["metrics"];
+    let f = |k: &str| m[k].as_f64().map_or("-".to_string(), |v| format!("{v:.3}"));
+    let mut s = String::new();
+    s.push_str(&format!("job {id} succeeded\n"));
+    s.push_str("stage timings (s):");
+    let mut total = 0.0;
+    if let Some(t) = done["stage_timings_s"].as_object() {
+        for (stage, secs) in t {
+            let v = secs.as_f64().unwrap_or(0.0);
+            total += v;
+            s.push_str(&format!(" {stage} {v:.2},"));
+        }
+    }
+    s.push_str(&format!(" total {total:.2}\n"));
+    s.push_str(&format!(
+        "scan: {} points, coverage {} %, registration RMS {} mm\n",
+        f("scan_points"),
+        f("scan_coverage_pct"),
+        f("scan_registration_rms_mm")
+    ));
+    s.push_str(&format!(
+        "part: depth-map coverage {} %, max gouge {} mm, max leftover {} mm, RMS deviation {} mm\n",
+        f("coverage_pct"),
+        f("max_gouge_mm"),
+        f("max_leftover_mm"),
+        f("rms_deviation_mm")
+    ));
+    s.push_str(&format!(
+        "cycle time: {} s with the adaptive loop, {} s without\n",
+        f("cycle_time_s"),
+        f("cycle_time_no_adaptive_s")
+    ));
+    s.push_str("artifacts:\n");
+    s.push_str(&listing.join("\n"));
+    s.push_str(&format!(
+        "\nreport: {} (pictures in {}; served at {base}/v1/jobs/{id}/report while the stack runs)",
+        report_path.display(),
+        pics.display()
+    ));
+    Ok(s)
+}
