@@ -11,6 +11,9 @@ use tokio::io::AsyncRead;
 use tokio::sync::mpsc;
 
 use crate::domain::{Job, JobSpec, JobStatus, SpecError};
+
+/// Largest artifact read into a report (a cloud of about 20 million points).
+pub const REPORT_ARTIFACT_LIMIT: u64 = 512 << 20;
 use crate::events::EventHub;
 use crate::store::{Created, JobPage, JobStore, NewJob, StoreError};
 
@@ -165,6 +168,36 @@ impl App {
             job.artifacts.entry(job.spec.input.kind.as_str().to_string()).or_insert(input);
         }
         job
+    }
+
+    /// The job's HTML report as it stands now (any status): the job and the bytes of each of its
+    /// artifacts (up to [`REPORT_ARTIFACT_LIMIT`] each; larger ones are left out with a note)
+    /// rendered by [`crate::report::render`] on a blocking thread.
+    pub async fn render_report(&self, id: &str) -> Result<crate::report::ReportOutput, ApiError> {
+        let job = self.get_job(id).await?;
+        let mut artifacts = std::collections::BTreeMap::new();
+        for (name, aref) in &job.artifacts {
+            // The report and its summary are outputs of this, not inputs.
+            if name == "report" || name == "report_json" {
+                continue;
+            }
+            match self.artifacts.read_all(&aref.sha256, REPORT_ARTIFACT_LIMIT).await {
+                Ok(bytes) => {
+                    artifacts.insert(name.clone(), bytes);
+                }
+                Err(e) => {
+                    tracing::warn!(job = id, artifact = name.as_str(), error = %e, "artifact left out of the report")
+                }
+            }
+        }
+        let value = serde_json::to_value(&job)
+            .map_err(|e| ApiError::new(ErrorCode::Internal, format!("encoding the job: {e}")))?;
+        tokio::task::spawn_blocking(move || {
+            crate::report::render(&crate::report::ReportInput { job: &value, artifacts: &artifacts })
+        })
+        .await
+        .map_err(|e| ApiError::new(ErrorCode::Internal, format!("rendering the report failed: {e}")))?
+        .map_err(|e| ApiError::new(ErrorCode::Internal, format!("rendering the report failed: {e}")))
     }
 
     pub async fn get_job(&self, id: &str) -> Result<Job, ApiError> {

@@ -21,6 +21,7 @@ pub mod domain;
 pub mod events;
 mod grpc;
 pub mod http;
+pub mod report;
 pub mod stages;
 pub mod store;
 pub mod worker;

@@ -365,13 +365,14 @@ impl Worker {
         }
     }
 
-    /// The report stage: a JSON summary of the job (parameters, timings, artifacts, metrics, attempts).
+    /// The report stage: the HTML report (`report`, see [`crate::report`]) and a JSON summary of
+    /// the job (`report_json`: parameters, timings, artifacts, metrics, attempts).
     async fn report(&self, id: &str) -> Result<StageOutputs, StageError> {
-        let internal = |what: &str, e: &dyn std::error::Error| {
+        let internal = |what: &str, e: &dyn std::fmt::Display| {
             StageError::new(ErrorCode::Internal, format!("writing the report failed: {what}: {e}"))
         };
-        let job = self.app.get_job(id).await.map_err(|e| internal("reading the job", &e))?;
-        let report = serde_json::json!({
+        let job = self.app.get_job(id).await.map_err(|e| internal("reading the job", &e.message))?;
+        let summary = serde_json::json!({
             "job": job.id,
             "name": job.name,
             "spec": job.spec,
@@ -380,15 +381,23 @@ impl Worker {
             "metrics": job.metrics,
             "attempts": job.attempts,
         });
-        let bytes = serde_json::to_vec_pretty(&report).map_err(|e| internal("encoding", &e))?;
-        let aref = self
+        let bytes = serde_json::to_vec_pretty(&summary).map_err(|e| internal("encoding", &e))?;
+        let json_ref = self
             .app
             .artifacts
             .put_bytes("application/json", &bytes)
             .await
             .map_err(|e| internal("storing", &e))?;
+        let html = self.app.render_report(id).await.map_err(|e| internal("rendering", &e.message))?;
+        let aref = self
+            .app
+            .artifacts
+            .put_bytes("text/html", html.html.as_bytes())
+            .await
+            .map_err(|e| internal("storing", &e))?;
         let mut out = StageOutputs::default();
         out.artifacts.insert("report".into(), aref);
+        out.artifacts.insert("report_json".into(), json_ref);
         Ok(out)
     }
 }

@@ -128,6 +128,33 @@ pub(crate) async fn get_job(State(app): State<App>, Path(id): Path<String>) -> R
     Ok(Json(app.get_job(&id).await?))
 }
 
+/// The job's report, an HTML page (DESIGN §7): the stored one once the job has been through its
+/// report stage, otherwise rendered now from what the job has so far (any status).
+#[utoipa::path(get, path = "/v1/jobs/{id}/report", tag = "jobs", params(("id" = String, Path)),
+    responses((status = 200, description = "the HTML report", content_type = "text/html"),
+              (status = 404, body = ErrorBody)))]
+pub(crate) async fn job_report(State(app): State<App>, Path(id): Path<String>) -> Result<Response, ApiError> {
+    let job = app.get_job(&id).await?;
+    let stored = match job.artifacts.get("report") {
+        Some(a) if a.media_type == "text/html" && job.status == crate::domain::JobStatus::Succeeded => {
+            app.artifacts.read_all(&a.sha256, crate::app::REPORT_ARTIFACT_LIMIT).await.ok()
+        }
+        _ => None,
+    };
+    let html = match stored {
+        Some(bytes) => bytes,
+        None => app.render_report(&id).await?.html.into_bytes(),
+    };
+    Ok((
+        [(
+            axum::http::header::CONTENT_TYPE,
+            axum::http::HeaderValue::from_static("text/html; charset=utf-8"),
+        )],
+        html,
+    )
+        .into_response())
+}
+
 /// Cancels a job: at once when queued, at the next stage boundary when running (the service
 /// running the current stage is told to stop). An ended job is returned unchanged.
 #[utoipa::path(post, path = "/v1/jobs/{id}/cancel", tag = "jobs", params(("id" = String, Path)),

@@ -1,0 +1,628 @@
+//! Tests of the report on synthetic artifacts made with the real writers: a hemisphere depth map
+//! (16-bit PNG with metadata), its coverage map, a CAM-style program with roughing and finishing
+//! headers, the machine's telemetry CSV and plot, a binary PLY cloud.
+
+use std::collections::BTreeMap;
+
+use depthmill_common::plot::{Chart, Panel, Series};
+use depthmill_geometry::{HeightMap, HeightMapMeta, PngDepth, PointCloud, nalgebra::Point3, write_png_to};
+use depthmill_reconstruction::domain::io::{PlyEncoding, write_ply};
+use serde_json::{Value, json};
+
+use super::*;
+
+const W: u32 = 120;
+const H: u32 = 80;
+const P: f64 = 0.25;
+const X0: f64 = -15.0;
+const Y0: f64 = -10.0;
+
+fn meta(z_min: f64, z_max: f64) -> HeightMapMeta {
+    let mut m = HeightMapMeta::new(W, H, P);
+    m.origin_x_mm = X0;
+    m.origin_y_mm = Y0;
+    m.z_min_mm = z_min;
+    m.z_max_mm = z_max;
+    m
+}
+
+/// A dome of radius 8 mm, 6 mm high, on a 1 mm plate.
+fn dome_z(x: f64, y: f64) -> f64 {
+    let r2 = x * x + y * y;
+    1.0 + if r2 < 64.0 { 6.0 * (1.0 - r2 / 64.0).sqrt() } else { 0.0 }
+}
+
+fn map_png(map: &HeightMap, depth: PngDepth) -> Vec<u8> {
+    let mut out = Vec::new();
+    write_png_to(map, &mut out, depth).expect("png");
+    out
+}
+
+fn depth_map() -> HeightMap {
+    let m = meta(0.0, 8.0);
+    HeightMap::from_fn(m, |c, r| {
+        let (x, y) = m.cell_center(c, r);
+        dome_z(x, y) as f32
+    })
+    .expect("map")
+}
+
+fn coverage_map() -> HeightMap {
+    let m = meta(0.0, 1.0);
+    HeightMap::from_fn(m, |c, r| {
+        let (x, y) = m.cell_center(c, r);
+        if x.abs() > 14.0 {
+            f32::NAN
+        } else if (x - 3.0).powi(2) + (y - 2.0).powi(2) < 2.0 {
+            0.0
+        } else if x > 8.0 {
+            0.5
+        } else {
+            1.0
+        }
+    })
+    .expect("map")
+}
+
+fn gcode() -> String {
+    let mut g = String::from(
+        "%\n(depthmill)\n(material aluminium)\nG21 G90 G17 G94 G40 G49 G80\nG64 P0.0100\n\
+(T1 flat-6: flat D6.0000 mm, 2 flutes - roughing-x with flat-6)\nG53 G0 Z0.0000\nT1 M6\nS2000 M3\nG43 H1\n",
+    );
+    let mut y = -9.0;
+    g.push_str("G0 X-14.0000 Y-9.0000\nZ12.0000\nG1 Z4.0000 F100.0000\n");
+    while y <= 9.0 {
+        g.push_str(&format!("G1 Y{y:.4}\nX14.0000\nG0 Z12.0000\nX-14.0000\nG1 Z4.0000\n"));
+        y += 2.4;
+    }
+    g.push_str("G0 Z12.0000\nM5\n(T2 ball-3: ball D3.0000 mm, 2 flutes - finishing-raster-x with ball-3)\nG53 G0 Z0.0000\nT2 M6\nS2000 M3\nG43 H2\n");
+    g.push_str("G0 X-14.0000 Y-9.0000\nZ10.0000\nG1 Z1.0000 F60.0000\n");
+    let mut y = -9.0;
+    let mut dir = 1.0;
+    while y <= 9.0 {
+        g.push_str(&format!("G1 Y{y:.4} F120.0000\n"));
+        let mut x = -14.0;
+        while x <= 14.0 {
+            let xx = x * dir;
+            g.push_str(&format!("X{xx:.4} Z{:.4}\n", dome_z(xx, y)));
+            x += 1.0;
+        }
+        dir = -dir;
+        y += 0.7;
+    }
+    g.push_str("G3 X-2.0000 Y0.0000 I2.0000 J0.0000\nG0 Z10.0000\nM5\nG53 G0 Z0.0000\nM30\n%\n");
+    g
+}
+
+fn telemetry_csv() -> String {
+    let mut s = String::from(
+        "time_s,line,x_mm,y_mm,z_mm,a_deg,feed_mm_min,spindle_rpm,torque_true_nm,torque_adc_nm,torque_counts,current_a,torque_from_current_nm,power_w,removal_mm3_s,active\n",
+    );
+    for k in 0..200 {
+        let t = f64::from(k) * 0.05;
+        let feed = 100.0 + 50.0 * (t * 0.7).sin();
+        let active = if k % 3 == 0 { "torque|power" } else { "" };
+        s.push_str(&format!(
+            "{t:.4},{},0.0000,0.0000,0.0000,0.000,{feed:.2},{:.1},0.10000,0.1390,1,0.50000,0.09000,{:.3},1.0000,{active}\n",
+            10 + k,
+            1500.0 + 100.0 * (t * 0.3).cos(),
+            20.0 + 5.0 * t.sin()
+        ));
+    }
+    s
+}
+
+fn telemetry_svg() -> String {
+    Chart {
+        title: "Spindle and feed over time (aco)".into(),
+        x_label: "time [s]".into(),
+        width: 900,
+        panel_height: 120,
+        panels: vec![Panel {
+            title: "feed".into(),
+            unit: "mm/min".into(),
+            series: vec![Series {
+                label: "feed".into(),
+                color: "#1f77b4".into(),
+                points: vec![(0.0, 1.0), (1.0, 2.0)],
+            }],
+        }],
+    }
+    .to_svg()
+}
+
+fn cloud_ply(n: usize) -> Vec<u8> {
+    let mut pts = Vec::with_capacity(n);
+    let side = (n as f64).sqrt().ceil() as usize;
+    for k in 0..n {
+        let (i, j) = (k % side, k / side);
+        let x = X0 + (i as f64 + 0.5) / side as f64 * f64::from(W) * P;
+        let y = Y0 + (j as f64 + 0.5) / side as f64 * f64::from(H) * P;
+        pts.push(Point3::new(x, y, dome_z(x, y)));
+    }
+    let mut out = Vec::new();
+    write_ply(&mut out, &PointCloud::from_points(pts), None, PlyEncoding::BinaryLittleEndian, &[])
+        .expect("ply");
+    out
+}
+
+fn final_stock() -> HeightMap {
+    let m = meta(0.0, 10.0);
+    HeightMap::from_fn(m, |c, r| {
+        let (x, y) = m.cell_center(c, r);
+        (dome_z(x, y) + 0.05 * (x * 2.0).sin().abs()) as f32
+    })
+    .expect("map")
+}
+
+fn deviation_map() -> HeightMap {
+    let m = meta(-0.2, 0.2);
+    HeightMap::from_fn(m, |c, r| {
+        let (x, y) = m.cell_center(c, r);
+        ((x / 15.0) * 0.2 + 0.01 * y.sin()) as f32
+    })
+    .expect("map")
+}
+
+fn aref(kind: &str, media: &str, size: usize) -> Value {
+    let sha = format!("{:0>64}", kind.len());
+    json!({"uri": format!("file:///a/{sha}"), "sha256": sha, "size": size, "media_type": media})
+}
+
+fn full_artifacts() -> BTreeMap<String, Vec<u8>> {
+    let mut a = BTreeMap::new();
+    a.insert("point_cloud".to_string(), cloud_ply(20_000));
+    a.insert("depth_map".to_string(), map_png(&depth_map(), PngDepth::Bits16));
+    a.insert("coverage_map".to_string(), map_png(&coverage_map(), PngDepth::Bits8));
+    a.insert("roughing_map".to_string(), map_png(&depth_map(), PngDepth::Bits16));
+    a.insert("gcode".to_string(), gcode().into_bytes());
+    a.insert("final_stock".to_string(), map_png(&final_stock(), PngDepth::Bits16));
+    a.insert("deviation_map".to_string(), map_png(&deviation_map(), PngDepth::Bits8));
+    a.insert("telemetry".to_string(), telemetry_csv().into_bytes());
+    a.insert("telemetry_plot".to_string(), telemetry_svg().into_bytes());
+    a.insert(
+        "machine_report".to_string(),
+        serde_json::to_vec(&json!({
+            "machine": "emco-f1", "cycle_time_s": 812.5, "cycle_time_no_adaptive_s": 1040.0,
+            "cycle_time_other_s": 900.0, "other_policy": "feed_only",
+            "run": {"policy": "aco"},
+            "deviation": {"max_gouge_mm": 0.012, "max_leftover_mm": 0.2, "mean_leftover_mm": 0.05, "rms_deviation_mm": 0.07, "cells": 9600}
+        }))
+        .expect("json"),
+    );
+    a.insert("plan_report".to_string(), br#"{"estimated_time_s": 990.0}"#.to_vec());
+    a
+}
+
+fn job(name: &str, status: &str, artifacts: &BTreeMap<String, Vec<u8>>) -> Value {
+    let arts: serde_json::Map<String, Value> =
+        artifacts.iter().map(|(k, v)| (k.clone(), aref(k, "application/octet-stream", v.len()))).collect();
+    json!({
+        "id": "0193a1b2-c3d4-7e5f-8a9b-0c1d2e3f4a5b",
+        "name": name,
+        "status": status,
+        "stage": "report",
+        "progress": 1.0,
+        "error": null,
+        "stage_timings_s": {"reconstruct": 1.2, "plan": 0.8, "execute": 14.5, "report": 0.1},
+        "artifacts": arts,
+        "metrics": {"coverage_pct": 97.3, "max_gouge_mm": 0.012, "max_leftover_mm": 0.2, "rms_deviation_mm": 0.07,
+                    "cycle_time_s": 812.5, "cycle_time_no_adaptive_s": 1040.0},
+        "spec": {"name": name, "input": {"kind": "point_cloud", "artifact": "ab".repeat(32)},
+                 "reconstruct": {"pixel_mm": 0.25, "faces": [{"view": "+Z"}], "fill": {"method": "idw", "max_hole_mm": 2.0}},
+                 "plan": {"roughing": {"tool": "flat-6", "step_down_mm": 2.0}, "finishing": {"tool": "ball-3", "strategy": "raster_x"}},
+                 "execute": {"machine": "emco-f1", "adaptive": "aco"}},
+        "cancel_requested": false,
+        "created_at_ms": 1_795_000_000_000i64,
+        "updated_at_ms": 1_795_000_017_000i64,
+        "attempts": [{"stage": "reconstruct", "attempt": 1, "started_at_ms": 1, "finished_at_ms": 1201, "outcome": "ok"}]
+    })
+}
+
+fn b64_decode(s: &str) -> Vec<u8> {
+    let val = |c: u8| match c {
+        b'A'..=b'Z' => c - b'A',
+        b'a'..=b'z' => c - b'a' + 26,
+        b'0'..=b'9' => c - b'0' + 52,
+        b'+' => 62,
+        _ => 63,
+    };
+    let bytes: Vec<u8> = s.bytes().filter(|&c| c != b'=').collect();
+    let mut out = Vec::new();
+    for ch in bytes.chunks(4) {
+        let mut n = 0u32;
+        for (i, &c) in ch.iter().enumerate() {
+            n |= u32::from(val(c)) << (18 - 6 * i);
+        }
+        for i in 0..ch.len().saturating_sub(1) {
+            out.push((n >> (16 - 8 * i)) as u8);
+        }
+    }
+    out
+}
+
+/// Every `data:<media>;base64,...` URI in the page, decoded.
+fn data_uris(html: &str) -> Vec<(String, Vec<u8>)> {
+    let mut out = Vec::new();
+    let mut rest = html;
+    while let Some(i) = rest.find("data:") {
+        rest = &rest[i + 5..];
+        let Some(semi) = rest.find(";base64,") else { break };
+        let media = rest[..semi].to_string();
+        rest = &rest[semi + 8..];
+        let end = rest.find('"').unwrap_or(rest.len());
+        out.push((media, b64_decode(&rest[..end])));
+        rest = &rest[end..];
+    }
+    out
+}
+
+fn render_ok(job: &Value, artifacts: &BTreeMap<String, Vec<u8>>) -> ReportOutput {
+    render(&ReportInput { job, artifacts }).expect("render")
+}
+
+const SECTIONS: [&str; 10] = [
+    "summary",
+    "parameters",
+    "point-cloud",
+    "depth-map",
+    "toolpaths",
+    "final-stock",
+    "deviation",
+    "telemetry",
+    "cycle-time",
+    "<header>",
+];
+
+fn has_section(html: &str, s: &str) -> bool {
+    if s.starts_with('<') { html.contains(s) } else { html.contains(&format!(r#"<section id="{s}">"#)) }
+}
+
+#[test]
+fn a_full_job_has_every_section_and_every_picture_decodes() {
+    let arts = full_artifacts();
+    let job = job("bracket", "succeeded", &arts);
+    let out = render_ok(&job, &arts);
+    for s in SECTIONS {
+        assert!(has_section(&out.html, s), "section {s} missing");
+    }
+    assert!(!out.html.contains("class=\"missing\""), "nothing should be missing: {}", out.html);
+    let names: Vec<&str> = out.files.iter().map(|f| f.0.as_str()).collect();
+    for n in [
+        "point_cloud_top.png",
+        "point_cloud_side.png",
+        "depth_map.png",
+        "coverage_map.png",
+        "toolpaths.png",
+        "final_stock.png",
+        "deviation_map.png",
+        "telemetry.svg",
+        "cycle_time.svg",
+    ] {
+        assert!(names.contains(&n), "file {n} missing from {names:?}");
+    }
+    for (name, bytes) in &out.files {
+        if name.ends_with(".png") {
+            let img = image::load_from_memory(bytes).unwrap_or_else(|e| panic!("{name}: {e}"));
+            assert!(img.width() >= 100 && img.height() >= 50, "{name} {}x{}", img.width(), img.height());
+        } else {
+            assert!(String::from_utf8_lossy(bytes).contains("<svg"), "{name}");
+        }
+    }
+    // What the page embeds decodes too, and is self-contained.
+    let uris = data_uris(&out.html);
+    let pngs: Vec<_> = uris.iter().filter(|u| u.0 == "image/png").collect();
+    assert_eq!(pngs.len(), out.files.iter().filter(|f| f.0.ends_with(".png")).count());
+    for (_, b) in &pngs {
+        image::load_from_memory(b).expect("embedded png");
+    }
+    assert!(uris.iter().any(|u| u.0 == "image/svg+xml"));
+    assert!(!out.html.contains("src=\"http") && !out.html.contains("href=\"http"));
+    assert!(!out.html.to_ascii_lowercase().contains("<script"));
+    // Metrics and numbers a reader looks for.
+    for needle in ["97.3 %", "0.012 mm", "0.200 mm", "0.050 mm", "0.070 mm", "21.9 %", "13 min", "feed_only"]
+    {
+        assert!(out.html.contains(needle), "{needle} not in the page");
+    }
+    // Parameters are shown as rows, not only JSON.
+    assert!(out.html.contains("<th>roughing.tool</th><td><code>flat-6</code></td>"));
+}
+
+#[test]
+fn toolpaths_show_roughing_and_finishing_in_their_colours() {
+    let arts = full_artifacts();
+    let out = render_ok(&job("p", "succeeded", &arts), &arts);
+    let bytes = &out.files.iter().find(|f| f.0 == "toolpaths.png").expect("toolpaths").1;
+    let img = image::load_from_memory(bytes).expect("png").to_rgb8();
+    let (mut orange, mut blue) = (0, 0);
+    for p in img.pixels() {
+        let [r, g, b] = p.0;
+        if r > 180 && (80..150).contains(&g) && b < 70 {
+            orange += 1;
+        }
+        if b > 180 && r < 70 && g < 130 {
+            blue += 1;
+        }
+    }
+    assert!(orange > 500, "roughing pixels: {orange}");
+    assert!(blue > 500, "finishing pixels: {blue}");
+    // The program's table names both operations.
+    assert!(out.html.contains("T1 flat-6: roughing-x with flat-6"));
+    assert!(out.html.contains("T2 ball-3: finishing-raster-x with ball-3"));
+}
+
+#[test]
+fn toolpaths_land_on_the_map_where_the_program_says() {
+    let p = gcode::parse(&gcode());
+    let img = toolpath_image(Some(&depth_map()), &p, 0).expect("image");
+    // The map spans 30 x 20 mm and the moves stay inside it: the view is the map's, 800 px wide.
+    assert_eq!((img.width, img.height), (800, 533));
+    // The roughing line at y = -9 + 2.4 = -6.6 mm from x = -14 to 14 is orange in the middle.
+    let s = 800.0 / 30.0;
+    let (u, v) = ((0.0 - X0) * s, (Y0 + 20.0 - (-6.6)) * s);
+    let px = img.get(u as u32, v as u32).expect("pixel");
+    assert!(px[0] > 180 && px[2] < 70, "{px:?}");
+}
+
+#[test]
+fn missing_artifacts_give_notes_not_errors() {
+    let arts = BTreeMap::new();
+    let mut j = job("empty", "failed", &arts);
+    j["error"] =
+        json!({"code": "invalid_argument", "message": "plan.stock.z_mm: must be positive", "stage": "plan"});
+    j["metrics"] = json!({});
+    j["stage_timings_s"] = json!({});
+    let out = render_ok(&j, &arts);
+    for s in SECTIONS {
+        assert!(has_section(&out.html, s), "section {s} missing");
+    }
+    assert!(out.files.is_empty());
+    assert!(out.html.contains("Not produced: the job failed in the plan stage"), "{}", out.html);
+    assert!(out.html.matches(r#"class="missing""#).count() >= 7);
+    // A job that started from a depth map never had a cloud.
+    let mut arts = BTreeMap::new();
+    arts.insert("depth_map".to_string(), map_png(&depth_map(), PngDepth::Bits16));
+    let mut j = job("from a map", "running", &arts);
+    j["spec"]["input"]["kind"] = json!("depth_map");
+    let out = render_ok(&j, &arts);
+    assert!(out.html.contains("the job started at the plan stage"), "{}", out.html);
+    assert!(out.html.contains("the job is running and the execute stage has not finished"));
+    // Listed in the job but bytes not passed.
+    let mut j = job("x", "succeeded", &arts);
+    j["artifacts"]["gcode"] = aref("gcode", "text/x-gcode", 10);
+    let out = render_ok(&j, &arts);
+    assert!(out.html.contains("its bytes were not passed to the report"));
+}
+
+#[test]
+fn unreadable_artifacts_are_reported_in_their_section() {
+    let mut arts = full_artifacts();
+    arts.insert("depth_map".to_string(), b"not an image".to_vec());
+    arts.insert("point_cloud".to_string(), b"1 2\n".to_vec());
+    arts.insert("gcode".to_string(), vec![0xff, 0xfe, 0x00]);
+    arts.insert("telemetry_plot".to_string(), b"garbage".to_vec());
+    arts.insert("telemetry".to_string(), b"a,b\n1,2\n".to_vec());
+    let out = render_ok(&job("bad", "succeeded", &arts), &arts);
+    assert!(out.html.contains("the depth_map artifact could not be read"), "{}", out.html);
+    assert!(out.html.contains("the point_cloud artifact could not be read"));
+    assert!(out.html.contains("not UTF-8"));
+    assert!(out.html.contains("telemetry CSV could not be read"));
+}
+
+#[test]
+fn text_from_the_job_is_escaped() {
+    let arts = full_artifacts();
+    let evil = "<script>alert('x')</script>\"><img src=x onerror=alert(1)>";
+    let mut j = job(evil, "succeeded", &arts);
+    j["spec"]["plan"]["finishing"]["tool"] = json!("</td><script>alert(2)</script>");
+    j["error"] = json!({"code": "<b>", "message": "<iframe>", "stage": "plan"});
+    let out = render_ok(&j, &arts);
+    let lower = out.html.to_ascii_lowercase();
+    assert!(!lower.contains("<script"), "unescaped script");
+    assert!(!lower.contains("<iframe") && !lower.contains("<img src=x"));
+    assert!(out.html.contains("&lt;script&gt;alert(&#39;x&#39;)&lt;/script&gt;"));
+}
+
+#[test]
+fn a_job_that_is_not_an_object_is_an_error() {
+    let arts = BTreeMap::new();
+    let e = render(&ReportInput { job: &json!([1, 2]), artifacts: &arts }).err().expect("error");
+    assert!(matches!(e, ReportError::JobNotAnObject { found: "an array" }), "{e}");
+}
+
+#[test]
+fn several_faces_get_one_picture_each() {
+    let mut arts = full_artifacts();
+    let mut m1 = depth_map();
+    m1.set_face(depthmill_geometry::Face::A { angle_deg: 90.0 }).expect("face");
+    arts.insert("depth_map@1".to_string(), map_png(&m1, PngDepth::Bits16));
+    arts.insert("coverage_map@1".to_string(), map_png(&coverage_map(), PngDepth::Bits8));
+    // The same operations again after a face comment.
+    let g = gcode().replace("M30\n%\n", "");
+    let second = gcode().replacen("(T1 flat-6", "(face 2 at A 90.0000 deg)\n(T1 flat-6", 1);
+    let g =
+        format!("{}{}", g.replacen("G64 P0.0100\n", "G64 P0.0100\n(face 1 at A 0.0000 deg)\n", 1), second);
+    arts.insert("gcode".to_string(), g.into_bytes());
+    let out = render_ok(&job("two faces", "succeeded", &arts), &arts);
+    let names: Vec<&str> = out.files.iter().map(|f| f.0.as_str()).collect();
+    for n in [
+        "depth_map.png",
+        "depth_map_face2.png",
+        "coverage_map_face2.png",
+        "toolpaths.png",
+        "toolpaths_face2.png",
+    ] {
+        assert!(names.contains(&n), "{n} not in {names:?}");
+    }
+    assert!(out.html.contains("<h3>Face 2 (A=90)</h3>"), "{}", out.html);
+}
+
+#[test]
+fn telemetry_is_drawn_from_the_csv_without_the_plot() {
+    let mut arts = full_artifacts();
+    arts.remove("telemetry_plot");
+    let out = render_ok(&job("csv", "succeeded", &arts), &arts);
+    let svg = &out.files.iter().find(|f| f.0 == "telemetry.svg").expect("svg").1;
+    let svg = String::from_utf8_lossy(svg);
+    assert!(svg.contains("from the telemetry CSV") && svg.contains("cutting power"));
+    assert!(out.html.contains("Limit &#39;torque&#39; active"));
+}
+
+#[test]
+fn coverage_classes_are_counted_from_the_8_bit_map() {
+    let d = maps::decode_map(&map_png(&coverage_map(), PngDepth::Bits8), None).expect("decode");
+    let c = maps::coverage_counts(&d.map);
+    assert!(c.iter().all(|&n| n > 0), "{c:?}");
+    assert_eq!(c.iter().sum::<usize>(), (W * H) as usize);
+}
+
+fn chromium() -> Option<std::path::PathBuf> {
+    let path = std::env::var_os("PATH")?;
+    for dir in std::env::split_paths(&path) {
+        for name in ["chromium", "chromium-browser", "google-chrome", "google-chrome-stable"] {
+            let p = dir.join(name);
+            if p.is_file() {
+                return Some(p);
+            }
+        }
+    }
+    None
+}
+
+#[test]
+fn chromium_renders_the_page() {
+    let Some(bin) = chromium() else {
+        if std::env::var("DEPTHMILL_REQUIRE_CHROMIUM").as_deref() == Ok("1") {
+            panic!("DEPTHMILL_REQUIRE_CHROMIUM=1 but no chromium, chromium-browser or google-chrome on PATH");
+        }
+        eprintln!("skipped: no chromium on PATH (set DEPTHMILL_REQUIRE_CHROMIUM=1 to make this fail)");
+        return;
+    };
+    let arts = full_artifacts();
+    let out = render_ok(&job("chromium check", "succeeded", &arts), &arts);
+    let dir = std::env::temp_dir().join(format!("depthmill-report-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("tmp");
+    let page = dir.join("report.html");
+    let shot = dir.join("shot.png");
+    std::fs::write(&page, &out.html).expect("write");
+    let _ = std::fs::remove_file(&shot);
+    let status = std::process::Command::new(&bin)
+        .args([
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--hide-scrollbars",
+            &format!("--user-data-dir={}", dir.join("profile").display()),
+            &format!("--screenshot={}", shot.display()),
+            "--window-size=1280,4000",
+            &format!("file://{}", page.display()),
+        ])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .status()
+        .expect("run chromium");
+    assert!(status.success(), "chromium exited with {status}");
+    let img = image::open(&shot).expect("screenshot").to_rgb8();
+    assert_eq!((img.width(), img.height()), (1280, 4000));
+    // Not blank: many distinct colours, and the coloured pictures are there.
+    let mut colours = std::collections::HashSet::new();
+    let mut saturated = 0usize;
+    for p in img.pixels() {
+        colours.insert(p.0);
+        let [r, g, b] = p.0.map(i32::from);
+        if r.max(g).max(b) - r.min(g).min(b) > 80 {
+            saturated += 1;
+        }
+    }
+    assert!(colours.len() > 500, "{} colours only", colours.len());
+    assert!(saturated > 50_000, "{saturated} coloured pixels");
+    let keep = std::env::var_os("DEPTHMILL_KEEP_SHOT").is_some();
+    if keep {
+        eprintln!("screenshot kept at {}", shot.display());
+    } else {
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}
+
+/// Release timing on a realistic job: `cargo test --release -- --ignored --nocapture timing`.
+#[test]
+#[ignore]
+fn timing_realistic_job() {
+    let (w, h, p) = (1000u32, 800u32, 0.1);
+    let mut m = HeightMapMeta::new(w, h, p);
+    (m.origin_x_mm, m.origin_y_mm, m.z_min_mm, m.z_max_mm) = (-50.0, -40.0, 0.0, 12.0);
+    let z = |x: f64, y: f64| 2.0 + 8.0 * (-(x * x + y * y) / 600.0).exp() + 0.5 * (x / 3.0).sin();
+    let depth = HeightMap::from_fn(m, |c, r| {
+        let (x, y) = m.cell_center(c, r);
+        z(x, y) as f32
+    })
+    .expect("map");
+    let mut cm = m;
+    (cm.z_min_mm, cm.z_max_mm) = (0.0, 1.0);
+    let cov = HeightMap::from_fn(cm, |c, r| if (c / 7 + r / 5) % 17 == 0 { 0.5 } else { 1.0 }).expect("map");
+    let mut dm = m;
+    (dm.z_min_mm, dm.z_max_mm) = (-0.3, 0.3);
+    let dev =
+        HeightMap::from_fn(dm, |c, r| ((f64::from(c) - 500.0) / 2000.0 + f64::from(r % 9) * 0.01) as f32)
+            .expect("map");
+    let n = 1_000_000usize;
+    let mut pts = Vec::with_capacity(n);
+    let mut s = 12345u64;
+    for _ in 0..n {
+        s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        let x = -50.0 + (s >> 11) as f64 / (1u64 << 53) as f64 * 100.0;
+        s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        let y = -40.0 + (s >> 11) as f64 / (1u64 << 53) as f64 * 80.0;
+        pts.push(Point3::new(x, y, z(x, y)));
+    }
+    let mut ply = Vec::new();
+    write_ply(&mut ply, &PointCloud::from_points(pts), None, PlyEncoding::BinaryLittleEndian, &[])
+        .expect("ply");
+    // A raster finishing program over the map: 0.3 mm step-over, 0.5 mm points (~ 130 000 blocks).
+    let mut g = String::from(
+        "(T1 flat-6: flat D6.0000 mm, 2 flutes - roughing-x with flat-6)\nT1 M6\nG0 X-50 Y-40\nZ15\nG1 Z8 F300\n",
+    );
+    let mut y = -40.0;
+    while y < 40.0 {
+        g.push_str(&format!("G1 Y{y:.4}\nX50\nG0 Z15\nX-50\nG1 Z8\n"));
+        y += 2.4;
+    }
+    g.push_str("(T2 ball-3: ball D3.0000 mm, 2 flutes - finishing-raster-x with ball-3)\nT2 M6\n");
+    let mut y = -40.0;
+    let mut dir = 1.0;
+    while y < 40.0 {
+        g.push_str(&format!("G1 Y{y:.4}\n"));
+        let mut x = -50.0;
+        while x <= 50.0 {
+            let xx = x * dir;
+            g.push_str(&format!("X{xx:.4} Z{:.4}\n", z(xx, y)));
+            x += 0.5;
+        }
+        dir = -dir;
+        y += 0.3;
+    }
+    let mut arts = BTreeMap::new();
+    arts.insert("point_cloud".to_string(), ply);
+    arts.insert("depth_map".to_string(), map_png(&depth, PngDepth::Bits16));
+    arts.insert("coverage_map".to_string(), map_png(&cov, PngDepth::Bits8));
+    arts.insert("final_stock".to_string(), map_png(&depth, PngDepth::Bits16));
+    arts.insert("deviation_map".to_string(), map_png(&dev, PngDepth::Bits8));
+    arts.insert("gcode".to_string(), g.into_bytes());
+    arts.insert("telemetry".to_string(), telemetry_csv().into_bytes());
+    let j = job("timing", "succeeded", &arts);
+    let t = std::time::Instant::now();
+    let out = render_ok(&j, &arts);
+    let total = t.elapsed();
+    let t = std::time::Instant::now();
+    let cloud = cloud::read_cloud(&arts["point_cloud"], "point_cloud").expect("cloud");
+    let read = t.elapsed();
+    let t = std::time::Instant::now();
+    let _ = cloud::views(&cloud);
+    let views = t.elapsed();
+    eprintln!(
+        "render: {total:?} total (cloud read {read:?}, cloud views {views:?}); html {:.1} MB, {} files, {} G-code bytes",
+        out.html.len() as f64 / 1e6,
+        out.files.len(),
+        arts["gcode"].len()
+    );
+}
