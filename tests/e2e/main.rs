@@ -9,6 +9,7 @@ mod reconstruct;
 mod recovery;
 mod rs274;
 mod scan;
+mod whole;
 
 use serde_json::{Value, json};
 

@@ -15,11 +15,11 @@ use serde_json::json;
 
 /// The test part: a 30 × 30 mm sheet at z = 3 with a gentle dome (radius 12, 2.5 mm high, flanks
 /// under 23° so a sensor looking down sees them).
-fn dome(x: f64, y: f64) -> f64 {
+pub(crate) fn dome(x: f64, y: f64) -> f64 {
     3.0 + 2.5 * (1.0 - (x * x + y * y) / 144.0).max(0.0)
 }
 
-fn dome_stl() -> Vec<u8> {
+pub(crate) fn dome_stl() -> Vec<u8> {
     let n = 81;
     let mut vertices = Vec::new();
     for j in 0..n {

@@ -72,12 +72,41 @@ pub struct TestStack {
     config: depthmill_orchestrator::Config,
     orchestrator: Option<Running>,
     services: Vec<Running>,
+    /// (kind, address) of each stage service, in the order of `services`.
+    stages: Vec<(String, std::net::SocketAddr)>,
+    artifacts_dir: PathBuf,
     service_urls: Vec<(String, String)>,
     _dir: tempfile::TempDir,
 }
 
 async fn loopback() -> anyhow::Result<TcpListener> {
     Ok(TcpListener::bind("127.0.0.1:0").await?)
+}
+
+/// Starts the real stage service `kind` on `listener`.
+fn spawn_stage(kind: &str, listener: TcpListener, artifacts_dir: PathBuf) -> anyhow::Result<Running> {
+    let addr = listener.local_addr()?;
+    let token = CancellationToken::new();
+    let stop = token.clone();
+    macro_rules! spawn {
+        ($krate:ident) => {{
+            // Service configs differ beyond these two fields (the cam service has more).
+            #[allow(clippy::needless_update)]
+            let cfg = $krate::Config { grpc_addr: addr, artifacts_dir, ..Default::default() };
+            tokio::spawn(async move {
+                $krate::serve(listener, cfg, async move { stop.cancelled().await }).await?;
+                Ok(())
+            })
+        }};
+    }
+    let handle = match kind {
+        "scanning" => spawn!(depthmill_scanning),
+        "reconstruction" => spawn!(depthmill_reconstruction),
+        "cam" => spawn!(depthmill_cam),
+        "machine" => spawn!(depthmill_machine),
+        other => bail!("no stage service {other}"),
+    };
+    Ok(Running { token, handle })
 }
 
 impl TestStack {
@@ -92,6 +121,7 @@ impl TestStack {
         let data_dir = dir.path().join("data");
         let artifacts_dir = data_dir.join("artifacts");
         let mut services = Vec::new();
+        let mut stages = Vec::new();
         let mut service_urls = Vec::new();
         let mut endpoints = depthmill_orchestrator::Endpoints::none();
 
@@ -103,20 +133,9 @@ impl TestStack {
                 for name in $krate::SERVICE_NAMES {
                     service_urls.push((name.to_string(), endpoints.$field.clone()));
                 }
-                // Service configs differ beyond these two fields (the cam service has more).
-                #[allow(clippy::needless_update)]
-                let cfg = $krate::Config {
-                    grpc_addr: addr,
-                    artifacts_dir: artifacts_dir.clone(),
-                    ..Default::default()
-                };
-                let token = CancellationToken::new();
-                let stop = token.clone();
-                let handle = tokio::spawn(async move {
-                    $krate::serve(listener, cfg, async move { stop.cancelled().await }).await?;
-                    Ok(())
-                });
-                services.push(Running { token, handle });
+                let running = spawn_stage(stringify!($field), listener, artifacts_dir.clone())?;
+                stages.push((stringify!($field).to_string(), addr));
+                services.push(running);
             }};
         }
         if opts.scanning {
@@ -133,6 +152,7 @@ impl TestStack {
                 service_urls
                     .push(("depthmill.machine.v1.MachineService".to_string(), endpoints.machine.clone()));
                 script.set_addr(addr);
+                stages.push(("machine-scripted".to_string(), addr));
                 let store = depthmill_common::artifacts::LocalStore::open(&artifacts_dir).await?;
                 let token = CancellationToken::new();
                 let stop = token.clone();
@@ -167,6 +187,8 @@ impl TestStack {
             config,
             orchestrator: None,
             services,
+            stages,
+            artifacts_dir,
             service_urls,
             _dir: dir,
         };
@@ -219,6 +241,38 @@ impl TestStack {
             }
         }
         Ok(())
+    }
+
+    /// Stops the stage service `kind` (`scanning`, `reconstruction`, `cam`, `machine`): its port
+    /// refuses connections until [`TestStack::start_service`].
+    pub async fn stop_service(&mut self, kind: &str) -> anyhow::Result<()> {
+        let i = self.stage_index(kind)?;
+        let r = &self.services[i];
+        r.token.cancel();
+        // Wait until the server has let go of its port.
+        for _ in 0..200 {
+            if r.handle.is_finished() {
+                return Ok(());
+            }
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+        bail!("the {kind} service did not stop")
+    }
+
+    /// Starts the stage service `kind` again on the same port.
+    pub async fn start_service(&mut self, kind: &str) -> anyhow::Result<()> {
+        let i = self.stage_index(kind)?;
+        let addr = self.stages[i].1;
+        let listener = TcpListener::bind(addr).await.with_context(|| format!("rebinding {addr}"))?;
+        self.services[i] = spawn_stage(kind, listener, self.artifacts_dir.clone())?;
+        Ok(())
+    }
+
+    fn stage_index(&self, kind: &str) -> anyhow::Result<usize> {
+        self.stages
+            .iter()
+            .position(|(k, _)| k == kind)
+            .with_context(|| format!("no {kind} service in this stack"))
     }
 
     /// (gRPC service name, URL) of every server: the orchestrator and each stage service.

@@ -97,6 +97,10 @@ pub struct ExecuteReport {
     pub other_policy: Option<&'static str>,
     pub deviation: Option<Deviation>,
     pub telemetry_rows: usize,
+    /// The G54 work offset the program ran with (machine coordinates of the work origin).
+    pub work_offset: super::profile::Offset,
+    /// Decisions worth knowing (e.g. the work offset moved so the program fits the travel).
+    pub notes: Vec<String>,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -255,6 +259,68 @@ fn stock_spec(
     })
 }
 
+/// Lowest and highest X, Y.
+type ExtentXy = ([f64; 2], [f64; 2]);
+
+/// XY extent (work frame, profile offset removed) of the cutting moves' end points (rapids also
+/// go to machine positions such as the tool change, which do not move with the work).
+fn move_extent_xy(
+    program: impl BufRead,
+    cfg: InterpConfig,
+    profile: &MachineProfile,
+) -> Result<Option<ExtentXy>, ExecuteError> {
+    let w = profile.work_offset;
+    let mut ext: Option<ExtentXy> = None;
+    run(program, cfg, |c| match c {
+        Canon::Feed { to, .. } | Canon::Arc { end: to, .. } => {
+            let p = [to.x - w.x_mm, to.y - w.y_mm];
+            ext = Some(match ext {
+                None => (p, p),
+                Some((lo, hi)) => ([lo[0].min(p[0]), lo[1].min(p[1])], [hi[0].max(p[0]), hi[1].max(p[1])]),
+            });
+        }
+        _ => {}
+    })
+    .map_err(SimError::from)?;
+    Ok(ext)
+}
+
+/// Moves the work offset in X and Y so the program's extent (`ext`, work frame, widened by the
+/// largest tool radius for arcs) lies centred in the travel, when it does not fit at the
+/// profile's offset. Returns what was done; `None` when the profile's offset is kept (it fits,
+/// or the program is wider than the travel and the run will refuse it naming the line).
+pub fn fit_work_offset(
+    profile: &mut MachineProfile,
+    ext: ([f64; 2], [f64; 2]),
+    radius: f64,
+) -> Option<String> {
+    let w = profile.work_offset;
+    let (lo, hi) = ([ext.0[0] - radius, ext.0[1] - radius], [ext.1[0] + radius, ext.1[1] + radius]);
+    let axes = [profile.axes.x, profile.axes.y];
+    let offs = [w.x_mm, w.y_mm];
+    let fits =
+        |i: usize, off: f64| axes[i].contains(lo[i] + off, 1e-9) && axes[i].contains(hi[i] + off, 1e-9);
+    if fits(0, offs[0]) && fits(1, offs[1]) {
+        return None;
+    }
+    let mut new = offs;
+    for i in 0..2 {
+        let centred = 0.5 * (axes[i].min_mm + axes[i].max_mm) - 0.5 * (lo[i] + hi[i]);
+        if !fits(i, offs[i]) && fits(i, centred) {
+            new[i] = centred;
+        }
+    }
+    if new == offs {
+        return None;
+    }
+    profile.work_offset.x_mm = new[0];
+    profile.work_offset.y_mm = new[1];
+    Some(format!(
+        "the program spans X {:.3}..{:.3}, Y {:.3}..{:.3} mm (work frame): work offset G54 set to X {:.3} Y {:.3} (profile: X {:.3} Y {:.3}) so it lies centred in the travel",
+        ext.0[0], ext.1[0], ext.0[1], ext.1[1], new[0], new[1], offs[0], offs[1]
+    ))
+}
+
 /// Tip extents of the feed moves (work frame), by interpreting the program once.
 fn feed_extent(
     program: impl BufRead,
@@ -324,6 +390,18 @@ pub fn execute(
         telemetry_interval_s: 0.05,
         motion_only: false,
     };
+    // Where the operator clamps the stock: the profile's work offset when the program fits the
+    // travel there, else one that centres the program's moves in X and Y (as an operator would
+    // place a part whose program origin is its centre).
+    let cfg0 = super::sim::Machine::new(&SimSetup { motion_only: true, ..setup.clone() })?.interp_config();
+    let mut notes = Vec::new();
+    if let Some(ext) = move_extent_xy(open()?, cfg0, &profile)?
+        && let Some(note) = fit_work_offset(&mut setup.profile, ext, max_radius)
+    {
+        tracing::info!(%note, "work offset");
+        notes.push(note);
+    }
+    let profile = setup.profile.clone();
     // The interpreter configuration a machine with these tools uses.
     let cfg = super::sim::Machine::new(&SimSetup { motion_only: true, ..setup.clone() })?.interp_config();
     let extent =
@@ -386,6 +464,8 @@ pub fn execute(
         run: run_report,
         deviation,
         telemetry_rows: rows.len(),
+        work_offset: profile.work_offset,
+        notes,
     };
     let telemetry_csv = telemetry_csv(&rows);
     let telemetry_svg = telemetry_chart(&rows, report.run.policy).to_svg();
@@ -495,5 +575,32 @@ pub fn telemetry_chart(rows: &[TelemetryRow], policy: &str) -> Chart {
                 series: vec![series("power", "#ff7f0e", &|r| r.power_w)],
             },
         ],
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn emco() -> MachineProfile {
+        MachineProfile::builtin("emco-f1").expect("shipped profile")
+    }
+
+    #[test]
+    fn the_work_offset_moves_only_when_the_program_does_not_fit() {
+        // Fits at the profile's offset (X 40, Y 10): kept.
+        let mut p = emco();
+        assert_eq!(fit_work_offset(&mut p, ([0.0, 0.0], [60.0, 50.0]), 3.0), None);
+        assert_eq!(p.work_offset, emco().work_offset);
+        // A program centred on its origin: moved so it is centred in the travel.
+        let mut p = emco();
+        let note = fit_work_offset(&mut p, ([-40.0, -30.0], [40.0, 30.0]), 3.0).expect("moved");
+        assert!(note.contains("G54"), "{note}");
+        let (x, y) = (p.axes.x, p.axes.y);
+        assert!((p.work_offset.x_mm - 0.5 * (x.min_mm + x.max_mm)).abs() < 1e-9);
+        assert!((p.work_offset.y_mm - 0.5 * (y.min_mm + y.max_mm)).abs() < 1e-9);
+        // Wider than the travel: kept, the run refuses it naming the line.
+        let mut p = emco();
+        assert_eq!(fit_work_offset(&mut p, ([0.0, -80.0], [60.0, 80.0]), 3.0), None);
     }
 }

@@ -603,6 +603,8 @@ impl<'a> Machine<'a> {
     }
 
     fn run_move(&mut self, m: Pending, v_exit: f64, observe: Observer<'_>) -> Result<(), SimError> {
+        /// Depth of material over the tool's face a rapid may shave without counting as a crash, mm.
+        const RAPID_SCRAPE_MM: f64 = 0.05;
         let prof = &self.setup.profile;
         let a = prof.motion.accel_mm_s2;
         self.report.moves += 1;
@@ -625,7 +627,12 @@ impl<'a> Machine<'a> {
                         Point3::new(to.x - w.x_mm, to.y - w.y_mm, to.z - self.tlo_mm - w.z_mm),
                     );
                     let cut = stock.cut_line(&tool.profile, f, e)?;
-                    if cut.volume_mm3 > 1e-3 {
+                    // A rapid that shaves a sliver (left by the feed move's last partial
+                    // revolution, or the steps' rounding) marks the part; one that engages the
+                    // tool's face deeper than RAPID_SCRAPE_MM is a crash.
+                    let r = tool.profile.radius_mm();
+                    let allowed = (std::f64::consts::PI * r * r * RAPID_SCRAPE_MM).max(1e-3);
+                    if cut.volume_mm3 > allowed {
                         return Err(SimError::Crash {
                             line,
                             message: format!(
