@@ -1,9 +1,26 @@
-//! The shipped configuration files load into the real configuration types.
+//! The shipped deployment files agree with the code.
+//!
+//! No container engine or cluster runs here, so the files are checked as far as parsing allows:
+//! the configuration files load into the real configuration types; docker-compose.yml, the
+//! Kubernetes manifests of deploy/k8s and both Prometheus scrape configurations name binaries
+//! the Dockerfile builds, the ports the services listen on (the environment a manifest sets is
+//! loaded through the real `Config` types), the gRPC service names the servers register in their
+//! health service, and volumes mounted where the data and artifact folders are.
 
-use std::path::PathBuf;
+use std::collections::{BTreeMap, BTreeSet};
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context as _, anyhow, bail, ensure};
+use serde::Deserialize as _;
+use yaml_serde::Value;
+
+fn root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..")
+}
 
 fn config(name: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../deploy/config").join(name)
+    root().join("deploy/config").join(name)
 }
 
 #[test]
@@ -28,18 +45,685 @@ fn shipped_configs_load_and_agree_on_ports_and_folders() -> anyhow::Result<()> {
         assert_eq!(url, &format!("http://{addr}"), "the orchestrator reaches each service where it listens");
         assert_eq!(dir, &artifacts, "services share the orchestrator's artifact folder");
     }
-    // The compose file names the same binaries and ports.
-    let compose =
-        std::fs::read_to_string(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../docker-compose.yml"))?;
-    for (svc, port) in [("scanning", 50051), ("reconstruction", 50052), ("cam", 50053), ("machine", 50054)] {
-        assert!(
-            compose.contains(&format!("depthmill-{svc}")),
-            "{svc} binary missing from docker-compose.yml"
-        );
-        assert!(
-            compose.contains(&format!("http://{svc}:{port}")),
-            "{svc} URL missing from docker-compose.yml"
-        );
+    Ok(())
+}
+
+// ---------------------------------------------------------------------------------------------
+// What the code says: one entry per service, from the shipped TOML files and the crates.
+
+const ORCHESTRATOR: &str = "orchestrator";
+const STAGE_SERVICES: [&str; 4] = ["scanning", "reconstruction", "cam", "machine"];
+
+/// One service as the code and deploy/config describe it.
+struct Service {
+    /// Deployment, Service, container and compose service name; the binary is `depthmill-<name>`.
+    name: &'static str,
+    env_prefix: &'static str,
+    /// The gRPC port of deploy/config/<name>.toml.
+    grpc_port: u16,
+    /// The orchestrator's REST port (deploy/config/orchestrator.toml).
+    rest_port: Option<u16>,
+    /// The names the server reports in its health service (besides "").
+    health_names: &'static [&'static str],
+}
+
+impl Service {
+    /// The port that serves `GET /metrics`: the orchestrator's REST port; a stage service's gRPC
+    /// port (HTTP/1.1 beside gRPC, see `depthmill_common::grpc::serve_grpc`).
+    fn metrics_port(&self) -> u16 {
+        self.rest_port.unwrap_or(self.grpc_port)
     }
+
+    fn binary(&self) -> String {
+        format!("depthmill-{}", self.name)
+    }
+}
+
+fn services() -> anyhow::Result<Vec<Service>> {
+    let prefix = "DEPTHMILL_TEST_UNUSED_PREFIX";
+    let orch: depthmill_orchestrator::Config =
+        depthmill_common::config::load(Some(&config("orchestrator.toml")), prefix)?;
+    let mut out = vec![Service {
+        name: ORCHESTRATOR,
+        env_prefix: "DEPTHMILL_ORCHESTRATOR",
+        grpc_port: orch.grpc_addr.port(),
+        rest_port: Some(orch.rest_addr.port()),
+        health_names: depthmill_orchestrator::SERVICE_NAMES,
+    }];
+    for name in STAGE_SERVICES {
+        let toml = config(&format!("{name}.toml"));
+        let loaded = ContainerConfig::load(name, Some(&toml), prefix, [])?;
+        let health_names = match name {
+            "scanning" => depthmill_scanning::SERVICE_NAMES,
+            "reconstruction" => depthmill_reconstruction::SERVICE_NAMES,
+            "cam" => depthmill_cam::SERVICE_NAMES,
+            _ => depthmill_machine::SERVICE_NAMES,
+        };
+        let env_prefix = match name {
+            "scanning" => "DEPTHMILL_SCANNING",
+            "reconstruction" => "DEPTHMILL_RECONSTRUCTION",
+            "cam" => "DEPTHMILL_CAM",
+            _ => "DEPTHMILL_MACHINE",
+        };
+        out.push(Service {
+            name,
+            env_prefix,
+            grpc_port: loaded.grpc_addr.port(),
+            rest_port: None,
+            health_names,
+        });
+    }
+    Ok(out)
+}
+
+/// The configuration a service's process loads, through its real `Config` type.
+struct ContainerConfig {
+    grpc_addr: SocketAddr,
+    rest_addr: Option<SocketAddr>,
+    /// The orchestrator's data_dir.
+    data_dir: Option<PathBuf>,
+    /// A stage service's artifacts_dir, or the orchestrator's `<data_dir>/artifacts`.
+    artifacts_dir: PathBuf,
+    /// The orchestrator's stage service URLs, by service name.
+    service_urls: BTreeMap<&'static str, String>,
+}
+
+impl ContainerConfig {
+    fn load(
+        name: &str,
+        file: Option<&Path>,
+        prefix: &str,
+        env: impl IntoIterator<Item = (String, String)>,
+    ) -> anyhow::Result<Self> {
+        use depthmill_common::config::load_with_env;
+        let stage = |grpc_addr, artifacts_dir| Self {
+            grpc_addr,
+            rest_addr: None,
+            data_dir: None,
+            artifacts_dir,
+            service_urls: BTreeMap::new(),
+        };
+        Ok(match name {
+            ORCHESTRATOR => {
+                let c: depthmill_orchestrator::Config = load_with_env(file, prefix, env)?;
+                Self {
+                    grpc_addr: c.grpc_addr,
+                    rest_addr: Some(c.rest_addr),
+                    artifacts_dir: c.data_dir.join("artifacts"),
+                    data_dir: Some(c.data_dir),
+                    service_urls: BTreeMap::from([
+                        ("scanning", c.services.scanning),
+                        ("reconstruction", c.services.reconstruction),
+                        ("cam", c.services.cam),
+                        ("machine", c.services.machine),
+                    ]),
+                }
+            }
+            "scanning" => {
+                let c: depthmill_scanning::Config = load_with_env(file, prefix, env)?;
+                stage(c.grpc_addr, c.artifacts_dir)
+            }
+            "reconstruction" => {
+                let c: depthmill_reconstruction::Config = load_with_env(file, prefix, env)?;
+                stage(c.grpc_addr, c.artifacts_dir)
+            }
+            "cam" => {
+                let c: depthmill_cam::Config = load_with_env(file, prefix, env)?;
+                stage(c.grpc_addr, c.artifacts_dir)
+            }
+            "machine" => {
+                let c: depthmill_machine::Config = load_with_env(file, prefix, env)?;
+                stage(c.grpc_addr, c.artifacts_dir)
+            }
+            other => bail!("no such service {other}"),
+        })
+    }
+
+    /// What the container loads: no config file (the image's commands pass none), `env` only.
+    fn of_container(svc: &Service, env: &BTreeMap<String, String>) -> anyhow::Result<Self> {
+        let env = env.iter().map(|(k, v)| (k.clone(), v.clone()));
+        Self::load(svc.name, None, svc.env_prefix, env)
+            .with_context(|| format!("{}'s configuration", svc.name))
+    }
+
+    /// The process listens on every interface, at the ports deploy/config names.
+    fn check_listens_like(&self, svc: &Service) -> anyhow::Result<()> {
+        ensure!(
+            self.grpc_addr.ip().is_unspecified(),
+            "{}: gRPC must listen on 0.0.0.0, not {}",
+            svc.name,
+            self.grpc_addr
+        );
+        ensure!(
+            self.grpc_addr.port() == svc.grpc_port,
+            "{}: gRPC port {} is not deploy/config's {}",
+            svc.name,
+            self.grpc_addr.port(),
+            svc.grpc_port
+        );
+        if let Some(rest) = svc.rest_port {
+            let addr = self.rest_addr.ok_or_else(|| anyhow!("{}: no REST address", svc.name))?;
+            ensure!(addr.ip().is_unspecified(), "{}: REST must listen on 0.0.0.0, not {addr}", svc.name);
+            ensure!(
+                addr.port() == rest,
+                "{}: REST port {} is not deploy/config's {rest}",
+                svc.name,
+                addr.port()
+            );
+        }
+        Ok(())
+    }
+}
+
+/// The binaries deploy/Dockerfile copies into the image.
+fn dockerfile_binaries() -> anyhow::Result<BTreeSet<String>> {
+    let text = std::fs::read_to_string(root().join("deploy/Dockerfile"))?;
+    let binaries: BTreeSet<String> = text
+        .split_whitespace()
+        .filter_map(|word| word.strip_prefix("target/release/"))
+        .map(str::to_string)
+        .collect();
+    ensure!(!binaries.is_empty(), "the Dockerfile copies no binary out of target/release");
+    Ok(binaries)
+}
+
+// ---------------------------------------------------------------------------------------------
+// YAML access.
+
+/// Every document of a YAML stream (`---` separated), empty ones left out.
+fn yaml_documents(path: &Path) -> anyhow::Result<Vec<Value>> {
+    let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    parse_documents(&text).with_context(|| format!("parsing {}", path.display()))
+}
+
+fn parse_documents(text: &str) -> anyhow::Result<Vec<Value>> {
+    let mut docs = Vec::new();
+    for doc in yaml_serde::Deserializer::from_str(text) {
+        let value = Value::deserialize(doc)?;
+        if !value.is_null() {
+            docs.push(value);
+        }
+    }
+    Ok(docs)
+}
+
+/// The value at a dotted path of mapping keys (`spec.template.spec`).
+fn at<'a>(v: &'a Value, path: &str) -> Option<&'a Value> {
+    path.split('.').try_fold(v, |v, key| v.get(key))
+}
+
+fn str_at<'a>(v: &'a Value, path: &str) -> anyhow::Result<&'a str> {
+    at(v, path).and_then(Value::as_str).ok_or_else(|| anyhow!("{path} is missing or not a string"))
+}
+
+fn seq_at<'a>(v: &'a Value, path: &str) -> anyhow::Result<&'a [Value]> {
+    at(v, path)
+        .and_then(Value::as_sequence)
+        .map(Vec::as_slice)
+        .ok_or_else(|| anyhow!("{path} is missing or not a list"))
+}
+
+fn port_of(v: &Value) -> Option<u16> {
+    v.as_u64().and_then(|p| u16::try_from(p).ok())
+}
+
+/// `http://host:port` as (host, port).
+fn host_port(url: &str) -> anyhow::Result<(&str, u16)> {
+    let rest = url.strip_prefix("http://").ok_or_else(|| anyhow!("{url} is not an http:// URL"))?;
+    let (host, port) =
+        rest.trim_end_matches('/').rsplit_once(':').ok_or_else(|| anyhow!("{url} has no port"))?;
+    Ok((host, port.parse().with_context(|| format!("the port of {url}"))?))
+}
+
+/// A Kubernetes object of deploy/k8s.
+struct Object {
+    file: String,
+    kind: String,
+    name: String,
+    doc: Value,
+}
+
+fn k8s_dir() -> PathBuf {
+    root().join("deploy/k8s")
+}
+
+/// Every object of every YAML file under deploy/k8s, and the file names.
+fn k8s_objects() -> anyhow::Result<(Vec<Object>, BTreeSet<String>)> {
+    let mut objects = Vec::new();
+    let mut files = BTreeSet::new();
+    for entry in std::fs::read_dir(k8s_dir())? {
+        let path = entry?.path();
+        let Some(file) = path.file_name().and_then(|n| n.to_str()).map(str::to_string) else { continue };
+        if !(file.ends_with(".yaml") || file.ends_with(".yml")) {
+            continue;
+        }
+        for doc in yaml_documents(&path)? {
+            let kind = str_at(&doc, "kind").with_context(|| file.clone())?.to_string();
+            // Every object but the Kustomization has a name.
+            let name = str_at(&doc, "metadata.name").unwrap_or_default().to_string();
+            objects.push(Object { file: file.clone(), kind, name, doc });
+        }
+        files.insert(file);
+    }
+    Ok((objects, files))
+}
+
+fn find<'a>(objects: &'a [Object], kind: &str, name: &str) -> anyhow::Result<&'a Object> {
+    objects
+        .iter()
+        .find(|o| o.kind == kind && o.name == name)
+        .ok_or_else(|| anyhow!("deploy/k8s has no {kind} named {name}"))
+}
+
+/// A container's ports by name.
+fn container_ports(container: &Value) -> anyhow::Result<BTreeMap<String, u16>> {
+    let mut ports = BTreeMap::new();
+    for p in seq_at(container, "ports")? {
+        let name = str_at(p, "name")?.to_string();
+        let port = at(p, "containerPort")
+            .and_then(port_of)
+            .ok_or_else(|| anyhow!("port {name} has no containerPort"))?;
+        ports.insert(name, port);
+    }
+    Ok(ports)
+}
+
+/// A probe's or Service's port: a number, or the name of a container port.
+fn resolve_port(port: &Value, ports: &BTreeMap<String, u16>) -> Option<u16> {
+    port_of(port).or_else(|| port.as_str().and_then(|name| ports.get(name).copied()))
+}
+
+fn env_of(container: &Value) -> anyhow::Result<BTreeMap<String, String>> {
+    let mut env = BTreeMap::new();
+    for e in seq_at(container, "env")? {
+        env.insert(str_at(e, "name")?.to_string(), str_at(e, "value")?.to_string());
+    }
+    Ok(env)
+}
+
+// ---------------------------------------------------------------------------------------------
+// Kubernetes.
+
+#[test]
+fn kubernetes_manifests_match_the_code() -> anyhow::Result<()> {
+    let services = services()?;
+    let binaries = dockerfile_binaries()?;
+    let (objects, files) = k8s_objects()?;
+
+    // kustomization.yaml lists every other manifest, and names the one namespace.
+    let kustomization = find(&objects, "Kustomization", "")?;
+    let listed: BTreeSet<String> = seq_at(&kustomization.doc, "resources")?
+        .iter()
+        .filter_map(Value::as_str)
+        .map(str::to_string)
+        .collect();
+    let manifests: BTreeSet<String> = files.iter().filter(|f| *f != &kustomization.file).cloned().collect();
+    assert_eq!(listed, manifests, "kustomization.yaml lists every manifest of deploy/k8s");
+    let namespace = str_at(&kustomization.doc, "namespace")?;
+    find(&objects, "Namespace", namespace)?;
+
+    // The claims: the artifact store is shared by every pod (ReadWriteMany).
+    let claim_modes = |name: &str| -> anyhow::Result<Vec<String>> {
+        let pvc = find(&objects, "PersistentVolumeClaim", name)?;
+        Ok(seq_at(&pvc.doc, "spec.accessModes")?
+            .iter()
+            .filter_map(Value::as_str)
+            .map(str::to_string)
+            .collect())
+    };
+
+    let mut artifact_claims = BTreeSet::new();
+    for svc in &services {
+        let check = || -> anyhow::Result<String> {
+            let deployment = find(&objects, "Deployment", svc.name)?;
+            let service = find(&objects, "Service", svc.name)?;
+            let pod = at(&deployment.doc, "spec.template").ok_or_else(|| anyhow!("no pod template"))?;
+            let containers = seq_at(pod, "spec.containers")?;
+            ensure!(containers.len() == 1, "one container per pod");
+            let container = &containers[0];
+            ensure!(str_at(container, "image")? == "depthmill:latest", "the image is depthmill:latest");
+            let command = seq_at(container, "command")?;
+            let binary = command.first().and_then(Value::as_str).ok_or_else(|| anyhow!("no command"))?;
+            ensure!(binary == svc.binary(), "the command runs {binary}, not {}", svc.binary());
+            ensure!(binaries.contains(binary), "the Dockerfile builds no {binary} (it builds {binaries:?})");
+
+            // The environment, loaded through the real Config type, listens where the ports say.
+            let env = env_of(container)?;
+            let loaded = ContainerConfig::of_container(svc, &env)?;
+            loaded.check_listens_like(svc)?;
+            let ports = container_ports(container)?;
+            ensure!(
+                ports.get("grpc") == Some(&svc.grpc_port),
+                "container port grpc is {:?}, not {}",
+                ports.get("grpc"),
+                svc.grpc_port
+            );
+            if let Some(rest) = svc.rest_port {
+                ensure!(
+                    ports.get("http") == Some(&rest),
+                    "container port http is {:?}, not {rest}",
+                    ports.get("http")
+                );
+            }
+
+            // Probes: readiness and liveness; every gRPC probe asks the gRPC port for a name the
+            // server registers; every HTTP probe asks the REST port for /readyz or /healthz.
+            let mut grpc_probes = 0;
+            for kind in ["startupProbe", "readinessProbe", "livenessProbe"] {
+                let Some(probe) = container.get(kind) else {
+                    ensure!(kind == "startupProbe", "no {kind}");
+                    continue;
+                };
+                if let Some(grpc) = probe.get("grpc") {
+                    grpc_probes += 1;
+                    let port = grpc.get("port").and_then(port_of);
+                    ensure!(
+                        port == Some(svc.grpc_port),
+                        "{kind}: gRPC probe on port {port:?}, not {}",
+                        svc.grpc_port
+                    );
+                    let name = str_at(grpc, "service")?;
+                    ensure!(
+                        svc.health_names.contains(&name),
+                        "{kind}: {name} is not registered (the server registers {:?})",
+                        svc.health_names
+                    );
+                } else if let Some(get) = probe.get("httpGet") {
+                    let rest =
+                        svc.rest_port.ok_or_else(|| anyhow!("{kind}: an HTTP probe, but no REST port"))?;
+                    let port = get.get("port").and_then(|p| resolve_port(p, &ports));
+                    ensure!(port == Some(rest), "{kind}: HTTP probe on port {port:?}, not REST {rest}");
+                    let path = str_at(get, "path")?;
+                    let expected = if kind == "livenessProbe" { "/healthz" } else { "/readyz" };
+                    ensure!(path == expected, "{kind}: HTTP probe of {path}, not {expected}");
+                } else {
+                    bail!("{kind} is neither grpc nor httpGet");
+                }
+            }
+            ensure!(grpc_probes > 0, "no probe asks the gRPC health service");
+
+            // Volumes: the artifact folder (and the orchestrator's data folder) on claims.
+            let claims: BTreeMap<String, String> = seq_at(pod, "spec.volumes")?
+                .iter()
+                .filter_map(|v| {
+                    Some((
+                        str_at(v, "name").ok()?.to_string(),
+                        str_at(v, "persistentVolumeClaim.claimName").ok()?.to_string(),
+                    ))
+                })
+                .collect();
+            let mut mounted = BTreeMap::new();
+            for m in seq_at(container, "volumeMounts")? {
+                let volume = str_at(m, "name")?;
+                if let Some(claim) = claims.get(volume) {
+                    mounted.insert(PathBuf::from(str_at(m, "mountPath")?), claim.clone());
+                }
+            }
+            let artifacts_claim = mounted.get(&loaded.artifacts_dir).ok_or_else(|| {
+                anyhow!("no claim mounted at the artifact folder {}", loaded.artifacts_dir.display())
+            })?;
+            let modes = claim_modes(artifacts_claim)?;
+            ensure!(
+                modes.iter().any(|m| m == "ReadWriteMany"),
+                "the artifact claim {artifacts_claim} is shared by all pods: it must be ReadWriteMany, not {modes:?}"
+            );
+            if let Some(data_dir) = &loaded.data_dir {
+                let claim = mounted
+                    .get(data_dir)
+                    .ok_or_else(|| anyhow!("no claim mounted at data_dir {}", data_dir.display()))?;
+                claim_modes(claim)?;
+                ensure!(
+                    deployment.doc.get("spec").and_then(|s| s.get("replicas")).and_then(Value::as_u64)
+                        == Some(1),
+                    "one orchestrator replica (SQLite)"
+                );
+            }
+
+            // The Service selects this pod and exposes its ports by name.
+            let labels = at(pod, "metadata.labels")
+                .and_then(Value::as_mapping)
+                .ok_or_else(|| anyhow!("pod has no labels"))?;
+            let selector = at(&service.doc, "spec.selector")
+                .and_then(Value::as_mapping)
+                .ok_or_else(|| anyhow!("Service has no selector"))?;
+            ensure!(
+                !selector.is_empty() && selector.iter().all(|(k, v)| labels.get(k) == Some(v)),
+                "the Service's selector does not select the pod"
+            );
+            let mut service_ports = BTreeMap::new();
+            for p in seq_at(&service.doc, "spec.ports")? {
+                let name = str_at(p, "name")?;
+                ensure!(
+                    ["grpc", "http", "metrics"].contains(&name),
+                    "Service port {name} is not grpc, http or metrics"
+                );
+                let port = p
+                    .get("port")
+                    .and_then(port_of)
+                    .ok_or_else(|| anyhow!("Service port {name} has no port"))?;
+                let target = p.get("targetPort").map_or(Some(port), |t| resolve_port(t, &ports));
+                ensure!(
+                    target == ports.get(name).copied(),
+                    "Service port {name} targets {target:?}, not the container's {name} port"
+                );
+                service_ports.insert(name.to_string(), port);
+            }
+            ensure!(
+                service_ports.get("grpc") == Some(&svc.grpc_port),
+                "the Service has no grpc port {}",
+                svc.grpc_port
+            );
+            if let Some(rest) = svc.rest_port {
+                ensure!(service_ports.get("http") == Some(&rest), "the Service has no http port {rest}");
+            }
+
+            // Prometheus: the pod asks to be scraped at /metrics on a port that serves it.
+            let annotation =
+                |key: &str| at(pod, "metadata.annotations").and_then(|a| a.get(key)).and_then(Value::as_str);
+            ensure!(
+                annotation("prometheus.io/scrape") == Some("true"),
+                "pod not annotated prometheus.io/scrape: \"true\""
+            );
+            ensure!(
+                annotation("prometheus.io/path") == Some("/metrics"),
+                "pod not annotated prometheus.io/path: /metrics"
+            );
+            let port: Option<u16> = annotation("prometheus.io/port").and_then(|p| p.parse().ok());
+            ensure!(
+                port == Some(svc.metrics_port()),
+                "prometheus.io/port is {port:?}, but /metrics is served on {}",
+                svc.metrics_port()
+            );
+            ensure!(ports.values().any(|p| Some(*p) == port), "prometheus.io/port is not a container port");
+
+            // The orchestrator reaches every stage service through its Service.
+            for (stage, url) in &loaded.service_urls {
+                let (host, port) = host_port(url)?;
+                ensure!(host == *stage, "the {stage} URL {url} does not name the {stage} Service");
+                let target = find(&objects, "Service", host)?;
+                let exposed = seq_at(&target.doc, "spec.ports")?.iter().any(|p| {
+                    str_at(p, "name").ok() == Some("grpc") && p.get("port").and_then(port_of) == Some(port)
+                });
+                ensure!(exposed, "the {stage} Service has no grpc port {port} ({url})");
+                let stage_svc = services
+                    .iter()
+                    .find(|s| s.name == *stage)
+                    .ok_or_else(|| anyhow!("no service {stage}"))?;
+                ensure!(port == stage_svc.grpc_port, "{url}: {stage} listens on {}", stage_svc.grpc_port);
+            }
+            if svc.name == ORCHESTRATOR {
+                ensure!(
+                    loaded.service_urls.len() == STAGE_SERVICES.len(),
+                    "the orchestrator has a URL per stage service"
+                );
+            }
+            Ok(artifacts_claim.clone())
+        };
+        let claim = check().with_context(|| format!("deploy/k8s: {}", svc.name))?;
+        artifact_claims.insert(claim);
+    }
+    assert_eq!(artifact_claims.len(), 1, "every pod mounts the same artifact claim: {artifact_claims:?}");
+
+    check_k8s_prometheus(&objects, namespace)
+}
+
+/// The Prometheus configuration discovers the annotated pods of the namespace, and Prometheus
+/// loads it.
+fn check_k8s_prometheus(objects: &[Object], namespace: &str) -> anyhow::Result<()> {
+    let config_map = find(objects, "ConfigMap", "prometheus-config")?;
+    let text = at(&config_map.doc, "data")
+        .and_then(|d| d.get("prometheus.yml"))
+        .and_then(Value::as_str)
+        .ok_or_else(|| anyhow!("prometheus-config has no data prometheus.yml"))?;
+    let config = parse_documents(text)?.into_iter().next().ok_or_else(|| anyhow!("empty prometheus.yml"))?;
+    let jobs = seq_at(&config, "scrape_configs")?;
+    let pod_job = jobs
+        .iter()
+        .find(|job| {
+            job.get("kubernetes_sd_configs").and_then(Value::as_sequence).is_some_and(|sds| {
+                sds.iter().any(|sd| {
+                    sd.get("role").and_then(Value::as_str) == Some("pod")
+                        && at(sd, "namespaces.names")
+                            .and_then(Value::as_sequence)
+                            .is_some_and(|n| n.iter().any(|n| n.as_str() == Some(namespace)))
+                })
+            })
+        })
+        .ok_or_else(|| anyhow!("no scrape job discovers the pods of namespace {namespace}"))?;
+    let relabels = seq_at(pod_job, "relabel_configs")?;
+    let uses = |label: &str, action: Option<&str>, target: Option<&str>| {
+        relabels.iter().any(|r| {
+            r.get("source_labels")
+                .and_then(Value::as_sequence)
+                .is_some_and(|s| s.iter().any(|l| l.as_str() == Some(label)))
+                && action.is_none_or(|a| r.get("action").and_then(Value::as_str) == Some(a))
+                && target.is_none_or(|t| r.get("target_label").and_then(Value::as_str) == Some(t))
+        })
+    };
+    ensure!(
+        uses("__meta_kubernetes_pod_annotation_prometheus_io_scrape", Some("keep"), None),
+        "the pod job keeps pods annotated prometheus.io/scrape"
+    );
+    ensure!(
+        uses("__meta_kubernetes_pod_annotation_prometheus_io_path", None, Some("__metrics_path__")),
+        "the pod job scrapes prometheus.io/path"
+    );
+    ensure!(
+        uses("__meta_kubernetes_pod_annotation_prometheus_io_port", None, Some("__address__")),
+        "the pod job scrapes prometheus.io/port"
+    );
+    ensure!(
+        !uses("__meta_kubernetes_pod_label_app_kubernetes_io_name", None, Some("service")),
+        "target label `service` would clash with the gRPC metrics' label"
+    );
+
+    // A Prometheus Deployment mounts the ConfigMap where its --config.file points.
+    let prometheus = find(objects, "Deployment", "prometheus")?;
+    let pod = at(&prometheus.doc, "spec.template.spec").ok_or_else(|| anyhow!("no pod spec"))?;
+    let volume = seq_at(pod, "volumes")?
+        .iter()
+        .find(|v| str_at(v, "configMap.name").ok() == Some(config_map.name.as_str()))
+        .and_then(|v| str_at(v, "name").ok())
+        .ok_or_else(|| anyhow!("Prometheus mounts no prometheus-config volume"))?;
+    let container = seq_at(pod, "containers")?.first().ok_or_else(|| anyhow!("no Prometheus container"))?;
+    let mount = seq_at(container, "volumeMounts")?
+        .iter()
+        .find(|m| str_at(m, "name").ok() == Some(volume))
+        .and_then(|m| str_at(m, "mountPath").ok())
+        .ok_or_else(|| anyhow!("the Prometheus container does not mount {volume}"))?;
+    let config_file = format!("--config.file={mount}/prometheus.yml");
+    ensure!(
+        seq_at(container, "args")?.iter().any(|a| a.as_str() == Some(config_file.as_str())),
+        "Prometheus runs without {config_file}"
+    );
+    Ok(())
+}
+
+// ---------------------------------------------------------------------------------------------
+// docker-compose.
+
+#[test]
+fn compose_file_and_its_prometheus_match_the_code() -> anyhow::Result<()> {
+    let services = services()?;
+    let binaries = dockerfile_binaries()?;
+    let compose = yaml_documents(&root().join("docker-compose.yml"))?
+        .into_iter()
+        .next()
+        .ok_or_else(|| anyhow!("docker-compose.yml is empty"))?;
+    let prometheus = yaml_documents(&root().join("deploy/prometheus.yml"))?
+        .into_iter()
+        .next()
+        .ok_or_else(|| anyhow!("deploy/prometheus.yml is empty"))?;
+    let mut targets = BTreeSet::new();
+    for job in seq_at(&prometheus, "scrape_configs")? {
+        let path = job.get("metrics_path").and_then(Value::as_str).unwrap_or("/metrics");
+        for sc in
+            job.get("static_configs").and_then(Value::as_sequence).map(Vec::as_slice).unwrap_or_default()
+        {
+            for t in seq_at(sc, "targets")?.iter().filter_map(Value::as_str) {
+                targets.insert((t.to_string(), path.to_string()));
+            }
+        }
+    }
+
+    for svc in &services {
+        let check = || -> anyhow::Result<()> {
+            let entry = at(&compose, &format!("services.{}", svc.name))
+                .ok_or_else(|| anyhow!("no such compose service"))?;
+            ensure!(str_at(entry, "image")? == "depthmill:latest", "the image is depthmill:latest");
+            let binary = seq_at(entry, "command")?
+                .first()
+                .and_then(Value::as_str)
+                .ok_or_else(|| anyhow!("no command"))?;
+            ensure!(binary == svc.binary(), "the command runs {binary}, not {}", svc.binary());
+            ensure!(binaries.contains(binary), "the Dockerfile builds no {binary}");
+            let env: BTreeMap<String, String> = entry
+                .get("environment")
+                .and_then(Value::as_mapping)
+                .ok_or_else(|| anyhow!("no environment mapping"))?
+                .iter()
+                .filter_map(|(k, v)| Some((k.as_str()?.to_string(), v.as_str()?.to_string())))
+                .collect();
+            let loaded = ContainerConfig::of_container(svc, &env)?;
+            loaded.check_listens_like(svc)?;
+            for (stage, url) in &loaded.service_urls {
+                let stage_svc = services
+                    .iter()
+                    .find(|s| s.name == *stage)
+                    .ok_or_else(|| anyhow!("no service {stage}"))?;
+                ensure!(
+                    url == &format!("http://{stage}:{}", stage_svc.grpc_port),
+                    "the {stage} URL {url} is not its compose service and port"
+                );
+            }
+            // The shared volume holds the artifact folder (and the orchestrator's data folder).
+            let volumes: Vec<&str> = seq_at(entry, "volumes")?.iter().filter_map(Value::as_str).collect();
+            let under_volume = |dir: &Path| {
+                volumes.iter().any(|v| {
+                    v.split_once(':')
+                        .is_some_and(|(name, mount)| name == "depthmill-data" && dir.starts_with(mount))
+                })
+            };
+            ensure!(
+                under_volume(&loaded.artifacts_dir),
+                "{} is not on the depthmill-data volume",
+                loaded.artifacts_dir.display()
+            );
+            if let Some(data_dir) = &loaded.data_dir {
+                ensure!(under_volume(data_dir), "{} is not on the depthmill-data volume", data_dir.display());
+            }
+            // Prometheus scrapes the port that serves /metrics.
+            let target = (format!("{}:{}", svc.name, svc.metrics_port()), "/metrics".to_string());
+            ensure!(
+                targets.contains(&target),
+                "deploy/prometheus.yml does not scrape {}{}",
+                target.0,
+                target.1
+            );
+            Ok(())
+        };
+        check().with_context(|| format!("docker-compose.yml: {}", svc.name))?;
+    }
+    ensure!(at(&compose, "volumes.depthmill-data").is_some(), "the depthmill-data volume is declared");
     Ok(())
 }

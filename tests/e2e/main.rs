@@ -4,6 +4,7 @@ mod api;
 mod deploy;
 mod jobs;
 mod machine;
+mod metrics;
 mod plan;
 mod reconstruct;
 mod recovery;

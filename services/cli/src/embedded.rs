@@ -73,7 +73,9 @@ pub async fn start(
     grpc_addr: SocketAddr,
     config: Option<PathBuf>,
 ) -> anyhow::Result<Stack> {
-    let metrics = metrics_exporter_prometheus_handle()?;
+    // One recorder for the whole process: the orchestrator's REST /metrics and every service's
+    // gRPC-port /metrics render the same registry (calls are labelled by service).
+    let metrics = depthmill_common::metrics::install_prometheus()?;
     let mut cfg: depthmill_orchestrator::Config =
         depthmill_common::config::load(config.as_deref(), "DEPTHMILL_ORCHESTRATOR")
             .context("loading configuration")?;
@@ -122,10 +124,4 @@ pub async fn start(
             .context("orchestrator")
     });
     Ok(Stack { rest_addr, grpc_addr, token, tasks })
-}
-
-fn metrics_exporter_prometheus_handle() -> anyhow::Result<metrics_exporter_prometheus::PrometheusHandle> {
-    metrics_exporter_prometheus::PrometheusBuilder::new()
-        .install_recorder()
-        .context("installing the metrics recorder")
 }

@@ -24,6 +24,25 @@ pub enum ConfigError {
 /// followed by `__` (e.g. `DEPTHMILL_ORCHESTRATOR__REST__ADDR=0.0.0.0:8080`).
 /// Unknown keys are an error when `T` denies them (`#[serde(deny_unknown_fields)]`).
 pub fn load<T: DeserializeOwned>(file: Option<&Path>, env_prefix: &str) -> Result<T, ConfigError> {
+    load_from(file, env_prefix, None)
+}
+
+/// [`load`] with the environment given as `(name, value)` pairs instead of the process's: what a
+/// binary would load under that environment (deployment tests load the environment a manifest
+/// sets, without touching the test process's own).
+pub fn load_with_env<T: DeserializeOwned>(
+    file: Option<&Path>,
+    env_prefix: &str,
+    env: impl IntoIterator<Item = (String, String)>,
+) -> Result<T, ConfigError> {
+    load_from(file, env_prefix, Some(env.into_iter().collect()))
+}
+
+fn load_from<T: DeserializeOwned>(
+    file: Option<&Path>,
+    env_prefix: &str,
+    env: Option<config::Map<String, String>>,
+) -> Result<T, ConfigError> {
     let mut builder = config::Config::builder();
     let path = file.map(|p| p.display().to_string()).unwrap_or_else(|| "<none>".into());
     if let Some(file) = file {
@@ -33,7 +52,11 @@ pub fn load<T: DeserializeOwned>(file: Option<&Path>, env_prefix: &str) -> Resul
         builder = builder.add_source(config::File::from(file).format(config::FileFormat::Toml));
     }
     builder = builder.add_source(
-        config::Environment::with_prefix(env_prefix).prefix_separator("__").separator("__").try_parsing(true),
+        config::Environment::with_prefix(env_prefix)
+            .prefix_separator("__")
+            .separator("__")
+            .try_parsing(true)
+            .source(env),
     );
     builder.build().and_then(|c| c.try_deserialize()).map_err(|source| ConfigError::Invalid {
         path,
@@ -70,5 +93,15 @@ mod tests {
 
         let missing = load::<Sample>(Some(&dir.path().join("nope.toml")), "X").expect_err("missing");
         assert!(missing.to_string().contains("nope.toml"));
+    }
+
+    #[test]
+    fn given_environment_overrides_like_the_process_environment() {
+        let env = [("DEPTHMILL_SAMPLE__PORT".to_string(), "50051".to_string())];
+        let s: Sample = load_with_env(None, "DEPTHMILL_SAMPLE", env).expect("load");
+        assert_eq!((s.name.as_str(), s.port), ("", 50051));
+        let other_prefix = [("DEPTHMILL_OTHER__PORT".to_string(), "1".to_string())];
+        let s: Sample = load_with_env(None, "DEPTHMILL_SAMPLE", other_prefix).expect("load");
+        assert_eq!(s.port, 0, "variables of another prefix are ignored");
     }
 }

@@ -1,4 +1,5 @@
-//! Serving tonic routes on a bound listener, with the standard health service and reflection.
+//! Serving tonic routes on a bound listener, with the standard health service, reflection, gRPC
+//! call metrics and `GET /metrics` on the same port.
 
 use std::future::Future;
 
@@ -17,9 +18,19 @@ pub enum ServeError {
     Io(#[source] std::io::Error),
 }
 
+/// The name of the standard gRPC health service every server registers.
+pub const HEALTH_SERVICE: &str = "grpc.health.v1.Health";
+/// The name of the gRPC reflection service every server registers.
+pub const REFLECTION_SERVICE: &str = "grpc.reflection.v1.ServerReflection";
+
 /// Serves `routes` plus `grpc.health.v1.Health` (every name in `service_names` and the empty
 /// name reported SERVING) and gRPC reflection (v1) over the depthmill descriptors, on `listener`,
 /// until `shutdown` completes. In-flight calls are drained on shutdown.
+///
+/// The same port also answers HTTP/1.1 `GET /metrics`: the process's Prometheus metrics (see
+/// [`crate::metrics`]; 404 when the binary installed no recorder). Every gRPC call is counted and
+/// timed by [`crate::metrics::GrpcMetricsLayer`]. HTTP/2 without TLS (h2c, what gRPC clients and
+/// Kubernetes' `grpc` probes speak) and HTTP/1.1 are told apart per connection.
 pub async fn serve_grpc(
     listener: TcpListener,
     routes: Routes,
@@ -37,10 +48,17 @@ pub async fn serve_grpc(
         .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
         .build_v1()
         .map_err(ServeError::Reflection)?;
-    let routes = routes.add_service(health).add_service(reflection);
-    tracing::info!(%addr, services = ?service_names, "gRPC listening");
+    let router = routes
+        .add_service(health)
+        .add_service(reflection)
+        .into_axum_router()
+        .route("/metrics", axum::routing::get(crate::metrics::render_metrics));
+    let recorded = service_names.iter().copied().chain([HEALTH_SERVICE, REFLECTION_SERVICE]);
+    tracing::info!(%addr, services = ?service_names, "gRPC listening (and GET /metrics)");
     tonic::transport::Server::builder()
-        .add_routes(routes)
+        .accept_http1(true)
+        .layer(crate::metrics::GrpcMetricsLayer::new(recorded))
+        .add_routes(Routes::from(router))
         .serve_with_incoming_shutdown(TcpListenerStream::new(listener), shutdown)
         .await
         .map_err(ServeError::Transport)

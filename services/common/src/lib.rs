@@ -6,7 +6,8 @@
 //! # Layout
 //! - [`config`]: layered configuration (TOML file, then `DEPTHMILL_<SVC>__SECTION__KEY` env overrides).
 //! - [`telemetry`]: the tracing subscriber, installed by binaries only.
-//! - [`grpc`]: serving tonic routes on a bound listener, with health and reflection.
+//! - [`grpc`]: serving tonic routes on a bound listener, with health, reflection and `/metrics`.
+//! - [`metrics`]: the process-global Prometheus recorder (installed once) and gRPC call metrics.
 //! - [`shutdown`]: SIGINT/SIGTERM as a future.
 //! - [`artifacts`]: the content-addressed artifact store (trait + local-disk implementation).
 //! - [`stage`]: the registry of running stage calls that `CancelStage` uses.
@@ -15,6 +16,7 @@
 pub mod artifacts;
 pub mod config;
 pub mod grpc;
+pub mod metrics;
 pub mod plot;
 pub mod shutdown;
 pub mod stage;

@@ -25,9 +25,7 @@ struct Args {
 async fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     depthmill_common::telemetry::init_tracing(args.log_json);
-    let metrics = metrics_exporter_prometheus::PrometheusBuilder::new()
-        .install_recorder()
-        .context("installing the metrics recorder")?;
+    let metrics = depthmill_common::metrics::install_prometheus()?;
     let config: depthmill_orchestrator::Config =
         depthmill_common::config::load(args.config.as_deref(), "DEPTHMILL_ORCHESTRATOR")
             .context("loading configuration")?;

@@ -24,6 +24,8 @@ struct Args {
 async fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     depthmill_common::telemetry::init_tracing(args.log_json);
+    // Rendered at GET /metrics on the gRPC port.
+    depthmill_common::metrics::install_prometheus()?;
     let config: depthmill_scanning::Config =
         depthmill_common::config::load(args.config.as_deref(), "DEPTHMILL_SCANNING")
             .context("loading configuration")?;
