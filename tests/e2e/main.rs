@@ -2,6 +2,7 @@
 
 mod api;
 mod deploy;
+mod faces;
 mod jobs;
 mod machine;
 mod metrics;

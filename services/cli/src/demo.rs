@@ -215,9 +215,8 @@ async fn drive(base: &str, stl: Vec<u8>, args: &DemoArgs, out: &Path) -> anyhow:
     s.push_str(&format!("job {id} succeeded\n"));
     s.push_str("stage timings (s):");
     let mut total = 0.0;
-    if let Some(t) = done["stage_timings_s"].as_object() {
-        for (stage, secs) in t {
-            let v = secs.as_f64().unwrap_or(0.0);
+    for stage in ["scan", "reconstruct", "plan", "execute", "report"] {
+        if let Some(v) = done["stage_timings_s"][stage].as_f64() {
             total += v;
             s.push_str(&format!(" {stage} {v:.2},"));
         }
@@ -225,7 +224,7 @@ async fn drive(base: &str, stl: Vec<u8>, args: &DemoArgs, out: &Path) -> anyhow:
     s.push_str(&format!(" total {total:.2}\n"));
     s.push_str(&format!(
         "scan: {} points, coverage {} %, registration RMS {} mm\n",
-        f("scan_points"),
+        m["scan_points"].as_f64().map_or("-".to_string(), |v| format!("{v:.0}")),
         f("scan_coverage_pct"),
         f("scan_registration_rms_mm")
     ));

@@ -42,6 +42,7 @@ pub fn run_check(program: &Path, args: &MachineArgs) -> anyhow::Result<()> {
             z_mm: 1.0,
             cell_mm: 1.0,
         },
+        faces: Vec::new(),
         tools,
         policy: PolicyKind::Off,
         clamp: args.clamp,

@@ -16,14 +16,15 @@ use std::sync::{Arc, Mutex};
 
 use depthmill_common::artifacts::{ArtifactError, ArtifactStore, LocalStore};
 use depthmill_common::stage::StageRegistry;
-use depthmill_geometry::PngDepth;
+use depthmill_geometry::{HeightMap, PngDepth};
 use depthmill_proto::ErrorCode;
 use depthmill_proto::machine::v1 as pb;
+use depthmill_proto::types::v1 as pb_types;
 use depthmill_proto::types::v1::{CancelStageRequest, CancelStageResponse, Diagnostic, Progress};
 use tokio::sync::mpsc;
 use tonic::{Request, Response, Status};
 
-use crate::domain::job::{ExecuteError, ExecuteOptions, execute};
+use crate::domain::job::{ExecuteError, ExecuteOptions, FaceTarget, execute_faces};
 use crate::domain::sim::{PolicyKind, SimError, active_names};
 
 pub(crate) const SERVICE_NAME: &str = "depthmill.machine.v1.MachineService";
@@ -169,19 +170,40 @@ impl pb::machine_service_server::MachineService for MachineServiceImpl {
         let path = self.store.local_path(&gcode.sha256).ok_or_else(|| {
             ErrorCode::Internal.status("the artifact store has no local file for the program")
         })?;
-        let target = match &req.target_map {
-            Some(t) => {
-                let bytes = self.store.read_all(&t.sha256, MAX_MAP_BYTES).await.map_err(artifact_status)?;
-                let map = tokio::task::spawn_blocking(move || {
-                    depthmill_geometry::read_png_from(Cursor::new(bytes), None)
-                })
-                .await
-                .map_err(|e| Status::internal(format!("decoding failed: {e}")))?
-                .map_err(|e| ErrorCode::InvalidArgument.status(format!("target_map: {e}")))?;
-                Some(map)
-            }
-            None => None,
+        // The target(s): one map, or one per face with the A angle from its face metadata (the
+        // CAM service's rule for several faces).
+        let mut targets: Vec<(f64, HeightMap)> = Vec::new();
+        let several = req.face_maps.len() > 1;
+        let refs: Vec<(String, pb_types::ArtifactRef)> = if req.face_maps.is_empty() {
+            req.target_map.iter().map(|t| ("target_map".to_string(), t.clone())).collect()
+        } else {
+            req.face_maps.iter().enumerate().map(|(i, t)| (format!("face_maps[{i}]"), t.clone())).collect()
         };
+        for (field, t) in refs {
+            let bytes = self.store.read_all(&t.sha256, MAX_MAP_BYTES).await.map_err(artifact_status)?;
+            let f = field.clone();
+            let map = tokio::task::spawn_blocking(move || {
+                depthmill_geometry::read_png_from(Cursor::new(bytes), None)
+            })
+            .await
+            .map_err(|e| Status::internal(format!("decoding failed: {e}")))?
+            .map_err(|e| ErrorCode::InvalidArgument.status(format!("{f}: {e}")))?;
+            use depthmill_geometry::Face;
+            let a = match map.face() {
+                Face::A { angle_deg } => angle_deg,
+                _ if !several => 0.0,
+                Face::PosZ => 0.0,
+                Face::PosY => 90.0,
+                Face::NegZ => 180.0,
+                Face::NegY => -90.0,
+                other => {
+                    return Err(ErrorCode::InvalidArgument.status(format!(
+                        "{field}: the view {other} cannot be reached by turning the part about the A axis"
+                    )));
+                }
+            };
+            targets.push((a, map));
+        }
         // One program at a time: check and claim the machine under one lock.
         {
             let mut st =
@@ -240,19 +262,32 @@ impl pb::machine_service_server::MachineService for MachineServiceImpl {
                             )));
                         }
                     };
+                    let faces: Vec<FaceTarget<'_>> =
+                        targets.iter().map(|(a, m)| FaceTarget { a_deg: *a, map: m }).collect();
                     let out =
-                        execute(&open, &opts, target.as_ref(), &stop, &mut observe).map_err(exec_status)?;
+                        execute_faces(&open, &opts, &faces, &stop, &mut observe).map_err(exec_status)?;
                     let stock_png = png(&out.final_stock, PngDepth::Bits16)?;
+                    // Every face's stock and deviation when there are several.
+                    let mut face_pngs = Vec::new();
+                    if out.faces.len() > 1 {
+                        for f in &out.faces {
+                            let dev = match &f.deviation {
+                                Some(d) => Some(png(&d.map, PngDepth::Bits8)?),
+                                None => None,
+                            };
+                            face_pngs.push((png(&f.final_stock, PngDepth::Bits16)?, dev));
+                        }
+                    }
                     let dev_png = match &out.report.deviation {
                         Some(d) => Some(png(&d.map, PngDepth::Bits8)?),
                         None => None,
                     };
-                    Ok::<_, Status>((out, stock_png, dev_png))
+                    Ok::<_, Status>((out, stock_png, dev_png, face_pngs))
                 })
             })
             .await;
             shared.settle();
-            let (out, stock_png, dev_png) = match worked {
+            let (out, stock_png, dev_png, face_pngs) = match worked {
                 Ok(Ok(v)) => v,
                 Ok(Err(status)) => {
                     tracing::info!(error = %status.message(), "execution failed");
@@ -279,9 +314,27 @@ impl pb::machine_service_server::MachineService for MachineServiceImpl {
                 let plot = store.put_bytes("image/svg+xml", out.telemetry_svg.as_bytes()).await?;
                 let report_json = serde_json::to_vec_pretty(&out.report).unwrap_or_default();
                 let report = store.put_bytes("application/json", &report_json).await?;
+                let mut faces = Vec::new();
+                for (f, (stock_png, dev_png)) in out.faces.iter().zip(face_pngs) {
+                    let final_stock = store.put_bytes("image/png", &stock_png).await?;
+                    let deviation_map = match dev_png {
+                        Some(b) => Some(store.put_bytes("image/png", &b).await?.into()),
+                        None => None,
+                    };
+                    let d = f.deviation.as_ref();
+                    faces.push(pb::FaceResult {
+                        a_deg: f.a_deg,
+                        final_stock: Some(final_stock.into()),
+                        deviation_map,
+                        max_gouge_mm: d.map_or(0.0, |d| d.max_gouge_mm),
+                        max_leftover_mm: d.map_or(0.0, |d| d.max_leftover_mm),
+                        rms_deviation_mm: d.map_or(0.0, |d| d.rms_deviation_mm),
+                    });
+                }
                 let r = &out.report;
                 let d = r.deviation.as_ref();
                 Ok::<_, ArtifactError>(pb::ExecuteProgramResult {
+                    faces,
                     final_stock: Some(final_stock.into()),
                     deviation_map,
                     telemetry: Some(telemetry.into()),

@@ -333,6 +333,21 @@ impl StageRunner for GrpcStages {
                         context: context(call),
                         gcode: Some(need(call, "gcode")?),
                         target_map: call.artifacts.get("depth_map").cloned().map(Into::into),
+                        // Several faces: every face's map (the machine turns the A axis to each).
+                        face_maps: if call.artifacts.contains_key("depth_map@1") {
+                            (0..)
+                                .map_while(|i| {
+                                    let key = if i == 0 {
+                                        "depth_map".to_string()
+                                    } else {
+                                        format!("depth_map@{i}")
+                                    };
+                                    call.artifacts.get(&key).cloned().map(Into::into)
+                                })
+                                .collect()
+                        } else {
+                            Vec::new()
+                        },
                         params: Some(convert::execute_params_for_job(&call.spec)),
                     };
                     let mut client = machine::machine_service_client::MachineServiceClient::new(channel);
@@ -346,6 +361,11 @@ impl StageRunner for GrpcStages {
                     .await?;
                     put(&mut out, "final_stock", r.final_stock);
                     put(&mut out, "deviation_map", r.deviation_map);
+                    // Further faces under the suffixes of their depth maps.
+                    for (i, f) in r.faces.into_iter().enumerate().skip(1) {
+                        put(&mut out, &format!("final_stock@{i}"), f.final_stock);
+                        put(&mut out, &format!("deviation_map@{i}"), f.deviation_map);
+                    }
                     put(&mut out, "telemetry", r.telemetry);
                     put(&mut out, "telemetry_plot", r.telemetry_plot);
                     put(&mut out, "machine_report", r.machine_report);

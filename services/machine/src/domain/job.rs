@@ -101,6 +101,8 @@ pub struct ExecuteReport {
     pub work_offset: super::profile::Offset,
     /// Decisions worth knowing (e.g. the work offset moved so the program fits the travel).
     pub notes: Vec<String>,
+    /// Each face of a multi-face part (empty for one face).
+    pub faces: Vec<FaceSummary>,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -114,7 +116,10 @@ pub struct ToolLine {
 /// Everything the stage produces.
 pub struct ExecuteOutput {
     pub report: ExecuteReport,
+    /// The first face's final stock (the only one of a 3-axis part).
     pub final_stock: HeightMap,
+    /// Every face's final stock and deviation (one entry for a 3-axis part).
+    pub faces: Vec<FaceResult>,
     pub telemetry_csv: String,
     pub telemetry_svg: String,
 }
@@ -354,6 +359,45 @@ pub fn execute(
     stop: &(dyn Fn() -> bool + Sync),
     observe: &mut (dyn FnMut(&TelemetryRow) + Send),
 ) -> Result<ExecuteOutput, ExecuteError> {
+    let targets: Vec<FaceTarget<'_>> = target.map(|map| FaceTarget { a_deg: 0.0, map }).into_iter().collect();
+    execute_faces(open, opts, &targets, stop, observe)
+}
+
+/// One face of a multi-face part: its target map and the A angle it is machined at.
+#[derive(Debug, Clone, Copy)]
+pub struct FaceTarget<'a> {
+    pub a_deg: f64,
+    pub map: &'a HeightMap,
+}
+
+/// What one face came out as.
+#[derive(Debug, Clone)]
+pub struct FaceResult {
+    pub a_deg: f64,
+    pub final_stock: HeightMap,
+    pub deviation: Option<Deviation>,
+}
+
+/// A face's figures in the report.
+#[derive(Debug, Clone, Serialize)]
+pub struct FaceSummary {
+    pub a_deg: f64,
+    pub stock: StockSpec,
+    pub deviation: Option<Deviation>,
+}
+
+/// [`execute`] for a part machined on several faces, each with its target map at its A angle:
+/// every face gets its own stock (sized from its map), cut while the A axis is turned to it. The
+/// report's deviation is over all faces together (worst gouge and leftover, RMS over every cell);
+/// `faces` has each one.
+pub fn execute_faces(
+    open: &(dyn Fn() -> std::io::Result<Box<dyn BufRead + Send>> + Sync),
+    opts: &ExecuteOptions,
+    targets: &[FaceTarget<'_>],
+    stop: &(dyn Fn() -> bool + Sync),
+    observe: &mut (dyn FnMut(&TelemetryRow) + Send),
+) -> Result<ExecuteOutput, ExecuteError> {
+    let target = targets.first().map(|t| t.map);
     let profile = MachineProfile::by_name_or_file(&opts.machine)?;
     let material: Material = match &opts.material {
         None => material("aluminium").ok_or_else(|| invalid("execute.material", "aluminium", "missing"))?,
@@ -382,6 +426,7 @@ pub fn execute(
             z_mm: 1.0,
             cell_mm: cell,
         },
+        faces: Vec::new(),
         tools: tools.clone(),
         policy: opts.policy,
         clamp: opts.clamp,
@@ -407,6 +452,17 @@ pub fn execute(
     let extent =
         if target.is_none() && opts.stock.is_none() { feed_extent(open()?, cfg, &profile)? } else { None };
     setup.stock = stock_spec(opts, target, extent, max_radius, cell)?;
+    if targets.len() > 1 {
+        setup.faces = targets
+            .iter()
+            .map(|t| {
+                Ok(super::sim::FaceStock {
+                    a_deg: t.a_deg,
+                    stock: stock_spec(opts, Some(t.map), None, max_radius, cell)?,
+                })
+            })
+            .collect::<Result<Vec<_>, ExecuteError>>()?;
+    }
 
     let other = match (opts.compare, opts.policy) {
         (true, PolicyKind::Aco) => Some(PolicyKind::FeedOnly),
@@ -428,7 +484,7 @@ pub fn execute(
                 rows.push(*r);
                 observe(r);
             };
-            Ok(simulate(open()?, &main_setup, stop, &mut sink)?)
+            Ok(super::sim::simulate_faces(open()?, &main_setup, stop, &mut sink)?)
         },
         || {
             other
@@ -439,10 +495,30 @@ pub fn execute(
                 .transpose()
         },
     );
-    let (run_report, stock) = main?;
+    let (run_report, stocks) = main?;
     let other_run = other_run?;
-    let final_stock = stock.ok_or_else(|| invalid("stock", "none", "the run kept no stock"))?;
-    let deviation = target.map(|t| deviation(t, &final_stock));
+    let final_stock = stocks
+        .first()
+        .map(|(_, m)| m.clone())
+        .ok_or_else(|| invalid("stock", "none", "the run kept no stock"))?;
+    let faces: Vec<FaceResult> = if targets.len() > 1 {
+        targets
+            .iter()
+            .zip(&stocks)
+            .map(|(t, (a, m))| FaceResult {
+                a_deg: *a,
+                final_stock: m.clone(),
+                deviation: Some(deviation(t.map, m)),
+            })
+            .collect()
+    } else {
+        vec![FaceResult {
+            a_deg: 0.0,
+            final_stock: final_stock.clone(),
+            deviation: target.map(|t| deviation(t, &final_stock)),
+        }]
+    };
+    let deviation = combine_deviations(&faces);
     let cycle = run_report.cycle_time_s;
     let report = ExecuteReport {
         machine: profile.name.clone(),
@@ -466,10 +542,40 @@ pub fn execute(
         telemetry_rows: rows.len(),
         work_offset: profile.work_offset,
         notes,
+        faces: if targets.len() > 1 {
+            faces
+                .iter()
+                .zip(&setup.faces)
+                .map(|(f, s)| FaceSummary { a_deg: f.a_deg, stock: s.stock, deviation: f.deviation.clone() })
+                .collect()
+        } else {
+            Vec::new()
+        },
     };
     let telemetry_csv = telemetry_csv(&rows);
     let telemetry_svg = telemetry_chart(&rows, report.run.policy).to_svg();
-    Ok(ExecuteOutput { report, final_stock, telemetry_csv, telemetry_svg })
+    Ok(ExecuteOutput { report, final_stock, faces, telemetry_csv, telemetry_svg })
+}
+
+/// The deviation over every face: worst gouge and leftover, mean and RMS over all cells; the
+/// first face's map.
+fn combine_deviations(faces: &[FaceResult]) -> Option<Deviation> {
+    let ds: Vec<&Deviation> = faces.iter().filter_map(|f| f.deviation.as_ref()).collect();
+    let first = (*ds.first()?).clone();
+    if ds.len() == 1 {
+        return Some(first);
+    }
+    let cells: usize = ds.iter().map(|d| d.cells).sum();
+    let n = cells.max(1) as f64;
+    Some(Deviation {
+        max_gouge_mm: ds.iter().map(|d| d.max_gouge_mm).fold(0.0, f64::max),
+        max_leftover_mm: ds.iter().map(|d| d.max_leftover_mm).fold(0.0, f64::max),
+        mean_leftover_mm: ds.iter().map(|d| d.mean_leftover_mm * d.cells as f64).sum::<f64>() / n,
+        rms_deviation_mm: (ds.iter().map(|d| d.rms_deviation_mm.powi(2) * d.cells as f64).sum::<f64>() / n)
+            .sqrt(),
+        cells,
+        map: first.map,
+    })
 }
 
 /// Signed deviation `stock − target` on the target's grid (NaN where the target has no data),

@@ -105,6 +105,14 @@ pub struct StockSpec {
     pub cell_mm: f64,
 }
 
+/// The stock of one face of a multi-face part: the part turned to `a_deg` about the A axis, seen
+/// along the tool as a Z-map in the work frame (the frame the CAM planned that face in).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct FaceStock {
+    pub a_deg: f64,
+    pub stock: StockSpec,
+}
+
 /// A hard inclusion in the stock (work frame).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct Inclusion {
@@ -118,7 +126,12 @@ pub struct Inclusion {
 pub struct SimSetup {
     pub profile: MachineProfile,
     pub material: Material,
+    /// The stock at A = 0 when `faces` is empty.
     pub stock: StockSpec,
+    /// Multi-face parts: one stock per face at its A angle (then `stock` is not used). Feed moves
+    /// cut the stock of the face the A axis is turned to; material removed from one face does not
+    /// update the others (each is a Z-map along the tool; a dexel model would couple them).
+    pub faces: Vec<FaceStock>,
     pub tools: Vec<MachineTool>,
     pub policy: PolicyKind,
     /// Clamp F and S to the machine's ranges (with a warning) instead of refusing the program.
@@ -274,7 +287,8 @@ struct Pending {
 pub struct Machine<'a> {
     setup: &'a SimSetup,
     interp_cfg: InterpConfig,
-    stock: Option<Stock>,
+    /// The stock of each face, by A angle (one at A = 0 for a 3-axis part); empty when motion only.
+    stocks: Vec<(f64, Stock)>,
     sensors: SensorBank,
     policy: Box<dyn Policy>,
     policy_enabled: bool,
@@ -314,28 +328,33 @@ impl<'a> Machine<'a> {
         for t in &setup.tools {
             interp_cfg.tools.insert(t.number, t.length_mm);
         }
-        let s = setup.stock;
-        let stock = if setup.motion_only {
-            None
+        let specs: Vec<(f64, StockSpec)> = if setup.faces.is_empty() {
+            vec![(0.0, setup.stock)]
         } else {
-            let mut stock = Stock::block(
-                Point3::new(s.min_x_mm, s.min_y_mm, s.min_z_mm),
-                s.x_mm,
-                s.y_mm,
-                s.z_mm,
-                s.cell_mm,
-            )?;
-            for inc in &setup.inclusions {
-                stock.set_hardness_sphere(Point3::from(inc.center), inc.radius_mm, inc.factor)?;
-            }
-            Some(stock)
+            setup.faces.iter().map(|f| (f.a_deg, f.stock)).collect()
         };
+        let mut stocks = Vec::new();
+        if !setup.motion_only {
+            for (a_deg, s) in specs {
+                let mut stock = Stock::block(
+                    Point3::new(s.min_x_mm, s.min_y_mm, s.min_z_mm),
+                    s.x_mm,
+                    s.y_mm,
+                    s.z_mm,
+                    s.cell_mm,
+                )?;
+                for inc in &setup.inclusions {
+                    stock.set_hardness_sphere(Point3::from(inc.center), inc.radius_mm, inc.factor)?;
+                }
+                stocks.push((a_deg, stock));
+            }
+        }
         let policy: Box<dyn Policy> = Box::new(Fixed::default());
         Ok(Machine {
             setup,
             pos: interp_cfg.initial_position,
             interp_cfg,
-            stock,
+            stocks,
             sensors: SensorBank::new(p.sensors, setup.seed),
             policy,
             policy_enabled: true,
@@ -365,7 +384,20 @@ impl<'a> Machine<'a> {
 
     /// The stock as it is now (work frame), `None` for a motion-only run.
     pub fn stock(&self) -> Option<&Stock> {
-        self.stock.as_ref()
+        self.stocks.first().map(|(_, s)| s)
+    }
+
+    /// Every face's stock with its A angle.
+    pub fn stocks(&self) -> &[(f64, Stock)] {
+        &self.stocks
+    }
+
+    /// The face whose A angle is `a_deg` (to 0.001°, modulo 360).
+    fn face_index(&self, a_deg: f64) -> Option<usize> {
+        self.stocks.iter().position(|(a, _)| {
+            let d = (a_deg - a).rem_euclid(360.0);
+            d.min(360.0 - d) < 1e-3
+        })
     }
 
     /// The tip in the work frame for a commanded machine position, on whole motor steps (the
@@ -611,13 +643,14 @@ impl<'a> Machine<'a> {
         let to = m.canon.end_point().unwrap_or(m.from);
         let line = m.canon.line();
         let a_move = (to.a - m.from.a).abs();
-        if m.rapid || self.stock.is_none() {
+        if m.rapid || self.stocks.is_empty() {
             let vmax = if m.rapid { prof.motion.rapid_mm_min } else { self.feed_now } / 60.0;
             let mut t = trapezoid_time(m.len, self.v_end, v_exit, vmax, a);
             t = t.max(a_move / (prof.motion.a_rate_deg_min / 60.0));
             if m.rapid
-                && let Some(stock) = self.stock.as_mut()
+                && let Some(i) = self.face_index(to.a)
             {
+                let stock = &mut self.stocks[i].1;
                 // A rapid that touches material is a crash.
                 let tool = self.tool.map(|i| &self.setup.tools[i]);
                 if let Some(tool) = tool {
@@ -651,11 +684,17 @@ impl<'a> Machine<'a> {
         if self.feed_now <= 0.0 {
             return Err(SimError::Rejected { line, message: "feed move with no feed rate".into() });
         }
-        if (to.a - self.interp_cfg.initial_position.a).abs() > 1e-9 || a_move > 1e-9 {
-            self.report.warnings.push(format!(
-                "line {line}: a feed move at A={:.3}° is timed but not cut: the Z-map stock models 3-axis work",
-                to.a
-            ));
+        if a_move > 1e-9 || self.face_index(to.a).is_none() {
+            let faces: Vec<String> = self.stocks.iter().map(|(a, _)| format!("{a}°")).collect();
+            self.report.warnings.push(if a_move > 1e-9 {
+                format!("line {line}: a feed move turning A to {:.3}° is timed but not cut: the stock models indexed faces, not simultaneous 4-axis cutting", to.a)
+            } else {
+                format!(
+                    "line {line}: a feed move at A={:.3}° is timed but not cut: the stock has faces at {} only",
+                    to.a,
+                    faces.join(", ")
+                )
+            });
             let t = trapezoid_time(m.len, self.v_end, v_exit, self.feed_now / 60.0, a);
             self.time_s += t.max(a_move / (prof.motion.a_rate_deg_min / 60.0));
             self.pos = to;
@@ -716,7 +755,9 @@ impl<'a> Machine<'a> {
         from: Point3<f64>,
         to: Point3<f64>,
     ) -> Result<Cut, SimError> {
-        let Some(stock) = self.stock.as_mut() else { return Ok(Cut::default()) };
+        let a = m.canon.end_point().map_or(0.0, |p| p.a);
+        let Some(i) = self.face_index(a) else { return Ok(Cut::default()) };
+        let stock = &mut self.stocks[i].1;
         match m.canon {
             Canon::Arc { plane: Plane::Xy, center, rotation, .. } => {
                 let w = self.setup.profile.work_offset;
@@ -903,6 +944,17 @@ pub fn simulate<R: BufRead>(
     stop: &dyn Fn() -> bool,
     observe: Observer<'_>,
 ) -> Result<(SimReport, Option<HeightMap>), SimError> {
+    let (report, maps) = simulate_faces(program, setup, stop, observe)?;
+    Ok((report, maps.into_iter().next().map(|(_, m)| m)))
+}
+
+/// Like [`simulate`], returning the final stock of every face with its A angle.
+pub fn simulate_faces<R: BufRead>(
+    program: R,
+    setup: &SimSetup,
+    stop: &dyn Fn() -> bool,
+    observe: Observer<'_>,
+) -> Result<(SimReport, Vec<(f64, HeightMap)>), SimError> {
     let mut machine = Machine::new(setup)?;
     let mut interp = Interpreter::new(machine.interp_config());
     let mut buf: Vec<Canon> = Vec::with_capacity(8);
@@ -932,8 +984,8 @@ pub fn simulate<R: BufRead>(
     machine.finish(observe)?;
     machine.report.blocks = interp.blocks();
     machine.finish_report();
-    let map = machine.stock().map(Stock::to_height_map);
-    Ok((machine.report, map))
+    let maps = machine.stocks().iter().map(|(a, s)| (*a, s.to_height_map())).collect();
+    Ok((machine.report, maps))
 }
 
 #[cfg(test)]
@@ -956,6 +1008,7 @@ mod tests {
                 z_mm: 10.0,
                 cell_mm: 0.1,
             },
+            faces: Vec::new(),
             tools: vec![MachineTool {
                 number: 1,
                 name: "flat-6".into(),
@@ -982,6 +1035,35 @@ mod tests {
         let mut rows = Vec::new();
         let (report, map) = simulate(Cursor::new(program), setup, &|| false, &mut |r| rows.push(*r))?;
         Ok((report, rows, map))
+    }
+
+    #[test]
+    fn each_face_is_cut_when_the_a_axis_is_turned_to_it() {
+        let mut s = setup(PolicyKind::Off);
+        s.faces = vec![FaceStock { a_deg: 0.0, stock: s.stock }, FaceStock { a_deg: 90.0, stock: s.stock }];
+        // A slot along X at Y 10 on face A0, one at Y 5 on face A90, and a cut at A45 (no face).
+        let program = "%\nG21 G90 G17 G94 G40 G49 G80\nT1 M6\nS1500 M3\nG43 H1\nG0 X-5 Y10\nG0 Z5\n\
+                       G1 Z8 F100\nG1 X35 F200\nG0 Z15\nG0 A90\nG0 X-5 Y5\nG1 Z9 F100\nG1 X35 F200\nG0 Z15\n\
+                       G0 A45\nG1 Z9 F100\nG0 Z15\nG0 A0\nG53 G0 Z0\nM30\n%\n";
+        let mut rows = Vec::new();
+        let (report, maps) =
+            simulate_faces(Cursor::new(program), &s, &|| false, &mut |r| rows.push(*r)).expect("runs");
+        assert_eq!(maps.len(), 2);
+        let depth = |m: &HeightMap, y: f64| {
+            let (c, r) = m.cell_of(15.0, y).expect("inside");
+            f64::from(m.get(c, r).unwrap_or(f32::NAN))
+        };
+        let (a0, a90) = (&maps[0].1, &maps[1].1);
+        assert_eq!((maps[0].0, maps[1].0), (0.0, 90.0));
+        assert!((depth(a0, 10.0) - 8.0).abs() < 0.02 && (depth(a0, 5.0) - 10.0).abs() < 1e-6, "face A0");
+        assert!((depth(a90, 5.0) - 9.0).abs() < 0.02 && (depth(a90, 10.0) - 10.0).abs() < 1e-6, "face A90");
+        let expected = 30.0 * 6.0 * 2.0 + 30.0 * 6.0 * 1.0;
+        assert!((report.removed_mm3 - expected).abs() < 0.03 * expected, "{}", report.removed_mm3);
+        assert!(
+            report.warnings.iter().any(|w| w.contains("A=45.000") && w.contains("not cut")),
+            "{:?}",
+            report.warnings
+        );
     }
 
     #[test]

@@ -786,73 +786,89 @@ impl<'a> Ctx<'a> {
     }
 
     fn machined(&mut self) -> Result<String, ReportError> {
-        let (key, note) = if self.artifacts.contains_key("final_stock")
-            || !self.artifacts.contains_key("toolpath_preview")
-        {
-            ("final_stock", "")
-        } else {
-            (
-                "toolpath_preview",
-                " This is the CAM's predicted surface: the machine stage has not produced a final stock.",
-            )
-        };
-        let body = match self.decode(key) {
-            Err(e) => missing(&e),
-            Ok(d) => {
-                let map = &d.map;
-                match (maps::map_view(map), maps::robust_range(map)) {
-                    (Some(view), Some((lo, hi))) => {
-                        let img = maps::shaded_image(map, &view, lo, hi);
-                        let m = map.meta();
-                        let caption = format!(
-                            "Simulated machined part, lit from the top left: {}×{} mm, cells of {} mm, surface Z {}–{} mm.{note}",
-                            fmt_num(m.width_mm()),
-                            fmt_num(m.height_mm()),
-                            fmt_num(m.pixel_mm),
-                            fmt_num(lo),
-                            fmt_num(hi)
-                        );
-                        self.picture(&format!("{key}.png"), &img, "machined part", &esc(&caption))?
-                    }
-                    _ => missing(&format!("The {key} has no cell with data.")),
-                }
+        let mut all = String::new();
+        let faces = self.face_suffixes();
+        for (fi, suffix) in faces.iter().enumerate() {
+            let stock_key = format!("final_stock{suffix}");
+            if fi > 0 && !self.artifacts.contains_key(&stock_key) {
+                continue;
             }
-        };
-        Ok(section("final-stock", "Machined part", &body))
+            let (key, note) = if self.artifacts.contains_key(&stock_key)
+                || !self.artifacts.contains_key("toolpath_preview")
+            {
+                (stock_key, "")
+            } else {
+                (
+                    "toolpath_preview".to_string(),
+                    " This is the CAM's predicted surface: the machine stage has not produced a final stock.",
+                )
+            };
+            let face = if faces.len() > 1 { format!(" Face {}.", fi + 1) } else { String::new() };
+            let body = match self.decode(&key) {
+                Err(e) => missing(&e),
+                Ok(d) => {
+                    let map = &d.map;
+                    match (maps::map_view(map), maps::robust_range(map)) {
+                        (Some(view), Some((lo, hi))) => {
+                            let img = maps::shaded_image(map, &view, lo, hi);
+                            let m = map.meta();
+                            let caption = format!(
+                                "Simulated machined part, lit from the top left: {}×{} mm, cells of {} mm, surface Z {}–{} mm.{note}{face}",
+                                fmt_num(m.width_mm()),
+                                fmt_num(m.height_mm()),
+                                fmt_num(m.pixel_mm),
+                                fmt_num(lo),
+                                fmt_num(hi)
+                            );
+                            let file = format!("{}.png", key.replace('@', "_face"));
+                            self.picture(&file, &img, "machined part", &esc(&caption))?
+                        }
+                        _ => missing(&format!("The {key} has no cell with data.")),
+                    }
+                }
+            };
+            all.push_str(&body);
+        }
+        Ok(section("final-stock", "Machined part", &all))
     }
 
     fn deviation(&mut self) -> Result<String, ReportError> {
         let mut body = String::new();
-        match self.decode("deviation_map") {
-            Err(e) => body.push_str(&missing(&e)),
-            Ok(d) => {
-                let map = &d.map;
-                match (maps::map_view(map), maps::deviation_range(map)) {
-                    (Some(view), Some((range, lo, hi))) => {
-                        let img = maps::deviation_image(map, &view, range);
-                        let legend = ColorMap::new(raster::RED_WHITE_BLUE).legend_svg(
-                            "lg-deviation",
-                            -range,
-                            range,
-                            "stock − target [mm]",
-                            "gouge (too deep)",
-                            "leftover (material left)",
-                        );
-                        let caption = format!(
-                            "Machined part minus the target, per cell: red where the part was cut too deep, blue where material is left, white on target. Map values {}–{} mm; the scale saturates at ±{} mm (99.5 % of |deviation|).",
-                            fmt_num(lo),
-                            fmt_num(hi),
-                            fmt_num(range)
-                        );
-                        body.push_str(&self.picture(
-                            "deviation_map.png",
-                            &img,
-                            "deviation map",
-                            &esc(&caption),
-                        )?);
-                        body.push_str(&figure_svg(&legend, "Colour scale of the deviation."));
+        let faces = self.face_suffixes();
+        for (fi, suffix) in faces.iter().enumerate() {
+            let dkey = format!("deviation_map{suffix}");
+            if fi > 0 && !self.artifacts.contains_key(&dkey) {
+                continue;
+            }
+            match self.decode(&dkey) {
+                Err(e) => body.push_str(&missing(&e)),
+                Ok(d) => {
+                    let map = &d.map;
+                    match (maps::map_view(map), maps::deviation_range(map)) {
+                        (Some(view), Some((range, lo, hi))) => {
+                            let img = maps::deviation_image(map, &view, range);
+                            let legend = ColorMap::new(raster::RED_WHITE_BLUE).legend_svg(
+                                &format!("lg-deviation{fi}"),
+                                -range,
+                                range,
+                                "stock − target [mm]",
+                                "gouge (too deep)",
+                                "leftover (material left)",
+                            );
+                            let caption = format!(
+                                "Machined part minus the target, per cell: red where the part was cut too deep, blue where material is left, white on target. Map values {}–{} mm; the scale saturates at ±{} mm (99.5 % of |deviation|).",
+                                fmt_num(lo),
+                                fmt_num(hi),
+                                fmt_num(range)
+                            );
+                            let caption =
+                                if faces.len() > 1 { format!("Face {}. {caption}", fi + 1) } else { caption };
+                            let file = format!("{}.png", dkey.replace('@', "_face"));
+                            body.push_str(&self.picture(&file, &img, "deviation map", &esc(&caption))?);
+                            body.push_str(&figure_svg(&legend, "Colour scale of the deviation."));
+                        }
+                        _ => body.push_str(&missing("The deviation map has no cell with data.")),
                     }
-                    _ => body.push_str(&missing("The deviation map has no cell with data.")),
                 }
             }
         }

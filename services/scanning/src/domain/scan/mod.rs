@@ -672,6 +672,10 @@ impl ScanSession {
                 angles.push(r);
             }
         }
+        // One turn of the table, starting from the angle nearest where the first scan ended.
+        if let Some(last) = self.stations.last().map(|s| s.table_deg_commanded) {
+            angles.sort_by(|a, b| (a - last).rem_euclid(360.0).total_cmp(&(b - last).rem_euclid(360.0)));
+        }
         let mut seed = ArmModel::HOME_DEG;
         let mut stations = Vec::new();
         for deg in angles {

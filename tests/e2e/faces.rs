@@ -1,0 +1,112 @@
+//! A part machined on two faces: reconstruction makes a depth map per face, CAM one program that
+//! turns the A axis between them, the machine cuts each face's stock at its angle, and the report
+//! shows both.
+
+use std::fmt::Write as _;
+use std::time::Duration;
+
+use depthmill_tests::{StackOptions, TestStack};
+use serde_json::json;
+
+/// A 30 × 20 × 20 mm block centred on the X axis (the A axis) with a bump on its top (+Z) and a
+/// ridge on its +Y side: two height fields, written as an ASCII PLY mesh.
+fn two_face_ply() -> Vec<u8> {
+    let top = |x: f64, y: f64| 10.0 + 2.0 * (1.0 - (x * x + y * y) / 64.0).max(0.0);
+    let side =
+        |x: f64, z: f64| 10.0 + 1.5 * (1.0 - (x - 5.0).abs() / 6.0).max(0.0) * (1.0 - (z / 10.0).powi(2));
+    let n = 61;
+    let mut verts = Vec::new();
+    // Top: z = top(x, y) over x ∈ [-15, 15], y ∈ [-10, 10].
+    for j in 0..n {
+        for i in 0..n {
+            let x = -15.0 + 30.0 * i as f64 / (n - 1) as f64;
+            let y = -10.0 + 20.0 * j as f64 / (n - 1) as f64;
+            verts.push([x, y, top(x, y)]);
+        }
+    }
+    // Side: y = side(x, z) over x ∈ [-15, 15], z ∈ [-10, 10].
+    for j in 0..n {
+        for i in 0..n {
+            let x = -15.0 + 30.0 * i as f64 / (n - 1) as f64;
+            let z = -10.0 + 20.0 * j as f64 / (n - 1) as f64;
+            verts.push([x, side(x, z), z]);
+        }
+    }
+    let mut faces = Vec::new();
+    for sheet in 0..2 {
+        let b = sheet * n * n;
+        for j in 0..n - 1 {
+            for i in 0..n - 1 {
+                let a = b + j * n + i;
+                faces.push([a, a + 1, a + n + 1]);
+                faces.push([a, a + n + 1, a + n]);
+            }
+        }
+    }
+    let mut s = String::new();
+    let _ = write!(
+        s,
+        "ply\nformat ascii 1.0\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\nelement face {}\nproperty list uchar int vertex_indices\nend_header\n",
+        verts.len(),
+        faces.len()
+    );
+    for v in &verts {
+        let _ = writeln!(s, "{:.4} {:.4} {:.4}", v[0], v[1], v[2]);
+    }
+    for f in &faces {
+        let _ = writeln!(s, "3 {} {} {}", f[0], f[1], f[2]);
+    }
+    s.into_bytes()
+}
+
+#[tokio::test]
+async fn a_two_face_part_is_planned_with_the_a_axis_and_machined_on_both_faces() -> anyhow::Result<()> {
+    let stack = TestStack::start_with(StackOptions { stage_deadline_s: 600.0, ..Default::default() }).await?;
+    let sha = stack.upload("application/x-ply", two_face_ply()).await?;
+    let job = json!({
+        "name": "two faces",
+        "input": {"kind": "point_cloud", "artifact": sha},
+        "reconstruct": {"pixel_mm": 0.3, "faces": [{"view": "+Z"}, {"view": "+Y"}]},
+        "plan": {"stock": {"material": "aluminium"},
+                 "roughing": {"tool": "flat-6", "step_down_mm": 2.0},
+                 "finishing": {"tool": "ball-3", "strategy": "raster_x", "step_over_mm": 0.6}},
+        "execute": {"machine": "emco-f1", "adaptive": "aco"}
+    });
+    let (status, created) = stack.post_job(&job, None).await?;
+    assert_eq!(status, 201, "{created}");
+    let id = created["id"].as_str().expect("id").to_string();
+    let done = stack.wait_for_end(&id, Duration::from_secs(900)).await?;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    for name in
+        ["depth_map", "depth_map@1", "final_stock", "final_stock@1", "deviation_map", "deviation_map@1"]
+    {
+        assert!(done["artifacts"][name]["sha256"].is_string(), "{name} missing: {done}");
+    }
+    // One program turning the A axis between the faces.
+    let sha = done["artifacts"]["gcode"]["sha256"].as_str().unwrap_or_default();
+    let gcode = stack.http.get(stack.url(&format!("/v1/artifacts/{sha}"))).send().await?.text().await?;
+    assert!(gcode.contains("A90"), "the program turns to the +Y face");
+    // Both faces were cut: the report has no "timed but not cut" warnings and the deviation is
+    // the depth maps' within the finishing tool's reach.
+    let sha = done["artifacts"]["machine_report"]["sha256"].as_str().unwrap_or_default();
+    let report: serde_json::Value =
+        stack.http.get(stack.url(&format!("/v1/artifacts/{sha}"))).send().await?.json().await?;
+    let warnings = report["run"]["warnings"].as_array().cloned().unwrap_or_default();
+    assert!(!warnings.iter().any(|w| w.as_str().unwrap_or("").contains("not cut")), "{warnings:?}");
+    let faces = report["faces"].as_array().cloned().unwrap_or_default();
+    assert_eq!(faces.len(), 2, "{report}");
+    for f in &faces {
+        let gouge = f["deviation"]["max_gouge_mm"].as_f64().unwrap_or(1.0);
+        let rms = f["deviation"]["rms_deviation_mm"].as_f64().unwrap_or(1.0);
+        println!("face A={}: max gouge {gouge:.4} mm, RMS {rms:.4} mm", f["a_deg"]);
+        // No face is cut below its map; leftover is where a 3 mm ball cannot follow (each map's
+        // border holds the other sheet seen edge-on, a near-vertical wall), so the RMS is loose.
+        assert!(gouge < 0.05, "face {}: gouge {gouge}", f["a_deg"]);
+        assert!(rms < 1.0, "face {}: RMS {rms}", f["a_deg"]);
+    }
+    assert_eq!(faces[1]["a_deg"], 90.0);
+    // The report shows each face.
+    let page = stack.http.get(stack.url(&format!("/v1/jobs/{id}/report"))).send().await?.text().await?;
+    assert!(page.contains("Face 2"), "the report shows the second face");
+    stack.shutdown().await
+}
