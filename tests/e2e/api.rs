@@ -166,7 +166,8 @@ async fn every_server_serves_health_and_reflection() -> anyhow::Result<()> {
 
     let stack = TestStack::start().await?;
     let endpoints = stack.service_urls();
-    assert_eq!(endpoints.len(), 5);
+    // The orchestrator, scanning (the stage and its two device services), reconstruction, cam, machine.
+    assert_eq!(endpoints.len(), 7);
     for (service, url) in endpoints {
         let channel = tonic::transport::Channel::from_shared(url.clone())?.connect().await?;
         let mut health = HealthClient::new(channel.clone());
@@ -199,6 +200,7 @@ async fn openapi_document_and_docs_are_served() -> anyhow::Result<()> {
         "/v1/jobs/{id}",
         "/v1/jobs/{id}/cancel",
         "/v1/jobs/{id}/events",
+        "/v1/jobs/{id}/report",
         "/v1/artifacts",
         "/v1/artifacts/{sha256}",
         "/healthz",

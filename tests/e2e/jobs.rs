@@ -86,11 +86,19 @@ async fn a_gcode_job_runs_to_the_end_and_is_watched_and_listed() -> anyhow::Resu
     assert_eq!(outcomes(&job), ["execute:ok", "report:ok"]);
     assert_eq!(script.completed(), 1);
 
-    // The report is a JSON artifact naming the job.
+    // The report is an HTML page naming the job, with a JSON summary beside it.
     let report_sha = job["artifacts"]["report"]["sha256"].as_str().expect("report");
-    let report: Value =
-        stack.http.get(stack.url(&format!("/v1/artifacts/{report_sha}"))).send().await?.json().await?;
-    assert_eq!(report["job"], id.as_str());
+    let page = stack.http.get(stack.url(&format!("/v1/artifacts/{report_sha}"))).send().await?.text().await?;
+    assert!(
+        page.starts_with("<!DOCTYPE html>") || page.starts_with("<!doctype html>"),
+        "{}",
+        &page[..page.len().min(200)]
+    );
+    assert!(page.contains(id.as_str()), "the report names the job");
+    let summary_sha = job["artifacts"]["report_json"]["sha256"].as_str().expect("report_json");
+    let summary: Value =
+        stack.http.get(stack.url(&format!("/v1/artifacts/{summary_sha}"))).send().await?.json().await?;
+    assert_eq!(summary["job"], id.as_str());
 
     // Listing: filter and pages.
     let (_, second) = stack.post_job(&gcode_job(&sha), None).await?;

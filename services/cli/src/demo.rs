@@ -101,6 +101,12 @@ pub async fn run(args: &DemoArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// Wall time the scan spent waiting for the table, from the fetched scan report.
+fn scan_table_wait(out: &Path) -> Option<f64> {
+    let text = std::fs::read_to_string(out.join("artifacts").join("scan_report.json")).ok()?;
+    serde_json::from_str::<Value>(&text).ok()?["table_wait_s"].as_f64()
+}
+
 /// Uploads, submits, follows and collects; returns the closing summary.
 async fn drive(base: &str, stl: Vec<u8>, args: &DemoArgs, out: &Path) -> anyhow::Result<String> {
     let client = http()?;
@@ -222,6 +228,11 @@ async fn drive(base: &str, stl: Vec<u8>, args: &DemoArgs, out: &Path) -> anyhow:
         }
     }
     s.push_str(&format!(" total {total:.2}\n"));
+    if let Some(wait) = scan_table_wait(out) {
+        s.push_str(&format!(
+            "  (of the scan, {wait:.1} s is the rotary table turning between stations in real time)\n"
+        ));
+    }
     s.push_str(&format!(
         "scan: {} points, coverage {} %, registration RMS {} mm\n",
         m["scan_points"].as_f64().map_or("-".to_string(), |v| format!("{v:.0}")),

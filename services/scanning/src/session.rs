@@ -82,7 +82,9 @@ async fn run_plan<S: AsyncRead + AsyncWrite + Unpin>(
             span.0 + (span.1 - span.0) * done as f64 / total as f64,
             format!("{what} {}/{n}: turning the table to {:.1}°", k + 1, station.table_deg),
         );
+        let waited = std::time::Instant::now();
         let measured = index_table(table, station.table_deg, cancel).await?;
+        session.add_table_wait(waited.elapsed().as_secs_f64());
         let st = station.clone();
         let p = progress.clone();
         let c = cancel.clone();

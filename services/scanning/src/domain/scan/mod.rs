@@ -279,6 +279,9 @@ pub struct ScanReport {
     pub coverage_after_rescan: Option<CoverageSummary>,
     /// Holes the rescan aimed at.
     pub rescan_targets: Vec<HoleTarget>,
+    /// Wall time spent waiting for the rotary table to reach and settle at the stations, s
+    /// (recorded by the caller that drives the table).
+    pub table_wait_s: f64,
     /// Things worth knowing (skipped rescan passes, slow passes, ...).
     pub diagnostics: Vec<String>,
 }
@@ -344,6 +347,7 @@ pub struct ScanSession {
     coverage_after: Option<CoverageSummary>,
     rescan_targets: Vec<HoleTarget>,
     last_pass_id: u16,
+    table_wait_s: f64,
 }
 
 impl ScanSession {
@@ -388,6 +392,7 @@ impl ScanSession {
             coverage_after: None,
             rescan_targets: Vec::new(),
             last_pass_id: 0,
+            table_wait_s: 0.0,
         })
     }
 
@@ -723,6 +728,11 @@ impl ScanSession {
         self.rescan_targets = targets;
     }
 
+    /// Adds wall time spent waiting for the table (for the report).
+    pub fn add_table_wait(&mut self, seconds: f64) {
+        self.table_wait_s += seconds;
+    }
+
     /// Adds a diagnostic line to the report.
     pub fn note(&mut self, line: String) {
         self.diagnostics.push(line);
@@ -746,6 +756,7 @@ impl ScanSession {
             coverage_before_rescan: self.coverage_before,
             coverage_after_rescan: self.coverage_after,
             rescan_targets: self.rescan_targets,
+            table_wait_s: self.table_wait_s,
             diagnostics: self.diagnostics,
         };
         ScanOutput {
