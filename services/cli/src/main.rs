@@ -154,7 +154,7 @@ enum Command {
     /// Scan a part's mesh (STL/PLY) on the simulated cell into a point cloud (no server).
     ///
     /// Writes OUTPUT (binary PLY: x y z, intensity, pass id, in the mesh's frame) and
-    /// <stem>.report.json (plan, passes, drops, registration error, coverage).
+    /// <stem>.scan.json (plan, passes, drops, registration error, coverage).
     Scan {
         mesh: PathBuf,
         #[command(flatten)]

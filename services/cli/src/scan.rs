@@ -20,7 +20,7 @@ pub struct ScanArgs {
     /// adaptive_rescan, line_spacing_mm, ...; README "Scan options").
     #[arg(long)]
     pub options: Option<PathBuf>,
-    /// Also write the scan report (JSON) here (default: <output stem>.report.json).
+    /// Also write the scan report (JSON) here (default: <output stem>.scan.json).
     #[arg(long)]
     pub report: Option<PathBuf>,
 }
@@ -83,7 +83,7 @@ pub async fn run(input: &Path, args: &ScanArgs, output: &Path) -> anyhow::Result
     .await?;
     let bytes = bytes?;
     std::fs::write(output, &bytes).with_context(|| format!("writing {}", output.display()))?;
-    let report_path = args.report.clone().unwrap_or_else(|| output.with_extension("report.json"));
+    let report_path = args.report.clone().unwrap_or_else(|| output.with_extension("scan.json"));
     std::fs::write(&report_path, serde_json::to_vec_pretty(&out.report)?)
         .with_context(|| format!("writing {}", report_path.display()))?;
     let r = &out.report;

@@ -272,6 +272,7 @@ impl StageRunner for GrpcStages {
                         rec::build_depth_maps_update::Update::Result(r) => Some(Ok(r)),
                     })
                     .await?;
+                    put(&mut out, "reconstruct_report", r.report);
                     for (i, f) in r.faces.into_iter().enumerate() {
                         // The first face's maps under the plain names, further faces suffixed `@<i>`.
                         let suffix = if i == 0 { String::new() } else { format!("@{i}") };
