@@ -6,6 +6,7 @@ use depthmill_proto::machine::v1 as machine;
 use depthmill_proto::orchestrator::v1 as pb;
 use depthmill_proto::reconstruction::v1 as rec;
 use depthmill_proto::scanning::v1 as scan;
+use depthmill_scanning::domain::scan::obstacles::Obstacle;
 
 use crate::domain::spec::{
     AdaptiveMode, Dialect, ExecuteParams, FaceSpec, FillMethod, FillParams, Filters, Finishing,
@@ -54,7 +55,61 @@ pub fn scan_params(p: &ScanParams) -> scan::ScanParams {
                 end_mm: Some(vec3(s.end_mm)),
             })
             .collect(),
+        obstacle_clearance_mm: p.obstacle_clearance_mm,
+        obstacles: p.obstacles.iter().flatten().map(obstacle_to_wire).collect(),
     }
+}
+
+fn obstacle_to_wire(o: &Obstacle) -> scan::ScanObstacle {
+    use scan::scan_obstacle::Shape;
+    let (name, shape) = match o {
+        Obstacle::Box { name, min_mm, max_mm } => (
+            name.clone(),
+            Shape::Box(scan::ObstacleBox { min_mm: Some(vec3(*min_mm)), max_mm: Some(vec3(*max_mm)) }),
+        ),
+        Obstacle::Cylinder { name, center_mm, radius_mm, z_min_mm, z_max_mm } => (
+            name.clone(),
+            Shape::Cylinder(scan::ObstacleCylinder {
+                center_x_mm: center_mm[0],
+                center_y_mm: center_mm[1],
+                radius_mm: *radius_mm,
+                z_min_mm: *z_min_mm,
+                z_max_mm: *z_max_mm,
+            }),
+        ),
+        Obstacle::Sphere { name, center_mm, radius_mm } => (
+            name.clone(),
+            Shape::Sphere(scan::ObstacleSphere { center_mm: Some(vec3(*center_mm)), radius_mm: *radius_mm }),
+        ),
+    };
+    scan::ScanObstacle { name, shape: Some(shape) }
+}
+
+fn obstacle_from_wire(o: scan::ScanObstacle, i: usize) -> Result<Obstacle, SpecError> {
+    use scan::scan_obstacle::Shape;
+    let field = format!("scan.obstacles[{i}]");
+    let arr = |v: Option<Vec3>, what: &str| {
+        v.map(|v| [v.x, v.y, v.z])
+            .ok_or_else(|| SpecError { field: format!("{field}.{what}"), message: "required".into() })
+    };
+    Ok(match o.shape {
+        None => return Err(SpecError { field, message: "give one of box, cylinder and sphere".into() }),
+        Some(Shape::Box(b)) => {
+            Obstacle::Box { name: o.name, min_mm: arr(b.min_mm, "min_mm")?, max_mm: arr(b.max_mm, "max_mm")? }
+        }
+        Some(Shape::Cylinder(c)) => Obstacle::Cylinder {
+            name: o.name,
+            center_mm: [c.center_x_mm, c.center_y_mm],
+            radius_mm: c.radius_mm,
+            z_min_mm: c.z_min_mm,
+            z_max_mm: c.z_max_mm,
+        },
+        Some(Shape::Sphere(s)) => Obstacle::Sphere {
+            name: o.name,
+            center_mm: arr(s.center_mm, "center_mm")?,
+            radius_mm: s.radius_mm,
+        },
+    })
 }
 
 fn vec3(v: [f64; 3]) -> Vec3 {
@@ -329,6 +384,18 @@ pub fn job_spec_from_pb(s: pb::JobSpec) -> Result<JobSpec, SpecError> {
                 rescan_standoff_mm: p.rescan_standoff_mm,
                 seed: p.seed,
                 max_frames: p.max_frames,
+                obstacle_clearance_mm: p.obstacle_clearance_mm,
+                obstacles: if p.obstacles.is_empty() {
+                    None
+                } else {
+                    Some(
+                        p.obstacles
+                            .into_iter()
+                            .enumerate()
+                            .map(|(i, o)| obstacle_from_wire(o, i))
+                            .collect::<Result<Vec<_>, SpecError>>()?,
+                    )
+                },
                 passes: if p.passes.is_empty() {
                     None
                 } else {
@@ -537,7 +604,13 @@ mod tests {
     fn a_full_spec_survives_the_wire() {
         let json = r#"{"name": "bracket",
             "input": {"kind": "mesh", "artifact": "aaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaa"},
-            "scan": {"mode": "stop_and_move", "table_angles_deg": [0, 90], "standoff_mm": 150},
+            "scan": {"mode": "stop_and_move", "table_angles_deg": [0, 90], "standoff_mm": 150,
+                     "line_spacing_mm": 0.5, "compensate_latency": false, "seed": 3,
+                     "passes": [{"table_deg": 30, "start_mm": [0, -20, 160], "end_mm": [0, 20, 160]}],
+                     "obstacle_clearance_mm": 15,
+                     "obstacles": [{"shape": "box", "name": "vice", "min_mm": [400, -50, -100], "max_mm": [420, 50, -60]},
+                                   {"shape": "cylinder", "name": "column", "center_mm": [300, 300], "radius_mm": 50, "z_min_mm": -500, "z_max_mm": 500},
+                                   {"shape": "sphere", "name": "lamp", "center_mm": [0, 400, 600], "radius_mm": 80}]},
             "reconstruct": {"pixel_mm": 0.1, "faces": [{"view": "+Z"}, {"a_deg": 90}], "fill": {"method": "max"}},
             "plan": {"stock": {"x_mm": 100, "material": "brass"},
                      "roughing": {"tool": "flat-6", "direction": "contour"},

@@ -17,6 +17,7 @@ use tokio::sync::mpsc;
 use tonic::{Request, Response, Status};
 
 use crate::devices::table::TableClient;
+use crate::domain::scan::obstacles::Obstacle;
 use crate::domain::scan::{CellLayout, PassSpec, ScanError, ScanMode, ScanOptions, ScanSession};
 
 pub(crate) const SERVICE_NAME: &str = "depthmill.scanning.v1.ScanningService";
@@ -88,8 +89,19 @@ pub(crate) fn options(p: pb::ScanParams) -> Result<ScanOptions, Status> {
                 .collect::<Result<Vec<_>, Status>>()?,
         )
     };
+    let obstacles = p
+        .obstacles
+        .into_iter()
+        .enumerate()
+        .map(|(i, o)| {
+            obstacle_from_wire(o)
+                .map_err(|m| ErrorCode::InvalidArgument.status(format!("scan.obstacles[{i}]: {m}")))
+        })
+        .collect::<Result<Vec<_>, Status>>()?;
     Ok(ScanOptions {
         mode,
+        obstacles,
+        obstacle_clearance_mm: p.obstacle_clearance_mm.unwrap_or(d.obstacle_clearance_mm),
         table_angles_deg: if p.table_angles_deg.is_empty() { d.table_angles_deg } else { p.table_angles_deg },
         standoff_mm: p.standoff_mm.unwrap_or(d.standoff_mm),
         line_rate_hz: p.line_rate_hz.unwrap_or(d.line_rate_hz),
@@ -108,6 +120,28 @@ pub(crate) fn options(p: pb::ScanParams) -> Result<ScanOptions, Status> {
         max_frames: p.max_frames.unwrap_or(d.max_frames),
         passes,
         ..d
+    })
+}
+
+/// A wire obstacle as the library's.
+pub(crate) fn obstacle_from_wire(o: pb::ScanObstacle) -> Result<Obstacle, &'static str> {
+    let v = |x: Option<depthmill_proto::types::v1::Vec3>| {
+        x.map(|v| [v.x, v.y, v.z]).ok_or("a corner or centre is missing")
+    };
+    Ok(match o.shape.ok_or("give one of box, cylinder and sphere")? {
+        pb::scan_obstacle::Shape::Box(b) => {
+            Obstacle::Box { name: o.name, min_mm: v(b.min_mm)?, max_mm: v(b.max_mm)? }
+        }
+        pb::scan_obstacle::Shape::Cylinder(c) => Obstacle::Cylinder {
+            name: o.name,
+            center_mm: [c.center_x_mm, c.center_y_mm],
+            radius_mm: c.radius_mm,
+            z_min_mm: c.z_min_mm,
+            z_max_mm: c.z_max_mm,
+        },
+        pb::scan_obstacle::Shape::Sphere(s) => {
+            Obstacle::Sphere { name: o.name, center_mm: v(s.center_mm)?, radius_mm: s.radius_mm }
+        }
     })
 }
 

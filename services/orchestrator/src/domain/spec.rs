@@ -135,6 +135,14 @@ pub struct ScanParams {
     /// Given passes instead of the automatic plan.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub passes: Option<Vec<ScanPassSpec>>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub obstacle_clearance_mm: Option<f64>,
+    /// Obstacles besides the table and the part, world frame: `{"shape": "box", "name",
+    /// "min_mm", "max_mm"}`, `{"shape": "cylinder", "name", "center_mm": [x, y], "radius_mm",
+    /// "z_min_mm", "z_max_mm"}` or `{"shape": "sphere", "name", "center_mm", "radius_mm"}`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schema(value_type = Option<Vec<Object>>)]
+    pub obstacles: Option<Vec<depthmill_scanning::domain::scan::obstacles::Obstacle>>,
 }
 
 /// A straight sensor path in the part frame at one table angle.

@@ -35,6 +35,7 @@
 //! footprint). [`ScanSession::rescan_plan`] aims short passes at them from table angles halfway
 //! between the first ones and from farther away (a smaller triangulation angle sees deeper).
 
+pub mod obstacles;
 pub mod options;
 pub mod plan;
 
@@ -229,6 +230,7 @@ pub struct PassReport {
     pub speed_mm_s: f64,
     pub path_deviation_mm: f64,
     pub min_dexterity: f64,
+    pub min_clearance_mm: f64,
 }
 
 /// Coverage of the footprint by the cloud so far.
@@ -479,6 +481,7 @@ impl ScanSession {
                 speed_mm_s: if duration_s > 0.0 { pass.length_mm / duration_s } else { 0.0 },
                 path_deviation_mm: pass.path_deviation_mm,
                 min_dexterity: pass.min_dexterity,
+                min_clearance_mm: pass.min_clearance_mm,
             });
             progress(i + 1, station.passes.len());
         }
@@ -697,7 +700,9 @@ impl ScanSession {
                     self.diagnostics.push("rescan: pass ids exhausted (65535 passes)".into());
                     break;
                 };
-                match plan::make_pass(&self.arm, &self.opts, id, deg, a, b, &seed) {
+                let mut obstacles = obstacles::cell_obstacles(&self.layout, &self.placement);
+                obstacles.extend(self.opts.obstacles.iter().cloned());
+                match plan::make_pass(&self.arm, &self.opts, &obstacles, id, deg, a, b, &seed) {
                     Ok(p) => {
                         self.last_pass_id = id;
                         seed = p.q_end_deg;

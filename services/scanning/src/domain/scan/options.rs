@@ -75,6 +75,10 @@ pub struct ScanOptions {
     pub rescan_standoff_mm: Option<f64>,
     /// Given passes instead of the automatic plan.
     pub passes: Option<Vec<PassSpec>>,
+    /// Obstacles besides the table and the part (world frame: the robot's base).
+    pub obstacles: Vec<super::obstacles::Obstacle>,
+    /// Smallest distance the arm and the scanner keep from every obstacle, mm (default 10).
+    pub obstacle_clearance_mm: f64,
     /// Seed of the scanner's and the latch's noise.
     pub seed: u64,
     /// Upper bound on frames, a guard against options that would scan for hours (default 400 000).
@@ -102,6 +106,8 @@ impl Default for ScanOptions {
             rescan_max_holes: 24,
             rescan_standoff_mm: None,
             passes: None,
+            obstacles: Vec::new(),
+            obstacle_clearance_mm: 10.0,
             seed: 1,
             max_frames: 400_000,
         }
@@ -154,6 +160,13 @@ impl ScanOptions {
         }
         if let Some(s) = self.rescan_standoff_mm {
             finite_in("rescan_standoff_mm", s, spec.standoff_min_mm, spec.standoff_max_mm)?;
+        }
+        finite_in("obstacle_clearance_mm", self.obstacle_clearance_mm, 0.0, 500.0)?;
+        if self.obstacles.len() > 16 {
+            return Err(bad("obstacles", self.obstacles.len(), "at most 16 obstacles"));
+        }
+        for (i, o) in self.obstacles.iter().enumerate() {
+            o.validate(&format!("scan.obstacles[{i}]"))?;
         }
         if self.max_frames == 0 || self.max_frames > 10_000_000 {
             return Err(bad("max_frames", self.max_frames, "must be within [1, 10000000]"));

@@ -32,6 +32,8 @@ pub struct Pass {
     pub path_deviation_mm: f64,
     /// Dexterity `sqrt(det(J^T J))` at the start, the lowest along the pass.
     pub min_dexterity: f64,
+    /// Smallest distance of the arm and the scanner from the cell's obstacles along the pass, mm.
+    pub min_clearance_mm: f64,
 }
 
 /// The passes at one table angle.
@@ -103,6 +105,8 @@ pub fn plan_scan(
             raw.push((deg, auto_passes(placement, layout, spec, opts, deg, opts.standoff_mm)));
         }
     }
+    let mut obstacles = super::obstacles::cell_obstacles(layout, placement);
+    obstacles.extend(opts.obstacles.iter().cloned());
     let mut seed = ArmModel::HOME_DEG;
     let mut id: u16 = 0;
     let mut stations = Vec::with_capacity(raw.len());
@@ -114,7 +118,7 @@ pub fn plan_scan(
                 value: "more than 65535 passes".into(),
                 reason: "a scan has at most 65535 passes (pass ids are 16-bit)".into(),
             })?;
-            let pass = make_pass(arm, opts, id, deg, a, b, &seed)?;
+            let pass = make_pass(arm, opts, &obstacles, id, deg, a, b, &seed)?;
             seed = pass.q_end_deg;
             passes.push(pass);
         }
@@ -152,9 +156,11 @@ pub(crate) fn auto_passes(
 }
 
 /// A pass from sensor position `a` to `b` (world), IK-checked at both ends and along the way.
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn make_pass(
     arm: &ArmModel,
     opts: &ScanOptions,
+    obstacles: &[super::obstacles::Obstacle],
     id: u16,
     table_deg: f64,
     a: Point3<f64>,
@@ -177,6 +183,24 @@ pub(crate) fn make_pass(
         reason: format!("{which} of the pass, sensor at ({:.1}, {:.1}, {:.1}) mm: {e}", p.x, p.y, p.z),
     };
     let s = arm.ik_nearest(&start, seed, &cfg).map_err(|e| unreachable("start", &a, &e))?;
+    let mut min_clear = f64::INFINITY;
+    let mut check = |q: &[f64; 6], which: &str, p: &Point3<f64>| -> Result<(), ScanError> {
+        if let Some((d, name, what)) = super::obstacles::clearance(arm, q, obstacles) {
+            if d < opts.obstacle_clearance_mm {
+                return Err(unreachable(
+                    which,
+                    p,
+                    &format!(
+                        "{what} comes within {d:.1} mm of the {name} (clearance {} mm)",
+                        opts.obstacle_clearance_mm
+                    ),
+                ));
+            }
+            min_clear = min_clear.min(d);
+        }
+        Ok(())
+    };
+    check(&s.q_deg, "start", &a)?;
     // Walk to the end through intermediate poses so the end takes the branch continuous with the
     // start (a straight stop-and-move pass visits them all), checking each on the way.
     let steps = ((length_mm / 20.0).ceil() as usize).max(1);
@@ -195,6 +219,7 @@ pub(crate) fn make_pass(
             ));
         }
         q = sol.q_deg;
+        check(&q, "middle", &p)?;
         min_dex = min_dex.min(arm.dexterity(&q));
     }
     let path_deviation_mm =
@@ -208,6 +233,7 @@ pub(crate) fn make_pass(
         length_mm,
         path_deviation_mm,
         min_dexterity: min_dex,
+        min_clearance_mm: min_clear,
     })
 }
 

@@ -315,6 +315,43 @@ fn bad_options_name_the_field_and_unreachable_passes_are_refused() {
 }
 
 #[test]
+fn passes_keep_clear_of_the_cell_and_a_blocking_obstacle_is_named() {
+    let mesh = height_field(20.0, 20.0, 1.0, dome);
+    let mut s = ScanSession::new(&mesh, ScanOptions::default(), CellLayout::default()).unwrap();
+    let plan = s.plan().unwrap();
+    for p in plan.stations.iter().flat_map(|st| &st.passes) {
+        assert!(
+            p.min_clearance_mm >= 10.0 && p.min_clearance_mm.is_finite(),
+            "pass {}: {}",
+            p.id,
+            p.min_clearance_mm
+        );
+    }
+    // A fixture box where the scanner passes over the part.
+    let blocked = ScanOptions {
+        obstacles: vec![obstacles::Obstacle::Box {
+            name: "clamp".into(),
+            min_mm: [480.0, -200.0, 0.0],
+            max_mm: [520.0, 200.0, 40.0],
+        }],
+        ..ScanOptions::default()
+    };
+    let mut s = ScanSession::new(&mesh, blocked, CellLayout::default()).unwrap();
+    let e = s.plan().unwrap_err();
+    assert!(matches!(e, ScanError::Unreachable { .. }) && e.to_string().contains("clamp"), "{e}");
+    let bad = ScanOptions {
+        obstacles: vec![obstacles::Obstacle::Sphere {
+            name: "s".into(),
+            center_mm: [0.0; 3],
+            radius_mm: -1.0,
+        }],
+        ..ScanOptions::default()
+    };
+    let e = bad.validate(&ScannerSpec::slp400()).unwrap_err();
+    assert!(e.to_string().contains("scan.obstacles[0]"), "{e}");
+}
+
+#[test]
 fn given_passes_are_scanned_where_asked() {
     let mesh = height_field(20.0, 20.0, 0.5, dome);
     let opts = ScanOptions {
