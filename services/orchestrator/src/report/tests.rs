@@ -329,6 +329,37 @@ fn a_full_job_has_every_section_and_every_picture_decodes() {
 }
 
 #[test]
+fn a_scanned_job_shows_its_scan() {
+    let mut arts = full_artifacts();
+    let report = serde_json::json!({
+        "mode": "dynamic", "frames": 1200, "points": 480000, "scan_time_s": 31.5, "table_wait_s": 6.9,
+        "registration_rms_mm": 0.0002, "registration_max_mm": 0.0007,
+        "dropped": {"out_of_window": 1, "incidence": 2, "occluded": 3, "miss": 4},
+        "coverage_before_rescan": {"pixel_mm": 0.5, "covered_pct": 97.5, "footprint_cells": 100, "holes": 3, "hole_area_mm2": 12.0},
+        "coverage_after_rescan": {"pixel_mm": 0.5, "covered_pct": 99.1, "footprint_cells": 100, "holes": 1, "hole_area_mm2": 2.0},
+        "stations": [{"table_deg_commanded": 0.0, "table_deg_measured": 0.0, "rescan": false,
+                      "passes": [{"frames": 600, "points": 240000}, {"frames": 600, "points": 240000}]},
+                     {"table_deg_commanded": 45.0, "table_deg_measured": 45.0, "rescan": true, "passes": []}]
+    });
+    arts.insert("scan_report".into(), serde_json::to_vec(&report).expect("json"));
+    let job = job("scanned", "succeeded", &arts);
+    let out = render_ok(&job, &arts);
+    for needle in [
+        "Registration error",
+        "RMS 0.0002 mm",
+        "97.50 % (3 holes",
+        "99.10 % (1 holes",
+        "rescan",
+        "4 missing the part",
+    ] {
+        assert!(out.html.contains(needle), "{needle} missing from the scan summary");
+    }
+    // Without a scan report there is no scan table.
+    let plain = render_ok(&job, &full_artifacts());
+    assert!(!plain.html.contains("Registration error"));
+}
+
+#[test]
 fn toolpaths_show_roughing_and_finishing_in_their_colours() {
     let arts = full_artifacts();
     let out = render_ok(&job("p", "succeeded", &arts), &arts);
