@@ -426,6 +426,9 @@ impl ScanSession {
             return Err(ScanError::TooManyFrames { frames, max: self.opts.max_frames });
         }
         self.last_pass_id = plan.stations.iter().flat_map(|s| &s.passes).map(|p| p.id).max().unwrap_or(0);
+        for s in &plan.skipped {
+            self.diagnostics.push(format!("pass left out: {s}"));
+        }
         for p in plan.stations.iter().flat_map(|s| &s.passes) {
             if p.path_deviation_mm > 5.0 {
                 self.diagnostics.push(format!(
@@ -718,7 +721,7 @@ impl ScanSession {
                 stations.push(Station { table_deg: deg, passes });
             }
         }
-        ScanPlan { stations }
+        ScanPlan { stations, skipped: Vec::new() }
     }
 
     /// Records the coverage before and after the rescan and its targets (for the report).

@@ -48,6 +48,9 @@ pub struct Station {
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct ScanPlan {
     pub stations: Vec<Station>,
+    /// Automatic passes left out because the arm cannot reach them at that table angle (the
+    /// other angles bring that side of the part nearer), with the reason.
+    pub skipped: Vec<String>,
 }
 
 impl ScanPlan {
@@ -110,21 +113,42 @@ pub fn plan_scan(
     let mut seed = ArmModel::HOME_DEG;
     let mut id: u16 = 0;
     let mut stations = Vec::with_capacity(raw.len());
+    let mut skipped = Vec::new();
+    let mut first_error = None;
+    let automatic = opts.passes.is_none();
     for (deg, lines) in raw {
         let mut passes = Vec::with_capacity(lines.len());
         for (a, b) in lines {
-            id = id.checked_add(1).ok_or_else(|| ScanError::InvalidOption {
+            let next = id.checked_add(1).ok_or_else(|| ScanError::InvalidOption {
                 field: "scan".into(),
                 value: "more than 65535 passes".into(),
                 reason: "a scan has at most 65535 passes (pass ids are 16-bit)".into(),
             })?;
-            let pass = make_pass(arm, opts, &obstacles, id, deg, a, b, &seed)?;
-            seed = pass.q_end_deg;
-            passes.push(pass);
+            match make_pass(arm, opts, &obstacles, next, deg, a, b, &seed) {
+                Ok(pass) => {
+                    id = next;
+                    seed = pass.q_end_deg;
+                    passes.push(pass);
+                }
+                // An automatic pass out of reach at this angle: the other angles bring that side
+                // nearer. A given pass out of reach is the user's error.
+                Err(e @ ScanError::Unreachable { .. }) if automatic => {
+                    skipped.push(e.to_string());
+                    first_error.get_or_insert(e);
+                }
+                Err(e) => return Err(e),
+            }
         }
-        stations.push(Station { table_deg: deg, passes });
+        if !passes.is_empty() {
+            stations.push(Station { table_deg: deg, passes });
+        }
     }
-    Ok(ScanPlan { stations })
+    if stations.is_empty()
+        && let Some(e) = first_error
+    {
+        return Err(e);
+    }
+    Ok(ScanPlan { stations, skipped })
 }
 
 /// Parallel passes along world Y over the part's extent at table angle `deg`, alternating in

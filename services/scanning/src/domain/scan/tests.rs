@@ -315,6 +315,23 @@ fn bad_options_name_the_field_and_unreachable_passes_are_refused() {
 }
 
 #[test]
+fn a_large_part_is_planned_from_the_near_side_at_each_angle() {
+    // 280 × 280 mm: the far passes at each angle are out of the arm's reach; the other angles
+    // bring that side near, and the plan says what it left out.
+    let mesh = height_field(140.0, 140.0, 5.0, |x, y| 5.0 + 0.02 * (x + y));
+    let mut s = ScanSession::new(&mesh, ScanOptions::default(), CellLayout::default()).unwrap();
+    let plan = s.plan().unwrap();
+    println!("{} passes planned, {} left out", plan.passes(), plan.skipped.len());
+    assert_eq!(plan.stations.len(), 4);
+    assert!(plan.passes() >= 8);
+    assert!(!plan.skipped.is_empty(), "the far passes of a 280 mm part are out of reach");
+    for p in &plan.skipped {
+        assert!(p.contains("cannot reach"), "{p}");
+    }
+    // Given passes out of reach stay errors (bad_options_name_the_field... checks that).
+}
+
+#[test]
 fn passes_keep_clear_of_the_cell_and_a_blocking_obstacle_is_named() {
     let mesh = height_field(20.0, 20.0, 1.0, dome);
     let mut s = ScanSession::new(&mesh, ScanOptions::default(), CellLayout::default()).unwrap();
