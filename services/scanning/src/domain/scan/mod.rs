@@ -66,7 +66,7 @@ const SETTLE_S: f64 = 0.05;
 /// Why a scan cannot be planned or run.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum ScanError {
-    #[error("invalid {field} = {value}: {reason}")]
+    #[error("invalid {field}{}: {reason}", if value.is_empty() { String::new() } else { format!(" = {value}") })]
     InvalidOption { field: String, value: String, reason: String },
     #[error("pass {pass} at table angle {table_deg}°: the robot cannot reach the {reason}")]
     Unreachable { pass: u16, table_deg: f64, reason: String },
@@ -146,6 +146,12 @@ impl PartPlacement {
             }
             min = min.inf(v);
             max = max.sup(v);
+        }
+        let size = (max - min).max();
+        if size < 1.0 {
+            return Err(ScanError::Mesh(format!(
+                "the part is only {size:.4} mm across: depthmill works in millimetres (is the mesh in metres or inches?)"
+            )));
         }
         let half = 0.5 * ((max.x - min.x).hypot(max.y - min.y));
         if half > layout.table_radius_mm {

@@ -306,6 +306,10 @@ fn bad_options_name_the_field_and_unreachable_passes_are_refused() {
     )
     .unwrap();
     assert!(matches!(s.plan().unwrap_err(), ScanError::TooManyFrames { .. }));
+    // A part in metres.
+    let tiny = height_field(0.04, 0.03, 0.01, |_, _| 0.0);
+    let e = ScanSession::new(&tiny, ScanOptions::default(), CellLayout::default()).err().unwrap();
+    assert!(e.to_string().contains("millimetres"), "{e}");
     // A part wider than the table.
     let wide = height_field(300.0, 10.0, 10.0, |_, _| 0.0);
     assert!(matches!(
