@@ -270,3 +270,48 @@ async fn the_cells_devices_answer_over_grpc() -> anyhow::Result<()> {
     assert!(rest.is_ok(), "the event stream ends after EndLatching");
     stack.shutdown().await
 }
+
+#[tokio::test]
+async fn a_running_scan_is_cancelled_through_the_service_which_then_scans_again() -> anyhow::Result<()> {
+    let script = Script::default();
+    let stack = TestStack::start_with(StackOptions {
+        machine: MachineBackend::Scripted(script),
+        ..Default::default()
+    })
+    .await?;
+    let sha = stack.upload("model/stl", dome_stl()).await?;
+    // Many table stations: the table turns in real time between them, so the stage runs for a while.
+    let slow = json!({"input": {"kind": "mesh", "artifact": sha},
+                      "scan": {"table_angles_deg": [0, 180, 0, 180, 0, 180, 0, 180], "line_spacing_mm": 1.0}});
+    let (_, created) = stack.post_job(&slow, None).await?;
+    let id = created["id"].as_str().expect("id").to_string();
+    for _ in 0..500 {
+        let j = stack.get_job(&id).await?;
+        if j["status"] == "running" && j["stage"] == "scan" {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let started = std::time::Instant::now();
+    let resp = stack.http.post(stack.url(&format!("/v1/jobs/{id}/cancel"))).send().await?;
+    assert_eq!(resp.status(), 200);
+    let job = stack.wait_for_end(&id, Duration::from_secs(60)).await?;
+    assert_eq!(job["status"], "cancelled", "{job}");
+    assert!(
+        started.elapsed() < Duration::from_secs(10),
+        "the scan stopped within a station: {:?}",
+        started.elapsed()
+    );
+    assert!(job["artifacts"].get("point_cloud").is_none(), "no half-written cloud");
+    // The cell is free again.
+    let ok = json!({"input": {"kind": "mesh", "artifact": sha},
+                    "scan": {"table_angles_deg": [0], "line_spacing_mm": 1.0},
+                    "reconstruct": {"pixel_mm": 0.5},
+                    "plan": {"stock": {"z_mm": 8}, "roughing": {"tool": "flat-6", "step_down_mm": 3.0},
+                             "finishing": {"tool": "ball-6", "step_over_mm": 2.0}}});
+    let (_, created) = stack.post_job(&ok, None).await?;
+    let done = stack.wait_for_end(created["id"].as_str().expect("id"), Duration::from_secs(300)).await?;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    stack.shutdown().await
+}
