@@ -48,7 +48,7 @@ mod tests;
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
 
-use depthmill_geometry::{HeightMap, ImageMapping};
+use depthmill_geometry::{HeightMap, HeightMapMeta, ImageMapping};
 use serde_json::Value;
 
 use html::{esc, figure_svg, kv_table, missing, section, table};
@@ -961,7 +961,65 @@ impl<'a> Ctx<'a> {
         .map(|(k, v)| (k.to_string(), esc(&v.map_or("—".into(), |v| format!("{v:.4} mm")))))
         .collect();
         body.push_str(&kv_table(&rows));
+        body.push_str(&self.against_preview()?);
         Ok(section("deviation", "Deviation from the original part", &body))
+    }
+
+    /// The machined part against the CAM's preview (`toolpath_preview`: the surface the program
+    /// leaves, the part opened by the tools plus scallops). Leftover the tools cannot reach shows
+    /// in the deviation from the part but not here; what shows here is the machine's doing (steps,
+    /// the adaptive loop's feeds, the simulation's cells). First face only.
+    fn against_preview(&mut self) -> Result<String, ReportError> {
+        let (Ok(stock), Ok(preview)) = (self.decode("final_stock"), self.decode("toolpath_preview")) else {
+            return Ok(String::new());
+        };
+        let meta = *preview.map.meta();
+        let mut data = vec![f32::NAN; preview.map.data().len()];
+        let (mut lo, mut hi, mut sq, mut n) = (0.0f64, 0.0f64, 0.0f64, 0usize);
+        for row in 0..meta.height {
+            for col in 0..meta.width {
+                let Some(p) = preview.map.get(col, row).filter(|v| v.is_finite()) else { continue };
+                let (x, y) = meta.cell_center(col, row);
+                let Some(z) =
+                    stock.map.cell_of(x, y).and_then(|(c, r)| stock.map.get(c, r)).filter(|v| v.is_finite())
+                else {
+                    continue;
+                };
+                let d = f64::from(z) - f64::from(p);
+                data[(row * meta.width + col) as usize] = d as f32;
+                lo = lo.min(d);
+                hi = hi.max(d);
+                sq += d * d;
+                n += 1;
+            }
+        }
+        if n == 0 {
+            return Ok(String::new());
+        }
+        let range = (-lo).max(hi).max(0.005);
+        let dev_meta = HeightMapMeta { z_min_mm: -range, z_max_mm: range, ..meta };
+        let Ok(map) = HeightMap::new(dev_meta, data) else { return Ok(String::new()) };
+        let mut body = String::from("<h3>Against the surface the program can leave</h3>");
+        if let (Some(view), Some((r, _, _))) = (maps::map_view(&map), maps::deviation_range(&map)) {
+            let img = maps::deviation_image(&map, &view, r);
+            let caption = format!(
+                "Machined part minus the CAM's predicted surface (the part opened by the tools, scallops included): what the machine itself added or left. Scale ±{} mm.",
+                fmt_num(r)
+            );
+            body.push_str(&self.picture(
+                "deviation_from_preview.png",
+                &img,
+                "deviation from the preview",
+                &esc(&caption),
+            )?);
+        }
+        let rows = vec![
+            ("Deepest below the preview".to_string(), format!("{:.4} mm", (-lo).max(0.0))),
+            ("Highest above the preview".to_string(), format!("{:.4} mm", hi.max(0.0))),
+            ("RMS".to_string(), format!("{:.4} mm over {} cells", (sq / n as f64).sqrt(), n)),
+        ];
+        body.push_str(&kv_table(&rows));
+        Ok(body)
     }
 
     fn telemetry(&mut self) -> String {

@@ -360,6 +360,26 @@ fn a_scanned_job_shows_its_scan() {
 }
 
 #[test]
+fn the_machined_part_is_compared_with_the_cams_preview() {
+    let mut arts = full_artifacts();
+    let stock = final_stock();
+    let lowered: Vec<f32> = stock.data().iter().map(|z| z - 0.02).collect();
+    let preview = HeightMap::new(*stock.meta(), lowered).expect("map");
+    arts.insert("toolpath_preview".into(), map_png(&preview, PngDepth::Bits16));
+    let job = job("compared", "succeeded", &arts);
+    let out = render_ok(&job, &arts);
+    assert!(out.html.contains("Against the surface the program can leave"));
+    assert!(out.files.iter().any(|f| f.0 == "deviation_from_preview.png"));
+    // 16-bit PNG quantisation aside, the stock is 0.02 mm above the preview everywhere.
+    let at = out.html.find("Highest above the preview").expect("row");
+    let row = &out.html[at..at + 200];
+    assert!(row.contains("0.02"), "{row}");
+    // Without a preview the comparison is left out.
+    let plain = render_ok(&job, &full_artifacts());
+    assert!(!plain.html.contains("Against the surface the program can leave"));
+}
+
+#[test]
 fn toolpaths_show_roughing_and_finishing_in_their_colours() {
     let arts = full_artifacts();
     let out = render_ok(&job("p", "succeeded", &arts), &arts);
