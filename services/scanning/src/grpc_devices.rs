@@ -53,6 +53,13 @@ impl Devices {
         self.robot.lock().unwrap_or_else(|p| p.into_inner())
     }
 
+    /// The controller and the time now, read under its lock (commands must come in time order).
+    fn robot_now(&self) -> (MutexGuard<'_, MotionController>, f64) {
+        let guard = self.robot();
+        let t = self.now();
+        (guard, t)
+    }
+
     fn latch(&self) -> MutexGuard<'_, EncoderLatch> {
         self.latch.lock().unwrap_or_else(|p| p.into_inner())
     }
@@ -174,8 +181,8 @@ impl pb::motion_controller_service_server::MotionControllerService for Motion {
         let dev = device(&r.get_ref().device)?;
         match dev {
             Device::Robot => {
-                let t = self.0.now();
-                self.0.robot().initialize(t).map_err(robot_status)?;
+                let (mut robot, t) = self.0.robot_now();
+                robot.initialize(t).map_err(robot_status)?;
             }
             Device::Table => {
                 let mut t = self.0.table.lock().await;
@@ -194,8 +201,8 @@ impl pb::motion_controller_service_server::MotionControllerService for Motion {
         let dev = device(&r.get_ref().device)?;
         match dev {
             Device::Robot => {
-                let t = self.0.now();
-                self.0.robot().uninitialize(t).map_err(robot_status)?;
+                let (mut robot, t) = self.0.robot_now();
+                robot.uninitialize(t).map_err(robot_status)?;
             }
             Device::Table => *self.0.table.lock().await = None,
         }
@@ -213,8 +220,8 @@ impl pb::motion_controller_service_server::MotionControllerService for Motion {
         let dev = device(&r.get_ref().device)?;
         match dev {
             Device::Robot => {
-                let t = self.0.now();
-                self.0.robot().home(t, 0.5).map_err(robot_status)?;
+                let (mut robot, t) = self.0.robot_now();
+                robot.home(t, 0.5).map_err(robot_status)?;
             }
             Device::Table => self.with_table(async |c| c.move_to(0.0).await).await?,
         }
@@ -226,8 +233,7 @@ impl pb::motion_controller_service_server::MotionControllerService for Motion {
         let dev = device(&m.device)?;
         match dev {
             Device::Robot => {
-                let t = self.0.now();
-                let mut robot = self.0.robot();
+                let (mut robot, t) = self.0.robot_now();
                 let axis = m.axis as usize;
                 let frac = match m.speed_deg_s {
                     Some(v) => {
@@ -271,13 +277,10 @@ impl pb::motion_controller_service_server::MotionControllerService for Motion {
         let dev = device(&m.device)?;
         match dev {
             Device::Robot => {
-                let t = self.0.now();
                 let targets: Vec<(usize, f64)> =
                     m.targets_deg.iter().enumerate().map(|(i, q)| (i + 1, *q)).collect();
-                self.0
-                    .robot()
-                    .coordinated_move(t, &targets, m.speed_fraction.unwrap_or(0.5))
-                    .map_err(robot_status)?;
+                let (mut robot, t) = self.0.robot_now();
+                robot.coordinated_move(t, &targets, m.speed_fraction.unwrap_or(0.5)).map_err(robot_status)?;
             }
             Device::Table => {
                 let [target] = m.targets_deg[..] else {
@@ -295,8 +298,7 @@ impl pb::motion_controller_service_server::MotionControllerService for Motion {
     async fn read_position(&self, r: Request<pb::MotionRequest>) -> Result<Response<pb::Position>, Status> {
         match device(&r.get_ref().device)? {
             Device::Robot => {
-                let t = self.0.now();
-                let robot = self.0.robot();
+                let (robot, t) = self.0.robot_now();
                 let q = robot.read_position(t).map_err(robot_status)?;
                 let p = robot.latch(t).map_err(robot_status)?;
                 Ok(Response::new(pb::Position {
@@ -326,8 +328,8 @@ impl pb::motion_controller_service_server::MotionControllerService for Motion {
         let dev = device(&r.get_ref().device)?;
         match dev {
             Device::Robot => {
-                let t = self.0.now();
-                self.0.robot().reset(t).map_err(robot_status)?;
+                let (mut robot, t) = self.0.robot_now();
+                robot.reset(t).map_err(robot_status)?;
             }
             // The table's protocol has no emergency stop: hold where it is.
             Device::Table => {
@@ -346,8 +348,8 @@ impl pb::motion_controller_service_server::MotionControllerService for Motion {
         let dev = device(&a.device)?;
         match dev {
             Device::Robot => {
-                let t = self.0.now();
-                self.0.robot().stop(t, a.axis as usize).map_err(robot_status)?;
+                let (mut robot, t) = self.0.robot_now();
+                robot.stop(t, a.axis as usize).map_err(robot_status)?;
             }
             Device::Table => {
                 self.with_table(async |c| {
@@ -445,9 +447,8 @@ impl pb::encoder_latch_service_server::EncoderLatchService for Latch {
     ) -> Result<Response<pb::LatchStatus>, Status> {
         let w = r.into_inner();
         let table_deg = self.0.table_deg().await?.unwrap_or(0.0);
-        let t = self.0.now();
         {
-            let robot = self.0.robot();
+            let (robot, t) = self.0.robot_now();
             let mut src = LiveSource { robot: &robot, table_deg };
             self.0.latch().write_encoder(w.encoder as usize, w.value, &mut src, t).map_err(latch_status)?;
         }
@@ -459,8 +460,7 @@ impl pb::encoder_latch_service_server::EncoderLatchService for Latch {
         _: Request<pb::LatchRequest>,
     ) -> Result<Response<pb::LatchedPositions>, Status> {
         let table_deg = self.0.table_deg().await?.unwrap_or(0.0);
-        let t = self.0.now();
-        let robot = self.0.robot();
+        let (robot, t) = self.0.robot_now();
         let mut src = LiveSource { robot: &robot, table_deg };
         let v = self.0.latch().read_encoders(&mut src, t).map_err(latch_status)?;
         Ok(Response::new(positions(0, t, &v, false)))
@@ -511,9 +511,8 @@ impl pb::encoder_latch_service_server::EncoderLatchService for Latch {
                         return;
                     }
                 };
-                let t = devices.now();
                 let events = {
-                    let robot = devices.robot();
+                    let (robot, t) = devices.robot_now();
                     let mut latch = devices.latch();
                     if !latch.is_latching() {
                         return;
