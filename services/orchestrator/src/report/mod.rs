@@ -961,8 +961,94 @@ impl<'a> Ctx<'a> {
         .map(|(k, v)| (k.to_string(), esc(&v.map_or("—".into(), |v| format!("{v:.4} mm")))))
         .collect();
         body.push_str(&kv_table(&rows));
+        body.push_str(&self.against_part()?);
         body.push_str(&self.against_preview()?);
         Ok(section("deviation", "Deviation from the original part", &body))
+    }
+
+    /// The machined part against the original part itself, when the job started from its mesh
+    /// (a simulated scan): the mesh's top surface rasterised on the final stock's grid (exact
+    /// z-buffer at cell centres). Only when the maps are in the mesh's own frame: first face `+Z`
+    /// without a moved origin, and no `filters.transform`.
+    fn against_part(&mut self) -> Result<String, ReportError> {
+        let rec = &self.job["spec"]["reconstruct"];
+        let same_frame = rec["filters"]["transform"].is_null()
+            && match rec["faces"].as_array() {
+                None => true,
+                Some(f) => f.first().is_none_or(|f0| {
+                    f0["view"].as_str().is_none_or(|v| v == "+Z")
+                        && f0["origin"].is_null()
+                        && f0["a_deg"].is_null()
+                        && f0["normal"].is_null()
+                }),
+            };
+        let Some(bytes) = self.artifacts.get("mesh").filter(|_| same_frame) else {
+            return Ok(String::new());
+        };
+        let Ok(stock) = self.decode("final_stock") else { return Ok(String::new()) };
+        let limits = depthmill_reconstruction::domain::io::ReadLimits::default();
+        let mesh = match depthmill_reconstruction::domain::io::read_any_from(
+            std::io::Cursor::new(bytes),
+            "mesh",
+            Some(bytes.len() as u64),
+            &limits,
+        ) {
+            Ok((depthmill_reconstruction::domain::io::Geometry::Mesh(m), _)) => m,
+            Ok(_) => return Ok(String::new()),
+            Err(e) => {
+                return Ok(missing(&format!("The original part could not be read to compare with: {e}.")));
+            }
+        };
+        let meta = *stock.map.meta();
+        let Ok((part, _)) =
+            depthmill_reconstruction::domain::mesh_raster::rasterize_mesh_with_stats(&mesh, &meta)
+        else {
+            return Ok(String::new());
+        };
+        let mut data = vec![f32::NAN; part.data().len()];
+        let (mut gouge, mut left, mut sum_left, mut sq, mut n) = (0.0f64, 0.0f64, 0.0f64, 0.0f64, 0usize);
+        for (i, (p, z)) in part.data().iter().zip(stock.map.data()).enumerate() {
+            if !(p.is_finite() && z.is_finite()) {
+                continue;
+            }
+            let d = f64::from(*z) - f64::from(*p);
+            data[i] = d as f32;
+            gouge = gouge.max(-d);
+            left = left.max(d);
+            sum_left += d.max(0.0);
+            sq += d * d;
+            n += 1;
+        }
+        if n == 0 {
+            return Ok(String::new());
+        }
+        let range = gouge.max(left).max(0.005);
+        let Ok(map) = HeightMap::new(HeightMapMeta { z_min_mm: -range, z_max_mm: range, ..meta }, data)
+        else {
+            return Ok(String::new());
+        };
+        let mut body = String::from("<h3>Against the original part</h3>");
+        if let (Some(view), Some((r, _, _))) = (maps::map_view(&map), maps::deviation_range(&map)) {
+            let img = maps::deviation_image(&map, &view, r);
+            let caption = format!(
+                "Machined part minus the original part (the input mesh's top surface at each cell): the whole chain, scan to mill. Scale ±{} mm.",
+                fmt_num(r)
+            );
+            body.push_str(&self.picture(
+                "deviation_from_part.png",
+                &img,
+                "deviation from the part",
+                &esc(&caption),
+            )?);
+        }
+        let rows = vec![
+            ("Max gouge".to_string(), format!("{gouge:.4} mm")),
+            ("Max leftover".to_string(), format!("{left:.4} mm")),
+            ("Mean leftover".to_string(), format!("{:.4} mm", sum_left / n as f64)),
+            ("RMS".to_string(), format!("{:.4} mm over {} cells", (sq / n as f64).sqrt(), n)),
+        ];
+        body.push_str(&kv_table(&rows));
+        Ok(body)
     }
 
     /// The machined part against the CAM's preview (`toolpath_preview`: the surface the program

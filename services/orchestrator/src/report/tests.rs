@@ -360,6 +360,46 @@ fn a_scanned_job_shows_its_scan() {
 }
 
 #[test]
+fn the_machined_part_is_compared_with_the_original_mesh() {
+    // The dome as a fine height-field mesh; the final stock is the dome plus up to 0.05 mm.
+    let n = 161;
+    let (x0, y0, w, h) = (X0, Y0, f64::from(W) * P, f64::from(H) * P);
+    let mut vertices = Vec::new();
+    for j in 0..n {
+        for i in 0..n {
+            let x = x0 + w * i as f64 / (n - 1) as f64;
+            let y = y0 + h * j as f64 / (n - 1) as f64;
+            vertices.push(depthmill_geometry::nalgebra::Point3::new(x, y, dome_z(x, y)));
+        }
+    }
+    let mut triangles = Vec::new();
+    for j in 0..n - 1 {
+        for i in 0..n - 1 {
+            let a = (j * n + i) as u32;
+            triangles.push([a, a + 1, a + 1 + n as u32]);
+            triangles.push([a, a + 1 + n as u32, a + n as u32]);
+        }
+    }
+    let mesh = depthmill_reconstruction::domain::mesh::Mesh { vertices, triangles };
+    let mut stl = Vec::new();
+    depthmill_scanning::domain::sample::write_stl(&mut stl, &mesh).expect("stl");
+    let mut arts = full_artifacts();
+    arts.insert("mesh".into(), stl);
+    let job = job("from a mesh", "succeeded", &arts);
+    let out = render_ok(&job, &arts);
+    assert!(out.html.contains("Against the original part"));
+    assert!(out.files.iter().any(|f| f.0 == "deviation_from_part.png"));
+    let at = out.html.find("Against the original part").expect("section");
+    let part = &out.html[at..];
+    // The stock is the dome plus 0.05·|sin 2x|: mean leftover 0.05 · 2/π = 0.032 mm. (At the
+    // dome's vertical rim the mesh's facets chord across the step, so single cells there read
+    // tenths of a millimetre either way: the max rows are not checked.)
+    let row = &part[part.find("Mean leftover").expect("row")..][..60];
+    assert!(row.contains("0.03"), "{row}");
+    assert!(part.contains("mm over 9600 cells"), "every cell of the grid is compared");
+}
+
+#[test]
 fn the_machined_part_is_compared_with_the_cams_preview() {
     let mut arts = full_artifacts();
     let stock = final_stock();
