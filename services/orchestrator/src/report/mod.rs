@@ -1031,7 +1031,7 @@ impl<'a> Ctx<'a> {
         if let (Some(view), Some((r, _, _))) = (maps::map_view(&map), maps::deviation_range(&map)) {
             let img = maps::deviation_image(&map, &view, r);
             let caption = format!(
-                "Machined part minus the original part (the input mesh's top surface at each cell): the whole chain, scan to mill. Scale ±{} mm.",
+                "Machined part minus the original part (the input mesh's top surface at each cell): the whole chain, scan to mill. Cells on vertical walls read large either way (a wall a fraction of a cell off is a full step in Z); holes the tools cannot enter show as leftover. Scale ±{} mm.",
                 fmt_num(r)
             );
             body.push_str(&self.picture(
