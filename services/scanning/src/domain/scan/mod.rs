@@ -33,7 +33,9 @@
 //! [`ScanSession::holes`] rasterises the cloud so far with reconstruction's own raster and
 //! coverage code at `rescan_pixel_mm` and lists the enclosed holes (unmeasured cells of the
 //! footprint). [`ScanSession::rescan_plan`] aims short passes at them from table angles halfway
-//! between the first ones and from farther away (a smaller triangulation angle sees deeper).
+//! between the first ones and from farther away (a smaller triangulation angle sees deeper),
+//! looking straight down and tilted ±30° across the pass (a wall too steep for the incidence limit
+//! from above faces one of the tilted views).
 
 pub mod obstacles;
 pub mod options;
@@ -60,6 +62,8 @@ use super::scanner::{DropCounts, Scanner, ScannerError, ScannerSpec};
 const APPROACH_SPEED: f64 = 0.5;
 /// Arm speed of the short stop-and-move steps.
 const STEP_SPEED: f64 = 0.3;
+/// Tilts of the rescan passes about their direction, degrees.
+const RESCAN_TILTS_DEG: [f64; 3] = [0.0, 30.0, -30.0];
 /// Wait after the arm arrives before a pass or a stop-and-move frame, s.
 const SETTLE_S: f64 = 0.05;
 
@@ -671,8 +675,9 @@ impl ScanSession {
         Ok((summary, targets))
     }
 
-    /// Passes aimed at `targets`: from each first-scan angle + 45°, farther away, one short pass
-    /// per hole across it. Passes the arm cannot reach are left out with a diagnostic.
+    /// Passes aimed at `targets`: from each first-scan angle + 45°, farther away, three short
+    /// passes per hole across it (straight down, tilted ±30°, each aimed so its optical axis meets
+    /// the hole at the standoff). Passes the arm cannot reach are left out with a diagnostic.
     pub fn rescan_plan(&mut self, targets: &[HoleTarget]) -> ScanPlan {
         let spec = self.scanner.spec().clone();
         let standoff = self.opts.rescan_standoff_mm.unwrap_or_else(|| {
@@ -695,32 +700,37 @@ impl ScanSession {
         }
         let mut seed = ArmModel::HOME_DEG;
         let mut stations = Vec::new();
+        let mut obstacles = obstacles::cell_obstacles(&self.layout, &self.placement);
+        obstacles.extend(self.opts.obstacles.iter().cloned());
         for deg in angles {
             let w = self.placement.world_from_part(&self.layout, deg);
-            let (_, hi) = self.placement.world_extent(&self.layout, deg);
-            let z = hi.z + standoff;
             let mut passes = Vec::new();
-            for (k, h) in targets.iter().enumerate() {
+            'holes: for (k, h) in targets.iter().enumerate() {
                 let c = w * Point3::new(h.center_x_mm, h.center_y_mm, self.placement.max.z);
                 let half = 0.5 * h.extent_mm + self.opts.margin_mm + 2.0;
-                let (a, b) = (Point3::new(c.x, c.y - half, z), Point3::new(c.x, c.y + half, z));
-                let (a, b) = if k % 2 == 0 { (a, b) } else { (b, a) };
-                let Some(id) = self.last_pass_id.checked_add(1) else {
-                    self.diagnostics.push("rescan: pass ids exhausted (65535 passes)".into());
-                    break;
-                };
-                let mut obstacles = obstacles::cell_obstacles(&self.layout, &self.placement);
-                obstacles.extend(self.opts.obstacles.iter().cloned());
-                match plan::make_pass(&self.arm, &self.opts, &obstacles, id, deg, a, b, &seed) {
-                    Ok(p) => {
-                        self.last_pass_id = id;
-                        seed = p.q_end_deg;
-                        passes.push(p);
+                let (pa, pb) = (Point3::new(c.x, c.y - half, c.z), Point3::new(c.x, c.y + half, c.z));
+                let (pa, pb) = if k % 2 == 0 { (pa, pb) } else { (pb, pa) };
+                // Straight down, and tilted both ways across the pass: a wall too steep for the
+                // incidence limit seen from above faces one of the tilted views.
+                for tilt in RESCAN_TILTS_DEG {
+                    let Some(id) = self.last_pass_id.checked_add(1) else {
+                        self.diagnostics.push("rescan: pass ids exhausted (65535 passes)".into());
+                        break 'holes;
+                    };
+                    let axis = plan::sensor_orientation(&(pb - pa), tilt) * Vector3::z();
+                    let (a, b) = (pa - axis * standoff, pb - axis * standoff);
+                    let opts = ScanOptions { tilt_deg: tilt, ..self.opts.clone() };
+                    match plan::make_pass(&self.arm, &opts, &obstacles, id, deg, a, b, &seed) {
+                        Ok(p) => {
+                            self.last_pass_id = id;
+                            seed = p.q_end_deg;
+                            passes.push(p);
+                        }
+                        Err(e) => self.diagnostics.push(format!(
+                            "rescan pass (tilt {tilt}°) over the hole at ({:.1}, {:.1}) mm skipped: {e}",
+                            h.center_x_mm, h.center_y_mm
+                        )),
                     }
-                    Err(e) => self.diagnostics.push(format!(
-                        "rescan pass over the hole at ({:.1}, {:.1}) mm skipped: {e}",
-                        h.center_x_mm, h.center_y_mm
-                    )),
                 }
             }
             if !passes.is_empty() {

@@ -249,6 +249,7 @@ fn adaptive_rescan_aims_at_the_holes_and_fills_some() {
     let (before, targets) = s.holes().unwrap();
     assert!(before.holes > 0 && !targets.is_empty(), "the shadow leaves a hole: {before:?}");
     let rescan = s.rescan_plan(&targets);
+    println!("rescan: {} passes for {} holes", rescan.passes(), targets.len());
     assert!(rescan.passes() > 0);
     assert!(rescan.stations.iter().all(|st| (st.table_deg - 45.0).abs() < 1e-9));
     for st in &rescan.stations {
