@@ -43,6 +43,24 @@ pub(crate) fn dome_stl() -> Vec<u8> {
     bytes
 }
 
+/// The stack with a scripted machine (these tests stop at planning).
+async fn scripted_stack() -> anyhow::Result<TestStack> {
+    TestStack::start_with(StackOptions {
+        machine: MachineBackend::Scripted(Script::default()),
+        ..Default::default()
+    })
+    .await
+}
+
+/// A quick job on the dome: one table angle, coarse lines and maps.
+fn quick_job(sha: &str, mode: &str) -> serde_json::Value {
+    json!({"input": {"kind": "mesh", "artifact": sha},
+           "scan": {"table_angles_deg": [90], "line_spacing_mm": 1.0, "mode": mode},
+           "reconstruct": {"pixel_mm": 0.5},
+           "plan": {"stock": {"z_mm": 8}, "roughing": {"tool": "flat-6", "step_down_mm": 3.0},
+                    "finishing": {"tool": "ball-6", "step_over_mm": 2.0}}})
+}
+
 async fn fetch(stack: &TestStack, job: &serde_json::Value, name: &str) -> anyhow::Result<Vec<u8>> {
     let sha = job["artifacts"][name]["sha256"].as_str().unwrap_or_default();
     Ok(stack.http.get(stack.url(&format!("/v1/artifacts/{sha}"))).send().await?.bytes().await?.to_vec())
@@ -51,12 +69,7 @@ async fn fetch(stack: &TestStack, job: &serde_json::Value, name: &str) -> anyhow
 #[tokio::test]
 async fn a_mesh_job_is_scanned_into_a_cloud_on_the_part_and_goes_on_to_reconstruction() -> anyhow::Result<()>
 {
-    let script = Script::default();
-    let stack = TestStack::start_with(StackOptions {
-        machine: MachineBackend::Scripted(script),
-        ..Default::default()
-    })
-    .await?;
+    let stack = scripted_stack().await?;
     let sha = stack.upload("model/stl", dome_stl()).await?;
     let job = json!({
         "name": "scanned dome",
@@ -130,12 +143,7 @@ async fn a_mesh_job_is_scanned_into_a_cloud_on_the_part_and_goes_on_to_reconstru
 
 #[tokio::test]
 async fn bad_scan_options_are_refused_and_the_service_keeps_working() -> anyhow::Result<()> {
-    let script = Script::default();
-    let stack = TestStack::start_with(StackOptions {
-        machine: MachineBackend::Scripted(script),
-        ..Default::default()
-    })
-    .await?;
+    let stack = scripted_stack().await?;
     let sha = stack.upload("model/stl", dome_stl()).await?;
     // At submission: outside the scanner's window.
     let (status, body) = stack
@@ -155,11 +163,7 @@ async fn bad_scan_options_are_refused_and_the_service_keeps_working() -> anyhow:
     assert!(failed["error"]["message"].as_str().unwrap_or_default().contains("cannot reach"), "{failed}");
     assert!(failed["artifacts"].get("point_cloud").is_none());
     // The service still scans.
-    let ok = json!({"input": {"kind": "mesh", "artifact": sha},
-                    "scan": {"table_angles_deg": [90], "line_spacing_mm": 1.0, "mode": "stop_and_move"},
-                    "reconstruct": {"pixel_mm": 0.5},
-                    "plan": {"stock": {"z_mm": 8}, "roughing": {"tool": "flat-6", "step_down_mm": 3.0},
-                             "finishing": {"tool": "ball-6", "step_over_mm": 2.0}}});
+    let ok = quick_job(&sha, "stop_and_move");
     let (_, created) = stack.post_job(&ok, None).await?;
     let done = stack.wait_for_end(created["id"].as_str().expect("id"), Duration::from_secs(300)).await?;
     assert_eq!(done["status"], "succeeded", "{done}");
@@ -273,12 +277,7 @@ async fn the_cells_devices_answer_over_grpc() -> anyhow::Result<()> {
 
 #[tokio::test]
 async fn a_running_scan_is_cancelled_through_the_service_which_then_scans_again() -> anyhow::Result<()> {
-    let script = Script::default();
-    let stack = TestStack::start_with(StackOptions {
-        machine: MachineBackend::Scripted(script),
-        ..Default::default()
-    })
-    .await?;
+    let stack = scripted_stack().await?;
     let sha = stack.upload("model/stl", dome_stl()).await?;
     // Many table stations: the table turns in real time between them, so the stage runs for a while.
     let slow = json!({"input": {"kind": "mesh", "artifact": sha},
@@ -305,11 +304,7 @@ async fn a_running_scan_is_cancelled_through_the_service_which_then_scans_again(
     );
     assert!(job["artifacts"].get("point_cloud").is_none(), "no half-written cloud");
     // The cell is free again.
-    let ok = json!({"input": {"kind": "mesh", "artifact": sha},
-                    "scan": {"table_angles_deg": [0], "line_spacing_mm": 1.0},
-                    "reconstruct": {"pixel_mm": 0.5},
-                    "plan": {"stock": {"z_mm": 8}, "roughing": {"tool": "flat-6", "step_down_mm": 3.0},
-                             "finishing": {"tool": "ball-6", "step_over_mm": 2.0}}});
+    let ok = quick_job(&sha, "dynamic");
     let (_, created) = stack.post_job(&ok, None).await?;
     let done = stack.wait_for_end(created["id"].as_str().expect("id"), Duration::from_secs(300)).await?;
     assert_eq!(done["status"], "succeeded", "{done}");

@@ -201,6 +201,29 @@ pub async fn watch(server: &Server, id: &str) -> anyhow::Result<()> {
     }
 }
 
+/// The file name an artifact is written under: its name (characters other than letters, digits,
+/// `_` and `-` replaced by `_`) and the extension of its media type.
+pub fn artifact_file_name(name: &str, media_type: &str) -> String {
+    let ext = match media_type {
+        "model/stl" => "stl",
+        "application/x-ply" => "ply",
+        "text/x-xyz" => "xyz",
+        "image/png" => "png",
+        "application/x-npy" => "npy",
+        "text/x-gcode" => "ngc",
+        "application/json" => "json",
+        "text/html" => "html",
+        "text/csv" => "csv",
+        "image/svg+xml" => "svg",
+        _ => "bin",
+    };
+    let safe: String = name
+        .chars()
+        .map(|c| if c.is_ascii_alphanumeric() || c == '_' || c == '-' { c } else { '_' })
+        .collect();
+    format!("{safe}.{ext}")
+}
+
 /// Writes `job.json` and every artifact (named `<artifact name>.<ext>`) into `output`.
 pub async fn fetch(server: &Server, id: &str, output: &Path) -> anyhow::Result<()> {
     let job = get_job(server, id).await?;
@@ -211,23 +234,7 @@ pub async fn fetch(server: &Server, id: &str, output: &Path) -> anyhow::Result<(
     for (name, a) in artifacts {
         let sha = a.get("sha256").and_then(Value::as_str).context("artifact without sha256")?;
         let media = a.get("media_type").and_then(Value::as_str).unwrap_or("");
-        let ext = match media {
-            "model/stl" => "stl",
-            "application/x-ply" => "ply",
-            "text/x-xyz" => "xyz",
-            "image/png" => "png",
-            "application/x-npy" => "npy",
-            "text/x-gcode" => "ngc",
-            "application/json" => "json",
-            "text/html" => "html",
-            "text/csv" => "csv",
-            _ => "bin",
-        };
-        let safe: String = name
-            .chars()
-            .map(|c| if c.is_ascii_alphanumeric() || c == '_' || c == '-' { c } else { '_' })
-            .collect();
-        let path = output.join(format!("{safe}.{ext}"));
+        let path = output.join(artifact_file_name(&name, media));
         let resp = client.get(server.url(&format!("/v1/artifacts/{sha}"))).send().await?;
         let mut stream = check(resp, "download").await?.bytes_stream();
         let mut file =

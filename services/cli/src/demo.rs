@@ -57,22 +57,6 @@ async fn json_of(resp: reqwest::Response, what: &str) -> anyhow::Result<Value> {
     serde_json::from_str(&body).with_context(|| format!("{what}: the reply is not JSON"))
 }
 
-fn extension(media_type: &str) -> &'static str {
-    match media_type {
-        "model/stl" => "stl",
-        "application/x-ply" => "ply",
-        "text/x-xyz" => "xyz",
-        "image/png" => "png",
-        "application/x-npy" => "npy",
-        "text/x-gcode" => "ngc",
-        "application/json" => "json",
-        "text/html" => "html",
-        "text/csv" => "csv",
-        "image/svg+xml" => "svg",
-        _ => "bin",
-    }
-}
-
 pub async fn run(args: &DemoArgs) -> anyhow::Result<()> {
     let started = Instant::now();
     let out = &args.output;
@@ -186,11 +170,8 @@ async fn drive(base: &str, stl: Vec<u8>, args: &DemoArgs, out: &Path) -> anyhow:
                 bail!("downloading {name}: {}", resp.status());
             }
             let bytes = resp.bytes().await?.to_vec();
-            let safe: String = name
-                .chars()
-                .map(|c| if c.is_ascii_alphanumeric() || c == '_' || c == '-' { c } else { '_' })
-                .collect();
-            let path = art_dir.join(format!("{safe}.{}", extension(a["media_type"].as_str().unwrap_or(""))));
+            let path =
+                art_dir.join(crate::client::artifact_file_name(name, a["media_type"].as_str().unwrap_or("")));
             std::fs::write(&path, &bytes).with_context(|| format!("writing {}", path.display()))?;
             listing.push(format!("  {name:<18} {}", path.display()));
             if name != "report" && name != "report_json" {

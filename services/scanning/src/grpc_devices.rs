@@ -167,6 +167,15 @@ impl Motion {
         f(c).await.map_err(table_status)
     }
 
+    /// Stops the table where it is: a move to its own position (the protocol has no stop).
+    async fn hold_table(&self) -> Result<(), Status> {
+        self.with_table(async |c| {
+            let here = c.position_deg().await?;
+            c.move_to(here).await
+        })
+        .await
+    }
+
     async fn status(&self, dev: Device) -> Result<Response<pb::MotionStatus>, Status> {
         Ok(Response::new(match dev {
             Device::Robot => self.robot_status(),
@@ -332,13 +341,7 @@ impl pb::motion_controller_service_server::MotionControllerService for Motion {
                 robot.reset(t).map_err(robot_status)?;
             }
             // The table's protocol has no emergency stop: hold where it is.
-            Device::Table => {
-                self.with_table(async |c| {
-                    let here = c.position_deg().await?;
-                    c.move_to(here).await
-                })
-                .await?
-            }
+            Device::Table => self.hold_table().await?,
         }
         self.status(dev).await
     }
@@ -351,13 +354,7 @@ impl pb::motion_controller_service_server::MotionControllerService for Motion {
                 let (mut robot, t) = self.0.robot_now();
                 robot.stop(t, a.axis as usize).map_err(robot_status)?;
             }
-            Device::Table => {
-                self.with_table(async |c| {
-                    let here = c.position_deg().await?;
-                    c.move_to(here).await
-                })
-                .await?
-            }
+            Device::Table => self.hold_table().await?,
         }
         self.status(dev).await
     }

@@ -264,41 +264,11 @@ fn stock_spec(
     })
 }
 
-/// Lowest and highest X, Y.
-type ExtentXy = ([f64; 2], [f64; 2]);
-
-/// XY extent (work frame, profile offset removed) of the cutting moves' end points (rapids also
-/// go to machine positions such as the tool change, which do not move with the work).
-fn move_extent_xy(
-    program: impl BufRead,
-    cfg: InterpConfig,
-    profile: &MachineProfile,
-) -> Result<Option<ExtentXy>, ExecuteError> {
-    let w = profile.work_offset;
-    let mut ext: Option<ExtentXy> = None;
-    run(program, cfg, |c| match c {
-        Canon::Feed { to, .. } | Canon::Arc { end: to, .. } => {
-            let p = [to.x - w.x_mm, to.y - w.y_mm];
-            ext = Some(match ext {
-                None => (p, p),
-                Some((lo, hi)) => ([lo[0].min(p[0]), lo[1].min(p[1])], [hi[0].max(p[0]), hi[1].max(p[1])]),
-            });
-        }
-        _ => {}
-    })
-    .map_err(SimError::from)?;
-    Ok(ext)
-}
-
 /// Moves the work offset in X and Y so the program's extent (`ext`, work frame, widened by the
 /// largest tool radius for arcs) lies centred in the travel, when it does not fit at the
 /// profile's offset. Returns what was done; `None` when the profile's offset is kept (it fits,
 /// or the program is wider than the travel and the run will refuse it naming the line).
-pub fn fit_work_offset(
-    profile: &mut MachineProfile,
-    ext: ([f64; 2], [f64; 2]),
-    radius: f64,
-) -> Option<String> {
+pub fn fit_work_offset(profile: &mut MachineProfile, ext: Extent, radius: f64) -> Option<String> {
     let w = profile.work_offset;
     let (lo, hi) = ([ext.0[0] - radius, ext.0[1] - radius], [ext.1[0] + radius, ext.1[1] + radius]);
     let axes = [profile.axes.x, profile.axes.y];
@@ -440,7 +410,9 @@ pub fn execute_faces(
     // place a part whose program origin is its centre).
     let cfg0 = super::sim::Machine::new(&SimSetup { motion_only: true, ..setup.clone() })?.interp_config();
     let mut notes = Vec::new();
-    if let Some(ext) = move_extent_xy(open()?, cfg0, &profile)?
+    // The feed moves only: rapids also go to machine positions (the tool change) that do not move
+    // with the work.
+    if let Some(ext) = feed_extent(open()?, cfg0, &profile)?
         && let Some(note) = fit_work_offset(&mut setup.profile, ext, max_radius)
     {
         tracing::info!(%note, "work offset");
@@ -696,17 +668,17 @@ mod tests {
     fn the_work_offset_moves_only_when_the_program_does_not_fit() {
         // Fits at the profile's offset (X 40, Y 10): kept.
         let mut p = emco();
-        assert_eq!(fit_work_offset(&mut p, ([0.0, 0.0], [60.0, 50.0]), 3.0), None);
+        assert_eq!(fit_work_offset(&mut p, ([0.0, 0.0, 0.0], [60.0, 50.0, 10.0]), 3.0), None);
         assert_eq!(p.work_offset, emco().work_offset);
         // A program centred on its origin: moved so it is centred in the travel.
         let mut p = emco();
-        let note = fit_work_offset(&mut p, ([-40.0, -30.0], [40.0, 30.0]), 3.0).expect("moved");
+        let note = fit_work_offset(&mut p, ([-40.0, -30.0, 0.0], [40.0, 30.0, 10.0]), 3.0).expect("moved");
         assert!(note.contains("G54"), "{note}");
         let (x, y) = (p.axes.x, p.axes.y);
         assert!((p.work_offset.x_mm - 0.5 * (x.min_mm + x.max_mm)).abs() < 1e-9);
         assert!((p.work_offset.y_mm - 0.5 * (y.min_mm + y.max_mm)).abs() < 1e-9);
         // Wider than the travel: kept, the run refuses it naming the line.
         let mut p = emco();
-        assert_eq!(fit_work_offset(&mut p, ([0.0, -80.0], [60.0, 80.0]), 3.0), None);
+        assert_eq!(fit_work_offset(&mut p, ([0.0, -80.0, 0.0], [60.0, 80.0, 10.0]), 3.0), None);
     }
 }
