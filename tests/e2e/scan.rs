@@ -292,16 +292,18 @@ async fn a_running_scan_is_cancelled_through_the_service_which_then_scans_again(
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
     tokio::time::sleep(Duration::from_millis(500)).await;
-    let started = std::time::Instant::now();
     let resp = stack.http.post(stack.url(&format!("/v1/jobs/{id}/cancel"))).send().await?;
     assert_eq!(resp.status(), 200);
     let job = stack.wait_for_end(&id, Duration::from_secs(60)).await?;
     assert_eq!(job["status"], "cancelled", "{job}");
-    assert!(
-        started.elapsed() < Duration::from_secs(10),
-        "the scan stopped within a station: {:?}",
-        started.elapsed()
-    );
+    let scan_outcomes: Vec<&str> = job["attempts"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .filter(|a| a["stage"] == "scan")
+        .filter_map(|a| a["outcome"].as_str())
+        .collect();
+    assert_eq!(scan_outcomes, ["cancelled"], "the scan itself was stopped, not finished: {job}");
     assert!(job["artifacts"].get("point_cloud").is_none(), "no half-written cloud");
     // The cell is free again.
     let ok = quick_job(&sha, "dynamic");
