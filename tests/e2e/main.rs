@@ -4,6 +4,7 @@ mod api;
 mod deploy;
 mod faces;
 mod jobs;
+mod layering;
 mod machine;
 mod metrics;
 mod plan;

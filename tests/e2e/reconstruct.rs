@@ -164,3 +164,29 @@ async fn reconstruct_parameters_are_checked_at_submission() -> anyhow::Result<()
     }
     stack.shutdown().await
 }
+
+#[tokio::test]
+async fn a_section_the_service_could_not_check_at_submission_is_checked_by_its_stage() -> anyhow::Result<()> {
+    let mut stack = TestStack::start_with(StackOptions { max_attempts: 40, ..Default::default() }).await?;
+    let sha = stack.upload("text/x-xyz", dome_xyz()).await?;
+    stack.stop_service("reconstruction").await?;
+    // The reconstruction service is down: the orchestrator cannot ask it, so it accepts the job.
+    let body = json!({"input": {"kind": "point_cloud", "artifact": sha},
+                      "reconstruct": {"fill": {"method": "idw", "power": -1}}});
+    let (status, created) = stack.post_job(&body, None).await?;
+    assert_eq!(status, 201, "{created}");
+    let id = created["id"].as_str().expect("id").to_string();
+    stack.start_service("reconstruction").await?;
+    // Back up, the stage refuses the same value before any work, naming the field.
+    let done = stack.wait_for_end(&id, Duration::from_secs(300)).await?;
+    assert_eq!(done["status"], "failed", "{done}");
+    assert_eq!(done["error"]["stage"], "reconstruct", "{done}");
+    assert_eq!(done["error"]["code"], "invalid_argument", "{done}");
+    let message = done["error"]["message"].as_str().unwrap_or_default();
+    assert!(message.contains("reconstruct.fill.power"), "{message}");
+    // Now that it answers, the same request is refused at submission.
+    let (status, e) = stack.post_job(&body, None).await?;
+    assert_eq!(status, 400, "{e}");
+    assert_eq!(e["error"]["field"], "reconstruct.fill.power", "{e}");
+    stack.shutdown().await
+}

@@ -5,9 +5,9 @@
 use std::io::Cursor;
 use std::time::Duration;
 
+use depthmill_geometry::Mesh;
+use depthmill_geometry::formats::read_ply_cloud_with_pass;
 use depthmill_proto::scanning::v1 as pb;
-use depthmill_reconstruction::domain::io::read_ply_cloud_with_pass;
-use depthmill_reconstruction::domain::mesh::Mesh;
 use depthmill_tests::scripted::Script;
 use depthmill_tests::{MachineBackend, StackOptions, TestStack};
 use futures::StreamExt as _;
@@ -38,7 +38,7 @@ pub(crate) fn dome_stl() -> Vec<u8> {
         }
     }
     let mut bytes = Vec::new();
-    depthmill_scanning::domain::sample::write_stl(&mut bytes, &Mesh { vertices, triangles })
+    depthmill_geometry::formats::write_stl(&mut bytes, &Mesh { vertices, triangles }, "e2e dome")
         .expect("writing to memory");
     bytes
 }

@@ -66,7 +66,7 @@ pub async fn run(args: &DemoArgs) -> anyhow::Result<()> {
     // The part.
     let mesh = depthmill_scanning::domain::sample::sample_relief(0.25);
     let mut stl = Vec::new();
-    depthmill_scanning::domain::sample::write_stl(&mut stl, &mesh)?;
+    depthmill_geometry::formats::write_stl(&mut stl, &mesh, depthmill_scanning::domain::sample::STL_HEADER)?;
     let part_path = out.join("part.stl");
     std::fs::write(&part_path, &stl).with_context(|| format!("writing {}", part_path.display()))?;
     println!("part: {} ({} triangles, 80 x 60 mm relief)", part_path.display(), mesh.triangles.len());
@@ -180,11 +180,8 @@ async fn drive(base: &str, stl: Vec<u8>, args: &DemoArgs, out: &Path) -> anyhow:
         }
     }
     let report = tokio::task::spawn_blocking(move || {
-        depthmill_orchestrator::report::render(&depthmill_orchestrator::report::ReportInput {
-            job: &done,
-            artifacts: &bytes_of,
-        })
-        .map(|r| (r, done))
+        depthmill_report::render(&depthmill_report::ReportInput { job: &done, artifacts: &bytes_of })
+            .map(|r| (r, done))
     })
     .await??;
     let (report, done) = report;

@@ -3,8 +3,8 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context as _, bail};
+use depthmill_geometry::formats::{ReadLimits, read_any};
 use depthmill_geometry::{HeightMap, HeightMapFormat};
-use depthmill_reconstruction::domain::io::{ReadLimits, read_any};
 use depthmill_reconstruction::domain::pipeline::{FaceOptions, FillOptions, ReconstructOptions, reconstruct};
 
 /// Options of `depthmill raster` besides the input and output.
@@ -102,7 +102,7 @@ pub fn run(input: &Path, args: &RasterArgs, output: &Path) -> anyhow::Result<()>
             .with_context(|| format!("writing {}", cov.display()))?;
         write(&f.roughing_map, &sibling(&main, ".roughing", ext))?;
         let s = &f.stats;
-        let hole = |h: Option<&depthmill_reconstruction::domain::raster::HoleStats>| {
+        let hole = |h: Option<&depthmill_geometry::raster::HoleStats>| {
             h.map_or("none".to_string(), |h| {
                 format!("{:.2} mm² at ({:.2}, {:.2})", h.area_mm2, h.center_x_mm, h.center_y_mm)
             })

@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use anyhow::{Context as _, bail};
-use depthmill_reconstruction::domain::io::{ReadLimits, read_mesh};
+use depthmill_geometry::formats::{ReadLimits, read_mesh};
 use depthmill_scanning::devices::table::{SimulatedTable, TableClient};
 use depthmill_scanning::domain::scan::{CellLayout, ScanOptions};
 use depthmill_scanning::domain::table::TableConfig;

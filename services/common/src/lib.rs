@@ -17,7 +17,6 @@ pub mod artifacts;
 pub mod config;
 pub mod grpc;
 pub mod metrics;
-pub mod plot;
 pub mod shutdown;
 pub mod stage;
 pub mod telemetry;

@@ -29,6 +29,12 @@ pub enum GeometryError {
     #[error("point cloud {field} has {len} entries but the cloud has {points} points")]
     ParallelLength { field: &'static str, len: usize, points: usize },
 
+    /// A mesh triangle refers to a vertex the mesh does not have.
+    #[error(
+        "invalid triangle {triangle} = {index}: vertex index out of range (mesh has {vertices} vertices)"
+    )]
+    MeshIndex { triangle: usize, index: u32, vertices: usize },
+
     /// A tool profile's radius and height vectors differ in length, or are too short.
     #[error("tool profile has {radii} radii and {heights} heights: expected two equal lengths of at least 2")]
     ProfileLength { radii: usize, heights: usize },

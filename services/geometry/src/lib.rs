@@ -1,5 +1,8 @@
-//! Plain domain types of depthmill, shared by every service: height maps and their PNG/`.npy`
-//! exchange formats, point clouds, poses and frames, tool profiles, artifact references.
+//! Plain domain types of depthmill and the formats they travel in, shared by every service:
+//! height maps and their PNG/`.npy` exchange formats, point clouds and meshes with their readers
+//! and writers (XYZ, PLY, STL), the rasterisers that turn both into height maps, poses and frames,
+//! tool profiles, artifact references. Every stage service builds on this crate and none on
+//! another stage service, so a format or a mesh has one home.
 //!
 //! Units: millimetres and degrees at the API (names say so: `x_mm`, `angle_deg`), radians inside.
 //! This crate has no async code, no configuration, no network; its only I/O is the explicit file
@@ -8,14 +11,19 @@
 //!
 //! # Layout
 //!
-//! - [`error`]: [`GeometryError`], the crate's one error type.
+//! - [`error`]: [`GeometryError`], the error type of the plain types ([`formats`] and [`raster`]
+//!   have their own: [`FormatError`] names files, lines and bytes; [`RasterError`] parameters).
 //! - [`heightmap`]: [`HeightMap`] and [`HeightMapMeta`]; the grid convention (cell corners,
 //!   centre samples, row 0 at minimum Y).
 //! - [`face`]: [`Face`], the view a map looks from (`+Z`, `-X`, `A=90`, ...).
 //! - [`png_io`]: 8/16-bit grayscale PNG with `depthmill:` text metadata; quantisation.
 //! - [`npy`]: NumPy `.npy` arrays plus the `MAP.npy.json` sidecar.
 //! - [`heightmap_io`]: [`HeightMap::read`]/[`HeightMap::write`] by extension, [`HeightMapFormat`].
-//! - [`cloud`]: [`PointCloud`] and [`Aabb`].
+//! - [`cloud`]: [`PointCloud`] and [`Aabb`]; [`mesh`]: [`Mesh`], an indexed triangle mesh.
+//! - [`formats`]: streaming readers of XYZ, PLY (ascii and binary) and STL (ascii and binary) with
+//!   [`formats::ReadLimits`], format sniffing, and the PLY and STL writers.
+//! - [`raster`]: point clouds to height maps (max-Z binning, enclosed-hole filling, coverage);
+//!   [`mesh_raster`]: a mesh's exact top surface at cell centres (z-buffer).
 //! - [`pose`]: [`Pose`], [`XyzYpr`] (ZYX angles), [`Face::view_from_part`].
 //! - [`tool`]: [`ToolProfile`] (solid of revolution) and [`ToolSpec`] (`ball-6`, `v-6-90`, ...).
 //! - [`artifact`]: [`ArtifactRef`] and [`MediaType`].
@@ -24,22 +32,29 @@ pub mod artifact;
 pub mod cloud;
 pub mod error;
 pub mod face;
+pub mod formats;
 pub mod heightmap;
 pub mod heightmap_io;
+pub mod mesh;
+pub mod mesh_raster;
 pub mod npy;
 pub mod png_io;
 pub mod pose;
+pub mod raster;
 pub mod tool;
 
 pub use artifact::{ArtifactRef, MediaType};
 pub use cloud::{Aabb, PointCloud};
 pub use error::GeometryError;
 pub use face::Face;
+pub use formats::FormatError;
 pub use heightmap::{HeightMap, HeightMapMeta, MAX_CELLS};
 pub use heightmap_io::HeightMapFormat;
+pub use mesh::Mesh;
 pub use npy::{read_npy, read_npy_from, write_npy, write_npy_to};
 pub use png_io::{ImageMapping, PngDepth, read_png, read_png_from, write_png, write_png_to};
 pub use pose::{Pose, XyzYpr};
+pub use raster::RasterError;
 pub use tool::{ToolProfile, ToolSpec};
 
 /// The nalgebra version this crate's types use, re-exported so callers match it.

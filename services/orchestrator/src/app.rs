@@ -96,6 +96,8 @@ pub struct App {
     pub(crate) limits: ApiLimits,
     /// Local cancel signals for jobs this process runs.
     pub(crate) running: depthmill_common::stage::StageRegistry,
+    /// The stage services, asked to check the sections they own before a job is accepted.
+    pub(crate) stages: Arc<dyn crate::stages::StageRunner>,
 }
 
 pub(crate) fn now_ms() -> i64 {
@@ -114,6 +116,9 @@ impl App {
         idempotency_key: Option<String>,
     ) -> Result<(Job, bool), ApiError> {
         spec.validate()?;
+        // The sections a stage service owns, checked by that service, before anything else about
+        // the request, as if the job model knew them.
+        self.stages.check_params(&spec).await?;
         if let Some(k) = &idempotency_key
             && (k.is_empty() || k.len() > 256)
         {
@@ -172,8 +177,8 @@ impl App {
 
     /// The job's HTML report as it stands now (any status): the job and the bytes of each of its
     /// artifacts (up to [`REPORT_ARTIFACT_LIMIT`] each; larger ones are left out with a note)
-    /// rendered by [`crate::report::render`] on a blocking thread.
-    pub async fn render_report(&self, id: &str) -> Result<crate::report::ReportOutput, ApiError> {
+    /// rendered by [`depthmill_report::render`] on a blocking thread.
+    pub async fn render_report(&self, id: &str) -> Result<depthmill_report::ReportOutput, ApiError> {
         let job = self.get_job(id).await?;
         let mut artifacts = std::collections::BTreeMap::new();
         for (name, aref) in &job.artifacts {
@@ -193,7 +198,7 @@ impl App {
         let value = serde_json::to_value(&job)
             .map_err(|e| ApiError::new(ErrorCode::Internal, format!("encoding the job: {e}")))?;
         tokio::task::spawn_blocking(move || {
-            crate::report::render(&crate::report::ReportInput { job: &value, artifacts: &artifacts })
+            depthmill_report::render(&depthmill_report::ReportInput { job: &value, artifacts: &artifacts })
         })
         .await
         .map_err(|e| ApiError::new(ErrorCode::Internal, format!("rendering the report failed: {e}")))?

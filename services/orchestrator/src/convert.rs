@@ -6,12 +6,12 @@ use depthmill_proto::machine::v1 as machine;
 use depthmill_proto::orchestrator::v1 as pb;
 use depthmill_proto::reconstruction::v1 as rec;
 use depthmill_proto::scanning::v1 as scan;
-use depthmill_scanning::domain::scan::obstacles::Obstacle;
 
 use crate::domain::spec::{
     AdaptiveMode, Dialect, ExecuteParams, FaceSpec, FillMethod, FillParams, Filters, Finishing,
-    FinishingStrategy, InputKind, IntensityWindow, JobInput, PlanParams, RadiusFilter, ReconstructParams,
-    Roi, Roughing, RoughingDirection, ScanMode, ScanParams, ScanPassSpec, StatisticalFilter, Stock,
+    FinishingStrategy, InputKind, IntensityWindow, JobInput, Obstacle, PlanParams, RadiusFilter,
+    ReconstructParams, Roi, Roughing, RoughingDirection, ScanMode, ScanParams, ScanPassSpec,
+    StatisticalFilter, Stock,
 };
 use crate::domain::{Job, JobSpec, JobStatus, SpecError, Stage};
 use depthmill_proto::types::v1::Vec3;

@@ -7,13 +7,17 @@
 //! after a crash. REST (axum) and gRPC (tonic) expose the same operations over one [`app::App`].
 //!
 //! # Layout
-//! - [`domain`]: the job model and request validation (pure).
+//! - [`domain`]: the job model and request validation (pure); the `scan` and `reconstruct`
+//!   sections are checked by the services that own them, through [`stages::StageRunner::check_params`].
 //! - [`store`]: the [`store::JobStore`] trait and its SQLite implementation.
 //! - [`stages`]: the [`stages::StageRunner`] port and its gRPC adapter.
 //! - [`worker`]: claims jobs and runs them stage by stage.
 //! - [`app`]: operations shared by both APIs; [`http`] (REST + OpenAPI) and `grpc` adapt it.
 //! - [`events`]: change notifications for watchers and idle workers.
 //! - `convert`: job model <-> wire types.
+//!
+//! The report stage renders with `depthmill-report`. This crate imports no stage service's code:
+//! it knows the stages only by their gRPC contracts (`depthmill-proto`).
 
 pub mod app;
 mod convert;
@@ -21,7 +25,6 @@ pub mod domain;
 pub mod events;
 mod grpc;
 pub mod http;
-pub mod report;
 pub mod stages;
 pub mod store;
 pub mod worker;
@@ -124,6 +127,7 @@ pub async fn serve(
     let owner = node_id(data_dir)?;
     let store = store::SqliteStore::open(&data_dir.join("jobs.sqlite")).await?;
     let artifacts = LocalStore::open(data_dir.join("artifacts")).await?;
+    let stages = Arc::new(stages::GrpcStages::new(&config.services)?);
     let app = app::App {
         store: Arc::new(store),
         artifacts: Arc::new(artifacts),
@@ -134,8 +138,8 @@ pub async fn serve(
             max_page: 1000,
         },
         running: Default::default(),
+        stages: stages.clone(),
     };
-    let stages = Arc::new(stages::GrpcStages::new(&config.services)?);
     let worker = Arc::new(worker::Worker::new(app.clone(), stages, config.worker.clone(), owner));
 
     let token = CancellationToken::new();

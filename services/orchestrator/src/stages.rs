@@ -15,7 +15,10 @@ use depthmill_proto::types::v1 as types;
 use tonic::transport::Channel;
 
 use crate::convert;
-use crate::domain::{JobSpec, Stage, StageOutputs};
+use crate::domain::{JobSpec, SpecError, Stage, StageOutputs};
+
+/// How long a submission waits for a stage service's parameter check.
+pub const CHECK_PARAMS_TIMEOUT: Duration = Duration::from_secs(5);
 
 /// Everything a stage call needs.
 #[derive(Debug, Clone)]
@@ -69,6 +72,35 @@ pub trait StageRunner: Send + Sync + 'static {
     ) -> Result<StageOutputs, StageError>;
     /// Tells the service running `stage` for `job_id` to stop. True when it was running it.
     async fn cancel(&self, stage: Stage, job_id: &str) -> Result<bool, StageError>;
+    /// Asks the services that own sections of `spec` to check them before the job is accepted
+    /// (the scanning service its `scan` section, the reconstruction service its `reconstruct`
+    /// section). `Err` names the first field a service refuses. A service that cannot be asked
+    /// (not configured, down, slow past [`CHECK_PARAMS_TIMEOUT`], or too old to know the call)
+    /// is skipped: the stage checks the same values when it starts, before any work, and fails
+    /// the job naming the field.
+    async fn check_params(&self, spec: &JobSpec) -> Result<(), SpecError>;
+}
+
+/// The first violation of a `ValidateParams` answer, or `Ok` when the service could not be asked.
+fn first_violation(
+    service: &'static str,
+    answer: Result<tonic::Response<types::ValidateParamsResponse>, tonic::Status>,
+) -> Result<(), SpecError> {
+    match answer {
+        Ok(r) => match r.into_inner().violations.into_iter().next() {
+            None => Ok(()),
+            Some(v) => Err(SpecError { field: v.field, message: v.message }),
+        },
+        Err(status) => {
+            tracing::warn!(
+                service,
+                code = ?status.code(),
+                message = status.message(),
+                "parameter check skipped: the stage will check when it starts"
+            );
+            Ok(())
+        }
+    }
 }
 
 /// Service endpoints (URLs such as `http://127.0.0.1:50053`). An empty URL means the deployment has
@@ -221,6 +253,21 @@ async fn drain<U, R>(
 
 #[async_trait::async_trait]
 impl StageRunner for GrpcStages {
+    async fn check_params(&self, spec: &JobSpec) -> Result<(), SpecError> {
+        if let (Some(p), Some(ch)) = (&spec.scan, &self.scanning) {
+            let mut client = scan::scanning_service_client::ScanningServiceClient::new(ch.clone());
+            let answer = client.validate_params(request(convert::scan_params(p), CHECK_PARAMS_TIMEOUT)).await;
+            first_violation("scanning", answer)?;
+        }
+        if let (Some(p), Some(ch)) = (&spec.reconstruct, &self.reconstruction) {
+            let mut client = rec::reconstruction_service_client::ReconstructionServiceClient::new(ch.clone());
+            let answer =
+                client.validate_params(request(convert::reconstruct_params(p), CHECK_PARAMS_TIMEOUT)).await;
+            first_violation("reconstruction", answer)?;
+        }
+        Ok(())
+    }
+
     async fn run(
         &self,
         call: &StageCall,

@@ -365,7 +365,7 @@ impl Worker {
         }
     }
 
-    /// The report stage: the HTML report (`report`, see [`crate::report`]) and a JSON summary of
+    /// The report stage: the HTML report (`report`, see [`depthmill_report`]) and a JSON summary of
     /// the job (`report_json`: parameters, timings, artifacts, metrics, attempts).
     async fn report(&self, id: &str) -> Result<StageOutputs, StageError> {
         let internal = |what: &str, e: &dyn std::fmt::Display| {

@@ -13,10 +13,10 @@ use std::f64::consts::PI;
 use std::hint::black_box;
 use std::time::Instant;
 
+use depthmill_geometry::Mesh;
+use depthmill_geometry::mesh_raster::rasterize_mesh_with_stats;
 use depthmill_geometry::{HeightMap, HeightMapMeta};
 use depthmill_reconstruction::domain::image_ops::{bilateral, median};
-use depthmill_reconstruction::domain::mesh::Mesh;
-use depthmill_reconstruction::domain::mesh_raster::rasterize_mesh_with_stats;
 use depthmill_reconstruction::domain::roughing::continuous_over;
 use nalgebra::Point3;
 

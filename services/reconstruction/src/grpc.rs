@@ -11,16 +11,19 @@ use depthmill_common::stage::StageRegistry;
 use depthmill_geometry::{HeightMap, PngDepth};
 use depthmill_proto::ErrorCode;
 use depthmill_proto::reconstruction::v1 as pb;
-use depthmill_proto::types::v1::{CancelStageRequest, CancelStageResponse, Diagnostic, Progress, Vec3};
+use depthmill_proto::types::v1::{
+    CancelStageRequest, CancelStageResponse, Diagnostic, FieldViolation, Progress, ValidateParamsResponse,
+    Vec3,
+};
 use tokio::sync::mpsc;
 use tonic::{Request, Response, Status};
 
 use crate::domain::error::ReconError;
-use crate::domain::io::{ReadLimits, read_any_from};
 use crate::domain::pipeline::{
     FaceFrame, FaceOptions, FillOptions, FilterOptions, IntensityOptions, RadiusOptions, ReconstructOptions,
     RoiOptions, StatisticalOptions, reconstruct,
 };
+use depthmill_geometry::formats::{FormatError, ReadLimits, read_any_from};
 
 pub(crate) const SERVICE_NAME: &str = "depthmill.reconstruction.v1.ReconstructionService";
 
@@ -40,7 +43,7 @@ impl From<ReconError> for Status {
     fn from(e: ReconError) -> Self {
         let code = match &e {
             ReconError::Cancelled => ErrorCode::Cancelled,
-            ReconError::Io { .. } => ErrorCode::Internal,
+            e if !e.is_invalid_input() => ErrorCode::Internal,
             _ => ErrorCode::InvalidArgument,
         };
         code.status(e.to_string())
@@ -125,6 +128,24 @@ pub(crate) fn options(p: pb::ReconstructParams) -> Result<ReconstructOptions, St
     })
 }
 
+/// The first problem BuildDepthMaps would find in the job's `reconstruct` section before reading
+/// any input, named by its field in the job JSON.
+pub(crate) fn check_params(p: pb::ReconstructParams) -> Option<FieldViolation> {
+    let opts = match options(p) {
+        Ok(o) => o,
+        Err(status) => {
+            return Some(FieldViolation { field: "reconstruct".into(), message: status.message().into() });
+        }
+    };
+    match opts.resolve() {
+        Ok(_) => None,
+        Err(ReconError::InvalidParameter { field, value, reason }) => {
+            Some(FieldViolation { field, message: format!("{reason} (got {value})") })
+        }
+        Err(other) => Some(FieldViolation { field: "reconstruct".into(), message: other.to_string() }),
+    }
+}
+
 fn face_spec(frame: &FaceFrame) -> pb::FaceSpec {
     use depthmill_geometry::Face;
     let face = match frame.face {
@@ -190,13 +211,14 @@ impl pb::reconstruction_service_server::ReconstructionService for Reconstruction
             let worked = tokio::task::spawn_blocking(move || {
                 span.in_scope(|| {
                     let file = std::fs::File::open(&path)
-                        .map_err(|source| ReconError::Io { file: name.clone(), source })?;
+                        .map_err(|source| ReconError::from(FormatError::Io { file: name.clone(), source }))?;
                     let (geometry, stats) = read_any_from(
                         BufReader::with_capacity(1 << 20, file),
                         &name,
                         Some(stat.size),
                         &limits,
-                    )?;
+                    )
+                    .map_err(ReconError::from)?;
                     tracing::info!(points = stats.points, triangles = stats.triangles, "input read");
                     let progress = move |f: f64, m: &str| {
                         let _ = progress_tx.try_send(Ok(progress_update(0.1 + 0.8 * f, m)));
@@ -285,11 +307,52 @@ impl pb::reconstruction_service_server::ReconstructionService for Reconstruction
         Ok(Response::new(Box::pin(tokio_stream::wrappers::ReceiverStream::new(rx))))
     }
 
+    async fn validate_params(
+        &self,
+        request: Request<pb::ReconstructParams>,
+    ) -> Result<Response<ValidateParamsResponse>, Status> {
+        let violations = check_params(request.into_inner()).into_iter().collect();
+        Ok(Response::new(ValidateParamsResponse { violations }))
+    }
+
     async fn cancel_stage(
         &self,
         request: Request<CancelStageRequest>,
     ) -> Result<Response<CancelStageResponse>, Status> {
         let found = self.running.cancel(&request.get_ref().job_id);
         Ok(Response::new(CancelStageResponse { found }))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn validate_params_names_the_field_as_the_job_json_does() {
+        assert_eq!(check_params(pb::ReconstructParams::default()), None, "the defaults are valid");
+        let view = pb::ReconstructParams {
+            faces: vec![pb::FaceSpec { face: Some(pb::face_spec::Face::View("up".into())), origin: None }],
+            ..Default::default()
+        };
+        let v = check_params(view).expect("refused");
+        assert_eq!(v.field, "reconstruct.faces[0].view");
+        assert!(v.message.contains("up"), "{}", v.message);
+        let pixel = pb::ReconstructParams { pixel_mm: Some(-0.1), ..Default::default() };
+        assert_eq!(check_params(pixel).expect("refused").field, "reconstruct.pixel_mm");
+        // A value only the rasteriser knows is named under `reconstruct.` too.
+        let fill = pb::ReconstructParams {
+            fill: Some(pb::FillParams {
+                method: pb::FillMethod::Idw as i32,
+                power: Some(-1.0),
+                ..Default::default()
+            }),
+            ..Default::default()
+        };
+        assert_eq!(check_params(fill).expect("refused").field, "reconstruct.fill.power");
+        let face = pb::ReconstructParams { faces: vec![pb::FaceSpec::default()], ..Default::default() };
+        let v = check_params(face).expect("refused");
+        assert_eq!(v.field, "reconstruct");
+        assert!(v.message.contains("reconstruct.faces[0]"), "{}", v.message);
     }
 }

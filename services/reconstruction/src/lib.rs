@@ -39,11 +39,11 @@ pub struct Config {
 }
 
 fn default_max_points() -> u64 {
-    domain::io::ReadLimits::default().max_points
+    depthmill_geometry::formats::ReadLimits::default().max_points
 }
 
 fn default_max_triangles() -> u64 {
-    domain::io::ReadLimits::default().max_triangles
+    depthmill_geometry::formats::ReadLimits::default().max_triangles
 }
 
 fn default_grpc_addr() -> SocketAddr {
@@ -75,7 +75,7 @@ pub async fn serve(
     shutdown: impl Future<Output = ()> + Send,
 ) -> Result<(), ReconServeError> {
     let store = depthmill_common::artifacts::LocalStore::open(&config.artifacts_dir).await?;
-    let limits = domain::io::ReadLimits {
+    let limits = depthmill_geometry::formats::ReadLimits {
         max_points: config.max_points,
         max_triangles: config.max_triangles,
         ..Default::default()

@@ -6,7 +6,7 @@
 
 use std::time::Instant;
 
-use depthmill_reconstruction::domain::mesh::Mesh;
+use depthmill_geometry::Mesh;
 use depthmill_scanning::domain::scan::{CellLayout, ScanOptions, ScanSession};
 use nalgebra::Point3;
 

@@ -6,7 +6,7 @@
 use std::hint::black_box;
 use std::time::Instant;
 
-use depthmill_reconstruction::domain::mesh::Mesh;
+use depthmill_geometry::Mesh;
 use depthmill_scanning::domain::scanner::{Bvh, Scanner, ScannerSpec};
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 

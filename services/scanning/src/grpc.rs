@@ -8,11 +8,13 @@ use std::sync::Arc;
 
 use depthmill_common::artifacts::{ArtifactStore, LocalStore};
 use depthmill_common::stage::StageRegistry;
+use depthmill_geometry::Mesh;
+use depthmill_geometry::formats::{Geometry, PlyEncoding, ReadLimits, read_any_from, write_ply};
 use depthmill_proto::ErrorCode;
 use depthmill_proto::scanning::v1 as pb;
-use depthmill_proto::types::v1::{CancelStageRequest, CancelStageResponse, Diagnostic, Progress};
-use depthmill_reconstruction::domain::io::{Geometry, PlyEncoding, ReadLimits, read_any_from, write_ply};
-use depthmill_reconstruction::domain::mesh::Mesh;
+use depthmill_proto::types::v1::{
+    CancelStageRequest, CancelStageResponse, Diagnostic, FieldViolation, Progress, ValidateParamsResponse,
+};
 use tokio::sync::mpsc;
 use tonic::{Request, Response, Status};
 
@@ -121,6 +123,26 @@ pub(crate) fn options(p: pb::ScanParams) -> Result<ScanOptions, Status> {
         passes,
         ..d
     })
+}
+
+/// The first problem ScanPart would find in the job's `scan` section before scanning, named by
+/// its field in the job JSON (`scan` when the value has no field of its own).
+pub(crate) fn check_params(p: pb::ScanParams) -> Option<FieldViolation> {
+    let opts = match options(p) {
+        Ok(o) => o,
+        Err(status) => {
+            return Some(FieldViolation { field: "scan".into(), message: status.message().into() });
+        }
+    };
+    let spec = crate::domain::scanner::ScannerSpec { line_rate_hz: opts.line_rate_hz, ..Default::default() };
+    match opts.validate(&spec) {
+        Ok(()) => None,
+        Err(ScanError::InvalidOption { field, value, reason }) => Some(FieldViolation {
+            field,
+            message: if value.is_empty() { reason } else { format!("{reason} (got {value})") },
+        }),
+        Err(other) => Some(FieldViolation { field: "scan".into(), message: other.to_string() }),
+    }
 }
 
 /// A wire obstacle as the library's.
@@ -326,11 +348,37 @@ impl pb::scanning_service_server::ScanningService for ScanningServiceImpl {
         }))
     }
 
+    async fn validate_params(
+        &self,
+        request: Request<pb::ScanParams>,
+    ) -> Result<Response<ValidateParamsResponse>, Status> {
+        let violations = check_params(request.into_inner()).into_iter().collect();
+        Ok(Response::new(ValidateParamsResponse { violations }))
+    }
+
     async fn cancel_stage(
         &self,
         request: Request<CancelStageRequest>,
     ) -> Result<Response<CancelStageResponse>, Status> {
         let found = self.running.cancel(&request.get_ref().job_id);
         Ok(Response::new(CancelStageResponse { found }))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn validate_params_names_the_field_as_the_job_json_does() {
+        assert_eq!(check_params(pb::ScanParams::default()), None, "the defaults are valid");
+        let far = pb::ScanParams { standoff_mm: Some(300.0), ..Default::default() };
+        let v = check_params(far).expect("refused");
+        assert_eq!(v.field, "scan.standoff_mm");
+        assert!(v.message.contains("300"), "{}", v.message);
+        let mode = pb::ScanParams { mode: 7, ..Default::default() };
+        let v = check_params(mode).expect("refused");
+        assert_eq!(v.field, "scan");
+        assert!(v.message.contains("scan.mode"), "{}", v.message);
     }
 }

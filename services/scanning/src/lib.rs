@@ -48,7 +48,7 @@ pub struct Config {
 }
 
 fn default_max_triangles() -> u64 {
-    depthmill_reconstruction::domain::io::ReadLimits::default().max_triangles
+    depthmill_geometry::formats::ReadLimits::default().max_triangles
 }
 
 fn default_grpc_addr() -> SocketAddr {
@@ -108,10 +108,8 @@ pub async fn serve(
             addr.to_string()
         }
     };
-    let limits = depthmill_reconstruction::domain::io::ReadLimits {
-        max_triangles: config.max_triangles,
-        ..Default::default()
-    };
+    let limits =
+        depthmill_geometry::formats::ReadLimits { max_triangles: config.max_triangles, ..Default::default() };
     let cell = std::sync::Arc::new(grpc::Cell {
         store: std::sync::Arc::new(store),
         limits,

@@ -9,7 +9,7 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use depthmill_reconstruction::domain::mesh::Mesh;
+use depthmill_geometry::Mesh;
 use tokio::io::{AsyncRead, AsyncWrite};
 use tokio_util::sync::CancellationToken;
 

@@ -16,8 +16,8 @@
 
 use std::io::BufRead;
 
-use depthmill_common::plot::{Chart, Panel, Series};
 use depthmill_geometry::{HeightMap, HeightMapMeta, ToolProfile, ToolSpec};
+use depthmill_report::plot::{Chart, Panel, Series};
 use serde::Serialize;
 
 use super::cutting::{Material, material, materials};

@@ -4,6 +4,12 @@
 //! silently ignored setting. Sections a job never reaches (a `scan` section on a job that starts
 //! from a depth map) are rejected the same way. Defaults are applied by the stage services; they
 //! are documented here so the OpenAPI document shows them.
+//!
+//! [`JobSpec::validate`] checks what the job model itself knows (shape, ranges of the plan and
+//! execute sections, sections a job never reaches). The `scan` and `reconstruct` sections are
+//! checked by the services that own them (`ValidateParams` on the scanning and reconstruction
+//! services), which the orchestrator asks before it accepts a job; this crate imports no stage
+//! service's code.
 
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
@@ -142,7 +148,20 @@ pub struct ScanParams {
     /// "z_min_mm", "z_max_mm"}` or `{"shape": "sphere", "name", "center_mm", "radius_mm"}`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     #[schema(value_type = Option<Vec<Object>>)]
-    pub obstacles: Option<Vec<depthmill_scanning::domain::scan::obstacles::Obstacle>>,
+    pub obstacles: Option<Vec<Obstacle>>,
+}
+
+/// An obstacle in the world frame (the robot's base), mm: the JSON form of the wire's
+/// `ScanObstacle`. The scanning service checks the values.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "shape", rename_all = "snake_case", deny_unknown_fields)]
+pub enum Obstacle {
+    /// An axis-aligned box.
+    Box { name: String, min_mm: [f64; 3], max_mm: [f64; 3] },
+    /// A cylinder with a vertical axis through `center_mm` (x, y).
+    Cylinder { name: String, center_mm: [f64; 2], radius_mm: f64, z_min_mm: f64, z_max_mm: f64 },
+    /// A sphere.
+    Sphere { name: String, center_mm: [f64; 3], radius_mm: f64 },
 }
 
 /// A straight sensor path in the part frame at one table angle.
@@ -520,50 +539,6 @@ impl JobSpec {
         {
             return Err(err("input.z_max_mm", format!("must be above z_min_mm ({lo}), got {hi}")));
         }
-        if let Some(scan) = &self.scan {
-            // The scanning library's own checks, so a bad value fails here, not mid-job.
-            let text = serde_json::to_string(scan).map_err(|e| err("scan", e.to_string()))?;
-            let opts = depthmill_scanning::domain::scan::ScanOptions::from_json(&text).and_then(|o| {
-                let spec = depthmill_scanning::domain::scanner::ScannerSpec {
-                    line_rate_hz: o.line_rate_hz,
-                    ..Default::default()
-                };
-                o.validate(&spec).map(|()| o)
-            });
-            if let Err(e) = opts {
-                return Err(match e {
-                    depthmill_scanning::domain::scan::ScanError::InvalidOption { field, value, reason } => {
-                        SpecError {
-                            field,
-                            message: if value.is_empty() {
-                                reason
-                            } else {
-                                format!("{reason} (got {value})")
-                            },
-                        }
-                    }
-                    other => err("scan", other.to_string()),
-                });
-            }
-        }
-        if let Some(rec) = &self.reconstruct {
-            // The reconstruction library's own checks, so a bad value fails here, not mid-job.
-            let opts = serde_json::to_value(rec)
-                .and_then(
-                    serde_json::from_value::<depthmill_reconstruction::domain::pipeline::ReconstructOptions>,
-                )
-                .map_err(|e| err("reconstruct", e.to_string()))?;
-            if let Err(e) = opts.resolve() {
-                return Err(match e {
-                    depthmill_reconstruction::domain::ReconError::InvalidParameter {
-                        field,
-                        value,
-                        reason,
-                    } => SpecError { field, message: format!("{reason} (got {value})") },
-                    other => err("reconstruct", other.to_string()),
-                });
-            }
-        }
         if let Some(ex) = &self.execute {
             positive("execute.stock_z_mm", ex.stock_z_mm, 10_000.0)?;
             positive("execute.cell_mm", ex.cell_mm, 10.0)?;
@@ -670,11 +645,6 @@ mod tests {
             let spec = parse(&base(extra)).expect("parse");
             assert_eq!(spec.validate().expect_err(extra).field, field, "{extra}");
         }
-        let spec = parse(&format!(
-            r#"{{"input": {{"kind": "point_cloud", "artifact": "{SHA}"}}, "reconstruct": {{"faces": [{{"view": "up"}}]}}}}"#
-        ))
-        .expect("parse");
-        assert_eq!(spec.validate().expect_err("view").field, "reconstruct.faces[0].view");
         let spec = parse(r#"{"input": {"kind": "gcode", "artifact": "abc"}}"#).expect("parse");
         assert_eq!(spec.validate().expect_err("digest").field, "input.artifact");
     }

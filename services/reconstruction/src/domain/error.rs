@@ -5,41 +5,15 @@
 
 use std::fmt;
 
-use depthmill_geometry::GeometryError;
-
-/// Where in an input a problem sits.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Location {
-    /// A 1-based line of a text file.
-    Line(u64),
-    /// A 0-based byte offset of a binary file (or of a text file's header).
-    Byte(u64),
-}
-
-impl fmt::Display for Location {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self {
-            Location::Line(n) => write!(f, "line {n}"),
-            Location::Byte(n) => write!(f, "byte {n}"),
-        }
-    }
-}
+use depthmill_geometry::{FormatError, GeometryError, RasterError};
 
 /// Everything that can go wrong in reading, cleaning and rasterising.
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
 pub enum ReconError {
-    /// Malformed input: `file` at `at` has `problem` (e.g. "expected 3 numbers, found 2").
-    #[error("{file}: {at}: {problem}")]
-    Parse { file: String, at: Location, problem: String },
-
-    /// An input exceeds a configured limit (`what` is "bytes", "points", "triangles", ...).
-    #[error("{file}: {what} {value} exceeds the limit of {limit}")]
-    TooLarge { file: String, what: &'static str, value: u64, limit: u64 },
-
-    /// The input's format is not one the reader handles.
-    #[error("{file}: unsupported format: {reason}")]
-    UnsupportedFormat { file: String, reason: String },
+    /// The input could not be read (malformed, too large, unsupported, or an I/O error on it).
+    #[error(transparent)]
+    Format(#[from] FormatError),
 
     /// A parameter is outside its domain; `field` uses the job JSON's path where there is one
     /// (e.g. `reconstruct.fill.max_hole_mm`).
@@ -58,14 +32,6 @@ pub enum ReconError {
     #[error("cancelled")]
     Cancelled,
 
-    /// An I/O error on `file`.
-    #[error("{file}: {source}")]
-    Io {
-        file: String,
-        #[source]
-        source: std::io::Error,
-    },
-
     /// A geometry type rejected a value.
     #[error(transparent)]
     Geometry(#[from] GeometryError),
@@ -79,7 +45,23 @@ impl ReconError {
 
     /// True when the caller's input is at fault (as opposed to the machine: I/O errors).
     pub fn is_invalid_input(&self) -> bool {
-        !matches!(self, ReconError::Io { .. })
+        match self {
+            ReconError::Format(e) => e.is_invalid_input(),
+            _ => true,
+        }
+    }
+}
+
+/// The rasterisers name their parameters relative to the job's `reconstruct` section; this
+/// service exposes them under `reconstruct.`.
+impl From<RasterError> for ReconError {
+    fn from(e: RasterError) -> Self {
+        match e {
+            RasterError::InvalidParameter { field, value, reason } => {
+                ReconError::InvalidParameter { field: format!("reconstruct.{field}"), value, reason }
+            }
+            RasterError::Geometry(g) => ReconError::Geometry(g),
+        }
     }
 }
 

@@ -24,14 +24,14 @@ use super::filters::{
     FilterReport, intensity_window, radius_outlier_removal, rigid_from_matrix, statistical_outlier_removal,
     voxel_decimate,
 };
-use super::io::Geometry;
-use super::mesh::Mesh;
-use super::mesh_raster::rasterize_mesh_with_stats;
-use super::raster::{
+use super::roughing::continuous_over;
+use depthmill_geometry::Mesh;
+use depthmill_geometry::formats::Geometry;
+use depthmill_geometry::mesh_raster::rasterize_mesh_with_stats;
+use depthmill_geometry::raster::{
     CoverageStats, FillMethod, FillParams, FillReport, Roi, auto_z_range, coverage, fill_holes, grid_for_roi,
     try_rasterize_max,
 };
-use super::roughing::continuous_over;
 
 /// Default pixel size, mm.
 pub const DEFAULT_PIXEL_MM: f64 = 0.1;

@@ -7,10 +7,11 @@
 //! top is a height field sampled every `step_mm`, so every face is undercut-free; flanks stay
 //! under about 20° so a sensor looking straight down sees them within its 25° incidence limit.
 
-use std::io::Write;
+use depthmill_geometry::Mesh;
+use nalgebra::Point3;
 
-use depthmill_reconstruction::domain::mesh::Mesh;
-use nalgebra::{Point3, Vector3};
+/// Header of the sample's STL file.
+pub const STL_HEADER: &str = "depthmill sample relief";
 
 /// Footprint half sizes, mm.
 pub const HALF_X_MM: f64 = 40.0;
@@ -106,33 +107,11 @@ pub fn sample_relief(step_mm: f64) -> Mesh {
     Mesh { vertices, triangles }
 }
 
-/// Writes `mesh` as binary STL (facet normals from the vertex order).
-pub fn write_stl<W: Write>(mut w: W, mesh: &Mesh) -> std::io::Result<()> {
-    let mut header = [0u8; 80];
-    let text = b"depthmill sample relief";
-    header[..text.len()].copy_from_slice(text);
-    w.write_all(&header)?;
-    let count = u32::try_from(mesh.triangles.len())
-        .map_err(|_| std::io::Error::other("more than 2^32 triangles do not fit in STL"))?;
-    w.write_all(&count.to_le_bytes())?;
-    let mut buf = Vec::with_capacity(50 * mesh.triangles.len());
-    for t in &mesh.triangles {
-        let [a, b, c] = t.map(|i| mesh.vertices[i as usize]);
-        let nrm = (b - a).cross(&(c - a));
-        let nrm = if nrm.norm() > 0.0 { nrm.normalize() } else { Vector3::zeros() };
-        for v in [nrm.x, nrm.y, nrm.z, a.x, a.y, a.z, b.x, b.y, b.z, c.x, c.y, c.z] {
-            buf.extend_from_slice(&(v as f32).to_le_bytes());
-        }
-        buf.extend_from_slice(&0u16.to_le_bytes());
-    }
-    w.write_all(&buf)?;
-    w.flush()
-}
-
 #[cfg(test)]
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
+    use depthmill_geometry::formats::{Geometry, read_any_from, write_stl};
     use std::collections::HashMap;
 
     #[test]
@@ -173,15 +152,15 @@ mod tests {
     fn stl_round_trips_through_the_reader() {
         let m = sample_relief(2.0);
         let mut bytes = Vec::new();
-        write_stl(&mut bytes, &m).unwrap();
-        let (g, _) = depthmill_reconstruction::domain::io::read_any_from(
+        write_stl(&mut bytes, &m, STL_HEADER).unwrap();
+        let (g, _) = read_any_from(
             std::io::Cursor::new(&bytes),
             "sample.stl",
             Some(bytes.len() as u64),
             &Default::default(),
         )
         .unwrap();
-        let depthmill_reconstruction::domain::io::Geometry::Mesh(r) = g else { panic!("not a mesh") };
+        let Geometry::Mesh(r) = g else { panic!("not a mesh") };
         assert_eq!(r.triangles.len(), m.triangles.len());
     }
 }

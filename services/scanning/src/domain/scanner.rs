@@ -37,7 +37,7 @@
 //! child first and prunes boxes beyond the current nearest hit. Ray/triangle tests are
 //! Möller–Trumbore, two-sided.
 
-use depthmill_reconstruction::domain::mesh::Mesh;
+use depthmill_geometry::Mesh;
 use nalgebra::{Isometry3, Point3, Vector3};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};

@@ -30,7 +30,7 @@
 //! is reproducible whatever the thread count.
 //!
 //! # Adaptive rescan
-//! [`ScanSession::holes`] rasterises the cloud so far with reconstruction's own raster and
+//! [`ScanSession::holes`] rasterises the cloud so far with `depthmill_geometry::raster`'s binning and
 //! coverage code at `rescan_pixel_mm` and lists the enclosed holes (unmeasured cells of the
 //! footprint). [`ScanSession::rescan_plan`] aims short passes at them from table angles halfway
 //! between the first ones and from farther away (a smaller triangulation angle sees deeper),
@@ -41,11 +41,9 @@ pub mod obstacles;
 pub mod options;
 pub mod plan;
 
+use depthmill_geometry::Mesh;
+use depthmill_geometry::raster::{COVERAGE_HOLE, Roi, coverage, grid_for_roi, try_rasterize_max};
 use depthmill_geometry::{HeightMap, PointCloud, XyzYpr};
-use depthmill_reconstruction::domain::mesh::Mesh;
-use depthmill_reconstruction::domain::raster::{
-    COVERAGE_HOLE, Roi, coverage, grid_for_roi, try_rasterize_max,
-};
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use rayon::prelude::*;
 use serde::Serialize;

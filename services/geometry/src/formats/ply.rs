@@ -31,15 +31,15 @@
 
 use std::io::{BufRead, Write};
 
-use depthmill_geometry::PointCloud;
+use crate::PointCloud;
 use nalgebra::Point3;
 
+use super::error::{FormatError, Location, Result};
 use super::{
     CloudSink, Geometry, InputFormat, Lines, ReadLimits, ReadStats, Src, Want, io_error, is_space,
     not_a_mesh, parse_error, parse_f32, parse_f64, show_token, tokens, too_large,
 };
-use crate::domain::error::{Location, ReconError, Result};
-use crate::domain::mesh::Mesh;
+use crate::mesh::Mesh;
 
 /// Longest PLY header accepted.
 pub const MAX_HEADER_LEN: u64 = 1 << 20;
@@ -88,9 +88,9 @@ impl PlyEncoding {
 /// `comment` line per entry of `extra_comments`. Coordinates are rounded to `f32`. Buffers
 /// internally (64 KiB), so `w` need not be buffered; flushes `w` at the end.
 ///
-/// Errors: parallel arrays of the wrong length ([`ReconError::Geometry`]), a `pass` slice of the
-/// wrong length or a comment with a line break ([`ReconError::InvalidParameter`]), and write
-/// failures ([`ReconError::Io`] with file `PLY output`).
+/// Errors: parallel arrays of the wrong length ([`FormatError::Geometry`]), a `pass` slice of the
+/// wrong length or a comment with a line break ([`FormatError::InvalidParameter`]), and write
+/// failures ([`FormatError::Io`] with file `PLY output`).
 pub fn write_ply<W: Write>(
     mut w: W,
     cloud: &PointCloud,
@@ -102,16 +102,16 @@ pub fn write_ply<W: Write>(
     if let Some(p) = pass
         && p.len() != cloud.len()
     {
-        return Err(ReconError::param(
+        return Err(FormatError::param(
             "pass",
             format!("{} ids", p.len()),
             format!("one pass id per point is needed; the cloud has {} points", cloud.len()),
         ));
     }
     if let Some(bad) = extra_comments.iter().find(|c| c.contains(['\n', '\r'])) {
-        return Err(ReconError::param("extra_comments", format!("{bad:?}"), "a comment must be one line"));
+        return Err(FormatError::param("extra_comments", format!("{bad:?}"), "a comment must be one line"));
     }
-    let io = |source| ReconError::Io { file: "PLY output".to_string(), source };
+    let io = |source| FormatError::Io { file: "PLY output".to_string(), source };
     let mut head = format!("ply\nformat {} 1.0\ncomment depthmill point cloud\n", encoding.keyword());
     for c in extra_comments {
         head.push_str(&format!("comment {c}\n"));
@@ -625,7 +625,7 @@ fn pass_id(v: f64, index: u64, name: &str, at: Location) -> Result<u16> {
     }
 }
 
-fn truncated(name: &str, at: Location, done: u64, elem: &Element) -> ReconError {
+fn truncated(name: &str, at: Location, done: u64, elem: &Element) -> FormatError {
     parse_error(name, at, format!("file ends after {done} of {} {}", elem.count, elem.plural()))
 }
 
@@ -1205,7 +1205,7 @@ mod tests {
     use rand::{Rng, SeedableRng};
 
     use super::*;
-    use crate::domain::io::read_any_from;
+    use crate::formats::read_any_from;
 
     const ENCODINGS: [PlyEncoding; 3] =
         [PlyEncoding::Ascii, PlyEncoding::BinaryLittleEndian, PlyEncoding::BinaryBigEndian];

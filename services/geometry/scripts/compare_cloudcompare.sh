@@ -27,7 +27,7 @@ fi
 
 if [[ $# -eq 0 ]]; then
     cd "$here/.."
-    exec cargo bench -p depthmill-reconstruction --bench raster
+    exec cargo bench -p depthmill-geometry --bench raster
 fi
 
 cloud="$(realpath "$1")"

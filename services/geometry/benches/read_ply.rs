@@ -11,7 +11,7 @@ use std::path::Path;
 use std::time::{Duration, Instant};
 
 use depthmill_geometry::PointCloud;
-use depthmill_reconstruction::domain::io::{PlyEncoding, ReadLimits, read_any, write_ply};
+use depthmill_geometry::formats::{PlyEncoding, ReadLimits, read_any, write_ply};
 use nalgebra::Point3;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};

@@ -20,10 +20,10 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, Instant};
 
-use depthmill_geometry::{HeightMap, HeightMapMeta};
-use depthmill_reconstruction::domain::raster::{
+use depthmill_geometry::raster::{
     FillMethod, FillParams, Roi, auto_z_range, coverage, fill_holes, grid_for_roi, rasterize_max,
 };
+use depthmill_geometry::{HeightMap, HeightMapMeta};
 use nalgebra::Point3;
 use rand::rngs::StdRng;
 use rand::seq::SliceRandom;

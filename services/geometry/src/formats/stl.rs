@@ -1,4 +1,4 @@
-//! STL, binary and ASCII, read into an indexed [`Mesh`].
+//! STL, binary and ASCII, read into an indexed [`Mesh`]; [`write_stl`] writes binary STL.
 //!
 //! Binary: an 80-byte header, a little-endian `u32` triangle count, then 50-byte records (normal,
 //! three corners as `f32`, a 2-byte attribute). The count is checked against
@@ -21,16 +21,46 @@
 
 use std::collections::HashMap;
 use std::collections::hash_map::Entry;
-use std::io::BufRead;
+use std::io::{BufRead, Write};
 
 use nalgebra::{Point3, Vector3};
 
+use super::error::{FormatError, Location, Result};
 use super::{
     InputFormat, Lines, ReadLimits, ReadStats, Src, check_size, io_error, is_space, parse_error, parse_f32,
     show_token, sniff, tokens, too_large,
 };
-use crate::domain::error::{Location, Result};
-use crate::domain::mesh::Mesh;
+use crate::mesh::Mesh;
+
+/// Writes `mesh` as binary STL: an 80-byte header starting with `header` (cut to 80 bytes), the
+/// triangle count, then one record per triangle with its facet normal from the vertex order (the
+/// zero vector for a degenerate triangle) and the corners rounded to `f32`, as STL stores them.
+///
+/// Errors: more than `u32::MAX` triangles ([`FormatError::TooLarge`]) and write failures
+/// ([`FormatError::Io`] with file `STL output`).
+pub fn write_stl<W: Write>(mut w: W, mesh: &Mesh, header: &str) -> Result<()> {
+    let name = "STL output";
+    let io = |source| FormatError::Io { file: name.to_string(), source };
+    let count = u32::try_from(mesh.triangles.len())
+        .map_err(|_| too_large(name, "triangles", mesh.triangles.len() as u64, u64::from(u32::MAX)))?;
+    let mut head = [0u8; 80];
+    let text = &header.as_bytes()[..header.len().min(80)];
+    head[..text.len()].copy_from_slice(text);
+    w.write_all(&head).map_err(io)?;
+    w.write_all(&count.to_le_bytes()).map_err(io)?;
+    let mut buf = Vec::with_capacity(50 * mesh.triangles.len());
+    for t in &mesh.triangles {
+        let [a, b, c] = t.map(|i| mesh.vertices[i as usize]);
+        let nrm = (b - a).cross(&(c - a));
+        let nrm = if nrm.norm() > 0.0 { nrm.normalize() } else { Vector3::zeros() };
+        for v in [nrm.x, nrm.y, nrm.z, a.x, a.y, a.z, b.x, b.y, b.z, c.x, c.y, c.z] {
+            buf.extend_from_slice(&(v as f32).to_le_bytes());
+        }
+        buf.extend_from_slice(&0u16.to_le_bytes());
+    }
+    w.write_all(&buf).map_err(io)?;
+    w.flush().map_err(io)
+}
 
 /// Reads an STL mesh from `r`: ASCII when [`sniff_format`](super::sniff_format) says
 /// [`InputFormat::StlAscii`], binary otherwise. `size` (the input's length, when known) enables

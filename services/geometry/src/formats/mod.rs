@@ -18,9 +18,9 @@
 //!   blocks (fixed record layouts with per-property offsets precomputed from the header, decoded
 //!   with `from_le_bytes`/`from_be_bytes`, no allocation per point). Give the readers a large
 //!   buffer ([`read_any`] uses a [`BufReader`] of [`BUF_LEN`] = 1 MiB).
-//! - **Errors** are [`ReconError::Parse`] naming the file (the `name` argument), the 1-based line
+//! - **Errors** are [`FormatError::Parse`] naming the file (the `name` argument), the 1-based line
 //!   (text) or the 0-based byte offset (binary) and the problem; I/O errors are
-//!   [`ReconError::Io`]; an input over a [`ReadLimits`] limit is [`ReconError::TooLarge`].
+//!   [`FormatError::Io`]; an input over a [`ReadLimits`] limit is [`FormatError::TooLarge`].
 //! - **Non-finite values.** A point with a NaN or infinite coordinate or intensity is dropped and
 //!   counted ([`ReadStats::dropped_non_finite`]); a non-finite normal becomes the zero vector (the
 //!   cloud's "unknown normal"). Triangles with a non-finite or dropped corner and degenerate
@@ -31,6 +31,7 @@
 //!   hostile header cannot make the reader reserve more memory than the file justifies.
 //!   `max_bytes` is checked against the size when it is known and enforced on the stream as well.
 
+pub mod error;
 pub mod ply;
 pub mod stl;
 pub mod xyz;
@@ -40,14 +41,14 @@ use std::fs::File;
 use std::io::{self, BufRead, BufReader, Cursor, Read};
 use std::path::Path;
 
-use depthmill_geometry::PointCloud;
+use crate::PointCloud;
 use nalgebra::{Point3, Vector3};
 
-use crate::domain::error::{Location, ReconError, Result};
-use crate::domain::mesh::Mesh;
+use crate::mesh::Mesh;
+pub use error::{FormatError, Location, Result};
 
 pub use ply::{PlyEncoding, read_ply_cloud_with_pass, read_ply_from, write_ply};
-pub use stl::read_stl_from;
+pub use stl::{read_stl_from, write_stl};
 pub use xyz::read_xyz_from;
 
 /// Bytes examined by [`sniff_format`].
@@ -251,7 +252,7 @@ pub fn read_cloud(path: &Path, limits: &ReadLimits) -> Result<(PointCloud, ReadS
 }
 
 /// Reads a mesh from `path`: STL, or PLY with a non-empty face element. Anything else is
-/// [`ReconError::UnsupportedFormat`] naming the file, reported before the body is read.
+/// [`FormatError::UnsupportedFormat`] naming the file, reported before the body is read.
 pub fn read_mesh(path: &Path, limits: &ReadLimits) -> Result<(Mesh, ReadStats)> {
     let name = path.display().to_string();
     match read_path(path, limits, Want::Mesh)? {
@@ -262,13 +263,13 @@ pub fn read_mesh(path: &Path, limits: &ReadLimits) -> Result<(Mesh, ReadStats)> 
 
 fn read_path(path: &Path, limits: &ReadLimits, want: Want) -> Result<(Geometry, ReadStats)> {
     let name = path.display().to_string();
-    let file = File::open(path).map_err(|source| ReconError::Io { file: name.clone(), source })?;
-    let size = file.metadata().map_err(|source| ReconError::Io { file: name.clone(), source })?.len();
+    let file = File::open(path).map_err(|source| FormatError::Io { file: name.clone(), source })?;
+    let size = file.metadata().map_err(|source| FormatError::Io { file: name.clone(), source })?.len();
     read_with(BufReader::with_capacity(BUF_LEN, file), &name, Some(size), limits, want)
 }
 
-pub(crate) fn not_a_mesh(name: &str, why: &str) -> ReconError {
-    ReconError::UnsupportedFormat {
+pub(crate) fn not_a_mesh(name: &str, why: &str) -> FormatError {
+    FormatError::UnsupportedFormat {
         file: name.to_string(),
         reason: format!("{why}; a mesh needs STL or PLY with a face element"),
     }
@@ -330,14 +331,14 @@ fn read_with<R: BufRead>(
 // ---------------------------------------------------------------------------------------------
 // Errors.
 
-/// [`ReconError::Parse`].
-pub(crate) fn parse_error(name: &str, at: Location, problem: impl Into<String>) -> ReconError {
-    ReconError::Parse { file: name.to_string(), at, problem: problem.into() }
+/// [`FormatError::Parse`].
+pub(crate) fn parse_error(name: &str, at: Location, problem: impl Into<String>) -> FormatError {
+    FormatError::Parse { file: name.to_string(), at, problem: problem.into() }
 }
 
-/// [`ReconError::TooLarge`].
-pub(crate) fn too_large(name: &str, what: &'static str, value: u64, limit: u64) -> ReconError {
-    ReconError::TooLarge { file: name.to_string(), what, value, limit }
+/// [`FormatError::TooLarge`].
+pub(crate) fn too_large(name: &str, what: &'static str, value: u64, limit: u64) -> FormatError {
+    FormatError::TooLarge { file: name.to_string(), what, value, limit }
 }
 
 /// The stream went past `max_bytes` ([`Src`] reports it through `io::Error`).
@@ -354,13 +355,13 @@ impl fmt::Display for ByteLimit {
 
 impl std::error::Error for ByteLimit {}
 
-/// Maps an I/O error to [`ReconError::Io`], or [`ReconError::TooLarge`] when it is [`Src`]'s
+/// Maps an I/O error to [`FormatError::Io`], or [`FormatError::TooLarge`] when it is [`Src`]'s
 /// byte limit.
-pub(crate) fn io_error(name: &str, e: io::Error) -> ReconError {
+pub(crate) fn io_error(name: &str, e: io::Error) -> FormatError {
     if let Some(limit) = e.get_ref().and_then(|inner| inner.downcast_ref::<ByteLimit>()).map(|b| b.limit) {
         return too_large(name, "bytes", limit.saturating_add(1), limit);
     }
-    ReconError::Io { file: name.to_string(), source: e }
+    FormatError::Io { file: name.to_string(), source: e }
 }
 
 /// A token for an error message: lossy UTF-8, at most 40 characters, quoted and escaped.
@@ -837,7 +838,7 @@ mod tests {
         let (c, s) = read_cloud(&xyz, &limits).expect("xyz cloud");
         assert_eq!((c.intensity, s.points), (Some(vec![0.5]), 1));
         let e = read_mesh(&xyz, &limits).expect_err("xyz is no mesh");
-        assert!(matches!(e, ReconError::UnsupportedFormat { .. }));
+        assert!(matches!(e, FormatError::UnsupportedFormat { .. }));
         assert!(
             e.to_string()
                 .starts_with(&format!("{}: unsupported format: the input is XYZ text", xyz.display())),
@@ -858,7 +859,7 @@ mod tests {
 
         let missing = dir.path().join("missing.ply");
         let e = read_any(&missing, &limits).expect_err("missing");
-        assert!(matches!(e, ReconError::Io { ref file, .. } if file.ends_with("missing.ply")));
+        assert!(matches!(e, FormatError::Io { ref file, .. } if file.ends_with("missing.ply")));
     }
 
     proptest::proptest! {

@@ -52,11 +52,11 @@
 
 use std::ops::{Add, AddAssign, Mul, Sub};
 
-use depthmill_geometry::{HeightMap, HeightMapMeta};
+use crate::{HeightMap, HeightMapMeta};
 use rayon::prelude::*;
 
-use crate::domain::error::Result;
-use crate::domain::mesh::Mesh;
+use crate::mesh::Mesh;
+use crate::raster::Result;
 
 /// Vertices are snapped to `1/2^SUBPIXEL_BITS` of a pixel before the coverage tests.
 pub const SUBPIXEL_BITS: u32 = 16;

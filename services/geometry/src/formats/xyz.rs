@@ -13,13 +13,13 @@
 
 use std::io::BufRead;
 
-use depthmill_geometry::PointCloud;
+use crate::PointCloud;
 
+use super::error::{Location, Result};
 use super::{
     CloudSink, InputFormat, Lines, ReadLimits, ReadStats, Src, is_space, parse_error, parse_f32_prefix,
     parse_f64_prefix, show_token, too_large,
 };
-use crate::domain::error::{Location, Result};
 
 /// Reads an XYZ text cloud from `r`; `name` names the input in errors.
 pub fn read_xyz_from<R: BufRead>(r: R, name: &str, limits: &ReadLimits) -> Result<(PointCloud, ReadStats)> {
@@ -44,7 +44,7 @@ const CLASS: [u8; 256] = {
     t
 };
 
-fn bad_token(name: &str, line: u64, column: usize, tok: &[u8]) -> crate::domain::error::ReconError {
+fn bad_token(name: &str, line: u64, column: usize, tok: &[u8]) -> super::error::FormatError {
     parse_error(
         name,
         Location::Line(line),

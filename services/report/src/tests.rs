@@ -4,9 +4,9 @@
 
 use std::collections::BTreeMap;
 
-use depthmill_common::plot::{Chart, Panel, Series};
+use crate::plot::{Chart, Panel, Series};
+use depthmill_geometry::formats::{PlyEncoding, write_ply};
 use depthmill_geometry::{HeightMap, HeightMapMeta, PngDepth, PointCloud, nalgebra::Point3, write_png_to};
-use depthmill_reconstruction::domain::io::{PlyEncoding, write_ply};
 use serde_json::{Value, json};
 
 use super::*;
@@ -380,9 +380,9 @@ fn the_machined_part_is_compared_with_the_original_mesh() {
             triangles.push([a, a + 1 + n as u32, a + n as u32]);
         }
     }
-    let mesh = depthmill_reconstruction::domain::mesh::Mesh { vertices, triangles };
+    let mesh = depthmill_geometry::Mesh { vertices, triangles };
     let mut stl = Vec::new();
-    depthmill_scanning::domain::sample::write_stl(&mut stl, &mesh).expect("stl");
+    depthmill_geometry::formats::write_stl(&mut stl, &mesh, "report test").expect("stl");
     let mut arts = full_artifacts();
     arts.insert("mesh".into(), stl);
     let job = job("from a mesh", "succeeded", &arts);

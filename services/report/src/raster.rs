@@ -234,7 +234,7 @@ impl ColorMap {
             id = esc(id)
         );
         if hi > lo && lo.is_finite() && hi.is_finite() {
-            for t in depthmill_common::plot::nice_ticks(lo, hi, 6) {
+            for t in crate::plot::nice_ticks(lo, hi, 6) {
                 let x = x0 + (t - lo) / (hi - lo) * width;
                 let _ = write!(
                     s,

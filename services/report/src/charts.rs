@@ -1,9 +1,9 @@
 //! Small inline SVG charts: horizontal bars (stage timings, cycle times) and the telemetry chart
-//! rebuilt from the machine's CSV with `depthmill_common::plot`.
+//! rebuilt from the machine's CSV with `crate::plot`.
 
 use std::fmt::Write as _;
 
-use depthmill_common::plot::{Chart, Panel, Series};
+use crate::plot::{Chart, Panel, Series};
 
 use super::html::esc;
 use super::raster::fmt_num;

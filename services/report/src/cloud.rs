@@ -9,7 +9,7 @@
 use std::io::{BufReader, Cursor};
 
 use depthmill_geometry::PointCloud;
-use depthmill_reconstruction::domain::io::{ReadLimits, read_any_from};
+use depthmill_geometry::formats::{ReadLimits, read_any_from};
 
 use super::raster::{ColorMap, RgbImage, VIRIDIS};
 

@@ -114,12 +114,38 @@
 use std::f64::consts::SQRT_2;
 use std::fmt;
 
-use depthmill_geometry::{HeightMap, HeightMapMeta, MAX_CELLS};
+use crate::{HeightMap, HeightMapMeta, MAX_CELLS};
 use nalgebra::Point3;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::error::{ReconError, Result};
+use crate::GeometryError;
+
+/// Why a grid cannot be built or a map cannot be rasterised or filled.
+///
+/// Parameters are named as the job's `reconstruct` section names them, relative to it (`roi`,
+/// `pixel_mm`, `fill.max_hole_mm`, ...); a caller that exposes them under another path prefixes
+/// the field (the reconstruction service adds `reconstruct.`).
+#[derive(Debug, thiserror::Error)]
+pub enum RasterError {
+    /// A parameter is outside its domain.
+    #[error("invalid {field} = {value}: {reason}")]
+    InvalidParameter { field: String, value: String, reason: String },
+
+    /// A grid or map rejected by its own checks.
+    #[error(transparent)]
+    Geometry(#[from] GeometryError),
+}
+
+impl RasterError {
+    /// Shorthand for [`RasterError::InvalidParameter`].
+    pub fn param(field: impl Into<String>, value: impl fmt::Display, reason: impl Into<String>) -> Self {
+        RasterError::InvalidParameter { field: field.into(), value: value.to_string(), reason: reason.into() }
+    }
+}
+
+/// Result with [`RasterError`].
+pub type Result<T, E = RasterError> = std::result::Result<T, E>;
 
 /// Largest fill radius, in pixels (a larger `radius_mm` is refused; the derived default is capped).
 pub const MAX_FILL_RADIUS_PX: f64 = 128.0;
@@ -157,17 +183,17 @@ impl fmt::Display for Roi {
 
 impl Roi {
     /// Checks: all four values finite, `x_min_mm < x_max_mm`, `y_min_mm < y_max_mm`
-    /// (errors name `reconstruct.roi`).
+    /// (errors name `roi`).
     pub fn validate(&self) -> Result<()> {
         let all = [self.x_min_mm, self.y_min_mm, self.x_max_mm, self.y_max_mm];
         if !all.iter().all(|v| v.is_finite()) {
-            return Err(ReconError::param("reconstruct.roi", self, "all bounds must be finite"));
+            return Err(RasterError::param("roi", self, "all bounds must be finite"));
         }
         if self.x_min_mm >= self.x_max_mm {
-            return Err(ReconError::param("reconstruct.roi", self, "x_min_mm must be less than x_max_mm"));
+            return Err(RasterError::param("roi", self, "x_min_mm must be less than x_max_mm"));
         }
         if self.y_min_mm >= self.y_max_mm {
-            return Err(ReconError::param("reconstruct.roi", self, "y_min_mm must be less than y_max_mm"));
+            return Err(RasterError::param("roi", self, "y_min_mm must be less than y_max_mm"));
         }
         Ok(())
     }
@@ -237,19 +263,19 @@ fn cells_along(min: f64, max: f64, p: f64) -> Option<u32> {
 /// `(x_min, y_min)`, `width = ceil(extent/p)` (at least 1; exactly the smallest count whose far edge
 /// reaches the ROI's max, see the module docs), Z range `[0, 1]`, view `+Z`.
 ///
-/// Errors: an invalid ROI (`reconstruct.roi`); a non-finite or non-positive pixel, or one too fine
-/// for the coordinates' magnitude (`reconstruct.pixel_mm`); more than [`MAX_CELLS`] cells
-/// (`reconstruct.pixel_mm`, naming the grid size and the limit).
+/// Errors: an invalid ROI (`roi`); a non-finite or non-positive pixel, or one too fine
+/// for the coordinates' magnitude (`pixel_mm`); more than [`MAX_CELLS`] cells
+/// (`pixel_mm`, naming the grid size and the limit).
 pub fn grid_for_roi(roi: &Roi, pixel_mm: f64) -> Result<HeightMapMeta> {
     roi.validate()?;
     if !(pixel_mm.is_finite() && pixel_mm > 0.0) {
-        return Err(ReconError::param("reconstruct.pixel_mm", pixel_mm, "must be finite and positive"));
+        return Err(RasterError::param("pixel_mm", pixel_mm, "must be finite and positive"));
     }
     let magnitude =
         [roi.x_min_mm, roi.y_min_mm, roi.x_max_mm, roi.y_max_mm].iter().fold(0.0f64, |m, v| m.max(v.abs()));
     if pixel_mm < magnitude * MIN_RELATIVE_PIXEL {
-        return Err(ReconError::param(
-            "reconstruct.pixel_mm",
+        return Err(RasterError::param(
+            "pixel_mm",
             pixel_mm,
             format!(
                 "is too fine for coordinates up to {magnitude} mm (at least {} mm)",
@@ -260,8 +286,8 @@ pub fn grid_for_roi(roi: &Roi, pixel_mm: f64) -> Result<HeightMapMeta> {
     let too_many = || {
         let w = (roi.width_mm() / pixel_mm).ceil();
         let h = (roi.height_mm() / pixel_mm).ceil();
-        ReconError::param(
-            "reconstruct.pixel_mm",
+        RasterError::param(
+            "pixel_mm",
             pixel_mm,
             format!(
                 "gives a {w}x{h} grid over the {} x {} mm region of interest, more than the {MAX_CELLS} cells allowed",
@@ -613,8 +639,11 @@ fn rasterize_with(
     strategy: Option<Strategy>,
 ) -> Result<(HeightMap, RasterStats)> {
     grid.validate()?;
-    let cells = usize::try_from(grid.cell_count())
-        .map_err(|_| ReconError::param("grid cells", grid.cell_count(), "must be addressable"))?;
+    let cells = usize::try_from(grid.cell_count()).map_err(|_| GeometryError::TooManyCells {
+        width: u64::from(grid.width),
+        height: u64::from(grid.height),
+        limit: usize::MAX as u64,
+    })?;
     let bins = Binner::new(grid);
     let strategy = strategy.unwrap_or_else(|| choose_strategy(points, &bins, cells));
     let (mut bits, (binned, non_finite)) = rasterize_keys(points, &bins, cells, strategy);
@@ -701,32 +730,24 @@ impl Default for FillParams {
 
 impl FillParams {
     /// Checks the parameters for a grid of `pixel_mm` and returns the largest sample radius in mm
-    /// (`radius_mm`, or the cap of the per-cell default). Errors name `reconstruct.fill.max_hole_mm`, `reconstruct.fill.radius_mm` or
-    /// `reconstruct.fill.power`.
+    /// (`radius_mm`, or the cap of the per-cell default). Errors name `fill.max_hole_mm`, `fill.radius_mm` or
+    /// `fill.power`.
     pub fn radius_for(&self, pixel_mm: f64) -> Result<f64> {
         let mh = self.max_hole_mm;
         if !(mh.is_finite() && mh >= 0.0) {
-            return Err(ReconError::param(
-                "reconstruct.fill.max_hole_mm",
-                mh,
-                "must be finite and not negative",
-            ));
+            return Err(RasterError::param("fill.max_hole_mm", mh, "must be finite and not negative"));
         }
         if let FillMethod::Idw { power } = self.method
             && !(power.is_finite() && (0.0..=MAX_IDW_POWER).contains(&power))
         {
-            return Err(ReconError::param(
-                "reconstruct.fill.power",
-                power,
-                format!("must be in [0, {MAX_IDW_POWER}]"),
-            ));
+            return Err(RasterError::param("fill.power", power, format!("must be in [0, {MAX_IDW_POWER}]")));
         }
         match self.radius_mm {
             Some(r) if !(r.is_finite() && r > 0.0) => {
-                Err(ReconError::param("reconstruct.fill.radius_mm", r, "must be finite and positive"))
+                Err(RasterError::param("fill.radius_mm", r, "must be finite and positive"))
             }
-            Some(r) if r / pixel_mm > MAX_FILL_RADIUS_PX => Err(ReconError::param(
-                "reconstruct.fill.radius_mm",
+            Some(r) if r / pixel_mm > MAX_FILL_RADIUS_PX => Err(RasterError::param(
+                "fill.radius_mm",
                 r,
                 format!(
                     "is {:.1} pixels of {pixel_mm} mm; at most {MAX_FILL_RADIUS_PX} pixels are searched",
@@ -1498,9 +1519,9 @@ mod tests {
         assert!(g.origin_x_mm + f64::from(g.width) * 0.1 >= roi.x_max_mm);
         assert!(g.origin_x_mm + f64::from(g.width - 1) * 0.1 < roi.x_max_mm);
         let e = grid_for_roi(&roi, 0.0).expect_err("zero pixel").to_string();
-        assert!(e.contains("reconstruct.pixel_mm = 0"), "{e}");
+        assert!(e.contains("pixel_mm = 0"), "{e}");
         let e = grid_for_roi(&roi, f64::NAN).expect_err("nan").to_string();
-        assert!(e.contains("reconstruct.pixel_mm = NaN"), "{e}");
+        assert!(e.contains("pixel_mm = NaN"), "{e}");
         let big = Roi { x_min_mm: 0.0, y_min_mm: 0.0, x_max_mm: 2000.0, y_max_mm: 2000.0 };
         let e = grid_for_roi(&big, 0.1).expect_err("too many").to_string();
         assert!(e.contains("20000x20000") && e.contains("268435456"), "{e}");
@@ -1508,7 +1529,7 @@ mod tests {
         assert!(e.contains("too fine"), "{e}");
         let bad = Roi { x_max_mm: -2.0, ..roi };
         let e = grid_for_roi(&bad, 0.1).expect_err("inverted").to_string();
-        assert!(e.contains("reconstruct.roi") && e.contains("x_min_mm must be less than x_max_mm"), "{e}");
+        assert!(e.contains("roi") && e.contains("x_min_mm must be less than x_max_mm"), "{e}");
         let e = Roi { y_min_mm: f64::INFINITY, ..roi }.validate().expect_err("inf").to_string();
         assert!(e.contains("finite"), "{e}");
     }
@@ -1977,18 +1998,12 @@ mod tests {
     fn fill_params_are_checked_by_name() {
         let map = part_map(5, 5, |_, _| true);
         let cases = [
-            (FillParams { max_hole_mm: -1.0, ..idw(1.0) }, "reconstruct.fill.max_hole_mm = -1"),
-            (FillParams { max_hole_mm: f64::NAN, ..idw(1.0) }, "reconstruct.fill.max_hole_mm = NaN"),
-            (FillParams { radius_mm: Some(0.0), ..idw(1.0) }, "reconstruct.fill.radius_mm = 0"),
-            (FillParams { radius_mm: Some(13.0), ..idw(1.0) }, "reconstruct.fill.radius_mm = 13"),
-            (
-                FillParams { method: FillMethod::Idw { power: -1.0 }, ..idw(1.0) },
-                "reconstruct.fill.power = -1",
-            ),
-            (
-                FillParams { method: FillMethod::Idw { power: f64::NAN }, ..idw(1.0) },
-                "reconstruct.fill.power = NaN",
-            ),
+            (FillParams { max_hole_mm: -1.0, ..idw(1.0) }, "fill.max_hole_mm = -1"),
+            (FillParams { max_hole_mm: f64::NAN, ..idw(1.0) }, "fill.max_hole_mm = NaN"),
+            (FillParams { radius_mm: Some(0.0), ..idw(1.0) }, "fill.radius_mm = 0"),
+            (FillParams { radius_mm: Some(13.0), ..idw(1.0) }, "fill.radius_mm = 13"),
+            (FillParams { method: FillMethod::Idw { power: -1.0 }, ..idw(1.0) }, "fill.power = -1"),
+            (FillParams { method: FillMethod::Idw { power: f64::NAN }, ..idw(1.0) }, "fill.power = NaN"),
         ];
         for (params, msg) in cases {
             let e = fill_holes(&map, &params).expect_err(msg).to_string();

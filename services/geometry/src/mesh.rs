@@ -1,9 +1,8 @@
 //! [`Mesh`]: an indexed triangle mesh in millimetres.
 
-use depthmill_geometry::Aabb;
 use nalgebra::{Isometry3, Point3};
 
-use crate::domain::error::{ReconError, Result};
+use crate::{Aabb, GeometryError};
 
 /// An indexed triangle mesh. Triangles are counter-clockwise seen from outside (the STL and PLY
 /// convention); nothing here relies on the winding.
@@ -15,18 +14,14 @@ pub struct Mesh {
 
 impl Mesh {
     /// A mesh from vertices and triangles, checked: every index in range.
-    pub fn new(vertices: Vec<Point3<f64>>, triangles: Vec<[u32; 3]>) -> Result<Self> {
+    pub fn new(vertices: Vec<Point3<f64>>, triangles: Vec<[u32; 3]>) -> Result<Self, GeometryError> {
         let n = vertices.len();
         if let Some((t, bad)) = triangles
             .iter()
             .enumerate()
             .find_map(|(t, tri)| tri.iter().find(|&&i| i as usize >= n).map(|&i| (t, i)))
         {
-            return Err(ReconError::param(
-                format!("triangle {t}"),
-                bad,
-                format!("vertex index out of range (mesh has {n} vertices)"),
-            ));
+            return Err(GeometryError::MeshIndex { triangle: t, index: bad, vertices: n });
         }
         Ok(Mesh { vertices, triangles })
     }

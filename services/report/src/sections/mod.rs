@@ -1,0 +1,11 @@
+//! The report's sections, one module each, in page order. Each adds methods to the render
+//! context that return the section's HTML.
+
+mod faces;
+mod machine;
+mod part;
+mod scan;
+mod summary;
+mod toolpaths;
+
+pub use toolpaths::toolpath_image;

@@ -1,0 +1,249 @@
+//! The machined part: shaded, its deviation from the target, and against the original part and the CAM's prediction.
+
+use crate::*;
+
+impl Ctx<'_> {
+    pub(crate) fn machined(&mut self) -> Result<String, ReportError> {
+        let mut all = String::new();
+        let faces = self.face_suffixes();
+        for (fi, suffix) in faces.iter().enumerate() {
+            let stock_key = format!("final_stock{suffix}");
+            if fi > 0 && !self.artifacts.contains_key(&stock_key) {
+                continue;
+            }
+            let (key, note) = if self.artifacts.contains_key(&stock_key)
+                || !self.artifacts.contains_key("toolpath_preview")
+            {
+                (stock_key, "")
+            } else {
+                (
+                    "toolpath_preview".to_string(),
+                    " This is the CAM's predicted surface: the machine stage has not produced a final stock.",
+                )
+            };
+            let face = if faces.len() > 1 { format!(" Face {}.", fi + 1) } else { String::new() };
+            let body = match self.decode(&key) {
+                Err(e) => missing(&e),
+                Ok(d) => {
+                    let map = &d.map;
+                    match (maps::map_view(map), maps::robust_range(map)) {
+                        (Some(view), Some((lo, hi))) => {
+                            let img = maps::shaded_image(map, &view, lo, hi);
+                            let m = map.meta();
+                            let caption = format!(
+                                "Simulated machined part, lit from the top left: {}×{} mm, cells of {} mm, surface Z {}–{} mm.{note}{face}",
+                                fmt_num(m.width_mm()),
+                                fmt_num(m.height_mm()),
+                                fmt_num(m.pixel_mm),
+                                fmt_num(lo),
+                                fmt_num(hi)
+                            );
+                            let file = format!("{}.png", key.replace('@', "_face"));
+                            self.picture(&file, &img, "machined part", &esc(&caption))?
+                        }
+                        _ => missing(&format!("The {key} has no cell with data.")),
+                    }
+                }
+            };
+            all.push_str(&body);
+        }
+        Ok(section("final-stock", "Machined part", &all))
+    }
+
+    pub(crate) fn deviation(&mut self) -> Result<String, ReportError> {
+        let mut body = String::new();
+        let faces = self.face_suffixes();
+        for (fi, suffix) in faces.iter().enumerate() {
+            let dkey = format!("deviation_map{suffix}");
+            if fi > 0 && !self.artifacts.contains_key(&dkey) {
+                continue;
+            }
+            match self.decode(&dkey) {
+                Err(e) => body.push_str(&missing(&e)),
+                Ok(d) => {
+                    let map = &d.map;
+                    match (maps::map_view(map), maps::deviation_range(map)) {
+                        (Some(view), Some((range, lo, hi))) => {
+                            let img = maps::deviation_image(map, &view, range);
+                            let legend = ColorMap::new(raster::RED_WHITE_BLUE).legend_svg(
+                                &format!("lg-deviation{fi}"),
+                                -range,
+                                range,
+                                "stock − target [mm]",
+                                "gouge (too deep)",
+                                "leftover (material left)",
+                            );
+                            let caption = format!(
+                                "Machined part minus the target, per cell: red where the part was cut too deep, blue where material is left, white on target. Map values {}–{} mm; the scale saturates at ±{} mm (99.5 % of |deviation|).",
+                                fmt_num(lo),
+                                fmt_num(hi),
+                                fmt_num(range)
+                            );
+                            let caption =
+                                if faces.len() > 1 { format!("Face {}. {caption}", fi + 1) } else { caption };
+                            let file = format!("{}.png", dkey.replace('@', "_face"));
+                            body.push_str(&self.picture(&file, &img, "deviation map", &esc(&caption))?);
+                            body.push_str(&figure_svg(&legend, "Colour scale of the deviation."));
+                        }
+                        _ => body.push_str(&missing("The deviation map has no cell with data.")),
+                    }
+                }
+            }
+        }
+        let mr = self.machine_report.as_ref();
+        let dev = |k: &str| mr.and_then(|m| m["deviation"][k].as_f64());
+        let rows: Vec<(String, String)> = [
+            ("Max gouge", self.metric("max_gouge_mm").or_else(|| dev("max_gouge_mm"))),
+            ("Max leftover", self.metric("max_leftover_mm").or_else(|| dev("max_leftover_mm"))),
+            ("Mean leftover", dev("mean_leftover_mm")),
+            ("RMS deviation", self.metric("rms_deviation_mm").or_else(|| dev("rms_deviation_mm"))),
+        ]
+        .into_iter()
+        .map(|(k, v)| (k.to_string(), esc(&v.map_or("—".into(), |v| format!("{v:.4} mm")))))
+        .collect();
+        body.push_str(&kv_table(&rows));
+        body.push_str(&self.against_part()?);
+        body.push_str(&self.against_preview()?);
+        Ok(section("deviation", "Deviation from the original part", &body))
+    }
+
+    /// The machined part against the original part itself, when the job started from its mesh
+    /// (a simulated scan): the mesh's top surface rasterised on the final stock's grid (exact
+    /// z-buffer at cell centres). Only when the maps are in the mesh's own frame: first face `+Z`
+    /// without a moved origin, and no `filters.transform`.
+    pub(crate) fn against_part(&mut self) -> Result<String, ReportError> {
+        let rec = &self.job["spec"]["reconstruct"];
+        let same_frame = rec["filters"]["transform"].is_null()
+            && match rec["faces"].as_array() {
+                None => true,
+                Some(f) => f.first().is_none_or(|f0| {
+                    f0["view"].as_str().is_none_or(|v| v == "+Z")
+                        && f0["origin"].is_null()
+                        && f0["a_deg"].is_null()
+                        && f0["normal"].is_null()
+                }),
+            };
+        let Some(bytes) = self.artifacts.get("mesh").filter(|_| same_frame) else {
+            return Ok(String::new());
+        };
+        let Ok(stock) = self.decode("final_stock") else { return Ok(String::new()) };
+        let limits = depthmill_geometry::formats::ReadLimits::default();
+        let mesh = match depthmill_geometry::formats::read_any_from(
+            std::io::Cursor::new(bytes),
+            "mesh",
+            Some(bytes.len() as u64),
+            &limits,
+        ) {
+            Ok((depthmill_geometry::formats::Geometry::Mesh(m), _)) => m,
+            Ok(_) => return Ok(String::new()),
+            Err(e) => {
+                return Ok(missing(&format!("The original part could not be read to compare with: {e}.")));
+            }
+        };
+        let meta = *stock.map.meta();
+        let Ok((part, _)) = depthmill_geometry::mesh_raster::rasterize_mesh_with_stats(&mesh, &meta) else {
+            return Ok(String::new());
+        };
+        let mut data = vec![f32::NAN; part.data().len()];
+        let (mut gouge, mut left, mut sum_left, mut sq, mut n) = (0.0f64, 0.0f64, 0.0f64, 0.0f64, 0usize);
+        for (i, (p, z)) in part.data().iter().zip(stock.map.data()).enumerate() {
+            if !(p.is_finite() && z.is_finite()) {
+                continue;
+            }
+            let d = f64::from(*z) - f64::from(*p);
+            data[i] = d as f32;
+            gouge = gouge.max(-d);
+            left = left.max(d);
+            sum_left += d.max(0.0);
+            sq += d * d;
+            n += 1;
+        }
+        if n == 0 {
+            return Ok(String::new());
+        }
+        let range = gouge.max(left).max(0.005);
+        let Ok(map) = HeightMap::new(HeightMapMeta { z_min_mm: -range, z_max_mm: range, ..meta }, data)
+        else {
+            return Ok(String::new());
+        };
+        let mut body = String::from("<h3>Against the original part</h3>");
+        if let (Some(view), Some((r, _, _))) = (maps::map_view(&map), maps::deviation_range(&map)) {
+            let img = maps::deviation_image(&map, &view, r);
+            let caption = format!(
+                "Machined part minus the original part (the input mesh's top surface at each cell): the whole chain, scan to mill. Cells on vertical walls read large either way (a wall a fraction of a cell off is a full step in Z); holes the tools cannot enter show as leftover. Scale ±{} mm.",
+                fmt_num(r)
+            );
+            body.push_str(&self.picture(
+                "deviation_from_part.png",
+                &img,
+                "deviation from the part",
+                &esc(&caption),
+            )?);
+        }
+        let rows = vec![
+            ("Max gouge".to_string(), format!("{gouge:.4} mm")),
+            ("Max leftover".to_string(), format!("{left:.4} mm")),
+            ("Mean leftover".to_string(), format!("{:.4} mm", sum_left / n as f64)),
+            ("RMS".to_string(), format!("{:.4} mm over {} cells", (sq / n as f64).sqrt(), n)),
+        ];
+        body.push_str(&kv_table(&rows));
+        Ok(body)
+    }
+
+    /// The machined part against the CAM's preview (`toolpath_preview`: the surface the program
+    /// leaves, the part opened by the tools plus scallops). Leftover the tools cannot reach shows
+    /// in the deviation from the part but not here; what shows here is the machine's doing (steps,
+    /// the adaptive loop's feeds, the simulation's cells). First face only.
+    pub(crate) fn against_preview(&mut self) -> Result<String, ReportError> {
+        let (Ok(stock), Ok(preview)) = (self.decode("final_stock"), self.decode("toolpath_preview")) else {
+            return Ok(String::new());
+        };
+        let meta = *preview.map.meta();
+        let mut data = vec![f32::NAN; preview.map.data().len()];
+        let (mut lo, mut hi, mut sq, mut n) = (0.0f64, 0.0f64, 0.0f64, 0usize);
+        for row in 0..meta.height {
+            for col in 0..meta.width {
+                let Some(p) = preview.map.get(col, row).filter(|v| v.is_finite()) else { continue };
+                let (x, y) = meta.cell_center(col, row);
+                let Some(z) =
+                    stock.map.cell_of(x, y).and_then(|(c, r)| stock.map.get(c, r)).filter(|v| v.is_finite())
+                else {
+                    continue;
+                };
+                let d = f64::from(z) - f64::from(p);
+                data[(row * meta.width + col) as usize] = d as f32;
+                lo = lo.min(d);
+                hi = hi.max(d);
+                sq += d * d;
+                n += 1;
+            }
+        }
+        if n == 0 {
+            return Ok(String::new());
+        }
+        let range = (-lo).max(hi).max(0.005);
+        let dev_meta = HeightMapMeta { z_min_mm: -range, z_max_mm: range, ..meta };
+        let Ok(map) = HeightMap::new(dev_meta, data) else { return Ok(String::new()) };
+        let mut body = String::from("<h3>Against the surface the program can leave</h3>");
+        if let (Some(view), Some((r, _, _))) = (maps::map_view(&map), maps::deviation_range(&map)) {
+            let img = maps::deviation_image(&map, &view, r);
+            let caption = format!(
+                "Machined part minus the CAM's predicted surface (the part opened by the tools, scallops included): what the machine itself added or left. Scale ±{} mm.",
+                fmt_num(r)
+            );
+            body.push_str(&self.picture(
+                "deviation_from_preview.png",
+                &img,
+                "deviation from the preview",
+                &esc(&caption),
+            )?);
+        }
+        let rows = vec![
+            ("Deepest below the preview".to_string(), format!("{:.4} mm", (-lo).max(0.0))),
+            ("Highest above the preview".to_string(), format!("{:.4} mm", hi.max(0.0))),
+            ("RMS".to_string(), format!("{:.4} mm over {} cells", (sq / n as f64).sqrt(), n)),
+        ];
+        body.push_str(&kv_table(&rows));
+        Ok(body)
+    }
+}

@@ -1,0 +1,127 @@
+//! The point cloud seen from above and from the front, and the scan's stations, frames, registration error and coverage.
+
+use crate::*;
+
+impl Ctx<'_> {
+    pub(crate) fn point_cloud(&mut self) -> Result<String, ReportError> {
+        let key = if self.artifacts.contains_key("point_cloud") || !self.artifacts.contains_key("mesh") {
+            "point_cloud"
+        } else {
+            "mesh"
+        };
+        let body = match self.artifacts.get(key) {
+            None => missing(&self.why_missing(key)),
+            Some(bytes) => match cloud::read_cloud(bytes, key) {
+                Err(e) => missing(&format!("Not shown: the {key} artifact could not be read: {e}.")),
+                Ok(c) if c.is_empty() => missing(&format!("The {key} artifact holds no points.")),
+                Ok(c) => {
+                    let (top, side) = cloud::views(&c);
+                    let mut s = format!(
+                        "<p>{} points{}.</p><div class=\"grid\">",
+                        fmt_count(c.len()),
+                        if key == "mesh" { " (the mesh's vertices)" } else { "" }
+                    );
+                    for (v, name, title, axes, colour) in [
+                        (top, "point_cloud_top.png", "Top view", ("X", "Y"), "Z (height)"),
+                        (side, "point_cloud_side.png", "Front view", ("X", "Z"), "Y (nearer is brighter)"),
+                    ] {
+                        let Some(v) = v else { continue };
+                        let caption = format!(
+                            "{title}: {} {}–{} mm across, {} {}–{} mm up; colour = {colour}, {}–{} mm. {} of the points in view.",
+                            axes.0,
+                            fmt_num(v.h_range.0),
+                            fmt_num(v.h_range.1),
+                            axes.1,
+                            fmt_num(v.v_range.0),
+                            fmt_num(v.v_range.1),
+                            fmt_num(v.c_range.0),
+                            fmt_num(v.c_range.1),
+                            fmt_count(v.drawn),
+                        );
+                        s.push_str(&self.picture(name, &v.image, title, &esc(&caption))?);
+                    }
+                    s.push_str("</div>");
+                    s
+                }
+            },
+        };
+        let body = body + &self.scan_summary();
+        Ok(section("point-cloud", "Point cloud", &body))
+    }
+
+    /// The scan's report (`scan_report`), when the job was scanned: stations, passes, frames,
+    /// registration error, rays lost by reason, coverage before and after the rescan.
+    pub(crate) fn scan_summary(&self) -> String {
+        let Some(r) = self.artifacts.get("scan_report").and_then(|b| serde_json::from_slice::<Value>(b).ok())
+        else {
+            return String::new();
+        };
+        let f = |v: &Value, d: usize| v.as_f64().map_or("—".to_string(), |x| format!("{x:.d$}"));
+        let cov = |v: &Value| {
+            if v.is_object() {
+                format!(
+                    "{} % ({} holes, {} mm²)",
+                    f(&v["covered_pct"], 2),
+                    v["holes"],
+                    f(&v["hole_area_mm2"], 1)
+                )
+            } else {
+                "—".to_string()
+            }
+        };
+        let d = &r["dropped"];
+        let rows: Vec<(String, String)> = vec![
+            ("Mode".into(), esc(r["mode"].as_str().unwrap_or("?"))),
+            ("Frames / points".into(), format!("{} / {}", r["frames"], r["points"])),
+            (
+                "Simulated scan time".into(),
+                format!(
+                    "{} s (the table's wall time {} s)",
+                    f(&r["scan_time_s"], 1),
+                    f(&r["table_wait_s"], 1)
+                ),
+            ),
+            (
+                "Registration error (placed vs true)".into(),
+                format!(
+                    "RMS {} mm, max {} mm",
+                    f(&r["registration_rms_mm"], 4),
+                    f(&r["registration_max_mm"], 4)
+                ),
+            ),
+            (
+                "Rays without a point".into(),
+                format!(
+                    "{} out of the window, {} beyond the incidence limit, {} occluded, {} missing the part",
+                    d["out_of_window"], d["incidence"], d["occluded"], d["miss"]
+                ),
+            ),
+            ("Coverage after the first scan".into(), cov(&r["coverage_before_rescan"])),
+            ("Coverage after the rescan".into(), cov(&r["coverage_after_rescan"])),
+        ];
+        let stations: Vec<Vec<String>> = r["stations"]
+            .as_array()
+            .into_iter()
+            .flatten()
+            .map(|st| {
+                let passes = st["passes"].as_array().cloned().unwrap_or_default();
+                let frames: u64 = passes.iter().filter_map(|p| p["frames"].as_u64()).sum();
+                let points: u64 = passes.iter().filter_map(|p| p["points"].as_u64()).sum();
+                vec![
+                    format!("{}°", f(&st["table_deg_commanded"], 1)),
+                    format!("{}°", f(&st["table_deg_measured"], 4)),
+                    if st["rescan"].as_bool() == Some(true) { "rescan".into() } else { "first scan".into() },
+                    passes.len().to_string(),
+                    frames.to_string(),
+                    points.to_string(),
+                ]
+            })
+            .collect();
+        let mut s = String::from("<h3>Scan</h3>");
+        s.push_str(&kv_table(&rows));
+        if !stations.is_empty() {
+            s.push_str(&table(&["table angle", "encoder", "kind", "passes", "frames", "points"], &stations));
+        }
+        s
+    }
+}
