@@ -8,8 +8,8 @@ use depthmill_proto::reconstruction::v1 as rec;
 use depthmill_proto::scanning::v1 as scan;
 
 use crate::domain::spec::{
-    AdaptiveMode, Dialect, ExecuteParams, FaceSpec, FillMethod, FillParams, Filters, Finishing,
-    FinishingStrategy, InputKind, IntensityWindow, JobInput, Obstacle, PlanParams, RadiusFilter,
+    AdaptiveMode, CellEstimator, Dialect, ExecuteParams, FaceSpec, FillMethod, FillParams, Filters,
+    Finishing, FinishingStrategy, InputKind, IntensityWindow, JobInput, Obstacle, PlanParams, RadiusFilter,
     ReconstructParams, Roi, Roughing, RoughingDirection, ScanMode, ScanParams, ScanPassSpec,
     StatisticalFilter, Stock,
 };
@@ -165,6 +165,11 @@ pub fn reconstruct_params(p: &ReconstructParams) -> rec::ReconstructParams {
             transform: f.transform.map(|m| m.iter().flatten().copied().collect()).unwrap_or_default(),
         }),
         roughing_factor: p.roughing_factor,
+        estimator: match p.estimator {
+            None => rec::CellEstimator::Unspecified,
+            Some(CellEstimator::Max) => rec::CellEstimator::Max,
+            Some(CellEstimator::Median) => rec::CellEstimator::Median,
+        } as i32,
     }
 }
 
@@ -499,6 +504,11 @@ pub fn job_spec_from_pb(s: pb::JobSpec) -> Result<JobSpec, SpecError> {
                 z_max_mm: p.z_max_mm,
                 filters,
                 roughing_factor: p.roughing_factor,
+                estimator: match enum_value::<rec::CellEstimator>("reconstruct.estimator", p.estimator)? {
+                    rec::CellEstimator::Unspecified => None,
+                    rec::CellEstimator::Max => Some(CellEstimator::Max),
+                    rec::CellEstimator::Median => Some(CellEstimator::Median),
+                },
             })
         })
         .transpose()?;

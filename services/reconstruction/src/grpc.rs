@@ -125,6 +125,15 @@ pub(crate) fn options(p: pb::ReconstructParams) -> Result<ReconstructOptions, St
         z_max_mm: p.z_max_mm,
         filters,
         roughing_factor: p.roughing_factor,
+        estimator: match pb::CellEstimator::try_from(p.estimator) {
+            Ok(pb::CellEstimator::Unspecified) => None,
+            Ok(pb::CellEstimator::Max) => Some("max".into()),
+            Ok(pb::CellEstimator::Median) => Some("median".into()),
+            Err(_) => {
+                return Err(ErrorCode::InvalidArgument
+                    .status(format!("reconstruct.estimator: unknown value {}", p.estimator)));
+            }
+        },
     })
 }
 

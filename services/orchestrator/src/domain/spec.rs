@@ -212,6 +212,20 @@ pub struct ReconstructParams {
     /// Lattice of the continuous roughing map, in pixels (default 4).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub roughing_factor: Option<u32>,
+    /// How a cell's points make the depth map (default `max`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub estimator: Option<CellEstimator>,
+}
+
+/// How the points of a cell make its height in the depth map, the finishing target.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum CellEstimator {
+    /// The highest point: never below the measured surface, but about two standard deviations of
+    /// the scanner's noise above it.
+    Max,
+    /// The median point: unbiased under symmetric noise; the roughing map still comes from the max.
+    Median,
 }
 
 /// A face to cut from above: exactly one of a named view, an angle about the machine's A axis,
