@@ -633,29 +633,42 @@ fn rasterize_keys(
     }
 }
 
+/// The number of cells of a valid grid, as an index.
+fn checked_cells(grid: &HeightMapMeta) -> Result<usize> {
+    grid.validate()?;
+    Ok(usize::try_from(grid.cell_count()).map_err(|_| GeometryError::TooManyCells {
+        width: u64::from(grid.width),
+        height: u64::from(grid.height),
+        limit: usize::MAX as u64,
+    })?)
+}
+
+impl RasterStats {
+    /// The stats of `points_in` points of which `binned` fell into a cell and `non_finite` were
+    /// not finite (the rest fell outside).
+    fn of(points_in: usize, binned: usize, non_finite: usize) -> Self {
+        RasterStats {
+            points_in,
+            points_binned: binned,
+            points_outside: points_in - binned - non_finite,
+            non_finite,
+        }
+    }
+}
+
 fn rasterize_with(
     points: &[Point3<f64>],
     grid: &HeightMapMeta,
     strategy: Option<Strategy>,
 ) -> Result<(HeightMap, RasterStats)> {
-    grid.validate()?;
-    let cells = usize::try_from(grid.cell_count()).map_err(|_| GeometryError::TooManyCells {
-        width: u64::from(grid.width),
-        height: u64::from(grid.height),
-        limit: usize::MAX as u64,
-    })?;
+    let cells = checked_cells(grid)?;
     let bins = Binner::new(grid);
     let strategy = strategy.unwrap_or_else(|| choose_strategy(points, &bins, cells));
     let (mut bits, (binned, non_finite)) = rasterize_keys(points, &bins, cells, strategy);
     bits.truncate(cells);
     // Same size and alignment: the collect reuses the allocation.
     let data: Vec<f32> = bits.into_iter().map(f32::from_bits).collect();
-    let stats = RasterStats {
-        points_in: points.len(),
-        points_binned: binned,
-        points_outside: points.len() - binned - non_finite,
-        non_finite,
-    };
+    let stats = RasterStats::of(points.len(), binned, non_finite);
     Ok((HeightMap::new(*grid, data)?, stats))
 }
 
@@ -691,12 +704,7 @@ pub fn try_rasterize_max(points: &[Point3<f64>], grid: &HeightMapMeta) -> Result
 /// (`O(points + cells)` memory: 4 bytes a point and 8 a cell) and a selection per cell, in
 /// parallel over cells.
 pub fn rasterize_median(points: &[Point3<f64>], grid: &HeightMapMeta) -> Result<(HeightMap, RasterStats)> {
-    grid.validate()?;
-    let cells = usize::try_from(grid.cell_count()).map_err(|_| GeometryError::TooManyCells {
-        width: u64::from(grid.width),
-        height: u64::from(grid.height),
-        limit: usize::MAX as u64,
-    })?;
+    let cells = checked_cells(grid)?;
     let bins = Binner::new(grid);
     // Cell of every point (`bins.dummy` when it is not binned), in parallel blocks.
     let mut index = vec![bins.dummy; points.len()];
@@ -738,12 +746,7 @@ pub fn rasterize_median(points: &[Point3<f64>], grid: &HeightMapMeta) -> Result<
         rest = tail;
     }
     let data: Vec<f32> = runs.into_par_iter().map(median_of).collect();
-    let stats = RasterStats {
-        points_in: points.len(),
-        points_binned: binned,
-        points_outside: points.len() - binned - non_finite,
-        non_finite,
-    };
+    let stats = RasterStats::of(points.len(), binned, non_finite);
     Ok((HeightMap::new(*grid, data)?, stats))
 }
 
