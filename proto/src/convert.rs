@@ -24,6 +24,19 @@ impl From<pb::ArtifactRef> for depthmill_geometry::ArtifactRef {
     }
 }
 
+/// Wire units (`LengthUnit`, an `i32` on the wire) as the units to read an input in; `Err(v)` for
+/// a value the enum does not have.
+pub fn units(v: i32) -> Result<depthmill_geometry::Units, i32> {
+    use depthmill_geometry::{LengthUnit, Units};
+    match pb::LengthUnit::try_from(v) {
+        Ok(pb::LengthUnit::Unspecified) => Ok(Units::Auto),
+        Ok(pb::LengthUnit::Mm) => Ok(Units::Given(LengthUnit::Millimetre)),
+        Ok(pb::LengthUnit::M) => Ok(Units::Given(LengthUnit::Metre)),
+        Ok(pb::LengthUnit::In) => Ok(Units::Given(LengthUnit::Inch)),
+        Err(_) => Err(v),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -36,5 +49,13 @@ mod tests {
         assert_eq!(m[3], [12.0, 13.0, 14.0, 15.0]);
         assert_eq!(matrix4_row_major(&[]), Ok(None));
         assert_eq!(matrix4_row_major(&[1.0; 9]), Err(9));
+    }
+
+    #[test]
+    fn wire_units() {
+        use depthmill_geometry::{LengthUnit, Units};
+        assert_eq!(units(0), Ok(Units::Auto));
+        assert_eq!(units(pb::LengthUnit::In as i32), Ok(Units::Given(LengthUnit::Inch)));
+        assert_eq!(units(9), Err(9));
     }
 }

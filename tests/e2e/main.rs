@@ -7,6 +7,7 @@ mod jobs;
 mod layering;
 mod machine;
 mod metrics;
+mod parts;
 mod plan;
 mod reconstruct;
 mod recovery;

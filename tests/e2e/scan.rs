@@ -20,13 +20,18 @@ pub(crate) fn dome(x: f64, y: f64) -> f64 {
 }
 
 pub(crate) fn dome_stl() -> Vec<u8> {
+    dome_stl_in(1.0, "e2e dome")
+}
+
+/// The dome with every coordinate multiplied by `scale` (a file in other units), STL header `header`.
+fn dome_stl_in(scale: f64, header: &str) -> Vec<u8> {
     let n = 81;
     let mut vertices = Vec::new();
     for j in 0..n {
         for i in 0..n {
             let x = -15.0 + 30.0 * i as f64 / (n - 1) as f64;
             let y = -15.0 + 30.0 * j as f64 / (n - 1) as f64;
-            vertices.push(nalgebra::Point3::new(x, y, dome(x, y)));
+            vertices.push(nalgebra::Point3::new(x, y, dome(x, y)) * scale);
         }
     }
     let mut triangles = Vec::new();
@@ -38,7 +43,7 @@ pub(crate) fn dome_stl() -> Vec<u8> {
         }
     }
     let mut bytes = Vec::new();
-    depthmill_geometry::formats::write_stl(&mut bytes, &Mesh { vertices, triangles }, "e2e dome")
+    depthmill_geometry::formats::write_stl(&mut bytes, &Mesh { vertices, triangles }, header)
         .expect("writing to memory");
     bytes
 }
@@ -138,6 +143,61 @@ async fn a_mesh_job_is_scanned_into_a_cloud_on_the_part_and_goes_on_to_reconstru
     );
     // Max-Z binning keeps the highest of a cell's samples: about +2σ of the noise on a 0.3 mm pixel.
     assert!(median < 0.1 && p99 < 0.25, "median {median} p99 {p99}");
+    stack.shutdown().await
+}
+
+/// Median |depth map - dome| over the dome's inner cells, mm.
+fn median_error_against_dome(png: Vec<u8>) -> anyhow::Result<f64> {
+    let map = depthmill_geometry::read_png_from(Cursor::new(png), None)?;
+    let meta = *map.meta();
+    let mut errs = Vec::new();
+    for row in 0..meta.height {
+        for col in 0..meta.width {
+            let (x, y) = meta.cell_center(col, row);
+            let z = map.get(col, row).unwrap_or(f32::NAN);
+            if x.abs() < 13.0 && y.abs() < 13.0 && z.is_finite() {
+                errs.push((f64::from(z) - dome(x, y)).abs());
+            }
+        }
+    }
+    anyhow::ensure!(errs.len() > 100, "only {} cells on the dome", errs.len());
+    errs.sort_by(f64::total_cmp);
+    Ok(errs[errs.len() / 2])
+}
+
+#[tokio::test]
+async fn meshes_in_metres_and_inches_are_scanned_in_millimetres() -> anyhow::Result<()> {
+    let stack = scripted_stack().await?;
+    // In metres with nothing saying so (read from its size); in inches named by the job; in
+    // inches named by the STL header.
+    let cases = [
+        (dome_stl_in(0.001, "e2e dome"), None, "m", "size"),
+        (dome_stl_in(1.0 / 25.4, "e2e dome"), Some("in"), "in", "given"),
+        (dome_stl_in(1.0 / 25.4, "e2e dome, units: inch"), None, "in", "header"),
+    ];
+    for (stl, units, want_unit, want_source) in cases {
+        let sha = stack.upload("model/stl", stl).await?;
+        let mut job = quick_job(&sha, "dynamic");
+        if let Some(u) = units {
+            job["input"]["units"] = json!(u);
+        }
+        let (status, created) = stack.post_job(&job, None).await?;
+        assert_eq!(status, 201, "{created}");
+        let done = stack.wait_for_end(created["id"].as_str().expect("id"), Duration::from_secs(300)).await?;
+        assert_eq!(done["status"], "succeeded", "{done}");
+        let report: serde_json::Value = serde_json::from_slice(&fetch(&stack, &done, "scan_report").await?)?;
+        assert_eq!(report["units"]["unit"], want_unit, "{}", report["units"]);
+        assert_eq!(report["units"]["source"], want_source, "{}", report["units"]);
+        let median = median_error_against_dome(fetch(&stack, &done, "depth_map").await?)?;
+        println!("dome in {want_unit} ({want_source}): depth map vs the dome in mm, median {median:.4} mm");
+        assert!(median < 0.1, "median {median}");
+    }
+    // Units are for meshes and clouds only.
+    let sha = stack.upload("text/x-gcode", b"G0 X0\nM30\n".to_vec()).await?;
+    let (status, body) =
+        stack.post_job(&json!({"input": {"kind": "gcode", "artifact": sha, "units": "in"}}), None).await?;
+    assert_eq!(status, 400, "{body}");
+    assert_eq!(body["error"]["field"], "input.units", "{body}");
     stack.shutdown().await
 }
 

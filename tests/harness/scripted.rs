@@ -135,6 +135,15 @@ type Updates = tokio_stream::wrappers::ReceiverStream<Result<pb::ExecuteProgramU
 impl MachineService for Scripted {
     type ExecuteProgramStream = Updates;
 
+    /// A scripted machine has no profiles to check against: it answers as a service that predates
+    /// the call, so the orchestrator leaves the check to the stage.
+    async fn validate_params(
+        &self,
+        _request: Request<pb::ValidateExecuteRequest>,
+    ) -> Result<Response<depthmill_proto::types::v1::ValidateParamsResponse>, Status> {
+        Err(Status::unimplemented("scripted machine: no parameter check"))
+    }
+
     async fn execute_program(
         &self,
         request: Request<pb::ExecuteProgramRequest>,

@@ -52,21 +52,34 @@ pub struct Submit {
     pub pixel_mm: Option<f64>,
     pub z_min_mm: Option<f64>,
     pub z_max_mm: Option<f64>,
+    pub units: Option<String>,
     pub idempotency_key: Option<String>,
 }
 
-/// Kind and media type of an input file, by extension.
-fn classify(path: &Path) -> Option<(&'static str, &'static str)> {
+/// Kind and media type of an input file, by extension; a PLY file is a mesh when its header
+/// declares faces, a point cloud otherwise.
+pub fn classify(path: &Path) -> Option<(&'static str, &'static str)> {
     let ext = path.extension()?.to_str()?.to_ascii_lowercase();
     Some(match ext.as_str() {
         "stl" => ("mesh", "model/stl"),
         "xyz" | "txt" | "asc" => ("point_cloud", "text/x-xyz"),
+        "ply" if ply_has_faces(path) => ("mesh", "application/x-ply"),
         "ply" => ("point_cloud", "application/x-ply"),
         "png" => ("depth_map", "image/png"),
         "npy" => ("depth_map", "application/x-npy"),
         "ngc" | "nc" | "gcode" | "tap" | "cnc" => ("gcode", "text/x-gcode"),
         _ => return None,
     })
+}
+
+/// True when the PLY header of `path` declares a non-empty `face` element.
+fn ply_has_faces(path: &Path) -> bool {
+    let Ok(head) = depthmill_geometry::units::read_head(path) else { return false };
+    let text = String::from_utf8_lossy(&head);
+    text.lines()
+        .take_while(|l| l.trim() != "end_header")
+        .filter_map(|l| l.trim().strip_prefix("element face "))
+        .any(|n| n.trim().parse::<u64>().is_ok_and(|n| n > 0))
 }
 
 pub async fn submit(server: &Server, s: Submit) -> anyhow::Result<String> {
@@ -108,6 +121,9 @@ pub async fn submit(server: &Server, s: Submit) -> anyhow::Result<String> {
         if let Some(v) = v {
             input[k] = serde_json::json!(v);
         }
+    }
+    if let Some(u) = &s.units {
+        input["units"] = serde_json::json!(u);
     }
     obj.insert("input".into(), input);
     let name = s

@@ -25,6 +25,13 @@ pub struct DemoArgs {
     /// Replace the job's sections with those of this JSON file (a job request without `input`).
     #[arg(long)]
     pub options: Option<PathBuf>,
+    /// Make this part (STL, or PLY with faces) instead of the sample relief. The job is the
+    /// demo's with the stock sized from the part (unless --options gives one).
+    #[arg(long)]
+    pub part: Option<PathBuf>,
+    /// Length unit of --part: auto (default), mm, m or in.
+    #[arg(long, requires = "part")]
+    pub units: Option<String>,
 }
 
 /// The demo job, minus its input.
@@ -64,12 +71,49 @@ pub async fn run(args: &DemoArgs) -> anyhow::Result<()> {
     let data_dir = args.data_dir.clone().unwrap_or_else(|| out.join("data"));
 
     // The part.
-    let mesh = depthmill_scanning::domain::sample::sample_relief(0.25);
-    let mut stl = Vec::new();
-    depthmill_geometry::formats::write_stl(&mut stl, &mesh, depthmill_scanning::domain::sample::STL_HEADER)?;
-    let part_path = out.join("part.stl");
-    std::fs::write(&part_path, &stl).with_context(|| format!("writing {}", part_path.display()))?;
-    println!("part: {} ({} triangles, 80 x 60 mm relief)", part_path.display(), mesh.triangles.len());
+    let part = match &args.part {
+        Some(path) => {
+            let (kind, media_type) =
+                crate::client::classify(path).filter(|(kind, _)| *kind == "mesh").with_context(|| {
+                    format!("{}: --part takes a mesh (.stl, or .ply with faces)", path.display())
+                })?;
+            debug_assert_eq!(kind, "mesh");
+            let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+            let (geometry, stats) = depthmill_geometry::formats::read_any_from(
+                std::io::Cursor::new(&bytes),
+                &path.display().to_string(),
+                Some(bytes.len() as u64),
+                &depthmill_geometry::formats::ReadLimits::default(),
+            )?;
+            let extent = match &geometry {
+                depthmill_geometry::formats::Geometry::Mesh(m) => m.bounds().map(|b| b.extent()),
+                depthmill_geometry::formats::Geometry::Cloud(_) => None,
+            }
+            .with_context(|| format!("{}: holds no triangles", path.display()))?;
+            println!(
+                "part: {} ({} triangles, {:.3} x {:.3} x {:.3} in its units)",
+                path.display(),
+                stats.triangles,
+                extent.x,
+                extent.y,
+                extent.z
+            );
+            Part { bytes, media_type, name: path.file_stem().map(|s| s.to_string_lossy().into_owned()) }
+        }
+        None => {
+            let mesh = depthmill_scanning::domain::sample::sample_relief(0.25);
+            let mut stl = Vec::new();
+            depthmill_geometry::formats::write_stl(
+                &mut stl,
+                &mesh,
+                depthmill_scanning::domain::sample::STL_HEADER,
+            )?;
+            let part_path = out.join("part.stl");
+            std::fs::write(&part_path, &stl).with_context(|| format!("writing {}", part_path.display()))?;
+            println!("part: {} ({} triangles, 80 x 60 mm relief)", part_path.display(), mesh.triangles.len());
+            Part { bytes: stl, media_type: "model/stl", name: None }
+        }
+    };
 
     // The stack.
     let stack =
@@ -77,7 +121,7 @@ pub async fn run(args: &DemoArgs) -> anyhow::Result<()> {
             .await?;
     let base = format!("http://{}", stack.rest_addr);
     println!("stack: REST on {base}, data in {}", data_dir.display());
-    let result = drive(&base, stl, args, out).await;
+    let result = drive(&base, part, args, out).await;
     stack.stop().await.context("stopping the stack")?;
     let summary = result?;
     println!("{summary}");
@@ -91,13 +135,31 @@ fn scan_table_wait(out: &Path) -> Option<f64> {
     serde_json::from_str::<Value>(&text).ok()?["table_wait_s"].as_f64()
 }
 
+/// The part the demo makes: its file's bytes and media type, and its name when not the sample.
+struct Part {
+    bytes: Vec<u8>,
+    media_type: &'static str,
+    name: Option<String>,
+}
+
+/// The demo job for a part of the user's: the sample's sections with the stock sized from the
+/// part (its top at the part's highest point, the CAM's default) instead of the sample's 13 mm.
+pub fn part_job(name: &str) -> Value {
+    let mut job = demo_job();
+    job["name"] = json!(format!("demo: {name}"));
+    if let Some(stock) = job["plan"]["stock"].as_object_mut() {
+        stock.remove("z_mm");
+    }
+    job
+}
+
 /// Uploads, submits, follows and collects; returns the closing summary.
-async fn drive(base: &str, stl: Vec<u8>, args: &DemoArgs, out: &Path) -> anyhow::Result<String> {
+async fn drive(base: &str, part: Part, args: &DemoArgs, out: &Path) -> anyhow::Result<String> {
     let client = http()?;
     let up = client
         .post(format!("{base}/v1/artifacts"))
-        .header("content-type", "model/stl")
-        .body(stl)
+        .header("content-type", part.media_type)
+        .body(part.bytes)
         .send()
         .await
         .context("uploading the part")?;
@@ -108,9 +170,15 @@ async fn drive(base: &str, stl: Vec<u8>, args: &DemoArgs, out: &Path) -> anyhow:
             let text = std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
             serde_json::from_str::<Value>(&text).with_context(|| format!("{}: not JSON", p.display()))?
         }
-        None => demo_job(),
+        None => match &part.name {
+            Some(name) => part_job(name),
+            None => demo_job(),
+        },
     };
     job["input"] = json!({"kind": "mesh", "artifact": sha});
+    if let Some(u) = &args.units {
+        job["input"]["units"] = json!(u);
+    }
     std::fs::write(out.join("job-request.json"), serde_json::to_vec_pretty(&job)?)?;
     let created =
         json_of(client.post(format!("{base}/v1/jobs")).json(&job).send().await?, "submitting the job")

@@ -72,6 +72,10 @@ enum Command {
         z_min_mm: Option<f64>,
         #[arg(long)]
         z_max_mm: Option<f64>,
+        /// Length unit of a mesh or point cloud: auto (default; the header, else metres under 2
+        /// units across, else mm), mm, m or in.
+        #[arg(long)]
+        units: Option<String>,
         /// Repeat-safe submission: the same key returns the same job.
         #[arg(long)]
         idempotency_key: Option<String>,
@@ -206,6 +210,7 @@ fn main() -> anyhow::Result<()> {
                 pixel_mm,
                 z_min_mm,
                 z_max_mm,
+                units,
                 idempotency_key,
                 server,
             } => {
@@ -217,6 +222,7 @@ fn main() -> anyhow::Result<()> {
                     pixel_mm,
                     z_min_mm,
                     z_max_mm,
+                    units,
                     idempotency_key,
                 };
                 let id = client::submit(&server, submit).await?;

@@ -79,6 +79,13 @@ impl PointCloud {
         Some(it.fold(Aabb { min: first, max: first }, |b, p| Aabb { min: b.min.inf(p), max: b.max.sup(p) }))
     }
 
+    /// Multiplies every coordinate by `factor` (a change of units); normals are unchanged.
+    pub fn scale(&mut self, factor: f64) {
+        for p in &mut self.points {
+            p.coords *= factor;
+        }
+    }
+
     /// Maps every point by `iso` (`p ↦ iso · p`) and rotates the normals by its rotation, in place.
     /// Use it to change frames: with `iso = b_from_a`, a cloud in frame `a` ends up in frame `b`.
     pub fn transform(&mut self, iso: &Isometry3<f64>) {

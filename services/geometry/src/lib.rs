@@ -27,6 +27,7 @@
 //! - [`pose`]: [`Pose`], [`XyzYpr`] (ZYX angles), [`Face::view_from_part`].
 //! - [`tool`]: [`ToolProfile`] (solid of revolution) and [`ToolSpec`] (`ball-6`, `v-6-90`, ...).
 //! - [`artifact`]: [`ArtifactRef`] and [`MediaType`].
+//! - [`units`]: [`LengthUnit`], [`Units`] (given or detected from the header and the size).
 
 pub mod artifact;
 pub mod cloud;
@@ -42,6 +43,7 @@ pub mod png_io;
 pub mod pose;
 pub mod raster;
 pub mod tool;
+pub mod units;
 
 pub use artifact::{ArtifactRef, MediaType};
 pub use cloud::{Aabb, PointCloud};
@@ -56,6 +58,7 @@ pub use png_io::{ImageMapping, PngDepth, read_png, read_png_from, write_png, wri
 pub use pose::{Pose, XyzYpr};
 pub use raster::RasterError;
 pub use tool::{ToolProfile, ToolSpec};
+pub use units::{LengthUnit, Units, UnitsDecision};
 
 /// The nalgebra version this crate's types use, re-exported so callers match it.
 pub use nalgebra;

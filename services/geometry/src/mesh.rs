@@ -39,6 +39,13 @@ impl Mesh {
         Some(it.fold(Aabb { min: first, max: first }, |b, p| Aabb { min: b.min.inf(p), max: b.max.sup(p) }))
     }
 
+    /// Multiplies every coordinate by `factor` (a change of units).
+    pub fn scale(&mut self, factor: f64) {
+        for p in &mut self.vertices {
+            p.coords *= factor;
+        }
+    }
+
     /// Maps every vertex by `iso`.
     pub fn transform(&mut self, iso: &Isometry3<f64>) {
         for p in &mut self.vertices {

@@ -116,6 +116,40 @@ fn options(p: pb::ExecuteParams) -> Result<ExecuteOptions, Status> {
     })
 }
 
+/// The problems of a job's execute section and, when its size is given, of the part against the
+/// machine's travel; empty when the job can run here.
+pub(crate) fn check_params(req: pb::ValidateExecuteRequest) -> Vec<pb_types::FieldViolation> {
+    let violation = |field: &str, message: String| pb_types::FieldViolation { field: field.into(), message };
+    let opts = match options(req.params.unwrap_or_default()) {
+        Ok(o) => o,
+        Err(status) => return vec![violation("execute", status.message().into())],
+    };
+    let mut out = Vec::new();
+    if let Some(m) = &opts.material
+        && crate::domain::cutting::material(m).is_none()
+    {
+        let known: Vec<String> = crate::domain::cutting::materials().into_iter().map(|m| m.name).collect();
+        out.push(violation(
+            "execute.material",
+            format!("unknown material \"{m}\"; expected one of {}", known.join(", ")),
+        ));
+    }
+    match crate::domain::profile::MachineProfile::by_name_or_file(&opts.machine) {
+        Err(e) => out.push(violation("execute.machine", e.to_string())),
+        Ok(profile) => {
+            if let Some(size) = req.part_size_mm {
+                let size = [size.x, size.y, size.z];
+                if size.iter().any(|v| !v.is_finite() || *v < 0.0) {
+                    out.push(violation("input", format!("part size {size:?} mm is not a size")));
+                } else if let Err(e) = profile.check_part_fits(size) {
+                    out.push(violation("input", e));
+                }
+            }
+        }
+    }
+    out
+}
+
 fn status_msg(shared: &Shared) -> pb::MachineStatus {
     let s = shared.state.lock().map(|s| s.clone()).unwrap_or_default();
     pb::MachineStatus {
@@ -376,6 +410,13 @@ impl pb::machine_service_server::MachineService for MachineServiceImpl {
     ) -> Result<Response<CancelStageResponse>, Status> {
         let found = self.running.cancel(&request.get_ref().job_id);
         Ok(Response::new(CancelStageResponse { found }))
+    }
+
+    async fn validate_params(
+        &self,
+        request: Request<pb::ValidateExecuteRequest>,
+    ) -> Result<Response<pb_types::ValidateParamsResponse>, Status> {
+        Ok(Response::new(pb_types::ValidateParamsResponse { violations: check_params(request.into_inner()) }))
     }
 
     async fn get_status(

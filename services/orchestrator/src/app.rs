@@ -10,7 +10,9 @@ use depthmill_proto::ErrorCode;
 use tokio::io::AsyncRead;
 use tokio::sync::mpsc;
 
+use crate::domain::spec::InputUnits;
 use crate::domain::{Job, JobSpec, JobStatus, SpecError};
+use depthmill_geometry::{LengthUnit, Units};
 
 /// Largest artifact read into a report (a cloud of about 20 million points).
 pub const REPORT_ARTIFACT_LIMIT: u64 = 512 << 20;
@@ -152,6 +154,11 @@ impl App {
                 ),
             ));
         }
+        // A mesh is read now: a file that cannot be read or a part the machine cannot hold is
+        // refused before the job exists.
+        if let Some(size) = self.part_size_mm(&spec).await? {
+            self.stages.check_part(&spec, size).await?;
+        }
         let new = NewJob { id: uuid::Uuid::now_v7().to_string(), spec, idempotency_key, now_ms: now_ms() };
         let created = self.store.create(new).await?;
         let (mut job, is_new) = match created {
@@ -165,6 +172,61 @@ impl App {
             self.events.work_available();
         }
         Ok((job, is_new))
+    }
+
+    /// The size of a mesh input in millimetres (its units decided as the scan will), as the
+    /// machine sees it: as it lies for a job with one `+Z` face, its bounding cylinder about X
+    /// (length, diameter, diameter) when the job turns the A axis. `None` for other inputs. A mesh
+    /// that cannot be read is refused here, naming the file's problem.
+    async fn part_size_mm(&self, spec: &JobSpec) -> Result<Option<[f64; 3]>, ApiError> {
+        if spec.input.kind != crate::domain::spec::InputKind::Mesh {
+            return Ok(None);
+        }
+        let Some(path) = self.artifacts.local_path(&spec.input.artifact) else { return Ok(None) };
+        let units = match spec.input.units {
+            None | Some(InputUnits::Auto) => Units::Auto,
+            Some(InputUnits::Mm) => Units::Given(LengthUnit::Millimetre),
+            Some(InputUnits::M) => Units::Given(LengthUnit::Metre),
+            Some(InputUnits::In) => Units::Given(LengthUnit::Inch),
+        };
+        let name = format!("mesh {}", &spec.input.artifact[..12.min(spec.input.artifact.len())]);
+        let read = tokio::task::spawn_blocking(move || {
+            use depthmill_geometry::formats::{ReadLimits, read_any_from};
+            let file = std::fs::File::open(&path).map_err(|e| format!("{name}: cannot open: {e}"))?;
+            let size = file.metadata().ok().map(|m| m.len());
+            let (mut geometry, _) = read_any_from(
+                std::io::BufReader::with_capacity(1 << 20, file),
+                &name,
+                size,
+                &ReadLimits::default(),
+            )
+            .map_err(|e| e.to_string())?;
+            let head = depthmill_geometry::units::read_head(&path).map_err(|e| format!("{name}: {e}"))?;
+            depthmill_geometry::units::normalise(&mut geometry, &head, units);
+            let bounds = match &geometry {
+                depthmill_geometry::formats::Geometry::Mesh(m) => m.bounds(),
+                depthmill_geometry::formats::Geometry::Cloud(_) => {
+                    return Err(format!(
+                        "{name}: is a point cloud without faces; submit it as kind point_cloud"
+                    ));
+                }
+            };
+            bounds.map(|b| b.extent()).ok_or_else(|| format!("{name}: has no triangles"))
+        })
+        .await
+        .map_err(|e| ApiError::new(ErrorCode::Internal, format!("reading the mesh failed: {e}")))?;
+        let e = read.map_err(|m| ApiError::field(ErrorCode::InvalidArgument, "input.artifact", m))?;
+        let turns = spec.reconstruct.as_ref().and_then(|r| r.faces.as_ref()).is_some_and(|f| {
+            f.iter().any(|f| {
+                f.a_deg.is_some() || f.normal.is_some() || f.view.as_deref().is_some_and(|v| v != "+Z")
+            })
+        });
+        Ok(Some(if turns {
+            let d = e.y.hypot(e.z);
+            [e.x, d, d]
+        } else {
+            [e.x, e.y, e.z]
+        }))
     }
 
     /// Adds the input artifact's reference to a job's artifacts.

@@ -6,11 +6,12 @@ use depthmill_proto::machine::v1 as machine;
 use depthmill_proto::orchestrator::v1 as pb;
 use depthmill_proto::reconstruction::v1 as rec;
 use depthmill_proto::scanning::v1 as scan;
+use depthmill_proto::types::v1 as types;
 
 use crate::domain::spec::{
     AdaptiveMode, CellEstimator, Dialect, ExecuteParams, FaceSpec, FillMethod, FillParams, Filters,
-    Finishing, FinishingStrategy, InputKind, IntensityWindow, JobInput, Obstacle, PlanParams, RadiusFilter,
-    ReconstructParams, Roi, Roughing, RoughingDirection, ScanMode, ScanParams, ScanPassSpec,
+    Finishing, FinishingStrategy, InputKind, InputUnits, IntensityWindow, JobInput, Obstacle, PlanParams,
+    RadiusFilter, ReconstructParams, Roi, Roughing, RoughingDirection, ScanMode, ScanParams, ScanPassSpec,
     StatisticalFilter, Stock,
 };
 use crate::domain::{Job, JobSpec, JobStatus, SpecError, Stage};
@@ -245,6 +246,16 @@ pub fn execute_params_for_job(spec: &JobSpec) -> machine::ExecuteParams {
     p
 }
 
+/// The wire unit of a job's input (`auto` and none are both unspecified on the wire).
+pub fn input_units(u: Option<InputUnits>) -> types::LengthUnit {
+    match u {
+        None | Some(InputUnits::Auto) => types::LengthUnit::Unspecified,
+        Some(InputUnits::Mm) => types::LengthUnit::Mm,
+        Some(InputUnits::M) => types::LengthUnit::M,
+        Some(InputUnits::In) => types::LengthUnit::In,
+    }
+}
+
 pub fn input_kind(k: InputKind) -> pb::InputKind {
     match k {
         InputKind::Mesh => pb::InputKind::Mesh,
@@ -263,6 +274,7 @@ pub fn job_spec(s: &JobSpec) -> pb::JobSpec {
             pixel_mm: s.input.pixel_mm,
             z_min_mm: s.input.z_min_mm,
             z_max_mm: s.input.z_max_mm,
+            units: input_units(s.input.units) as i32,
         }),
         scan: s.scan.as_ref().map(scan_params),
         reconstruct: s.reconstruct.as_ref().map(reconstruct_params),
@@ -590,6 +602,12 @@ pub fn job_spec_from_pb(s: pb::JobSpec) -> Result<JobSpec, SpecError> {
             })
         })
         .transpose()?;
+    let units = match enum_value::<types::LengthUnit>("input.units", input.units)? {
+        types::LengthUnit::Unspecified => None,
+        types::LengthUnit::Mm => Some(InputUnits::Mm),
+        types::LengthUnit::M => Some(InputUnits::M),
+        types::LengthUnit::In => Some(InputUnits::In),
+    };
     Ok(JobSpec {
         name: s.name,
         input: JobInput {
@@ -598,6 +616,7 @@ pub fn job_spec_from_pb(s: pb::JobSpec) -> Result<JobSpec, SpecError> {
             pixel_mm: input.pixel_mm,
             z_min_mm: input.z_min_mm,
             z_max_mm: input.z_max_mm,
+            units,
         },
         scan,
         reconstruct,

@@ -77,8 +77,12 @@ pub trait StageRunner: Send + Sync + 'static {
     /// section). `Err` names the first field a service refuses. A service that cannot be asked
     /// (not configured, down, slow past [`CHECK_PARAMS_TIMEOUT`], or too old to know the call)
     /// is skipped: the stage checks the same values when it starts, before any work, and fails
-    /// the job naming the field.
+    /// the job naming the field. The machine service checks the `execute` section.
     async fn check_params(&self, spec: &JobSpec) -> Result<(), SpecError>;
+    /// Asks the machine service whether a part of `part_size_mm` (mm) fits the travel of the
+    /// job's machine; `Err` with field `input` and both sizes when it does not. Skipped like
+    /// [`StageRunner::check_params`] when the service cannot be asked.
+    async fn check_part(&self, spec: &JobSpec, part_size_mm: [f64; 3]) -> Result<(), SpecError>;
 }
 
 /// The first violation of a `ValidateParams` answer, or `Ok` when the service could not be asked.
@@ -251,6 +255,20 @@ async fn drain<U, R>(
     }
 }
 
+impl GrpcStages {
+    /// The machine service's `ValidateParams` on the job's execute section and the part's size.
+    async fn ask_machine(&self, spec: &JobSpec, part_size_mm: Option<[f64; 3]>) -> Result<(), SpecError> {
+        let Some(ch) = &self.machine else { return Ok(()) };
+        let mut client = machine::machine_service_client::MachineServiceClient::new(ch.clone());
+        let msg = machine::ValidateExecuteRequest {
+            params: Some(convert::execute_params_for_job(spec)),
+            part_size_mm: part_size_mm.map(|[x, y, z]| types::Vec3 { x, y, z }),
+        };
+        let answer = client.validate_params(request(msg, CHECK_PARAMS_TIMEOUT)).await;
+        first_violation("machine", answer)
+    }
+}
+
 #[async_trait::async_trait]
 impl StageRunner for GrpcStages {
     async fn check_params(&self, spec: &JobSpec) -> Result<(), SpecError> {
@@ -265,7 +283,14 @@ impl StageRunner for GrpcStages {
                 client.validate_params(request(convert::reconstruct_params(p), CHECK_PARAMS_TIMEOUT)).await;
             first_violation("reconstruction", answer)?;
         }
+        if spec.execute.is_some() {
+            self.ask_machine(spec, None).await?;
+        }
         Ok(())
+    }
+
+    async fn check_part(&self, spec: &JobSpec, part_size_mm: [f64; 3]) -> Result<(), SpecError> {
+        self.ask_machine(spec, Some(part_size_mm)).await
     }
 
     async fn run(
@@ -285,6 +310,7 @@ impl StageRunner for GrpcStages {
                         context: context(call),
                         mesh: Some(need(call, "mesh")?),
                         params: Some(convert::scan_params(&call.spec.scan.clone().unwrap_or_default())),
+                        units: convert::input_units(call.spec.input.units) as i32,
                     };
                     let mut client = scan::scanning_service_client::ScanningServiceClient::new(channel);
                     let stream = client.scan_part(request(msg, deadline)).await.map_err(status)?.into_inner();
@@ -309,6 +335,12 @@ impl StageRunner for GrpcStages {
                         params: Some(convert::reconstruct_params(
                             &call.spec.reconstruct.clone().unwrap_or_default(),
                         )),
+                        // The job's own input in its units; a scanned cloud is in millimetres.
+                        units: if call.spec.first_stage() == Stage::Reconstruct {
+                            convert::input_units(call.spec.input.units)
+                        } else {
+                            types::LengthUnit::Mm
+                        } as i32,
                     };
                     let mut client =
                         rec::reconstruction_service_client::ReconstructionServiceClient::new(channel);

@@ -199,6 +199,8 @@ impl pb::reconstruction_service_server::ReconstructionService for Reconstruction
         let input =
             req.input.ok_or_else(|| ErrorCode::InvalidArgument.status("input: an artifact is required"))?;
         let opts = options(req.params.unwrap_or_default())?;
+        let units = depthmill_proto::convert::units(req.units)
+            .map_err(|v| ErrorCode::InvalidArgument.status(format!("input.units: unknown unit {v}")))?;
         // Check the options before reading a possibly large file.
         opts.resolve()?;
         let stat = self.store.stat(&input.sha256).await.map_err(artifact_status)?.ok_or_else(|| {
@@ -221,19 +223,26 @@ impl pb::reconstruction_service_server::ReconstructionService for Reconstruction
                 span.in_scope(|| {
                     let file = std::fs::File::open(&path)
                         .map_err(|source| ReconError::from(FormatError::Io { file: name.clone(), source }))?;
-                    let (geometry, stats) = read_any_from(
+                    let (mut geometry, stats) = read_any_from(
                         BufReader::with_capacity(1 << 20, file),
                         &name,
                         Some(stat.size),
                         &limits,
                     )
                     .map_err(ReconError::from)?;
+                    let head = depthmill_geometry::units::read_head(&path)
+                        .map_err(|source| ReconError::from(FormatError::Io { file: name.clone(), source }))?;
+                    let units = depthmill_geometry::units::normalise(&mut geometry, &head, units);
+                    if let Some(u) = &units {
+                        tracing::info!(unit = %u.unit, source = u.source, "input units");
+                    }
                     tracing::info!(points = stats.points, triangles = stats.triangles, "input read");
                     let progress = move |f: f64, m: &str| {
                         let _ = progress_tx.try_send(Ok(progress_update(0.1 + 0.8 * f, m)));
                     };
                     let cancelled = move || token.is_cancelled();
-                    let out = reconstruct(geometry, &opts, &progress, &cancelled)?;
+                    let mut out = reconstruct(geometry, &opts, &progress, &cancelled)?;
+                    out.report.units = units;
                     // Encode on this thread too; the async side only stores bytes.
                     let mut encoded = Vec::with_capacity(out.faces.len());
                     for f in &out.faces {
@@ -280,6 +289,15 @@ impl pb::reconstruction_service_server::ReconstructionService for Reconstruction
                 let report_json = serde_json::to_vec_pretty(&out.report).unwrap_or_default();
                 let report = store.put_bytes("application/json", &report_json).await?;
                 let mut diagnostics = Vec::new();
+                if let Some(u) = &out.report.units {
+                    diagnostics.push(Diagnostic {
+                        code: "units".into(),
+                        message: format!("input read in {} ({}: {})", u.unit, u.source, u.reason),
+                    });
+                    if let Some(w) = &u.warning {
+                        diagnostics.push(Diagnostic { code: "units_warning".into(), message: w.clone() });
+                    }
+                }
                 if stats.dropped_non_finite > 0 {
                     diagnostics.push(Diagnostic {
                         code: "non_finite_points".into(),

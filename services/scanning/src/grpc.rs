@@ -9,6 +9,7 @@ use std::sync::Arc;
 use depthmill_common::artifacts::{ArtifactStore, LocalStore};
 use depthmill_common::stage::StageRegistry;
 use depthmill_geometry::Mesh;
+use depthmill_geometry::UnitsDecision;
 use depthmill_geometry::formats::{Geometry, PlyEncoding, ReadLimits, read_any_from, write_ply};
 use depthmill_proto::ErrorCode;
 use depthmill_proto::scanning::v1 as pb;
@@ -167,8 +168,11 @@ pub(crate) fn obstacle_from_wire(o: pb::ScanObstacle) -> Result<Obstacle, &'stat
     })
 }
 
-/// Reads the mesh artifact (on a blocking thread).
-async fn read_mesh(cell: &Cell, sha: &str) -> Result<Mesh, Status> {
+/// Reads the mesh artifact (on a blocking thread) and scales it to millimetres (`units`, wire
+/// value of the request).
+async fn read_mesh(cell: &Cell, sha: &str, units: i32) -> Result<(Mesh, Option<UnitsDecision>), Status> {
+    let units = depthmill_proto::convert::units(units)
+        .map_err(|v| ErrorCode::InvalidArgument.status(format!("input.units: unknown unit {v}")))?;
     let stat = cell
         .store
         .stat(sha)
@@ -184,11 +188,14 @@ async fn read_mesh(cell: &Cell, sha: &str) -> Result<Mesh, Status> {
     tokio::task::spawn_blocking(move || {
         let file = std::fs::File::open(&path)
             .map_err(|e| ErrorCode::Internal.status(format!("{name}: cannot open: {e}")))?;
-        let (geometry, _) =
+        let (mut geometry, _) =
             read_any_from(BufReader::with_capacity(1 << 20, file), &name, Some(stat.size), &limits)
                 .map_err(|e| ErrorCode::InvalidArgument.status(e.to_string()))?;
+        let head = depthmill_geometry::units::read_head(&path)
+            .map_err(|e| ErrorCode::Internal.status(format!("{name}: cannot read: {e}")))?;
+        let decision = depthmill_geometry::units::normalise(&mut geometry, &head, units);
         match geometry {
-            Geometry::Mesh(m) => Ok(m),
+            Geometry::Mesh(m) => Ok((m, decision)),
             Geometry::Cloud(_) => Err(ErrorCode::InvalidArgument.status(format!(
                 "{name}: is a point cloud; the simulated scan needs a mesh (STL or PLY with faces)"
             ))),
@@ -216,7 +223,8 @@ pub fn encode_cloud(out: &crate::domain::scan::ScanOutput) -> Result<Vec<u8>, Sc
             out.report.frames,
             out.report.stations.iter().map(|s| s.passes.len()).sum::<usize>()
         ),
-        "frame part (the mesh's coordinates)".to_string(),
+        "frame part (the mesh's coordinates, scaled to millimetres)".to_string(),
+        "units mm".to_string(),
     ];
     write_ply(&mut bytes, &out.cloud, Some(&out.pass), PlyEncoding::BinaryLittleEndian, &comments)
         .map_err(|e| ScanError::Mesh(format!("writing the cloud failed: {e}")))?;
@@ -242,7 +250,7 @@ impl pb::scanning_service_server::ScanningService for ScanningServiceImpl {
             line_rate_hz: opts.line_rate_hz,
             ..Default::default()
         })?;
-        let mesh = read_mesh(&self.cell, &mesh_ref.sha256).await?;
+        let (mesh, units) = read_mesh(&self.cell, &mesh_ref.sha256, req.units).await?;
         let guard = self.running.start(&job_id);
         let (tx, rx) = mpsc::channel(64);
         let cell = self.cell.clone();
@@ -261,8 +269,10 @@ impl pb::scanning_service_server::ScanningService for ScanningServiceImpl {
                 let mut table = TableClient::connect(cell.table_addr.as_str())
                     .await
                     .map_err(|e| Status::from(ScanError::Table(format!("connecting to {}: {e}", cell.table_addr))))?;
-                let out = crate::session::run_scan(mesh, opts, cell.layout, &mut table, progress.clone(), token.clone())
-                    .await?;
+                let mut out =
+                    crate::session::run_scan(mesh, opts, cell.layout, &mut table, progress.clone(), token.clone())
+                        .await?;
+                out.report.units = units;
                 progress(0.97, format!("writing {} points", out.cloud.points.len()));
                 let (out, ply) = tokio::task::spawn_blocking(move || {
                     let ply = encode_cloud(&out);
@@ -290,6 +300,15 @@ impl pb::scanning_service_server::ScanningService for ScanningServiceImpl {
                     .iter()
                     .map(|m| Diagnostic { code: "scan".into(), message: m.clone() })
                     .collect();
+                if let Some(u) = &r.units {
+                    diagnostics.push(Diagnostic {
+                        code: "units".into(),
+                        message: format!("mesh read in {} ({}: {})", u.unit, u.source, u.reason),
+                    });
+                    if let Some(w) = &u.warning {
+                        diagnostics.push(Diagnostic { code: "units_warning".into(), message: w.clone() });
+                    }
+                }
                 diagnostics.push(Diagnostic {
                     code: "dropped_rays".into(),
                     message: format!(
@@ -329,7 +348,7 @@ impl pb::scanning_service_server::ScanningService for ScanningServiceImpl {
         let mesh_ref =
             req.mesh.ok_or_else(|| ErrorCode::InvalidArgument.status("mesh: an artifact is required"))?;
         let opts = options(req.params.unwrap_or_default())?;
-        let mesh = read_mesh(&self.cell, &mesh_ref.sha256).await?;
+        let (mesh, _) = read_mesh(&self.cell, &mesh_ref.sha256, req.units).await?;
         let layout = self.cell.layout;
         let (plan, frames) = tokio::task::spawn_blocking(move || {
             let mut s = ScanSession::new(&mesh, opts, layout)?;

@@ -30,6 +30,11 @@ pub enum ProfileError {
     },
 }
 
+/// Stock kept around a part in X and Y, each side, when checking that it fits the travel, mm.
+pub const PART_MARGIN_MM: f64 = 5.0;
+/// Z travel kept above a part for the tool and its holder when checking that it fits, mm.
+pub const TOOL_ALLOWANCE_MM: f64 = 50.0;
+
 /// Travel of one axis (`min_mm <= max_mm`; for A, degrees, and `min = max = 0` means continuous).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -155,6 +160,49 @@ impl MachineProfile {
             "emco-f1" | "emco_f1" => Self::parse(EMCO_F1_TOML, "emco-f1.toml"),
             _ => Err(ProfileError::Unknown { name: name.to_string(), known: "emco-f1".into() }),
         }
+    }
+
+    /// Checks that a part of `size_mm` (x, y, z) can be machined here as it lies: with
+    /// [`PART_MARGIN_MM`] of stock on every side in X and Y within the X and Y travel, and its
+    /// height plus [`TOOL_ALLOWANCE_MM`] (tool and holder above the part) within the Z travel.
+    /// The error says the part's and the machine's sizes and, when turning the part 90° about Z
+    /// would make it fit, says so.
+    pub fn check_part_fits(&self, size_mm: [f64; 3]) -> Result<(), String> {
+        let travel = [
+            self.axes.x.max_mm - self.axes.x.min_mm,
+            self.axes.y.max_mm - self.axes.y.min_mm,
+            self.axes.z.max_mm - self.axes.z.min_mm,
+        ];
+        let need = [
+            size_mm[0] + 2.0 * PART_MARGIN_MM,
+            size_mm[1] + 2.0 * PART_MARGIN_MM,
+            size_mm[2] + TOOL_ALLOWANCE_MM,
+        ];
+        let over: Vec<&str> = ["X", "Y", "Z"]
+            .into_iter()
+            .zip(need.iter().zip(&travel))
+            .filter(|(_, (n, t))| n > t)
+            .map(|(a, _)| a)
+            .collect();
+        if over.is_empty() {
+            return Ok(());
+        }
+        let turned = need[1] <= travel[0] && need[0] <= travel[1] && need[2] <= travel[2];
+        Err(format!(
+            "the part is {:.1} x {:.1} x {:.1} mm; with {PART_MARGIN_MM} mm of stock around it and {TOOL_ALLOWANCE_MM} mm above it for the tool it needs {:.1} x {:.1} x {:.1} mm of travel, and the {}'s is {:.1} x {:.1} x {:.1} mm (too large in {}){}",
+            size_mm[0],
+            size_mm[1],
+            size_mm[2],
+            need[0],
+            need[1],
+            need[2],
+            self.name,
+            travel[0],
+            travel[1],
+            travel[2],
+            over.join(", "),
+            if turned { "; turned 90° about Z it would fit: rotate the model" } else { "" }
+        ))
     }
 
     /// A shipped profile by name, or a profile file when `name` ends in `.toml`.
@@ -301,6 +349,21 @@ mod tests {
         assert!(p.a_is_continuous());
         assert_eq!(p.tool(2).map(|t| t.name.as_str()), Some("ball-3"));
         assert!(MachineProfile::builtin("haas").is_err());
+    }
+
+    #[test]
+    fn a_part_must_fit_the_travel_with_its_margins() {
+        let p = MachineProfile::builtin("emco-f1").expect("builtin");
+        // 200 x 100 x 200 travel: 190 x 90 x 150 is the largest part.
+        assert!(p.check_part_fits([80.0, 60.0, 12.0]).is_ok());
+        assert!(p.check_part_fits([190.0, 90.0, 150.0]).is_ok());
+        let e = p.check_part_fits([250.0, 80.0, 30.0]).expect_err("too long");
+        assert!(e.contains("250.0 x 80.0 x 30.0 mm") && e.contains("200.0 x 100.0 x 200.0 mm"), "{e}");
+        assert!(e.contains("too large in X") && !e.contains("turned"), "{e}");
+        let e = p.check_part_fits([60.0, 150.0, 30.0]).expect_err("too wide");
+        assert!(e.contains("too large in Y") && e.contains("turned 90°"), "{e}");
+        let e = p.check_part_fits([60.0, 60.0, 151.0]).expect_err("too tall");
+        assert!(e.contains("too large in Z"), "{e}");
     }
 
     #[test]

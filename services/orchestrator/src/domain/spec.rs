@@ -50,6 +50,28 @@ pub struct JobInput {
     /// Z of white in a depth image without depthmill metadata.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub z_max_mm: Option<f64>,
+    /// Length unit of a mesh or point-cloud input (default `auto`: a unit named in the file's
+    /// header, else metres for a model under 2 units across, else millimetres; inches must be
+    /// given or named in the header). The stage's report says what was decided and why.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub units: Option<InputUnits>,
+}
+
+/// Length unit of an input file.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
+pub enum InputUnits {
+    /// Decide from the header and the size.
+    #[serde(rename = "auto")]
+    Auto,
+    /// Millimetres.
+    #[serde(rename = "mm")]
+    Mm,
+    /// Metres.
+    #[serde(rename = "m")]
+    M,
+    /// Inches.
+    #[serde(rename = "in")]
+    In,
 }
 
 /// The kind of a job's input.
@@ -547,6 +569,15 @@ impl JobSpec {
             && input.kind != InputKind::DepthMap
         {
             return Err(err("input.pixel_mm", "pixel size and Z range are for depth-map inputs only"));
+        }
+        if input.units.is_some() && !matches!(input.kind, InputKind::Mesh | InputKind::PointCloud) {
+            return Err(err(
+                "input.units",
+                format!(
+                    "units are for mesh and point_cloud inputs; a {} input is in millimetres",
+                    input.kind.as_str()
+                ),
+            ));
         }
         if let (Some(lo), Some(hi)) = (input.z_min_mm, input.z_max_mm)
             && lo >= hi

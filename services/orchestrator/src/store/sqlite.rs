@@ -523,6 +523,7 @@ mod tests {
                 pixel_mm: None,
                 z_min_mm: None,
                 z_max_mm: None,
+                units: None,
             },
             scan: None,
             reconstruct: None,

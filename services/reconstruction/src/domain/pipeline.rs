@@ -418,6 +418,9 @@ pub struct ReconstructReport {
     pub filters: Vec<FilterReport>,
     pub faces: Vec<FaceStats>,
     pub seconds: f64,
+    /// How the input's units were decided (set by the caller that read the file).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub units: Option<depthmill_geometry::UnitsDecision>,
 }
 
 /// Progress callback: fraction in [0, 1] and a short message.
@@ -513,6 +516,7 @@ pub fn reconstruct(
         filters: filter_reports,
         faces: faces.iter().map(|f| f.stats.clone()).collect(),
         seconds: started.elapsed().as_secs_f64(),
+        units: None,
     };
     Ok(ReconstructOutput { faces, report })
 }

@@ -128,7 +128,7 @@ impl Ctx<'_> {
         };
         let Ok(stock) = self.decode("final_stock") else { return Ok(String::new()) };
         let limits = depthmill_geometry::formats::ReadLimits::default();
-        let mesh = match depthmill_geometry::formats::read_any_from(
+        let mut mesh = match depthmill_geometry::formats::read_any_from(
             std::io::Cursor::new(bytes),
             "mesh",
             Some(bytes.len() as u64),
@@ -140,6 +140,17 @@ impl Ctx<'_> {
                 return Ok(missing(&format!("The original part could not be read to compare with: {e}.")));
             }
         };
+        // The scan read the mesh in its units and scaled it to millimetres (its report says by how much).
+        let scale = self
+            .artifacts
+            .get("scan_report")
+            .and_then(|b| serde_json::from_slice::<serde_json::Value>(b).ok())
+            .and_then(|r| r["units"]["scale_to_mm"].as_f64())
+            .filter(|s| s.is_finite() && *s > 0.0)
+            .unwrap_or(1.0);
+        if scale != 1.0 {
+            mesh.scale(scale);
+        }
         let meta = *stock.map.meta();
         let Ok((part, _)) = depthmill_geometry::mesh_raster::rasterize_mesh_with_stats(&mesh, &meta) else {
             return Ok(String::new());

@@ -294,6 +294,10 @@ pub struct ScanReport {
     pub table_wait_s: f64,
     /// Things worth knowing (skipped rescan passes, slow passes, ...).
     pub diagnostics: Vec<String>,
+    /// How the mesh's units were decided (set by the caller that read the file); the cloud is in
+    /// millimetres, in the mesh's frame scaled to millimetres.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub units: Option<depthmill_geometry::UnitsDecision>,
 }
 
 /// The scan's result: the registered cloud (part frame, with intensity), the pass id of every
@@ -780,6 +784,7 @@ impl ScanSession {
             rescan_targets: self.rescan_targets,
             table_wait_s: self.table_wait_s,
             diagnostics: self.diagnostics,
+            units: None,
         };
         ScanOutput {
             cloud: PointCloud { points: self.points, intensity: Some(self.intensity), normals: None },
