@@ -326,6 +326,9 @@ impl StageRunner for GrpcStages {
                     out.metrics.insert("scan_time_s".into(), r.scan_time_s);
                     out.metrics.insert("scan_coverage_pct".into(), r.coverage_pct);
                     out.metrics.insert("scan_registration_rms_mm".into(), r.registration_rms_mm);
+                    if let Some(pct) = r.silhouette_coverage_pct {
+                        out.metrics.insert("scan_silhouette_coverage_pct".into(), pct);
+                    }
                 }
                 Stage::Reconstruct => {
                     let input = need(call, "point_cloud").or_else(|_| need(call, "mesh"))?;

@@ -372,6 +372,7 @@ impl Worker {
             StageError::new(ErrorCode::Internal, format!("writing the report failed: {what}: {e}"))
         };
         let job = self.app.get_job(id).await.map_err(|e| internal("reading the job", &e.message))?;
+        let html = self.app.render_report(id).await.map_err(|e| internal("rendering", &e.message))?;
         let summary = serde_json::json!({
             "job": job.id,
             "name": job.name,
@@ -380,6 +381,7 @@ impl Worker {
             "artifacts": job.artifacts,
             "metrics": job.metrics,
             "attempts": job.attempts,
+            "figures": html.figures,
         });
         let bytes = serde_json::to_vec_pretty(&summary).map_err(|e| internal("encoding", &e))?;
         let json_ref = self
@@ -388,7 +390,6 @@ impl Worker {
             .put_bytes("application/json", &bytes)
             .await
             .map_err(|e| internal("storing", &e))?;
-        let html = self.app.render_report(id).await.map_err(|e| internal("rendering", &e.message))?;
         let aref = self
             .app
             .artifacts
@@ -396,6 +397,8 @@ impl Worker {
             .await
             .map_err(|e| internal("storing", &e))?;
         let mut out = StageOutputs::default();
+        // The report's own measurements become job metrics (`part_rms_mm`, ...).
+        out.metrics.extend(html.figures);
         out.artifacts.insert("report".into(), aref);
         out.artifacts.insert("report_json".into(), json_ref);
         Ok(out)

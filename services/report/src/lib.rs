@@ -92,6 +92,13 @@ pub struct ReportOutput {
     pub html: String,
     /// The same pictures as files (`depth_map.png`, `telemetry.svg`, ...), for an output folder.
     pub files: Vec<(String, Vec<u8>)>,
+    /// Figures the report measured itself, by name (mm unless the name says otherwise):
+    /// `part_max_gouge_mm`, `part_max_leftover_mm`, `part_mean_leftover_mm`, `part_mean_mm`
+    /// (signed), `part_rms_mm` (the machined part against the original part, when the job
+    /// started from its mesh) and `preview_max_below_mm`, `preview_max_above_mm`,
+    /// `preview_mean_mm`, `preview_rms_mm` (against the CAM's predicted surface, the part opened
+    /// by the tools).
+    pub figures: BTreeMap<String, f64>,
 }
 
 /// Input the report cannot be made from at all. Missing or unreadable artifacts are not errors:
@@ -151,13 +158,14 @@ pub fn render(input: &ReportInput<'_>) -> Result<ReportOutput, ReportError> {
         html::CSS,
         esc(ctx.str_at("id").unwrap_or("?")),
     );
-    Ok(ReportOutput { html, files: ctx.files })
+    Ok(ReportOutput { html, files: ctx.files, figures: ctx.figures })
 }
 
 struct Ctx<'a> {
     job: &'a Value,
     artifacts: &'a BTreeMap<String, Vec<u8>>,
     files: Vec<(String, Vec<u8>)>,
+    figures: BTreeMap<String, f64>,
     fallback: Option<ImageMapping>,
     machine_report: Option<Value>,
     plan_report: Option<Value>,
@@ -178,6 +186,7 @@ impl<'a> Ctx<'a> {
             job: input.job,
             artifacts: input.artifacts,
             files: Vec::new(),
+            figures: BTreeMap::new(),
             fallback,
             machine_report: json("machine_report"),
             plan_report: json("plan_report"),

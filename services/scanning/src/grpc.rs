@@ -326,6 +326,7 @@ impl pb::scanning_service_server::ScanningService for ScanningServiceImpl {
                     report: Some(report_ref.into()),
                     coverage_pct: coverage,
                     registration_rms_mm: r.registration_rms_mm,
+                    silhouette_coverage_pct: r.silhouette.as_ref().map(|s| s.covered_pct),
                 })
             }
             .await;

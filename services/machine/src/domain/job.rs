@@ -264,25 +264,37 @@ fn stock_spec(
     })
 }
 
-/// Moves the work offset in X and Y so the program's extent (`ext`, work frame, widened by the
-/// largest tool radius for arcs) lies centred in the travel, when it does not fit at the
-/// profile's offset. Returns what was done; `None` when the profile's offset is kept (it fits,
-/// or the program is wider than the travel and the run will refuse it naming the line).
+/// Moves the work offset so the program's extent (`ext`, work frame, widened by the largest tool
+/// radius for arcs) lies centred in the travel, when it does not fit at the profile's offset: in
+/// X and Y the feed moves' tip positions; in Z the spindle nose from the lowest feed with the
+/// shortest tool to [`RETRACT_ALLOWANCE_MM`] above the highest feed with the longest (a program in
+/// the coordinates of a part whose model sits far from Z = 0, as an operator touching off on the
+/// stock would). Returns what was done; `None` when the profile's offset is kept (it fits, or the
+/// program is larger than the travel and the run will refuse it naming the line).
 pub fn fit_work_offset(profile: &mut MachineProfile, ext: Extent, radius: f64) -> Option<String> {
     let w = profile.work_offset;
-    let (lo, hi) = ([ext.0[0] - radius, ext.0[1] - radius], [ext.1[0] + radius, ext.1[1] + radius]);
-    let axes = [profile.axes.x, profile.axes.y];
-    let offs = [w.x_mm, w.y_mm];
+    let lengths = profile.tools.iter().map(|t| t.length_mm);
+    let (lmin, lmax) = lengths.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), l| (a.min(l), b.max(l)));
+    let (lmin, lmax) = if lmin.is_finite() { (lmin, lmax) } else { (0.0, 0.0) };
+    // Per axis: the range that must lie in the travel, less the offset.
+    let lo = [ext.0[0] - radius, ext.0[1] - radius, ext.0[2] + lmin];
+    let hi = [ext.1[0] + radius, ext.1[1] + radius, ext.1[2] + RETRACT_ALLOWANCE_MM + lmax];
+    let axes = [profile.axes.x, profile.axes.y, profile.axes.z];
+    let offs = [w.x_mm, w.y_mm, w.z_mm];
     let fits =
         |i: usize, off: f64| axes[i].contains(lo[i] + off, 1e-9) && axes[i].contains(hi[i] + off, 1e-9);
-    if fits(0, offs[0]) && fits(1, offs[1]) {
+    if (0..3).all(|i| fits(i, offs[i])) {
         return None;
     }
     let mut new = offs;
-    for i in 0..2 {
+    for i in 0..3 {
         let centred = 0.5 * (axes[i].min_mm + axes[i].max_mm) - 0.5 * (lo[i] + hi[i]);
         if !fits(i, offs[i]) && fits(i, centred) {
-            new[i] = centred;
+            // Whole machine steps, as an operator's touch-off would be.
+            new[i] = profile.quantise(centred);
+            if !fits(i, new[i]) {
+                new[i] = centred;
+            }
         }
     }
     if new == offs {
@@ -290,11 +302,27 @@ pub fn fit_work_offset(profile: &mut MachineProfile, ext: Extent, radius: f64) -
     }
     profile.work_offset.x_mm = new[0];
     profile.work_offset.y_mm = new[1];
+    profile.work_offset.z_mm = new[2];
     Some(format!(
-        "the program spans X {:.3}..{:.3}, Y {:.3}..{:.3} mm (work frame): work offset G54 set to X {:.3} Y {:.3} (profile: X {:.3} Y {:.3}) so it lies centred in the travel",
-        ext.0[0], ext.1[0], ext.0[1], ext.1[1], new[0], new[1], offs[0], offs[1]
+        "the program spans X {:.3}..{:.3}, Y {:.3}..{:.3}, Z {:.3}..{:.3} mm (work frame): work offset G54 set to X {:.3} Y {:.3} Z {:.3} (profile: X {:.3} Y {:.3} Z {:.3}) so it lies centred in the travel",
+        ext.0[0],
+        ext.1[0],
+        ext.0[1],
+        ext.1[1],
+        ext.0[2],
+        ext.1[2],
+        new[0],
+        new[1],
+        new[2],
+        offs[0],
+        offs[1],
+        offs[2]
     ))
 }
+
+/// Z kept above a program's highest feed move for its rapids and retracts when fitting the work
+/// offset, mm (the CAM retracts 5 mm above the stock).
+pub const RETRACT_ALLOWANCE_MM: f64 = 10.0;
 
 /// Tip extents of the feed moves (work frame), by interpreting the program once.
 fn feed_extent(
@@ -677,8 +705,28 @@ mod tests {
         let (x, y) = (p.axes.x, p.axes.y);
         assert!((p.work_offset.x_mm - 0.5 * (x.min_mm + x.max_mm)).abs() < 1e-9);
         assert!((p.work_offset.y_mm - 0.5 * (y.min_mm + y.max_mm)).abs() < 1e-9);
+        assert_eq!(p.work_offset.z_mm, emco().work_offset.z_mm);
         // Wider than the travel: kept, the run refuses it naming the line.
         let mut p = emco();
         assert_eq!(fit_work_offset(&mut p, ([0.0, -80.0, 0.0], [60.0, 80.0, 10.0]), 3.0), None);
+        // A program in the coordinates of a model far below Z = 0: the Z offset moves so the
+        // spindle nose stays in the travel with every tool, from the lowest feed to the retract.
+        let mut p = emco();
+        let (zlo, zhi) = (-148.0, -80.0);
+        let note = fit_work_offset(&mut p, ([0.0, 0.0, zlo], [60.0, 50.0, zhi]), 3.0).expect("moved in Z");
+        assert!(note.contains("Z"), "{note}");
+        assert_eq!(
+            (p.work_offset.x_mm, p.work_offset.y_mm),
+            (emco().work_offset.x_mm, emco().work_offset.y_mm)
+        );
+        let lens: Vec<f64> = p.tools.iter().map(|t| t.length_mm).collect();
+        let (lmin, lmax) =
+            (lens.iter().copied().fold(f64::INFINITY, f64::min), lens.iter().copied().fold(0.0, f64::max));
+        let z = p.work_offset.z_mm;
+        assert!(
+            p.axes.z.contains(zlo + z + lmin, 1e-9)
+                && p.axes.z.contains(zhi + RETRACT_ALLOWANCE_MM + z + lmax, 1e-9)
+        );
+        assert_eq!(p.quantise(z), z);
     }
 }

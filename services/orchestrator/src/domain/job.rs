@@ -146,6 +146,28 @@ pub struct JobMetrics {
     /// RMS distance between where scanned points were placed and where they truly are, mm.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub scan_registration_rms_mm: Option<f64>,
+    /// Part of the mesh's top-view silhouette the scan has points in, %.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub scan_silhouette_coverage_pct: Option<f64>,
+    /// The machined part against the original part (a mesh job; measured by the report stage on
+    /// the stock's grid): deepest gouge, mm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub part_max_gouge_mm: Option<f64>,
+    /// ... most material left, mm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub part_max_leftover_mm: Option<f64>,
+    /// ... mean of the material left (gouges count as 0), mm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub part_mean_leftover_mm: Option<f64>,
+    /// ... signed mean deviation (material left positive), mm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub part_mean_mm: Option<f64>,
+    /// ... RMS deviation, mm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub part_rms_mm: Option<f64>,
+    /// The machined part against the CAM's predicted surface (the part opened by the tools): RMS, mm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub preview_rms_mm: Option<f64>,
 }
 
 impl JobMetrics {
@@ -163,6 +185,13 @@ impl JobMetrics {
                 "scan_time_s" => &mut self.scan_time_s,
                 "scan_coverage_pct" => &mut self.scan_coverage_pct,
                 "scan_registration_rms_mm" => &mut self.scan_registration_rms_mm,
+                "scan_silhouette_coverage_pct" => &mut self.scan_silhouette_coverage_pct,
+                "part_max_gouge_mm" => &mut self.part_max_gouge_mm,
+                "part_max_leftover_mm" => &mut self.part_max_leftover_mm,
+                "part_mean_leftover_mm" => &mut self.part_mean_leftover_mm,
+                "part_mean_mm" => &mut self.part_mean_mm,
+                "part_rms_mm" => &mut self.part_rms_mm,
+                "preview_rms_mm" => &mut self.preview_rms_mm,
                 _ => continue,
             };
             *slot = Some(*v);

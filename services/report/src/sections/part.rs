@@ -156,7 +156,8 @@ impl Ctx<'_> {
             return Ok(String::new());
         };
         let mut data = vec![f32::NAN; part.data().len()];
-        let (mut gouge, mut left, mut sum_left, mut sq, mut n) = (0.0f64, 0.0f64, 0.0f64, 0.0f64, 0usize);
+        let (mut gouge, mut left, mut sum_left, mut sum, mut sq, mut n) =
+            (0.0f64, 0.0f64, 0.0f64, 0.0f64, 0.0f64, 0usize);
         for (i, (p, z)) in part.data().iter().zip(stock.map.data()).enumerate() {
             if !(p.is_finite() && z.is_finite()) {
                 continue;
@@ -166,11 +167,22 @@ impl Ctx<'_> {
             gouge = gouge.max(-d);
             left = left.max(d);
             sum_left += d.max(0.0);
+            sum += d;
             sq += d * d;
             n += 1;
         }
         if n == 0 {
             return Ok(String::new());
+        }
+        let nf = n as f64;
+        for (k, v) in [
+            ("part_max_gouge_mm", gouge),
+            ("part_max_leftover_mm", left),
+            ("part_mean_leftover_mm", sum_left / nf),
+            ("part_mean_mm", sum / nf),
+            ("part_rms_mm", (sq / nf).sqrt()),
+        ] {
+            self.figures.insert(k.into(), v);
         }
         let range = gouge.max(left).max(0.005);
         let Ok(map) = HeightMap::new(HeightMapMeta { z_min_mm: -range, z_max_mm: range, ..meta }, data)
@@ -194,8 +206,9 @@ impl Ctx<'_> {
         let rows = vec![
             ("Max gouge".to_string(), format!("{gouge:.4} mm")),
             ("Max leftover".to_string(), format!("{left:.4} mm")),
-            ("Mean leftover".to_string(), format!("{:.4} mm", sum_left / n as f64)),
-            ("RMS".to_string(), format!("{:.4} mm over {} cells", (sq / n as f64).sqrt(), n)),
+            ("Mean leftover".to_string(), format!("{:.4} mm", sum_left / nf)),
+            ("Mean (signed)".to_string(), format!("{:+.4} mm", sum / nf)),
+            ("RMS".to_string(), format!("{:.4} mm over {} cells", (sq / nf).sqrt(), n)),
         ];
         body.push_str(&kv_table(&rows));
         Ok(body)
@@ -211,7 +224,7 @@ impl Ctx<'_> {
         };
         let meta = *preview.map.meta();
         let mut data = vec![f32::NAN; preview.map.data().len()];
-        let (mut lo, mut hi, mut sq, mut n) = (0.0f64, 0.0f64, 0.0f64, 0usize);
+        let (mut lo, mut hi, mut sum, mut sq, mut n) = (0.0f64, 0.0f64, 0.0f64, 0.0f64, 0usize);
         for row in 0..meta.height {
             for col in 0..meta.width {
                 let Some(p) = preview.map.get(col, row).filter(|v| v.is_finite()) else { continue };
@@ -225,12 +238,21 @@ impl Ctx<'_> {
                 data[(row * meta.width + col) as usize] = d as f32;
                 lo = lo.min(d);
                 hi = hi.max(d);
+                sum += d;
                 sq += d * d;
                 n += 1;
             }
         }
         if n == 0 {
             return Ok(String::new());
+        }
+        for (k, v) in [
+            ("preview_max_below_mm", (-lo).max(0.0)),
+            ("preview_max_above_mm", hi.max(0.0)),
+            ("preview_mean_mm", sum / n as f64),
+            ("preview_rms_mm", (sq / n as f64).sqrt()),
+        ] {
+            self.figures.insert(k.into(), v);
         }
         let range = (-lo).max(hi).max(0.005);
         let dev_meta = HeightMapMeta { z_min_mm: -range, z_max_mm: range, ..meta };

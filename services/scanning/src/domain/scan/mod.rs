@@ -40,6 +40,7 @@
 pub mod obstacles;
 pub mod options;
 pub mod plan;
+pub mod silhouette;
 
 use depthmill_geometry::Mesh;
 use depthmill_geometry::raster::{COVERAGE_HOLE, Roi, coverage, grid_for_roi, try_rasterize_max};
@@ -254,7 +255,7 @@ pub struct CoverageSummary {
     pub hole_area_mm2: f64,
 }
 
-/// One hole a rescan aims at (part frame).
+/// One hole a rescan aims at, or an unseen region of the part's silhouette (part frame).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct HoleTarget {
     pub center_x_mm: f64,
@@ -294,6 +295,9 @@ pub struct ScanReport {
     pub table_wait_s: f64,
     /// Things worth knowing (skipped rescan passes, slow passes, ...).
     pub diagnostics: Vec<String>,
+    /// The part's top-view silhouette (from its mesh) against the cloud: what the scan did not
+    /// see, and where.
+    pub silhouette: Option<silhouette::SilhouetteCoverage>,
     /// How the mesh's units were decided (set by the caller that read the file); the cloud is in
     /// millimetres, in the mesh's frame scaled to millimetres.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -362,6 +366,8 @@ pub struct ScanSession {
     rescan_targets: Vec<HoleTarget>,
     last_pass_id: u16,
     table_wait_s: f64,
+    /// The part's top-view silhouette at the rescan pixel (from its mesh).
+    silhouette: Option<silhouette::Silhouette>,
 }
 
 impl ScanSession {
@@ -372,6 +378,9 @@ impl ScanSession {
         opts.validate(&spec)?;
         let placement = PartPlacement::on_table(mesh, &layout)?;
         let scanner = Scanner::new(spec, mesh, opts.seed)?;
+        // At least two lines to a cell, so a cell between two lines is not taken for unseen.
+        let silhouette =
+            silhouette::Silhouette::of(mesh, opts.rescan_pixel_mm.max(2.0 * opts.line_spacing_mm));
         let mut robot = MotionController::viper_s650();
         robot.initialize(0.0)?;
         let t_s = robot.home(0.0, APPROACH_SPEED)?;
@@ -407,6 +416,7 @@ impl ScanSession {
             rescan_targets: Vec::new(),
             last_pass_id: 0,
             table_wait_s: 0.0,
+            silhouette,
         })
     }
 
@@ -670,8 +680,21 @@ impl ScanSession {
             holes: holes.len(),
             hole_area_mm2: area,
         };
-        let mut targets: Vec<HoleTarget> =
-            holes.into_iter().filter(|h| h.area_mm2 >= min_cells as f64 * pixel * pixel).collect();
+        let min_area = min_cells as f64 * pixel * pixel;
+        let mut targets: Vec<HoleTarget> = holes.into_iter().filter(|h| h.area_mm2 >= min_area).collect();
+        // The part's silhouette where the cloud has nothing, at the edge of what was seen (an
+        // enclosed hole is already a target): steep flanks and hidden sides.
+        if let Some(sil) = &self.silhouette {
+            for r in sil.coverage(&self.points).unseen_regions {
+                let covered = targets.iter().any(|t| {
+                    (t.center_x_mm - r.center_x_mm).hypot(t.center_y_mm - r.center_y_mm)
+                        < 0.5 * (t.extent_mm + r.extent_mm)
+                });
+                if r.area_mm2 >= min_area && !covered {
+                    targets.push(r);
+                }
+            }
+        }
         targets.sort_by(|a, b| b.area_mm2.total_cmp(&a.area_mm2));
         targets.truncate(self.opts.rescan_max_holes);
         Ok((summary, targets))
@@ -765,8 +788,12 @@ impl ScanSession {
     }
 
     /// The registered cloud, the pass ids and the report.
-    pub fn finish(self) -> ScanOutput {
+    pub fn finish(mut self) -> ScanOutput {
         let n = self.points.len();
+        let silhouette = self.silhouette.as_ref().map(|s| s.coverage(&self.points));
+        if let Some(line) = silhouette.as_ref().and_then(|s| s.diagnostic()) {
+            self.diagnostics.push(line);
+        }
         let report = ScanReport {
             mode: self.opts.mode,
             options: self.opts.clone(),
@@ -784,6 +811,7 @@ impl ScanSession {
             rescan_targets: self.rescan_targets,
             table_wait_s: self.table_wait_s,
             diagnostics: self.diagnostics,
+            silhouette,
             units: None,
         };
         ScanOutput {

@@ -1,0 +1,172 @@
+//! How much of the part, seen from above, the scan measured: the part's top-view silhouette (the
+//! cells where its mesh has a top surface) against the cells the cloud has a point in.
+//!
+//! The coverage of [`super::ScanSession::holes`] looks at the cloud alone, so a surface the
+//! scanner never saw at the edge of what it did see (a steep flank of a cylinder lying on its
+//! side, the far side of an overhang) reads as outside the part, and the stages after it treat it
+//! as empty. The mesh the job started from says where the part is; the unseen part of its
+//! silhouette is what the rescan aims at and what the report names, with where it is.
+
+use depthmill_geometry::mesh_raster::rasterize_mesh;
+use depthmill_geometry::raster::{COVERAGE_HOLE, Roi, grid_for_roi, try_rasterize_max};
+use depthmill_geometry::{HeightMap, HeightMapMeta, Mesh};
+use nalgebra::Point3;
+use serde::Serialize;
+
+use super::{HoleTarget, hole_components};
+
+/// Unseen regions listed in the report, largest first.
+const MAX_REGIONS: usize = 10;
+
+/// The part's top-view silhouette on a grid (NaN where the mesh has no top surface).
+#[derive(Debug, Clone)]
+pub struct Silhouette {
+    top: HeightMap,
+    cells: usize,
+}
+
+/// The silhouette against a cloud.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct SilhouetteCoverage {
+    pub pixel_mm: f64,
+    /// Cells where the part's mesh has a top surface.
+    pub silhouette_cells: usize,
+    /// Of those, cells with at least one point of the cloud.
+    pub seen_cells: usize,
+    /// `seen / silhouette · 100`.
+    pub covered_pct: f64,
+    /// Area of the silhouette with no point, mm².
+    pub unseen_area_mm2: f64,
+    /// The largest unseen regions (8-connected), largest first, at most ten.
+    pub unseen_regions: Vec<HoleTarget>,
+}
+
+impl Silhouette {
+    /// The mesh's top surface at cell centres on a `pixel_mm` grid over its X/Y extent. `None`
+    /// for a mesh without a finite extent or a grid the rasteriser refuses (too many cells).
+    pub fn of(mesh: &Mesh, pixel_mm: f64) -> Option<Self> {
+        let b = mesh.bounds()?;
+        let roi = Roi {
+            x_min_mm: b.min.x - pixel_mm,
+            y_min_mm: b.min.y - pixel_mm,
+            x_max_mm: b.max.x + pixel_mm,
+            y_max_mm: b.max.y + pixel_mm,
+        };
+        let grid: HeightMapMeta = grid_for_roi(&roi, pixel_mm).ok()?;
+        let top = rasterize_mesh(mesh, &grid);
+        let cells = top.data().iter().filter(|z| z.is_finite()).count();
+        Some(Self { top, cells })
+    }
+
+    /// What of the silhouette `points` cover (part frame).
+    pub fn coverage(&self, points: &[Point3<f64>]) -> SilhouetteCoverage {
+        let meta = *self.top.meta();
+        let p = meta.pixel_mm;
+        let seen_map = try_rasterize_max(points, &meta).ok().map(|(m, _)| m);
+        let mut unseen = vec![f32::NAN; self.top.data().len()];
+        let mut seen = 0usize;
+        for (i, z) in self.top.data().iter().enumerate() {
+            if !z.is_finite() {
+                continue;
+            }
+            if seen_map.as_ref().is_some_and(|m| m.data()[i].is_finite()) {
+                seen += 1;
+            } else {
+                unseen[i] = COVERAGE_HOLE;
+            }
+        }
+        let mut regions = HeightMap::new(HeightMapMeta { z_min_mm: 0.0, z_max_mm: 1.0, ..meta }, unseen)
+            .map(|m| hole_components(&m))
+            .unwrap_or_default();
+        regions.sort_by(|a, b| b.area_mm2.total_cmp(&a.area_mm2));
+        regions.truncate(MAX_REGIONS);
+        let unseen_cells = self.cells - seen;
+        SilhouetteCoverage {
+            pixel_mm: p,
+            silhouette_cells: self.cells,
+            seen_cells: seen,
+            covered_pct: if self.cells > 0 { seen as f64 / self.cells as f64 * 100.0 } else { 0.0 },
+            unseen_area_mm2: unseen_cells as f64 * p * p,
+            unseen_regions: regions,
+        }
+    }
+}
+
+impl SilhouetteCoverage {
+    /// A line for the job's diagnostics when part of the silhouette went unseen.
+    pub fn diagnostic(&self) -> Option<String> {
+        let largest = self.unseen_regions.first()?;
+        Some(format!(
+            "the scan saw {:.2} % of the part's top-view silhouette: {:.1} mm² unseen in {}{} region(s), the largest {:.1} mm² around ({:.1}, {:.1}) mm (part frame); steep or hidden surface there has no data, and the maps treat it as empty",
+            self.covered_pct,
+            self.unseen_area_mm2,
+            self.unseen_regions.len(),
+            if self.unseen_regions.len() == MAX_REGIONS { "+" } else { "" },
+            largest.area_mm2,
+            largest.center_x_mm,
+            largest.center_y_mm,
+        ))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A closed box `[0, x] × [0, y] × [0, z]`.
+    fn cube(x: f64, y: f64, z: f64) -> Mesh {
+        let v: Vec<Point3<f64>> = (0..8)
+            .map(|k| {
+                Point3::new(
+                    if k & 1 == 0 { 0.0 } else { x },
+                    if k & 2 == 0 { 0.0 } else { y },
+                    if k & 4 == 0 { 0.0 } else { z },
+                )
+            })
+            .collect();
+        let t = vec![
+            [0, 2, 1],
+            [1, 2, 3],
+            [4, 5, 6],
+            [5, 7, 6],
+            [0, 1, 4],
+            [1, 5, 4],
+            [2, 6, 3],
+            [3, 6, 7],
+            [0, 4, 2],
+            [2, 4, 6],
+            [1, 3, 5],
+            [3, 7, 5],
+        ];
+        Mesh::new(v, t).expect("valid cube")
+    }
+
+    #[test]
+    fn an_unseen_strip_is_counted_and_located() {
+        let s = Silhouette::of(&cube(20.0, 10.0, 5.0), 0.5).expect("silhouette");
+        assert_eq!(s.cells, 40 * 20);
+        // Points on the top everywhere but the strip 15 <= x < 20.
+        let mut pts = Vec::new();
+        for j in 0..20 {
+            for i in 0..30 {
+                pts.push(Point3::new(0.25 + 0.5 * f64::from(i), 0.25 + 0.5 * f64::from(j), 5.0));
+            }
+        }
+        let c = s.coverage(&pts);
+        assert_eq!((c.silhouette_cells, c.seen_cells), (800, 600));
+        assert!((c.covered_pct - 75.0).abs() < 1e-9);
+        assert!((c.unseen_area_mm2 - 50.0).abs() < 1e-9);
+        assert_eq!(c.unseen_regions.len(), 1);
+        let r = c.unseen_regions[0];
+        assert!((r.center_x_mm - 17.5).abs() < 1e-9 && (r.center_y_mm - 5.0).abs() < 1e-9, "{r:?}");
+        assert!(c.diagnostic().is_some_and(|d| d.contains("75.00 %") && d.contains("(17.5, 5.0)")));
+        // Everything seen: no diagnostic.
+        let all: Vec<Point3<f64>> = (0..40)
+            .flat_map(|i| {
+                (0..20).map(move |j| Point3::new(0.25 + 0.5 * f64::from(i), 0.25 + 0.5 * f64::from(j), 5.0))
+            })
+            .collect();
+        let c = s.coverage(&all);
+        assert_eq!((c.covered_pct, c.diagnostic()), (100.0, None));
+    }
+}
