@@ -58,7 +58,7 @@ for name in sorted(f[:-3] for f in os.listdir(out) if f.endswith('.rc')):
         msg = (err[-1] if err else log.strip().splitlines()[-1])
         if '"message":"' in msg:
             msg = msg.split('"message":"', 1)[1].split('","', 1)[0]
-        rows.append(f"| {name} | refused: {msg[:400]} |" + " |" * 10)
+        rows.append(f"| {name} | refused: {msg[:400]} |" + " |" * 11)
         continue
     job = json.load(open(job_path))
     m = job.get('metrics', {})
@@ -73,10 +73,16 @@ for name in sorted(f[:-3] for f in os.listdir(out) if f.endswith('.rc')):
     status = job.get('status')
     if status != 'succeeded':
         err = job.get('error') or {}
-        rows.append(f"| {name} | {status}: {err.get('message', '')[:200]} |" + " |" * 10)
+        rows.append(f"| {name} | {status}: {err.get('message', '')[:200]} |" + " |" * 11)
         continue
-    rows.append(f"| {name} | {units} | {f('scan_coverage_pct', 1)} | {f('coverage_pct', 1)} | {f('part_mean_mm')} | {f('part_rms_mm')} | {f('part_max_gouge_mm')} | {f('preview_rms_mm')} | {f('max_gouge_mm')} | {f('cycle_time_s', 0)} | {f('cycle_time_no_adaptive_s', 0)} | {float(secs):.0f} |")
-hdr = "| part | units read | scan coverage % | depth-map coverage % | mean vs part mm | RMS vs part mm | max gouge vs part mm | RMS vs tools' surface mm | max gouge vs target mm | cycle s (adaptive) | cycle s (none) | wall s |\n|---|---|---|---|---|---|---|---|---|---|---|---|"
+    tools = ''
+    try:
+        pr = json.load(open(os.path.join(out, name, 'artifacts', 'plan_report.json')))
+        tools = ' + '.join(o['tool'] for o in pr['faces'][0]['operations'])
+    except Exception:
+        pass
+    rows.append(f"| {name} | {units} | {tools} | {f('scan_silhouette_coverage_pct', 1)} | {f('coverage_pct', 1)} | {f('part_mean_mm')} | {f('part_rms_mm')} | {f('part_max_gouge_mm')} | {f('preview_rms_mm')} | {f('max_gouge_mm')} | {f('cycle_time_s', 0)} | {f('cycle_time_no_adaptive_s', 0)} | {float(secs):.0f} |")
+hdr = "| part | units read | tools | silhouette seen % | depth-map coverage % | mean vs part mm | RMS vs part mm | max gouge vs part mm | RMS vs tools' surface mm | max gouge vs target mm | cycle s (adaptive) | cycle s (none) | wall s |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|"
 open(os.path.join(out, 'table.md'), 'w').write(hdr + "\n" + "\n".join(rows) + "\n")
 print(hdr); print("\n".join(rows))
 PYEOF

@@ -304,7 +304,15 @@ impl pb::cam_service_server::CamService for CamServiceImpl {
                     plan_report: Some(report.into()),
                     estimated_time_s: out.report.estimated_time_s,
                     blocks: out.report.blocks as u64,
-                    diagnostics: Vec::new(),
+                    diagnostics: out
+                        .report
+                        .tool_choice
+                        .iter()
+                        .map(|m| depthmill_proto::types::v1::Diagnostic {
+                            code: "tool_choice".into(),
+                            message: m.clone(),
+                        })
+                        .collect(),
                     leftover_map: leftover,
                     max_gouge_mm: out.preview.max_gouge_mm,
                     max_leftover_mm: out.preview.max_leftover_mm,

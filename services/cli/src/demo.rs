@@ -143,12 +143,19 @@ struct Part {
 }
 
 /// The demo job for a part of the user's: the sample's sections with the stock sized from the
-/// part (its top at the part's highest point, the CAM's default) instead of the sample's 13 mm.
+/// part (its top at the part's highest point, the CAM's default) instead of the sample's 13 mm,
+/// and the tools left to the CAM (the same defaults, replaced by longer-reaching ones of the
+/// library when they cannot reach the part; the plan report says why).
 pub fn part_job(name: &str) -> Value {
     let mut job = demo_job();
     job["name"] = json!(format!("demo: {name}"));
     if let Some(stock) = job["plan"]["stock"].as_object_mut() {
         stock.remove("z_mm");
+    }
+    for op in ["roughing", "finishing"] {
+        if let Some(o) = job["plan"][op].as_object_mut() {
+            o.remove("tool");
+        }
     }
     job
 }

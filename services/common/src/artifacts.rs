@@ -171,7 +171,12 @@ impl MediaCheck {
             return Err(ArtifactError::Empty);
         }
         self.check_head(true)?;
-        if self.media_type == "model/stl" && !self.head.starts_with(b"solid") {
+        use depthmill_geometry::formats::{InputFormat, sniff_format};
+        // ASCII STL (`solid` in any case, after white space, with facets) is checked by the reader;
+        // a binary one, even with a header that starts with `solid`, by its size.
+        if self.media_type == "model/stl"
+            && sniff_format(&self.head, Some(self.size)) != InputFormat::StlAscii
+        {
             // Binary STL: 80-byte header, u32 triangle count, 50 bytes per triangle.
             if self.head.len() < 84 {
                 return Err(self.mismatch("binary STL is shorter than its 84-byte header"));
@@ -467,6 +472,9 @@ mod tests {
         stl[80] = 2;
         let err = store.put_bytes("model/stl", &stl).await.expect_err("count mismatch");
         assert!(err.to_string().contains("declares 2 triangles"), "{err}");
+        // ASCII STL as CAD systems write it: upper-case keywords, leading white space.
+        let upper = b"  SOLID  Untitled1\n  FACET NORMAL 0 0 1\n    OUTER LOOP\n      VERTEX 0 0 0\n      VERTEX 1 0 0\n      VERTEX 0 1 0\n    ENDLOOP\n  ENDFACET\nENDSOLID\n";
+        store.put_bytes("model/stl", upper).await.expect("upper-case ascii STL");
     }
 
     #[tokio::test]

@@ -116,6 +116,10 @@ pub struct PlanReport {
     pub blocks: usize,
     pub estimated_time_s: f64,
     pub timings_s: std::collections::BTreeMap<String, f64>,
+    /// How the tools the job left unnamed were chosen, when the defaults could not reach (empty
+    /// otherwise).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub tool_choice: Vec<String>,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -189,9 +193,90 @@ fn face_top(map: &HeightMap) -> Result<f64, CamError> {
     })
 }
 
+/// Default roughing tool when the job names none.
+const DEFAULT_ROUGHING: &str = "flat-6";
+/// Default finishing tool when the job names none.
+const DEFAULT_FINISHING: &str = "ball-3";
+
+/// Plans every face into one program (see [`plan_with`]), choosing the tools the job leaves
+/// unnamed: the defaults (`flat-6`, `ball-3`) when they reach every point they visit, else, when
+/// the shank or holder of one of them would touch the part (a pocket deeper than its flutes, a
+/// wall higher than its stick-out), the library's tools of its kind with a longer reach, shortest
+/// first, until one reaches. A tool the job names is never replaced. The plan report says what
+/// was tried and why (`tool_choice`); when no tool reaches, the error is the last one's, naming
+/// the tools tried.
+pub fn plan(
+    faces: &[FaceInput],
+    options: &PlanOptions,
+    library: &ToolLibrary,
+    limits: &MachineLimits,
+    progress: &(dyn Fn(f64, &str) + Sync),
+    cancelled: &(dyn Fn() -> bool + Sync),
+) -> Result<PlanOutput, CamError> {
+    let rough_given = options.roughing.as_ref().is_some_and(|r| r.tool.is_some());
+    let fin_given = options.finishing.as_ref().is_some_and(|f| f.tool.is_some());
+    // Longer-reaching tools of the default's kind, shortest reach first.
+    let longer = |default: &str| -> Result<Vec<String>, CamError> {
+        let d = library.resolve(default)?;
+        let reach = |t: &super::tool::Tool| t.cutting_length_mm.min(t.stickout_mm);
+        let mut v: Vec<&super::tool::Tool> =
+            library.tools().filter(|t| t.kind == d.kind && reach(t) > reach(&d)).collect();
+        v.sort_by(|a, b| {
+            reach(a).total_cmp(&reach(b)).then(a.profile.radius_mm().total_cmp(&b.profile.radius_mm()))
+        });
+        Ok(v.into_iter().map(|t| t.name.clone()).collect())
+    };
+    let mut rough_alts = if rough_given { Vec::new() } else { longer(DEFAULT_ROUGHING)? }.into_iter();
+    let mut fin_alts = if fin_given { Vec::new() } else { longer(DEFAULT_FINISHING)? }.into_iter();
+    let mut o = options.clone();
+    let mut tried: Vec<String> = Vec::new();
+    loop {
+        let rough =
+            o.roughing.as_ref().and_then(|r| r.tool.clone()).unwrap_or_else(|| DEFAULT_ROUGHING.into());
+        let fin =
+            o.finishing.as_ref().and_then(|f| f.tool.clone()).unwrap_or_else(|| DEFAULT_FINISHING.into());
+        match plan_with(faces, &o, library, limits, progress, cancelled) {
+            Ok(mut out) => {
+                if !tried.is_empty() {
+                    tried.push(format!(
+                        "chose roughing {rough}, finishing {fin}: every point they visit is reachable"
+                    ));
+                    out.report.tool_choice = tried;
+                }
+                return Ok(out);
+            }
+            Err(CamError::HolderCollision { message, min_stickout_mm }) => {
+                // The message names the tool that cannot reach: `tool <name>: ...`.
+                let next = if message.starts_with(&format!("tool {fin}:")) {
+                    fin_alts.next().map(|t| (false, t))
+                } else if message.starts_with(&format!("tool {rough}:")) {
+                    rough_alts.next().map(|t| (true, t))
+                } else {
+                    None
+                };
+                let Some((is_rough, tool)) = next else {
+                    let message = if tried.is_empty() {
+                        message
+                    } else {
+                        format!("{message} (also tried: {})", tried.join("; "))
+                    };
+                    return Err(CamError::HolderCollision { message, min_stickout_mm });
+                };
+                tried.push(format!("roughing {rough}, finishing {fin}: {message}"));
+                if is_rough {
+                    o.roughing.get_or_insert_with(Default::default).tool = Some(tool);
+                } else {
+                    o.finishing.get_or_insert_with(Default::default).tool = Some(tool);
+                }
+            }
+            Err(e) => return Err(e),
+        }
+    }
+}
+
 /// Plans every face into one program. `progress` gets the fraction done and the step's name;
 /// `cancelled` is polled between steps.
-pub fn plan(
+fn plan_with(
     faces: &[FaceInput],
     options: &PlanOptions,
     library: &ToolLibrary,
@@ -211,8 +296,8 @@ pub fn plan(
         "fanuc" => Dialect::Fanuc,
         other => return Err(CamError::param("plan.dialect", format!("'{other}' is not linuxcnc or fanuc"))),
     };
-    let rough_tool = library.resolve(rough.tool.as_deref().unwrap_or("flat-6"))?;
-    let fin_tool = library.resolve(fin.tool.as_deref().unwrap_or("ball-3"))?;
+    let rough_tool = library.resolve(rough.tool.as_deref().unwrap_or(DEFAULT_ROUGHING))?;
+    let fin_tool = library.resolve(fin.tool.as_deref().unwrap_or(DEFAULT_FINISHING))?;
     let step_down = positive("plan.roughing.step_down_mm", rough.step_down_mm, 2.0)?;
     let leave = match rough.stock_to_leave_mm {
         None => 0.3,
@@ -443,7 +528,55 @@ pub fn plan(
             blocks,
             estimated_time_s: total_time,
             timings_s: steps.timings,
+            tool_choice: Vec::new(),
         },
         preview,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use depthmill_geometry::{HeightMap, HeightMapMeta};
+
+    use super::*;
+    use crate::domain::tool::ToolLibrary;
+
+    /// A 40 x 40 mm plate 30 mm high with a 20 mm wide slot down to 0 across it (0.5 mm cells).
+    fn slotted_plate() -> HeightMap {
+        let n = 80u32;
+        let meta = HeightMapMeta { z_min_mm: 0.0, z_max_mm: 30.0, ..HeightMapMeta::new(n, n, 0.5) };
+        let data =
+            (0..n * n).map(|i| if ((i % n) as f64 * 0.5 - 20.0).abs() < 10.0 { 0.0 } else { 30.0 }).collect();
+        HeightMap::new(meta, data).expect("valid map")
+    }
+
+    fn run(options: &PlanOptions) -> Result<PlanOutput, CamError> {
+        let faces = [FaceInput { a_deg: None, map: slotted_plate(), roughing_map: None }];
+        let library = ToolLibrary::builtin()?;
+        plan(&faces, options, &library, &MachineLimits::emco_f1(), &|_, _| {}, &|| false)
+    }
+
+    #[test]
+    fn a_tool_left_unnamed_that_cannot_reach_is_replaced_by_one_that_can() {
+        let coarse = FinishingOptions { step_over_mm: Some(2.0), ..Default::default() };
+        // ball-3 sticks out 25 mm from its holder; the slot is 30 mm deep: ball-6 (35 mm) is
+        // chosen, and the report says why.
+        let out =
+            run(&PlanOptions { finishing: Some(coarse.clone()), ..Default::default() }).expect("planned");
+        let ops = &out.report.faces[0].operations;
+        assert_eq!((ops[0].tool.as_str(), ops[1].tool.as_str()), ("flat-6", "ball-6"));
+        assert!(
+            out.report.tool_choice.first().is_some_and(|t| t.contains("ball-3")),
+            "{:?}",
+            out.report.tool_choice
+        );
+        assert!(out.report.tool_choice.last().is_some_and(|t| t.contains("chose") && t.contains("ball-6")));
+        // A tool the job names is kept, and its error stands.
+        let named = FinishingOptions { tool: Some("ball-3".into()), ..coarse };
+        let e = run(&PlanOptions { finishing: Some(named), ..Default::default() })
+            .err()
+            .expect("ball-3 cannot reach");
+        assert!(matches!(e, CamError::HolderCollision { .. }), "{e}");
+        assert!(e.to_string().contains("ball-3") && !e.to_string().contains("also tried"), "{e}");
+    }
 }
