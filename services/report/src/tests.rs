@@ -339,9 +339,16 @@ fn a_scanned_job_shows_its_scan() {
         "coverage_after_rescan": {"pixel_mm": 0.5, "covered_pct": 99.1, "footprint_cells": 100, "holes": 1, "hole_area_mm2": 2.0},
         "stations": [{"table_deg_commanded": 0.0, "table_deg_measured": 0.0, "rescan": false,
                       "passes": [{"frames": 600, "points": 240000}, {"frames": 600, "points": 240000}]},
-                     {"table_deg_commanded": 45.0, "table_deg_measured": 45.0, "rescan": true, "passes": []}]
+                     {"table_deg_commanded": 45.0, "table_deg_measured": 45.0, "rescan": true, "passes": []}],
+        "silhouette": {"pixel_mm": 0.5, "silhouette_cells": 4702, "seen_cells": 3471, "covered_pct": 73.82,
+                       "unseen_area_mm2": 307.8,
+                       "unseen_regions": [{"center_x_mm": -7.65, "center_y_mm": 12.77, "extent_mm": 20.5, "area_mm2": 76.25}]},
+        "units": {"unit": "m", "scale_to_mm": 1000.0, "source": "size", "reason": "largest extent 0.0520 units"}
     });
     arts.insert("scan_report".into(), serde_json::to_vec(&report).expect("json"));
+    let plan = serde_json::json!({"tool_choice": ["roughing flat-6, finishing ball-3: tool ball-3: the holder touches <here>",
+                                                  "chose roughing flat-6, finishing ball-6: every point they visit is reachable"]});
+    arts.insert("plan_report".into(), serde_json::to_vec(&plan).expect("json"));
     let job = job("scanned", "succeeded", &arts);
     let out = render_ok(&job, &arts);
     for needle in [
@@ -351,6 +358,11 @@ fn a_scanned_job_shows_its_scan() {
         "99.10 % (1 holes",
         "rescan",
         "4 missing the part",
+        "73.82 %, 307.8 mm² unseen; largest: 76.2 mm² at (-7.7, 12.8)",
+        "m (size: largest extent 0.0520 units)",
+        "Tool choice",
+        "touches &lt;here&gt;",
+        "chose roughing flat-6, finishing ball-6",
     ] {
         assert!(out.html.contains(needle), "{needle} missing from the scan summary");
     }

@@ -99,6 +99,50 @@ impl Ctx<'_> {
             ("Coverage after the first scan".into(), cov(&r["coverage_before_rescan"])),
             ("Coverage after the rescan".into(), cov(&r["coverage_after_rescan"])),
         ];
+        let mut rows = rows;
+        let sil = &r["silhouette"];
+        if sil.is_object() {
+            let regions: Vec<String> = sil["unseen_regions"]
+                .as_array()
+                .into_iter()
+                .flatten()
+                .take(3)
+                .map(|g| {
+                    format!(
+                        "{} mm² at ({}, {})",
+                        f(&g["area_mm2"], 1),
+                        f(&g["center_x_mm"], 1),
+                        f(&g["center_y_mm"], 1)
+                    )
+                })
+                .collect();
+            rows.push((
+                "Part's silhouette seen (from its mesh)".into(),
+                format!(
+                    "{} %, {} mm² unseen{}",
+                    f(&sil["covered_pct"], 2),
+                    f(&sil["unseen_area_mm2"], 1),
+                    if regions.is_empty() {
+                        String::new()
+                    } else {
+                        format!("; largest: {}", regions.join(", "))
+                    }
+                ),
+            ));
+        }
+        let u = &r["units"];
+        if u.is_object() {
+            rows.push((
+                "Units of the mesh".into(),
+                esc(&format!(
+                    "{} ({}: {}){}",
+                    u["unit"].as_str().unwrap_or("?"),
+                    u["source"].as_str().unwrap_or("?"),
+                    u["reason"].as_str().unwrap_or(""),
+                    u["warning"].as_str().map(|w| format!("; {w}")).unwrap_or_default()
+                )),
+            ));
+        }
         let stations: Vec<Vec<String>> = r["stations"]
             .as_array()
             .into_iter()

@@ -93,6 +93,19 @@ impl Ctx<'_> {
             &["face", "kind", "tool and strategy", "feed path [m]", "rapids [m]", "moves"],
             &rows,
         ));
+        // How the CAM chose the tools the job left unnamed, when the defaults could not reach.
+        let choice: Vec<String> = self
+            .artifacts
+            .get("plan_report")
+            .and_then(|b| serde_json::from_slice::<Value>(b).ok())
+            .and_then(|r| r["tool_choice"].as_array().cloned())
+            .unwrap_or_default()
+            .iter()
+            .filter_map(|v| v.as_str().map(esc))
+            .collect();
+        if !choice.is_empty() {
+            let _ = write!(body, "<h3>Tool choice</h3><ul><li>{}</li></ul>", choice.join("</li><li>"));
+        }
         if !program.warnings.is_empty() {
             let w: Vec<String> = program.warnings.iter().map(|w| esc(w)).collect();
             let _ = write!(
