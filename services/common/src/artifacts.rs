@@ -184,6 +184,19 @@ impl MediaCheck {
             let n = u32::from_le_bytes([self.head[80], self.head[81], self.head[82], self.head[83]]);
             let expected = 84 + 50 * u64::from(n);
             if expected != self.size {
+                // An ASCII STL with a stray control byte reads as binary: say so.
+                let trimmed = self.head.trim_ascii_start();
+                let ascii_like = trimmed.len() >= 5 && trimmed[..5].eq_ignore_ascii_case(b"solid");
+                let control = self
+                    .head
+                    .iter()
+                    .position(|&b| b < 0x20 && !matches!(b, b'\t' | b'\n' | b'\r' | 0x0b | 0x0c));
+                if let (true, Some(at)) = (ascii_like, control) {
+                    return Err(self.mismatch(&format!(
+                        "it starts like ASCII STL (`solid`) but byte {at} is a control character (0x{:02x}), and read as binary STL it declares {n} triangles ({expected} bytes) but has {} bytes",
+                        self.head[at], self.size
+                    )));
+                }
                 return Err(self.mismatch(&format!(
                     "binary STL declares {n} triangles ({expected} bytes) but has {} bytes",
                     self.size
@@ -475,6 +488,15 @@ mod tests {
         // ASCII STL as CAD systems write it: upper-case keywords, leading white space.
         let upper = b"  SOLID  Untitled1\n  FACET NORMAL 0 0 1\n    OUTER LOOP\n      VERTEX 0 0 0\n      VERTEX 1 0 0\n      VERTEX 0 1 0\n    ENDLOOP\n  ENDFACET\nENDSOLID\n";
         store.put_bytes("model/stl", upper).await.expect("upper-case ascii STL");
+        // ASCII STL with a stray control byte: named as such.
+        let mut broken = upper.to_vec();
+        broken[60] = 0x01;
+        let err = store.put_bytes("model/stl", &broken).await.expect_err("control byte");
+        assert!(
+            err.to_string()
+                .contains("starts like ASCII STL (`solid`) but byte 60 is a control character (0x01)"),
+            "{err}"
+        );
     }
 
     #[tokio::test]
