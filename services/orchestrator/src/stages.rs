@@ -321,6 +321,7 @@ impl StageRunner for GrpcStages {
                     .await?;
                     put(&mut out, "point_cloud", r.point_cloud);
                     put(&mut out, "scan_report", r.report);
+                    put(&mut out, "free_space", r.free_space);
                     out.metrics.insert("scan_points".into(), r.points as f64);
                     out.metrics.insert("scan_frames".into(), r.frames as f64);
                     out.metrics.insert("scan_time_s".into(), r.scan_time_s);
@@ -344,6 +345,7 @@ impl StageRunner for GrpcStages {
                         } else {
                             types::LengthUnit::Mm
                         } as i32,
+                        free_space: call.artifacts.get("free_space").cloned().map(Into::into),
                     };
                     let mut client =
                         rec::reconstruction_service_client::ReconstructionServiceClient::new(channel);

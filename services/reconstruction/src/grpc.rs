@@ -21,7 +21,7 @@ use tonic::{Request, Response, Status};
 use crate::domain::error::ReconError;
 use crate::domain::pipeline::{
     FaceFrame, FaceOptions, FillOptions, FilterOptions, IntensityOptions, RadiusOptions, ReconstructOptions,
-    RoiOptions, StatisticalOptions, reconstruct,
+    RoiOptions, StatisticalOptions, reconstruct_with_free_space,
 };
 use depthmill_geometry::formats::{FormatError, ReadLimits, read_any_from};
 
@@ -210,6 +210,13 @@ impl pb::reconstruction_service_server::ReconstructionService for Reconstruction
             ErrorCode::Internal.status("the artifact store has no local file for the input")
         })?;
         let name = format!("input {} ({})", &input.sha256[..12.min(input.sha256.len())], stat.media_type);
+        // The scanner's free-space evidence, when the job's scan gave one.
+        let free_path = match &req.free_space {
+            Some(f) => Some(self.store.local_path(&f.sha256).ok_or_else(|| {
+                ErrorCode::InvalidArgument.status(format!("free_space: no artifact {}", f.sha256))
+            })?),
+            None => None,
+        };
         let guard = self.running.start(&job_id);
         let (tx, rx) = mpsc::channel(32);
         let store = self.store.clone();
@@ -241,7 +248,21 @@ impl pb::reconstruction_service_server::ReconstructionService for Reconstruction
                         let _ = progress_tx.try_send(Ok(progress_update(0.1 + 0.8 * f, m)));
                     };
                     let cancelled = move || token.is_cancelled();
-                    let mut out = reconstruct(geometry, &opts, &progress, &cancelled)?;
+                    let free = match &free_path {
+                        Some(p) => {
+                            let fname = "free_space".to_string();
+                            let file = std::fs::File::open(p).map_err(|source| {
+                                ReconError::from(FormatError::Io { file: fname.clone(), source })
+                            })?;
+                            let (g, _) =
+                                read_any_from(BufReader::with_capacity(1 << 20, file), &fname, None, &limits)
+                                    .map_err(ReconError::from)?;
+                            Some(g.into_cloud().points)
+                        }
+                        None => None,
+                    };
+                    let mut out =
+                        reconstruct_with_free_space(geometry, &opts, free.as_deref(), &progress, &cancelled)?;
                     out.report.units = units;
                     // Encode on this thread too; the async side only stores bytes.
                     let mut encoded = Vec::with_capacity(out.faces.len());
@@ -306,6 +327,19 @@ impl pb::reconstruction_service_server::ReconstructionService for Reconstruction
                             stats.dropped_non_finite
                         ),
                     });
+                }
+                for f in &out.faces {
+                    if f.stats.unseen_filled > 0 {
+                        let p = f.stats.pixel_mm;
+                        diagnostics.push(Diagnostic {
+                            code: "unseen_filled".into(),
+                            message: format!(
+                                "face {}: {:.1} mm² where the scanner saw neither the part nor the table were filled at the height around them: material is left there, not cut",
+                                f.stats.face,
+                                f.stats.unseen_filled as f64 * p * p
+                            ),
+                        });
+                    }
                 }
                 for r in &out.report.filters {
                     diagnostics.push(Diagnostic {

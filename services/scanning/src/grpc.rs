@@ -286,6 +286,21 @@ impl pb::scanning_service_server::ScanningService for ScanningServiceImpl {
                     .put_bytes("application/x-ply", &ply)
                     .await
                     .map_err(depthmill_common::artifacts::grpc_status)?;
+                let free_space = if out.free_space.is_empty() {
+                    None
+                } else {
+                    let mut bytes = Vec::with_capacity(out.free_space.len() * 12 + 256);
+                    let cloud = depthmill_geometry::PointCloud::from_points(out.free_space.clone());
+                    write_ply(&mut bytes, &cloud, None, PlyEncoding::BinaryLittleEndian, &["free space: the table seen past the part".to_string(), "units mm".to_string()])
+                        .map_err(|e| Status::internal(format!("writing the free-space cloud failed: {e}")))?;
+                    Some(
+                        cell.store
+                            .put_bytes("application/x-ply", &bytes)
+                            .await
+                            .map_err(depthmill_common::artifacts::grpc_status)?
+                            .into(),
+                    )
+                };
                 let report_json = serde_json::to_vec_pretty(&out.report)
                     .map_err(|e| Status::internal(format!("encoding the report failed: {e}")))?;
                 let report_ref = cell
@@ -327,6 +342,7 @@ impl pb::scanning_service_server::ScanningService for ScanningServiceImpl {
                     coverage_pct: coverage,
                     registration_rms_mm: r.registration_rms_mm,
                     silhouette_coverage_pct: r.silhouette.as_ref().map(|s| s.covered_pct),
+                    free_space,
                 })
             }
             .await;

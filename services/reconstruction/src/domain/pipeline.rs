@@ -397,6 +397,9 @@ pub struct FaceStats {
     pub points_outside: usize,
     pub coverage: CoverageStats,
     pub fill: FillReport,
+    /// Cells the scanner saw neither the part nor the table in, filled with the highest height
+    /// around them (only with free-space evidence; see [`reconstruct_with_free_space`]).
+    pub unseen_filled: usize,
     pub seconds: f64,
 }
 
@@ -469,6 +472,23 @@ pub fn reconstruct(
     progress: ProgressFn<'_>,
     cancelled: CancelFn<'_>,
 ) -> Result<ReconstructOutput> {
+    reconstruct_with_free_space(input, opts, None, progress, cancelled)
+}
+
+/// [`reconstruct`] with the scanner's free-space evidence: `free_space` holds points where the
+/// scanner saw the table past the part (same frame as the input). On a `+Z` face of a cloud, the
+/// automatic region of interest also covers them, and a cell left without data after the fill
+/// is then either empty (a free-space point in it: nothing there, cut to the floor) or unseen
+/// (no point of any kind: a steep or hidden surface); unseen regions are filled with the highest
+/// measured height around them, so the tools leave material there rather than cut into a part
+/// nobody saw ([`FaceStats::unseen_filled`]).
+pub fn reconstruct_with_free_space(
+    input: Geometry,
+    opts: &ReconstructOptions,
+    free_space: Option<&[Point3<f64>]>,
+    progress: ProgressFn<'_>,
+    cancelled: CancelFn<'_>,
+) -> Result<ReconstructOutput> {
     let started = Instant::now();
     let r = opts.resolve()?;
     let n_faces = r.faces.len() as f64;
@@ -490,7 +510,11 @@ pub fn reconstruct(
                 progress(0.3 + 0.7 * i as f64 / n_faces, &format!("face {}: rasterising", frame.face));
                 let iso = frame.face_from_part();
                 let points: Vec<Point3<f64>> = cloud.points.iter().map(|p| iso * p).collect();
-                faces.push(cloud_face(&points, *frame, &r, i, cancelled)?);
+                // Free space is what the scanner saw from above: it speaks for the top view only.
+                let free: Option<Vec<Point3<f64>>> = free_space
+                    .filter(|f| !f.is_empty() && frame.face == depthmill_geometry::Face::PosZ)
+                    .map(|f| f.iter().map(|p| iso * p).collect());
+                faces.push(cloud_face(&points, free.as_deref(), *frame, &r, i, cancelled)?);
             }
             ("point_cloud", kept, reports)
         }
@@ -532,17 +556,160 @@ fn face_roi(r: &Resolved, points: &[Point3<f64>], index: usize) -> Result<Roi> {
     }
 }
 
+/// Free-space evidence on a face's grid: the cells with a table point, and the same closed over
+/// the gaps between scan lines ([`close_mask`]).
+struct FreeCells {
+    hits: Vec<bool>,
+    closed: Vec<bool>,
+}
+
+impl FreeCells {
+    /// The cells taken as empty next to `map` (after the hole fill): those with a table point,
+    /// and those the closing adds unless they touch a cell with data (closing rounds the free
+    /// region's concave corners, which are the part's convex corners).
+    fn effective(&self, map: &HeightMap) -> Vec<bool> {
+        let (w, h) = (map.width() as usize, map.height() as usize);
+        let d = map.data();
+        let touches_data = |i: usize| {
+            let (r, c) = ((i / w) as i64, (i % w) as i64);
+            (-1..=1i64).any(|dr| {
+                (-1..=1i64).any(|dc| {
+                    let (rr, cc) = (r + dr, c + dc);
+                    rr >= 0
+                        && cc >= 0
+                        && rr < h as i64
+                        && cc < w as i64
+                        && d[rr as usize * w + cc as usize].is_finite()
+                })
+            })
+        };
+        (0..d.len()).map(|i| self.hits[i] || (self.closed[i] && !touches_data(i))).collect()
+    }
+}
+
+/// Gaps between free-space samples up to this wide (twice this, across) are free too, mm: more
+/// than the scanner's line spacing, less than a flank worth protecting.
+const FREE_GAP_MM: f64 = 1.0;
+
+/// Morphological closing of `mask` (`w` x `h`, row-major) by a `(2k+1)`-cell square: a cell is
+/// set when every cell within `k` of it (Chebyshev) is within `k` of a set cell. Fills gaps up
+/// to `2k` cells between set cells without moving the set region's outline outward.
+pub fn close_mask(mask: &[bool], w: usize, h: usize, k: usize) -> Vec<bool> {
+    // Cells with a `target` cell within k (Chebyshev; cells off the grid do not count), separable:
+    // along the row, then along the column.
+    let near = |m: &[bool], target: bool| -> Vec<bool> {
+        let mut rows = vec![false; m.len()];
+        for r in 0..h {
+            for c in 0..w {
+                let (lo, hi) = (c.saturating_sub(k), (c + k).min(w - 1));
+                rows[r * w + c] = (lo..=hi).any(|cc| m[r * w + cc] == target);
+            }
+        }
+        let mut out = vec![false; m.len()];
+        for r in 0..h {
+            for c in 0..w {
+                let (lo, hi) = (r.saturating_sub(k), (r + k).min(h - 1));
+                out[r * w + c] = (lo..=hi).any(|rr| rows[rr * w + c]);
+            }
+        }
+        out
+    };
+    // Dilate, then erode: set where no unset cell of the dilation lies within k.
+    let dilated = near(mask, true);
+    near(&dilated, false).iter().map(|v| !v).collect()
+}
+
+/// The smallest region holding both.
+fn roi_union(a: Roi, b: Roi) -> Roi {
+    Roi {
+        x_min_mm: a.x_min_mm.min(b.x_min_mm),
+        y_min_mm: a.y_min_mm.min(b.y_min_mm),
+        x_max_mm: a.x_max_mm.max(b.x_max_mm),
+        y_max_mm: a.y_max_mm.max(b.y_max_mm),
+    }
+}
+
+/// Fills every 8-connected region of cells that are empty in `map` and not `free` (no point of
+/// any kind landed there) with the highest finite height of the cells around it; a region with no
+/// finite neighbour stays empty. Returns the number of cells filled.
+pub fn fill_unseen(map: &mut HeightMap, free: &[bool]) -> usize {
+    let (w, h) = (map.width() as usize, map.height() as usize);
+    let data = map.data().to_vec();
+    let unseen = |i: usize| data[i].is_nan() && !free[i];
+    let mut seen = vec![false; data.len()];
+    let mut out = data.clone();
+    let mut filled = 0usize;
+    let mut stack = Vec::new();
+    let mut region = Vec::new();
+    for start in 0..data.len() {
+        if seen[start] || !unseen(start) {
+            continue;
+        }
+        seen[start] = true;
+        stack.push(start);
+        region.clear();
+        let mut top = f32::NEG_INFINITY;
+        while let Some(i) = stack.pop() {
+            region.push(i);
+            let (r, c) = ((i / w) as i64, (i % w) as i64);
+            for dr in -1..=1 {
+                for dc in -1..=1 {
+                    let (rr, cc) = (r + dr, c + dc);
+                    if rr < 0 || cc < 0 || rr >= h as i64 || cc >= w as i64 {
+                        continue;
+                    }
+                    let j = rr as usize * w + cc as usize;
+                    if data[j].is_finite() {
+                        top = top.max(data[j]);
+                    } else if !seen[j] && unseen(j) {
+                        seen[j] = true;
+                        stack.push(j);
+                    }
+                }
+            }
+        }
+        if top.is_finite() {
+            for &i in &region {
+                out[i] = top;
+            }
+            filled += region.len();
+        }
+    }
+    if filled > 0 {
+        map.data_mut().copy_from_slice(&out);
+    }
+    filled
+}
+
 fn cloud_face(
     points: &[Point3<f64>],
+    free: Option<&[Point3<f64>]>,
     frame: FaceFrame,
     r: &Resolved,
     index: usize,
     cancelled: CancelFn<'_>,
 ) -> Result<FaceOutput> {
     let started = Instant::now();
-    let roi = face_roi(r, points, index)?;
+    let mut roi = face_roi(r, points, index)?;
+    if let (None, Some(f)) = (r.roi, free)
+        && let Some(around) = Roi::around(f, r.margin_mm)
+    {
+        roi = roi_union(roi, around);
+    }
     let mut grid = grid_for_roi(&roi, r.pixel_mm)?;
     grid.face = frame.face;
+    // Cells where the scanner saw the table: nothing there. Scan lines sample the table every
+    // line spacing, so the gaps between them are closed (up to FREE_GAP_MM).
+    let free_cells: Option<FreeCells> = match free {
+        Some(f) => {
+            let hits: Vec<bool> =
+                try_rasterize_max(f, &grid)?.0.data().iter().map(|z| z.is_finite()).collect();
+            let k = ((FREE_GAP_MM / r.pixel_mm).ceil() as usize).clamp(1, 16);
+            let closed = close_mask(&hits, grid.width as usize, grid.height as usize, k);
+            Some(FreeCells { hits, closed })
+        }
+        None => None,
+    };
     let (max, raster) = try_rasterize_max(points, &grid)?;
     if raster.points_binned == 0 {
         return Err(ReconError::Empty(format!(
@@ -557,7 +724,7 @@ fn cloud_face(
     };
     check_cancel(cancelled)?;
     let counts = (raster.points_binned, raster.points_outside);
-    finish_face(raw, upper, frame, r, counts, started, cancelled)
+    finish_face(raw, upper, free_cells.as_ref(), frame, r, counts, started, cancelled)
 }
 
 fn mesh_face(
@@ -578,15 +745,19 @@ fn mesh_face(
         )));
     }
     check_cancel(cancelled)?;
-    finish_face(raw, None, frame, r, (0, 0), started, cancelled)
+    finish_face(raw, None, None, frame, r, (0, 0), started, cancelled)
 }
 
 /// Z range, fill, coverage and roughing of one face. `raw` is the finishing target as rasterised;
 /// `upper`, when given, an upper bound of it on the same cells (the max where `raw` is a median),
-/// which the roughing map is built from instead so it never cuts into the part.
+/// which the roughing map is built from instead so it never cuts into the part. `free`, when
+/// given, marks the cells where the scanner saw the table: the other empty cells are unseen and
+/// filled by [`fill_unseen`] after the hole fill, in the target and in the roughing bound alike.
+#[allow(clippy::too_many_arguments)]
 fn finish_face(
     mut raw: HeightMap,
     upper: Option<HeightMap>,
+    free: Option<&FreeCells>,
     frame: FaceFrame,
     r: &Resolved,
     (points_binned, points_outside): (usize, usize),
@@ -601,11 +772,13 @@ fn finish_face(
         z_max = z_min + 1.0;
     }
     raw.set_z_range(z_min, z_max)?;
-    let (depth_map, fill) = if r.fill.max_hole_mm > 0.0 {
+    let (mut depth_map, fill) = if r.fill.max_hole_mm > 0.0 {
         fill_holes(&raw, &r.fill)?
     } else {
         (raw.clone(), FillReport::default())
     };
+    let free = free.map(|f| f.effective(&depth_map));
+    let unseen_filled = free.as_deref().map_or(0, |f| fill_unseen(&mut depth_map, f));
     check_cancel(cancelled)?;
     let (coverage_map, coverage) = coverage(&raw, &depth_map);
     let mut roughing_map = match upper {
@@ -613,8 +786,12 @@ fn finish_face(
         Some(mut upper) => {
             upper.set_z_range(z_min, z_max)?;
             // Filling is monotone in the samples (max, or a weighted mean with the same weights
-            // over the same cells), so the filled bound stays above the filled target.
-            let filled = if r.fill.max_hole_mm > 0.0 { fill_holes(&upper, &r.fill)?.0 } else { upper };
+            // over the same cells), so the filled bound stays above the filled target; the
+            // unseen fill takes the highest neighbour, also monotone.
+            let mut filled = if r.fill.max_hole_mm > 0.0 { fill_holes(&upper, &r.fill)?.0 } else { upper };
+            if let Some(f) = &free {
+                fill_unseen(&mut filled, f);
+            }
             continuous_over(&filled, r.roughing_factor)?
         }
     };
@@ -633,6 +810,7 @@ fn finish_face(
         points_outside,
         coverage,
         fill,
+        unseen_filled,
         seconds: started.elapsed().as_secs_f64(),
     };
     Ok(FaceOutput { face: frame, raw, depth_map, coverage_map, roughing_map, stats })
@@ -706,6 +884,158 @@ mod tests {
             Err(ReconError::InvalidParameter { field, .. }) => assert_eq!(field, "reconstruct.estimator"),
             Err(e) => panic!("expected an invalid parameter, got {e}"),
             Ok(_) => panic!("an unknown estimator was accepted"),
+        }
+    }
+
+    /// A 20 x 20 mm plateau at z = 8 on a table at z = 0, seen from above: the plateau measured
+    /// except a band 10 <= x < 12 (a steep face the scanner missed) and a 3 mm through hole at
+    /// (5, 5) where the table shows; the table measured around the plateau out to 6 mm and
+    /// through the hole, except in the band's shadow (nothing seen there either).
+    fn plateau_with_band() -> (PointCloud, Vec<Point3<f64>>) {
+        let (mut part, mut table) = (Vec::new(), Vec::new());
+        let step = 0.1;
+        let n = (32.0 / step) as i32;
+        for j in 0..n {
+            for i in 0..n {
+                let (x, y) = (-6.0 + step * (f64::from(i) + 0.5), -6.0 + step * (f64::from(j) + 0.5));
+                let on_plateau = (0.0..20.0).contains(&x) && (0.0..20.0).contains(&y);
+                let in_hole = (x - 5.0).hypot(y - 5.0) < 1.5;
+                let band = (10.0..12.0).contains(&x);
+                if band && (-6.0..26.0).contains(&y) && on_plateau {
+                    continue;
+                }
+                if on_plateau && !in_hole {
+                    part.push(Point3::new(x, y, 8.0));
+                } else {
+                    table.push(Point3::new(x, y, 0.0));
+                }
+            }
+        }
+        (PointCloud::from_points(part), table)
+    }
+
+    #[test]
+    fn unseen_cells_are_filled_from_above_and_empty_ones_left_to_cut() {
+        let (cloud, table) = plateau_with_band();
+        let opts = ReconstructOptions {
+            pixel_mm: Some(0.5),
+            fill: Some(FillOptions { max_hole_mm: Some(1.0), ..Default::default() }),
+            ..Default::default()
+        };
+        let out = reconstruct_with_free_space(
+            Geometry::Cloud(cloud.clone()),
+            &opts,
+            Some(&table),
+            &|_, _| {},
+            &|| false,
+        )
+        .expect("reconstruct");
+        let map = &out.faces[0].depth_map;
+        let at = |x: f64, y: f64| map.cell_of(x, y).and_then(|(c, r)| map.get(c, r)).unwrap_or(f32::NAN);
+        // The unseen band is filled at the plateau's height: the tools leave it.
+        assert_eq!(at(11.0, 10.0), 8.0);
+        // The hole, where the table shows, and the table around stay empty: cut to the floor.
+        assert!(at(5.0, 5.0).is_nan() && at(-3.0, 10.0).is_nan() && at(23.0, 10.0).is_nan());
+        // The map covers the free space around the plateau (the table out to 6 mm).
+        assert!(map.meta().origin_x_mm <= -5.5, "{:?}", map.meta());
+        assert_eq!(out.faces[0].stats.unseen_filled, 4 * 40);
+        // The roughing map never dips below the target.
+        let rough = out.faces[0].roughing_map.data();
+        assert!(map.data().iter().zip(rough).all(|(z, r)| !z.is_finite() || *r >= *z));
+        // Without free-space evidence the band is outside what was seen: left empty, as before.
+        let plain = reconstruct(Geometry::Cloud(cloud), &opts, &|_, _| {}, &|| false).expect("reconstruct");
+        let m = &plain.faces[0].depth_map;
+        let v = m.cell_of(11.0, 10.0).and_then(|(c, r)| m.get(c, r)).unwrap_or(f32::NAN);
+        assert!(v.is_nan(), "{v}");
+        assert_eq!(plain.faces[0].stats.unseen_filled, 0);
+    }
+
+    #[test]
+    fn fill_unseen_matches_a_cell_by_cell_reference() {
+        // Random maps: data, free and unseen cells; every unseen cell gets the max over its
+        // region's finite neighbours (found here by repeated relaxation), or stays empty.
+        let mut rng = StdRng::seed_from_u64(11);
+        for _ in 0..50 {
+            let (w, h) = (rng.random_range(1..12u32), rng.random_range(1..12u32));
+            let n = (w * h) as usize;
+            let data: Vec<f32> = (0..n)
+                .map(|_| if rng.random_bool(0.4) { rng.random_range(0.0..10.0f32) } else { f32::NAN })
+                .collect();
+            let free: Vec<bool> = data.iter().map(|z| z.is_nan() && rng.random_bool(0.3)).collect();
+            let meta = depthmill_geometry::HeightMapMeta {
+                z_min_mm: 0.0,
+                z_max_mm: 10.0,
+                ..depthmill_geometry::HeightMapMeta::new(w, h, 1.0)
+            };
+            let mut map = HeightMap::new(meta, data.clone()).expect("map");
+            let filled = fill_unseen(&mut map, &free);
+            // Reference: label regions by relaxation to the smallest index, then take maxima.
+            let unseen: Vec<bool> = (0..n).map(|i| data[i].is_nan() && !free[i]).collect();
+            let mut label: Vec<usize> = (0..n).collect();
+            let nb = |i: usize| {
+                let (r, c) = ((i / w as usize) as i64, (i % w as usize) as i64);
+                let mut v = Vec::new();
+                for dr in -1..=1i64 {
+                    for dc in -1..=1i64 {
+                        let (rr, cc) = (r + dr, c + dc);
+                        if (dr, dc) != (0, 0) && rr >= 0 && cc >= 0 && rr < h as i64 && cc < w as i64 {
+                            v.push(rr as usize * w as usize + cc as usize);
+                        }
+                    }
+                }
+                v
+            };
+            loop {
+                let mut changed = false;
+                for i in 0..n {
+                    for j in nb(i) {
+                        if unseen[i] && unseen[j] && label[j] < label[i] {
+                            label[i] = label[j];
+                            changed = true;
+                        }
+                    }
+                }
+                if !changed {
+                    break;
+                }
+            }
+            let mut top = vec![f32::NEG_INFINITY; n];
+            for i in (0..n).filter(|&i| unseen[i]) {
+                for j in nb(i) {
+                    if data[j].is_finite() {
+                        top[label[i]] = top[label[i]].max(data[j]);
+                    }
+                }
+            }
+            let mut count = 0;
+            for i in 0..n {
+                let want = if unseen[i] && top[label[i]].is_finite() {
+                    count += 1;
+                    top[label[i]]
+                } else {
+                    data[i]
+                };
+                let got = map.data()[i];
+                assert!(got == want || (got.is_nan() && want.is_nan()), "cell {i}: {got} vs {want}");
+            }
+            assert_eq!(filled, count);
+        }
+    }
+
+    #[test]
+    fn close_mask_matches_the_definition() {
+        let mut rng = StdRng::seed_from_u64(3);
+        for _ in 0..40 {
+            let (w, h, k) =
+                (rng.random_range(1..15usize), rng.random_range(1..15usize), rng.random_range(0..4usize));
+            let m: Vec<bool> = (0..w * h).map(|_| rng.random_bool(0.3)).collect();
+            let within = |i: usize, j: usize| {
+                let (ri, ci, rj, cj) = (i / w, i % w, j / w, j % w);
+                ri.abs_diff(rj) <= k && ci.abs_diff(cj) <= k
+            };
+            let dil: Vec<bool> = (0..w * h).map(|i| (0..w * h).any(|j| m[j] && within(i, j))).collect();
+            let want: Vec<bool> = (0..w * h).map(|i| (0..w * h).all(|j| !within(i, j) || dil[j])).collect();
+            assert_eq!(close_mask(&m, w, h, k), want, "{w}x{h} k {k}");
         }
     }
 }

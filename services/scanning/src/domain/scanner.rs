@@ -551,6 +551,19 @@ pub struct Profile {
     pub column: Vec<u32>,
     /// Rays that gave no point, by reason.
     pub dropped: DropCounts,
+    /// Points on the floor (the table top under the part; [`Scanner::with_floor`]) where a ray
+    /// missed the part, SENSOR frame, mm: where the scanner saw that there is no part.
+    pub floor: Vec<Point3<f64>>,
+}
+
+/// The plane the part stands on, in the frame the scanner casts in (the part frame): the table
+/// top, `z = z_mm` within `radius_mm` of `center_xy_mm`. A ray that misses the part returns a
+/// point there, as a real scanner sees the table.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Floor {
+    pub z_mm: f64,
+    pub center_xy_mm: [f64; 2],
+    pub radius_mm: f64,
 }
 
 impl Profile {
@@ -564,6 +577,7 @@ impl Profile {
 #[derive(Debug, Clone)]
 pub struct Scanner {
     spec: ScannerSpec,
+    floor: Option<Floor>,
     bvh: Bvh,
     apex: Point3<f64>,
     dirs: Vec<Vector3<f64>>,
@@ -586,7 +600,26 @@ impl Scanner {
             .collect();
         let apex = Point3::new(0.0, 0.0, spec.apex_z_mm());
         let cos_limit = spec.incidence_limit_deg.to_radians().cos();
-        Ok(Self { spec, bvh, apex, dirs, cos_limit, rng: StdRng::seed_from_u64(seed) })
+        Ok(Self { spec, floor: None, bvh, apex, dirs, cos_limit, rng: StdRng::seed_from_u64(seed) })
+    }
+
+    /// The same scanner seeing `floor` wherever a ray misses the part (the table top).
+    pub fn with_floor(mut self, floor: Floor) -> Self {
+        self.floor = Some(floor);
+        self
+    }
+
+    /// Where the ray from `origin` along `dir` meets the floor, when it does within the disc:
+    /// its parameter `t` (mm).
+    fn floor_hit(&self, origin: &Point3<f64>, dir: &Vector3<f64>) -> Option<f64> {
+        let f = self.floor?;
+        if dir.z >= -1e-12 {
+            return None;
+        }
+        let t = (f.z_mm - origin.z) / dir.z;
+        let p = origin + dir * t;
+        let inside = (p.x - f.center_xy_mm[0]).hypot(p.y - f.center_xy_mm[1]) <= f.radius_mm;
+        (t > 0.0 && inside).then_some(t)
     }
 
     /// The spec.
@@ -640,6 +673,7 @@ impl Scanner {
             intensity: Vec::with_capacity(n),
             column: Vec::with_capacity(n),
             dropped: DropCounts::default(),
+            floor: Vec::new(),
         };
         let origin_w = world_from_sensor * self.apex;
         let camera_w = world_from_sensor * self.camera_in_sensor();
@@ -648,6 +682,20 @@ impl Scanner {
             let dw = world_from_sensor.rotation * d;
             let Some(hit) = self.bvh.cast(&origin_w, &dw, f64::INFINITY) else {
                 out.dropped.miss += 1;
+                // Past the part, the table: seen like any surface (window, incidence, the
+                // camera's line of sight past the part), it says there is no part along the ray.
+                if let Some(t) = self.floor_hit(&origin_w, &dw) {
+                    let z = self.apex.z + t * d.z;
+                    let p_w = origin_w + dw * t;
+                    if z >= self.spec.standoff_min_mm
+                        && z <= self.spec.standoff_max_mm
+                        && dw.z.abs() >= self.cos_limit
+                        && !self.bvh.occluded(&p_w, &camera_w)
+                    {
+                        let t = t + self.spec.noise_sigma_mm * gauss(rng);
+                        out.floor.push(self.apex + d * t);
+                    }
+                }
                 continue;
             };
             let z = self.apex.z + hit.t * d.z;
@@ -935,6 +983,37 @@ mod tests {
         // Nothing in front of the scanner at all: every ray misses.
         let mut sc = Scanner::new(ScannerSpec::slp400(), &plate(-100.0, 50.0, 0.0), 3).expect("scanner");
         assert_eq!(sc.profile(&Isometry3::identity(), 0).dropped.miss, 450);
+    }
+
+    #[test]
+    fn rays_past_the_part_see_the_floor_and_only_there() {
+        // A 20 mm plate at z = 0 over a floor at z = -5; the sensor 150 mm above, looking down.
+        let floor = Floor { z_mm: -5.0, center_xy_mm: [0.0, 0.0], radius_mm: 200.0 };
+        let mut sc = Scanner::new(ScannerSpec::slp400(), &plate(0.0, 10.0, 0.0), 3)
+            .expect("scanner")
+            .with_floor(floor);
+        let down = Isometry3::from_parts(
+            Translation3::new(0.0, 0.0, 150.0),
+            UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI),
+        );
+        let p = sc.profile(&down, 0);
+        assert!(!p.points.is_empty() && !p.floor.is_empty(), "{} / {}", p.points.len(), p.floor.len());
+        // Every ray that missed the plate met the floor (nothing hides it here).
+        assert_eq!(p.floor.len() as u32, p.dropped.miss);
+        for q in p.floor.iter().map(|q| down * q) {
+            assert!((q.z + 5.0).abs() < 0.3 && q.x.abs() > 9.9, "{q:?}");
+        }
+        for q in p.points.iter().map(|q| down * q) {
+            assert!(q.z.abs() < 0.3 && q.x.abs() < 10.1, "{q:?}");
+        }
+        // Outside the table's disc there is nothing to see.
+        let small = Floor { radius_mm: 12.0, ..floor };
+        let mut sc = Scanner::new(ScannerSpec::slp400(), &plate(0.0, 10.0, 0.0), 3)
+            .expect("scanner")
+            .with_floor(small);
+        let p = sc.profile(&down, 0);
+        assert!(p.floor.iter().map(|q| down * q).all(|q| q.x.hypot(q.y) <= 12.5));
+        assert!((p.floor.len() as u32) < p.dropped.miss);
     }
 
     #[test]

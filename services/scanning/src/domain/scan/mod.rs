@@ -55,7 +55,7 @@ pub use plan::{Pass, ScanPlan, Station, plan_scan};
 use super::latch::{EncoderLatch, LatchConfig, LatchError, PositionSource};
 use super::robot::controller::{MotionController, RobotError};
 use super::robot::kinematics::ArmModel;
-use super::scanner::{DropCounts, Scanner, ScannerError, ScannerSpec};
+use super::scanner::{DropCounts, Floor, Scanner, ScannerError, ScannerSpec};
 
 /// Arm speed (fraction of the joints' top speeds) between passes.
 const APPROACH_SPEED: f64 = 0.5;
@@ -304,6 +304,10 @@ pub struct ScanReport {
     pub units: Option<depthmill_geometry::UnitsDecision>,
 }
 
+/// Table points are kept this far around the part's footprint (X and Y), mm: the free space the
+/// depth map needs around the part (more than the largest tool's radius).
+pub const FREE_SPACE_MARGIN_MM: f64 = 6.0;
+
 /// The scan's result: the registered cloud (part frame, with intensity), the pass id of every
 /// point, and the report.
 #[derive(Debug, Clone)]
@@ -311,6 +315,8 @@ pub struct ScanOutput {
     pub cloud: PointCloud,
     pub pass: Vec<u16>,
     pub report: ScanReport,
+    /// Table points seen past the part around its footprint (part frame): where there is no part.
+    pub free_space: Vec<Point3<f64>>,
 }
 
 /// One frame's timing and poses before acquisition.
@@ -368,6 +374,8 @@ pub struct ScanSession {
     table_wait_s: f64,
     /// The part's top-view silhouette at the rescan pixel (from its mesh).
     silhouette: Option<silhouette::Silhouette>,
+    /// Table points seen past the part within [`FREE_SPACE_MARGIN_MM`] of its footprint (part frame).
+    free_space: Vec<Point3<f64>>,
 }
 
 impl ScanSession {
@@ -377,7 +385,16 @@ impl ScanSession {
         let spec = ScannerSpec { line_rate_hz: opts.line_rate_hz, ..ScannerSpec::slp400() };
         opts.validate(&spec)?;
         let placement = PartPlacement::on_table(mesh, &layout)?;
-        let scanner = Scanner::new(spec, mesh, opts.seed)?;
+        // The part stands on the table: rays past it see the table top.
+        let floor = Floor {
+            z_mm: placement.min.z,
+            center_xy_mm: [
+                0.5 * (placement.min.x + placement.max.x),
+                0.5 * (placement.min.y + placement.max.y),
+            ],
+            radius_mm: layout.table_radius_mm,
+        };
+        let scanner = Scanner::new(spec, mesh, opts.seed)?.with_floor(floor);
         // At least two lines to a cell, so a cell between two lines is not taken for unseen.
         let silhouette =
             silhouette::Silhouette::of(mesh, opts.rescan_pixel_mm.max(2.0 * opts.line_spacing_mm));
@@ -417,6 +434,7 @@ impl ScanSession {
             last_pass_id: 0,
             table_wait_s: 0.0,
             silhouette,
+            free_space: Vec::new(),
         })
     }
 
@@ -638,10 +656,19 @@ impl ScanSession {
                         q
                     })
                     .collect();
-                (pts, profile.intensity, profile.dropped, sq, mx.sqrt())
+                let (lo, hi) = (placement.min, placement.max);
+                let m = FREE_SPACE_MARGIN_MM;
+                let floor: Vec<Point3<f64>> = profile
+                    .floor
+                    .iter()
+                    .map(|p| placed * p)
+                    .filter(|q| q.x >= lo.x - m && q.x <= hi.x + m && q.y >= lo.y - m && q.y <= hi.y + m)
+                    .collect();
+                (pts, profile.intensity, profile.dropped, sq, mx.sqrt(), floor)
             })
             .collect();
-        for (pts, inten, dropped, sq, mx) in results {
+        for (pts, inten, dropped, sq, mx, floor) in results {
+            self.free_space.extend(floor);
             self.pass.extend(std::iter::repeat_n(pass_id, pts.len()));
             self.points.extend(pts);
             self.intensity.extend(inten);
@@ -818,6 +845,7 @@ impl ScanSession {
             cloud: PointCloud { points: self.points, intensity: Some(self.intensity), normals: None },
             pass: self.pass,
             report,
+            free_space: self.free_space,
         }
     }
 }
