@@ -16,10 +16,10 @@ pub struct MapArgs {
     #[arg(long)]
     pub pixel_mm: Option<f64>,
     /// Z (mm) of black in an image without depthmill metadata.
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true)]
     pub z_min_mm: Option<f64>,
     /// Z (mm) of white in an image without depthmill metadata.
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true)]
     pub z_max_mm: Option<f64>,
 }
 

@@ -68,9 +68,9 @@ enum Command {
         /// Pixel size of a depth image without depthmill metadata.
         #[arg(long)]
         pixel_mm: Option<f64>,
-        #[arg(long)]
+        #[arg(long, allow_negative_numbers = true)]
         z_min_mm: Option<f64>,
-        #[arg(long)]
+        #[arg(long, allow_negative_numbers = true)]
         z_max_mm: Option<f64>,
         /// Length unit of a mesh or point cloud: auto (default; the header, else metres under 2
         /// units across, else mm), mm, m or in.
@@ -107,7 +107,7 @@ enum Command {
         #[arg(long, default_value = "column")]
         model: String,
         /// Height of everything outside the map and of cells without data (default: the map's z_min).
-        #[arg(long)]
+        #[arg(long, allow_negative_numbers = true)]
         floor_mm: Option<f64>,
         #[command(flatten)]
         map_args: cam::MapArgs,
@@ -281,4 +281,55 @@ fn main() -> anyhow::Result<()> {
             }
         }
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use clap::Parser as _;
+
+    use super::*;
+
+    #[test]
+    fn negative_values_and_faces_parse_as_values() {
+        let cli = Cli::try_parse_from([
+            "depthmill",
+            "raster",
+            "in.ply",
+            "--face",
+            "-Z",
+            "--units",
+            "m",
+            "-o",
+            "x.png",
+        ])
+        .expect("raster with -Z");
+        let Command::Raster { args, .. } = cli.command else { panic!("not raster") };
+        assert_eq!((args.face, args.units.as_deref()), (vec!["-Z".to_string()], Some("m")));
+        let cli = Cli::try_parse_from([
+            "depthmill",
+            "submit",
+            "d.png",
+            "--z-min-mm",
+            "-745",
+            "--z-max-mm",
+            "-700.5",
+        ])
+        .expect("submit with negative Z");
+        let Command::Submit { z_min_mm, z_max_mm, .. } = cli.command else { panic!("not submit") };
+        assert_eq!((z_min_mm, z_max_mm), (Some(-745.0), Some(-700.5)));
+        let cli = Cli::try_parse_from([
+            "depthmill",
+            "compensate",
+            "m.png",
+            "--tool",
+            "ball-6",
+            "--floor-mm",
+            "-3",
+            "-o",
+            "t.npy",
+        ])
+        .expect("compensate with a negative floor");
+        let Command::Compensate { floor_mm, .. } = cli.command else { panic!("not compensate") };
+        assert_eq!(floor_mm, Some(-3.0));
+    }
 }

@@ -14,8 +14,12 @@ pub struct RasterArgs {
     #[arg(long)]
     pub pixel_mm: Option<f64>,
     /// Face: +Z, -Z, +X, -X, +Y, -Y, A=<deg> or N=<x>,<y>,<z>; repeat for several faces.
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true)]
     pub face: Vec<String>,
+    /// Length unit of the input: auto (default; the header, else metres under 2 units across,
+    /// else mm), mm, m or in. The maps are in millimetres.
+    #[arg(long)]
+    pub units: Option<String>,
     /// Fill method: idw or max.
     #[arg(long)]
     pub fill: Option<String>,
@@ -85,7 +89,22 @@ pub fn run(input: &Path, args: &RasterArgs, output: &Path) -> anyhow::Result<()>
     }
     opts.resolve()?;
     let started = std::time::Instant::now();
-    let (geometry, stats) = read_any(input, &ReadLimits::default())?;
+    let (mut geometry, stats) = read_any(input, &ReadLimits::default())?;
+    let units = match args.units.as_deref() {
+        None | Some("auto") => depthmill_geometry::Units::Auto,
+        Some(u) => depthmill_geometry::Units::Given(
+            depthmill_geometry::LengthUnit::parse(u)
+                .with_context(|| format!("--units {u}: expected auto, mm, m or in"))?,
+        ),
+    };
+    let head = depthmill_geometry::units::read_head(input)
+        .with_context(|| format!("reading {}", input.display()))?;
+    if let Some(d) = depthmill_geometry::units::normalise(&mut geometry, &head, units) {
+        println!("{}: read in {} ({}: {})", input.display(), d.unit, d.source, d.reason);
+        if let Some(w) = &d.warning {
+            println!("{}: {w}", input.display());
+        }
+    }
     let read_s = started.elapsed().as_secs_f64();
     let progress = |_: f64, _: &str| {};
     let never = || false;

@@ -233,6 +233,20 @@ pub fn execute_params(p: &ExecuteParams) -> machine::ExecuteParams {
 }
 
 /// The execute stage's parameters, the plan's stock filling what the job's `execute` leaves open.
+/// The plan stage's parameters for a job: its `plan` section, with the stock's material taken
+/// from `execute.material` when only that names one (the feeds are then chosen for the material
+/// the machine will cut).
+pub fn plan_params_for_job(spec: &JobSpec) -> cam::PlanParams {
+    let mut plan = spec.plan.clone().unwrap_or_default();
+    if let Some(m) = spec.execute.as_ref().and_then(|e| e.material.clone()) {
+        let stock = plan.stock.get_or_insert_with(Default::default);
+        if stock.material.is_none() {
+            stock.material = Some(m);
+        }
+    }
+    plan_params(&plan)
+}
+
 pub fn execute_params_for_job(spec: &JobSpec) -> machine::ExecuteParams {
     let mut p = execute_params(&spec.execute.clone().unwrap_or_default());
     if let Some(stock) = spec.plan.as_ref().and_then(|pl| pl.stock.as_ref()) {
@@ -648,6 +662,23 @@ mod tests {
             "execute": {"machine": "emco-f1", "adaptive": "feed_only"}}"#;
         let spec: JobSpec = serde_json::from_str(json).expect("parse");
         assert_eq!(job_spec_from_pb(job_spec(&spec)).expect("back"), spec);
+    }
+
+    #[test]
+    fn the_material_named_once_is_used_by_both_stages() {
+        let spec: JobSpec = serde_json::from_value(serde_json::json!({
+            "input": {"kind": "mesh", "artifact": "a".repeat(64)},
+            "execute": {"material": "wax"}
+        }))
+        .expect("spec");
+        assert_eq!(plan_params_for_job(&spec).stock.and_then(|s| s.material).as_deref(), Some("wax"));
+        let spec: JobSpec = serde_json::from_value(serde_json::json!({
+            "input": {"kind": "mesh", "artifact": "a".repeat(64)},
+            "plan": {"stock": {"material": "brass"}}
+        }))
+        .expect("spec");
+        assert_eq!(execute_params_for_job(&spec).material.as_deref(), Some("brass"));
+        assert_eq!(plan_params_for_job(&spec).stock.and_then(|s| s.material).as_deref(), Some("brass"));
     }
 
     #[test]

@@ -391,7 +391,7 @@ impl StageRunner for GrpcStages {
                     let msg = cam::PlanToolpathsRequest {
                         context: context(call),
                         faces,
-                        params: Some(convert::plan_params(&call.spec.plan.clone().unwrap_or_default())),
+                        params: Some(convert::plan_params_for_job(&call.spec)),
                         pixel_mm: call.spec.input.pixel_mm,
                         z_min_mm: call.spec.input.z_min_mm,
                         z_max_mm: call.spec.input.z_max_mm,

@@ -375,7 +375,7 @@ pub struct Stock {
     pub y_mm: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub z_mm: Option<f64>,
-    /// `aluminium`, `brass`, `mild_steel`, ...
+    /// `aluminium`, `brass`, `mild_steel`, ... (default: `execute.material`, else aluminium).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub material: Option<String>,
 }
