@@ -729,3 +729,31 @@ fn timing_realistic_job() {
         arts["gcode"].len()
     );
 }
+
+#[test]
+fn the_wall_zone_is_the_cells_near_steep_steps_and_the_outline() {
+    // A 10 x 10 grid of 0.1 mm cells: a 5 mm step between columns 4 and 5, a gentle 10° ramp
+    // beyond, the last row off the part.
+    let meta = HeightMapMeta { z_min_mm: 0.0, z_max_mm: 10.0, ..HeightMapMeta::new(10, 10, 0.1) };
+    let data: Vec<f32> = (0..100)
+        .map(|i| {
+            let (r, c) = (i / 10, i % 10);
+            if r == 9 {
+                f32::NAN
+            } else if c < 5 {
+                0.0
+            } else {
+                5.0 + 0.1 * (c as f32) * 10f32.to_radians().tan()
+            }
+        })
+        .collect();
+    let part = HeightMap::new(meta, data).expect("map");
+    let walls = crate::sections::part::wall_zone(&part, 0.2);
+    for r in 0..9 {
+        for c in 0..10 {
+            let want = (3..=6).contains(&c) || r >= 7;
+            assert_eq!(walls[r * 10 + c], want, "row {r} column {c}");
+        }
+    }
+    assert!(!walls[90], "cells off the part are not counted at all");
+}

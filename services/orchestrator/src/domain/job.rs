@@ -165,6 +165,16 @@ pub struct JobMetrics {
     /// ... RMS deviation, mm.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub part_rms_mm: Option<f64>,
+    /// ... deepest gouge off the walls (cells within one depth-map pixel of a surface steeper than
+    /// 75° or of the outline left out, where a wall a fraction of a pixel off reads as its height), mm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub part_off_walls_max_gouge_mm: Option<f64>,
+    /// ... signed mean deviation off the walls, mm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub part_off_walls_mean_mm: Option<f64>,
+    /// ... RMS deviation off the walls, mm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub part_off_walls_rms_mm: Option<f64>,
     /// The machined part against the CAM's predicted surface (the part opened by the tools): RMS, mm.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub preview_rms_mm: Option<f64>,
@@ -192,6 +202,9 @@ impl JobMetrics {
                 "part_mean_mm" => &mut self.part_mean_mm,
                 "part_rms_mm" => &mut self.part_rms_mm,
                 "preview_rms_mm" => &mut self.preview_rms_mm,
+                "part_off_walls_max_gouge_mm" => &mut self.part_off_walls_max_gouge_mm,
+                "part_off_walls_mean_mm" => &mut self.part_off_walls_mean_mm,
+                "part_off_walls_rms_mm" => &mut self.part_off_walls_rms_mm,
                 _ => continue,
             };
             *slot = Some(*v);

@@ -3,7 +3,7 @@
 
 mod faces;
 mod machine;
-mod part;
+pub(crate) mod part;
 mod scan;
 mod summary;
 mod toolpaths;

@@ -155,9 +155,19 @@ impl Ctx<'_> {
         let Ok((part, _)) = depthmill_geometry::mesh_raster::rasterize_mesh_with_stats(&mesh, &meta) else {
             return Ok(String::new());
         };
+        // Cells within one depth-map pixel of a surface steeper than 75° or of the part's outline:
+        // there a wall a fraction of a pixel off reads as a full step in Z, whichever way it is off.
+        let depth_pixel = self
+            .depth_maps
+            .get("depth_map")
+            .map(|m| m.meta().pixel_mm)
+            .or_else(|| self.job["spec"]["reconstruct"]["pixel_mm"].as_f64())
+            .unwrap_or(0.25);
+        let walls = wall_zone(&part, depth_pixel);
         let mut data = vec![f32::NAN; part.data().len()];
         let (mut gouge, mut left, mut sum_left, mut sum, mut sq, mut n) =
             (0.0f64, 0.0f64, 0.0f64, 0.0f64, 0.0f64, 0usize);
+        let (mut ow_gouge, mut ow_sum, mut ow_sq, mut ow_n) = (0.0f64, 0.0f64, 0.0f64, 0usize);
         for (i, (p, z)) in part.data().iter().zip(stock.map.data()).enumerate() {
             if !(p.is_finite() && z.is_finite()) {
                 continue;
@@ -170,6 +180,22 @@ impl Ctx<'_> {
             sum += d;
             sq += d * d;
             n += 1;
+            if !walls[i] {
+                ow_gouge = ow_gouge.max(-d);
+                ow_sum += d;
+                ow_sq += d * d;
+                ow_n += 1;
+            }
+        }
+        if ow_n > 0 {
+            let m = ow_n as f64;
+            for (k, v) in [
+                ("part_off_walls_max_gouge_mm", ow_gouge),
+                ("part_off_walls_mean_mm", ow_sum / m),
+                ("part_off_walls_rms_mm", (ow_sq / m).sqrt()),
+            ] {
+                self.figures.insert(k.into(), v);
+            }
         }
         if n == 0 {
             return Ok(String::new());
@@ -209,6 +235,20 @@ impl Ctx<'_> {
             ("Mean leftover".to_string(), format!("{:.4} mm", sum_left / nf)),
             ("Mean (signed)".to_string(), format!("{:+.4} mm", sum / nf)),
             ("RMS".to_string(), format!("{:.4} mm over {} cells", (sq / nf).sqrt(), n)),
+            (
+                "Off the walls".to_string(),
+                if ow_n > 0 {
+                    let m = ow_n as f64;
+                    format!(
+                        "max gouge {ow_gouge:.4} mm, mean {:+.4} mm, RMS {:.4} mm over {ow_n} cells (cells within one depth-map pixel, {} mm, of a surface steeper than 75° left out)",
+                        ow_sum / m,
+                        (ow_sq / m).sqrt(),
+                        fmt_num(depth_pixel)
+                    )
+                } else {
+                    "every cell is next to a wall".to_string()
+                },
+            ),
         ];
         body.push_str(&kv_table(&rows));
         Ok(body)
@@ -279,4 +319,38 @@ impl Ctx<'_> {
         body.push_str(&kv_table(&rows));
         Ok(body)
     }
+}
+
+/// Cells of `part` (a mesh's top surface on a grid) within `radius_mm` of a surface steeper than
+/// 75° or of the part's outline: where the height range over that neighbourhood exceeds what a
+/// 75° slope rises over the radius, or the neighbourhood leaves the part.
+pub(crate) fn wall_zone(part: &HeightMap, radius_mm: f64) -> Vec<bool> {
+    let m = part.meta();
+    let (w, h) = (m.width as usize, m.height as usize);
+    let k = ((radius_mm / m.pixel_mm).ceil() as usize).max(1);
+    let step = (radius_mm.max(m.pixel_mm) * 75f64.to_radians().tan()) as f32;
+    let d = part.data();
+    let mut out = vec![false; d.len()];
+    for r in 0..h {
+        for c in 0..w {
+            let i = r * w + c;
+            if !d[i].is_finite() {
+                continue;
+            }
+            let (mut lo, mut hi, mut edge) = (d[i], d[i], false);
+            for rr in r.saturating_sub(k)..=(r + k).min(h - 1) {
+                for cc in c.saturating_sub(k)..=(c + k).min(w - 1) {
+                    let v = d[rr * w + cc];
+                    if v.is_finite() {
+                        lo = lo.min(v);
+                        hi = hi.max(v);
+                    } else {
+                        edge = true;
+                    }
+                }
+            }
+            out[i] = edge || hi - lo > step;
+        }
+    }
+    out
 }

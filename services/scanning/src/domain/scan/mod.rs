@@ -308,6 +308,9 @@ pub struct ScanReport {
 /// depth map needs around the part (more than the largest tool's radius).
 pub const FREE_SPACE_MARGIN_MM: f64 = 6.0;
 
+/// Table points are kept only from a sensor within this of looking straight down, degrees.
+pub const FREE_SPACE_MAX_TILT_DEG: f64 = 5.0;
+
 /// The scan's result: the registered cloud (part frame, with intensity), the pass id of every
 /// point, and the report.
 #[derive(Debug, Clone)]
@@ -658,8 +661,13 @@ impl ScanSession {
                     .collect();
                 let (lo, hi) = (placement.min, placement.max);
                 let m = FREE_SPACE_MARGIN_MM;
-                let floor: Vec<Point3<f64>> = profile
-                    .floor
+                // A tilted sensor sees the table far under an overhang (its rays reach under by
+                // the height times the tilt's tangent): only a sensor looking down says where
+                // the part is not.
+                let down = (f.true_pose.rotation * Vector3::z()).dot(&-Vector3::z());
+                let floor_rays: &[Point3<f64>] =
+                    if down >= FREE_SPACE_MAX_TILT_DEG.to_radians().cos() { &profile.floor } else { &[] };
+                let floor: Vec<Point3<f64>> = floor_rays
                     .iter()
                     .map(|p| placed * p)
                     .filter(|q| q.x >= lo.x - m && q.x <= hi.x + m && q.y >= lo.y - m && q.y <= hi.y + m)
