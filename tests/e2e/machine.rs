@@ -89,3 +89,36 @@ async fn stop_and_emergency_stop_end_a_run_and_the_next_job_runs_normally() -> a
     assert_eq!(m.get_status(pb::GetStatusRequest {}).await?.into_inner().state, "idle");
     stack.shutdown().await
 }
+
+#[tokio::test]
+async fn a_program_sent_while_another_runs_waits_for_the_machine_instead_of_failing() -> anyhow::Result<()> {
+    let stack = TestStack::start().await?;
+    let mut m = machine(&stack).await?;
+    let sha = stack.upload("text/x-gcode", long_program()).await?;
+    let (_, first) = stack.post_job(&job(&sha), None).await?;
+    wait_running(&mut m).await?;
+    // The worker runs two jobs at once: the second reaches the machine while the first runs.
+    let (_, second) = stack.post_job(&job(&sha), None).await?;
+    let second_id = second["id"].as_str().expect("id").to_string();
+    let mut waited = false;
+    for _ in 0..500 {
+        let j = stack.get_job(&second_id).await?;
+        if j["stage"] == "execute"
+            && m.get_status(pb::GetStatusRequest {}).await?.into_inner().job_id != second_id
+        {
+            waited = true;
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    assert!(waited, "the second job never reached the machine while the first ran");
+    for id in [first["id"].as_str().expect("id"), second_id.as_str()] {
+        let done = stack.wait_for_end(id, Duration::from_secs(300)).await?;
+        assert_eq!(done["status"], "succeeded", "{done}");
+        // One attempt each: the machine queued the second program, nothing was retried.
+        let attempts: Vec<&serde_json::Value> =
+            done["attempts"].as_array().into_iter().flatten().filter(|a| a["stage"] == "execute").collect();
+        assert_eq!(attempts.len(), 1, "{done}");
+    }
+    stack.shutdown().await
+}

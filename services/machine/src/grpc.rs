@@ -67,6 +67,9 @@ struct MachineServiceImpl {
     running: StageRegistry,
     store: Arc<LocalStore>,
     shared: Arc<Shared>,
+    /// The machine itself: one program at a time, the others wait their turn in arrival order
+    /// (tokio's mutex is fair).
+    machine: Arc<tokio::sync::Mutex<()>>,
 }
 
 pub(crate) fn routes(store: LocalStore) -> tonic::service::Routes {
@@ -78,6 +81,7 @@ pub(crate) fn routes(store: LocalStore) -> tonic::service::Routes {
         running: StageRegistry::default(),
         store: Arc::new(store),
         shared,
+        machine: Arc::new(tokio::sync::Mutex::new(())),
     }))
 }
 
@@ -238,27 +242,48 @@ impl pb::machine_service_server::MachineService for MachineServiceImpl {
             };
             targets.push((a, map));
         }
-        // One program at a time: check and claim the machine under one lock.
-        {
-            let mut st =
-                self.shared.state.lock().map_err(|_| Status::internal("machine state lock poisoned"))?;
-            if st.state == "running" {
-                return Err(ErrorCode::Unavailable.status("the machine is running another program"));
-            }
-            // A new program clears a latched emergency stop (reset, then cycle start).
-            self.shared.estop.store(false, Ordering::SeqCst);
-            self.shared.stop.store(false, Ordering::SeqCst);
-            st.state = "running";
-            st.job_id = job_id.clone();
-        }
-        self.shared.line.store(0, Ordering::Relaxed);
         let guard = self.running.start(&job_id);
         let (tx, rx) = mpsc::channel(64);
         let store = self.store.clone();
         let shared = self.shared.clone();
+        let machine = self.machine.clone();
         let span = tracing::Span::current();
         tokio::spawn(async move {
             let token = guard.token().clone();
+            // One program at a time: a program sent while another runs waits for the machine
+            // (cancellable), as a job queues at a real cell, instead of failing.
+            let _machine = match machine.clone().try_lock_owned() {
+                Ok(g) => g,
+                Err(_) => {
+                    let _ = tx.try_send(Ok(update(pb::execute_program_update::Update::Progress(Progress {
+                        fraction: 0.0,
+                        message: "waiting for the machine: another program is running".into(),
+                    }))));
+                    tokio::select! {
+                        g = machine.lock_owned() => g,
+                        () = token.cancelled() => {
+                            let _ = tx.send(Err(ErrorCode::Cancelled.status("cancelled while waiting for the machine"))).await;
+                            return;
+                        }
+                    }
+                }
+            };
+            let claimed = match shared.state.lock() {
+                Ok(mut st) => {
+                    // A new program clears a latched emergency stop (reset, then cycle start).
+                    shared.estop.store(false, Ordering::SeqCst);
+                    shared.stop.store(false, Ordering::SeqCst);
+                    st.state = "running";
+                    st.job_id = job_id.clone();
+                    true
+                }
+                Err(_) => false,
+            };
+            if !claimed {
+                let _ = tx.send(Err(Status::internal("machine state lock poisoned"))).await;
+                return;
+            }
+            shared.line.store(0, Ordering::Relaxed);
             let live_tx = tx.clone();
             let shared_run = shared.clone();
             let _ = tx.try_send(Ok(update(pb::execute_program_update::Update::Progress(Progress {
