@@ -255,10 +255,12 @@ pub fn plan(
                     None
                 };
                 let Some((is_rough, tool)) = next else {
+                    let failing = if message.starts_with(&format!("tool {fin}:")) { &fin } else { &rough };
+                    let hint = reach_hint(library, failing, min_stickout_mm);
                     let message = if tried.is_empty() {
-                        message
+                        format!("{message}{hint}")
                     } else {
-                        format!("{message} (also tried: {})", tried.join("; "))
+                        format!("{message} (also tried: {}){hint}", tried.join("; "))
                     };
                     return Err(CamError::HolderCollision { message, min_stickout_mm });
                 };
@@ -272,6 +274,29 @@ pub fn plan(
             Err(e) => return Err(e),
         }
     }
+}
+
+/// A suggestion for a tool that reaches `need_mm` below its holder: the smallest standard tool
+/// of `failing`'s kind by diameter (`ball-D`, `flat-D`, `bull-D-r`: cutting length 3·D, stick-out
+/// 4·D + 10 mm) that does, to name in the job. Empty for kinds without such a spec.
+fn reach_hint(library: &ToolLibrary, failing: &str, need_mm: f64) -> String {
+    let Ok(t) = library.resolve(failing) else { return String::new() };
+    let kind = match t.kind {
+        super::tool::ToolKind::Ball => "ball",
+        super::tool::ToolKind::Flat => "flat",
+        _ => return String::new(),
+    };
+    if !need_mm.is_finite() {
+        return String::new();
+    }
+    // Stick-out 4·D + 10 >= need; cutting length 3·D >= need as well.
+    let d = ((need_mm - 10.0) / 4.0).max(need_mm / 3.0).max(t.profile.radius_mm() * 2.0).ceil();
+    format!(
+        "; stick-out cannot be set in a job, but a standard tool reaches farther: {kind}-{d} (cutting length {} mm, stick-out {} mm) in plan.{}.tool",
+        3.0 * d,
+        4.0 * d + 10.0,
+        if kind == "ball" { "finishing" } else { "roughing" }
+    )
 }
 
 /// Plans every face into one program. `progress` gets the fraction done and the step's name;
@@ -578,5 +603,7 @@ mod tests {
             .expect("ball-3 cannot reach");
         assert!(matches!(e, CamError::HolderCollision { .. }), "{e}");
         assert!(e.to_string().contains("ball-3") && !e.to_string().contains("also tried"), "{e}");
+        // The error says which standard tool would reach: 30 mm under the holder takes ball-10.
+        assert!(e.to_string().contains("ball-10 (cutting length 30 mm, stick-out 50 mm)"), "{e}");
     }
 }
