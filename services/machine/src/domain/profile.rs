@@ -30,8 +30,9 @@ pub enum ProfileError {
     },
 }
 
-/// Stock kept around a part in X and Y, each side, when checking that it fits the travel, mm.
-pub const PART_MARGIN_MM: f64 = 5.0;
+/// Room kept around a part in X and Y, each side, when checking that it fits the travel, mm: the
+/// 6 mm of surroundings the scan's free space adds to the stock, plus a roughing tool's radius.
+pub const PART_MARGIN_MM: f64 = 10.0;
 /// Z travel kept above a part for the tool and its holder when checking that it fits, mm.
 pub const TOOL_ALLOWANCE_MM: f64 = 50.0;
 
@@ -354,9 +355,10 @@ mod tests {
     #[test]
     fn a_part_must_fit_the_travel_with_its_margins() {
         let p = MachineProfile::builtin("emco-f1").expect("builtin");
-        // 200 x 100 x 200 travel: 190 x 90 x 150 is the largest part.
+        // 200 x 100 x 200 travel: 180 x 80 x 150 is the largest part.
         assert!(p.check_part_fits([80.0, 60.0, 12.0]).is_ok());
-        assert!(p.check_part_fits([190.0, 90.0, 150.0]).is_ok());
+        assert!(p.check_part_fits([180.0, 80.0, 150.0]).is_ok());
+        assert!(p.check_part_fits([180.1, 80.0, 150.0]).is_err());
         let e = p.check_part_fits([250.0, 80.0, 30.0]).expect_err("too long");
         assert!(e.contains("250.0 x 80.0 x 30.0 mm") && e.contains("200.0 x 100.0 x 200.0 mm"), "{e}");
         assert!(e.contains("too large in X") && !e.contains("turned"), "{e}");
