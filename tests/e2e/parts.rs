@@ -92,6 +92,26 @@ async fn parts_the_machine_cannot_hold_or_files_that_cannot_be_read_are_refused_
     assert_eq!(status, 400, "{body}");
     assert_eq!(body["error"]["field"], "execute.material", "{body}");
 
+    // A tool the library does not have, or a material the CAM has no data for, is the CAM
+    // service's to refuse, named, before anything is scanned.
+    let (status, body) = stack
+        .post_job(
+            &json!({"input": {"kind": "mesh", "artifact": sha}, "plan": {"finishing": {"tool": "ball-3x"}}}),
+            None,
+        )
+        .await?;
+    assert_eq!(status, 400, "{body}");
+    assert_eq!(body["error"]["field"], "plan.finishing.tool", "{body}");
+    assert!(body["error"]["message"].as_str().unwrap_or_default().contains("ball-3x"), "{body}");
+    let (status, body) = stack
+        .post_job(
+            &json!({"input": {"kind": "mesh", "artifact": sha}, "plan": {"stock": {"material": "cheese"}}}),
+            None,
+        )
+        .await?;
+    assert_eq!(status, 400, "{body}");
+    assert_eq!(body["error"]["field"], "plan.stock.material", "{body}");
+
     // Only the good job exists.
     assert_eq!(job_count(&stack).await?, 1);
     assert_eq!(stack.get_job(&good_id).await?["id"], good_id.as_str());

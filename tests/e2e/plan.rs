@@ -68,14 +68,21 @@ async fn a_depth_map_job_is_planned_by_the_cam_service_and_executed() -> anyhow:
 async fn a_plan_the_cam_service_rejects_fails_without_retries() -> anyhow::Result<()> {
     let stack = TestStack::start().await?;
     let sha = stack.upload("image/png", dome_png()?).await?;
+    // A tool the library does not have: refused at submission by the CAM service, named.
     let job =
         json!({"input": {"kind": "depth_map", "artifact": sha}, "plan": {"finishing": {"tool": "spoon-3"}}});
+    let (status, body) = stack.post_job(&job, None).await?;
+    assert_eq!(status, 400, "{body}");
+    assert_eq!(body["error"]["field"], "plan.finishing.tool", "{body}");
+    assert!(body["error"]["message"].as_str().unwrap_or_default().contains("spoon-3"), "{body}");
+    // What only the map can tell (a stock lower than the part): the stage fails, once.
+    let job = json!({"input": {"kind": "depth_map", "artifact": sha}, "plan": {"stock": {"z_mm": 0.01}}});
     let (_, created) = stack.post_job(&job, None).await?;
     let done = stack.wait_for_end(created["id"].as_str().expect("id"), Duration::from_secs(60)).await?;
     assert_eq!(done["status"], "failed");
     assert_eq!(done["error"]["code"], "invalid_argument");
     assert_eq!(done["error"]["stage"], "plan");
-    assert!(done["error"]["message"].as_str().unwrap_or_default().contains("spoon-3"), "{done}");
+    assert!(done["error"]["message"].as_str().unwrap_or_default().contains("plan.stock.z_mm"), "{done}");
     assert_eq!(done["attempts"].as_array().map(Vec::len), Some(1));
     stack.shutdown().await
 }

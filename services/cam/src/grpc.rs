@@ -85,6 +85,26 @@ fn enum_name<T: TryFrom<i32> + std::fmt::Debug>(
     }
 }
 
+/// The first problem of a job's plan section, named by its field; `None` when it is accepted.
+pub(crate) fn check_params(
+    p: pb::PlanParams,
+    library: &ToolLibrary,
+) -> Option<depthmill_proto::types::v1::FieldViolation> {
+    let violation = |field: &str, message: String| depthmill_proto::types::v1::FieldViolation {
+        field: field.into(),
+        message,
+    };
+    let opts = match options(p) {
+        Ok(o) => o,
+        Err(status) => return Some(violation("plan", status.message().into())),
+    };
+    match crate::domain::plan::check_options(&opts, library, &MachineLimits::emco_f1()) {
+        Ok(()) => None,
+        Err(CamError::InvalidParameter { field, message }) => Some(violation(&field, message)),
+        Err(other) => Some(violation("plan", other.to_string())),
+    }
+}
+
 /// Wire parameters -> the plan options of a job request.
 fn options(p: pb::PlanParams) -> Result<PlanOptions, Status> {
     Ok(PlanOptions {
@@ -338,6 +358,15 @@ impl pb::cam_service_server::CamService for CamServiceImpl {
     ) -> Result<Response<CancelStageResponse>, Status> {
         let found = self.running.cancel(&request.get_ref().job_id);
         Ok(Response::new(CancelStageResponse { found }))
+    }
+
+    async fn validate_params(
+        &self,
+        request: Request<pb::PlanParams>,
+    ) -> Result<Response<depthmill_proto::types::v1::ValidateParamsResponse>, Status> {
+        Ok(Response::new(depthmill_proto::types::v1::ValidateParamsResponse {
+            violations: check_params(request.into_inner(), &self.library).into_iter().collect(),
+        }))
     }
 
     async fn list_tools(

@@ -74,7 +74,7 @@ pub trait StageRunner: Send + Sync + 'static {
     async fn cancel(&self, stage: Stage, job_id: &str) -> Result<bool, StageError>;
     /// Asks the services that own sections of `spec` to check them before the job is accepted
     /// (the scanning service its `scan` section, the reconstruction service its `reconstruct`
-    /// section). `Err` names the first field a service refuses. A service that cannot be asked
+    /// section, the CAM service its `plan` section). `Err` names the first field a service refuses. A service that cannot be asked
     /// (not configured, down, slow past [`CHECK_PARAMS_TIMEOUT`], or too old to know the call)
     /// is skipped: the stage checks the same values when it starts, before any work, and fails
     /// the job naming the field. The machine service checks the `execute` section.
@@ -282,6 +282,13 @@ impl StageRunner for GrpcStages {
             let answer =
                 client.validate_params(request(convert::reconstruct_params(p), CHECK_PARAMS_TIMEOUT)).await;
             first_violation("reconstruction", answer)?;
+        }
+        if let (Some(_), Some(ch)) = (&spec.plan, &self.cam) {
+            let mut client = cam::cam_service_client::CamServiceClient::new(ch.clone());
+            let answer = client
+                .validate_params(request(convert::plan_params_for_job(spec), CHECK_PARAMS_TIMEOUT))
+                .await;
+            first_violation("cam", answer)?;
         }
         if spec.execute.is_some() {
             self.ask_machine(spec, None).await?;

@@ -276,42 +276,41 @@ pub fn plan(
     }
 }
 
-/// A suggestion for a tool that reaches `need_mm` below its holder: the smallest standard tool
-/// of `failing`'s kind by diameter (`ball-D`, `flat-D`, `bull-D-r`: cutting length 3·D, stick-out
-/// 4·D + 10 mm) that does, to name in the job. Empty for kinds without such a spec.
-fn reach_hint(library: &ToolLibrary, failing: &str, need_mm: f64) -> String {
-    let Ok(t) = library.resolve(failing) else { return String::new() };
-    let kind = match t.kind {
-        super::tool::ToolKind::Ball => "ball",
-        super::tool::ToolKind::Flat => "flat",
-        _ => return String::new(),
-    };
-    if !need_mm.is_finite() {
-        return String::new();
-    }
-    // Stick-out 4·D + 10 >= need; cutting length 3·D >= need as well.
-    let d = ((need_mm - 10.0) / 4.0).max(need_mm / 3.0).max(t.profile.radius_mm() * 2.0).ceil();
-    format!(
-        "; stick-out cannot be set in a job, but a standard tool reaches farther: {kind}-{d} (cutting length {} mm, stick-out {} mm) in plan.{}.tool",
-        3.0 * d,
-        4.0 * d + 10.0,
-        if kind == "ball" { "finishing" } else { "roughing" }
-    )
+/// A job's plan options resolved against the tool library and the machine's limits: every value
+/// checked and defaulted, before any map is looked at.
+struct Settings {
+    stock: StockOptions,
+    material: String,
+    dialect: Dialect,
+    rough_tool: super::tool::Tool,
+    fin_tool: super::tool::Tool,
+    step_down: f64,
+    leave: f64,
+    pattern: RoughingPattern,
+    tolerance: f64,
+    arcs: bool,
+    fin_pattern: FinishingPattern,
+    step_over: f64,
+    rough_data: super::feeds::CuttingData,
+    fin_data: super::feeds::CuttingData,
 }
 
-/// Plans every face into one program. `progress` gets the fraction done and the step's name;
-/// `cancelled` is polled between steps.
-fn plan_with(
-    faces: &[FaceInput],
+/// Checks and resolves `options` (tools, material, dialect, strategies, steps) without any map:
+/// what [`plan`] does first, and what the service's `ValidateParams` answers at submission. The
+/// error names the field as in the job JSON (`plan.finishing.tool`, ...).
+pub fn check_options(
     options: &PlanOptions,
     library: &ToolLibrary,
     limits: &MachineLimits,
-    progress: &(dyn Fn(f64, &str) + Sync),
-    cancelled: &(dyn Fn() -> bool + Sync),
-) -> Result<PlanOutput, CamError> {
-    if faces.is_empty() {
-        return Err(CamError::param("faces", "no depth map to plan"));
-    }
+) -> Result<(), CamError> {
+    settings(options, library, limits).map(|_| ())
+}
+
+fn settings(
+    options: &PlanOptions,
+    library: &ToolLibrary,
+    limits: &MachineLimits,
+) -> Result<Settings, CamError> {
     let stock = options.stock.clone().unwrap_or_default();
     let rough = options.roughing.clone().unwrap_or_default();
     let fin = options.finishing.clone().unwrap_or_default();
@@ -321,8 +320,16 @@ fn plan_with(
         "fanuc" => Dialect::Fanuc,
         other => return Err(CamError::param("plan.dialect", format!("'{other}' is not linuxcnc or fanuc"))),
     };
-    let rough_tool = library.resolve(rough.tool.as_deref().unwrap_or(DEFAULT_ROUGHING))?;
-    let fin_tool = library.resolve(fin.tool.as_deref().unwrap_or(DEFAULT_FINISHING))?;
+    let tool_field = |field: &str, e: CamError| match e {
+        CamError::InvalidTool { .. } => CamError::param(field, e.to_string()),
+        other => other,
+    };
+    let rough_tool = library
+        .resolve(rough.tool.as_deref().unwrap_or(DEFAULT_ROUGHING))
+        .map_err(|e| tool_field("plan.roughing.tool", e))?;
+    let fin_tool = library
+        .resolve(fin.tool.as_deref().unwrap_or(DEFAULT_FINISHING))
+        .map_err(|e| tool_field("plan.finishing.tool", e))?;
     let step_down = positive("plan.roughing.step_down_mm", rough.step_down_mm, 2.0)?;
     let leave = match rough.stock_to_leave_mm {
         None => 0.3,
@@ -363,8 +370,84 @@ fn plan_with(
         Some(_) => positive("plan.finishing.step_over_mm", fin.step_over_mm, 0.0)?,
         None => step_over_for_scallop(&fin_tool, 0.01)?,
     };
-    let rough_data = cutting_data(&rough_tool, &material, limits)?;
-    let fin_data = cutting_data(&fin_tool, &material, limits)?;
+    let material_field = |e: CamError| match e {
+        CamError::InvalidParameter { field, message } if field == "material" => {
+            CamError::param("plan.stock.material", message)
+        }
+        other => other,
+    };
+    let rough_data = cutting_data(&rough_tool, &material, limits).map_err(material_field)?;
+    let fin_data = cutting_data(&fin_tool, &material, limits).map_err(material_field)?;
+    Ok(Settings {
+        stock,
+        material,
+        dialect,
+        rough_tool,
+        fin_tool,
+        step_down,
+        leave,
+        pattern,
+        tolerance,
+        arcs,
+        fin_pattern,
+        step_over,
+        rough_data,
+        fin_data,
+    })
+}
+
+/// A suggestion for a tool that reaches `need_mm` below its holder: the smallest standard tool
+/// of `failing`'s kind by diameter (`ball-D`, `flat-D`, `bull-D-r`: cutting length 3·D, stick-out
+/// 4·D + 10 mm) that does, to name in the job. Empty for kinds without such a spec.
+fn reach_hint(library: &ToolLibrary, failing: &str, need_mm: f64) -> String {
+    let Ok(t) = library.resolve(failing) else { return String::new() };
+    let kind = match t.kind {
+        super::tool::ToolKind::Ball => "ball",
+        super::tool::ToolKind::Flat => "flat",
+        _ => return String::new(),
+    };
+    if !need_mm.is_finite() {
+        return String::new();
+    }
+    // Stick-out 4·D + 10 >= need; cutting length 3·D >= need as well.
+    let d = ((need_mm - 10.0) / 4.0).max(need_mm / 3.0).max(t.profile.radius_mm() * 2.0).ceil();
+    format!(
+        "; stick-out cannot be set in a job, but a standard tool reaches farther: {kind}-{d} (cutting length {} mm, stick-out {} mm) in plan.{}.tool",
+        3.0 * d,
+        4.0 * d + 10.0,
+        if kind == "ball" { "finishing" } else { "roughing" }
+    )
+}
+
+/// Plans every face into one program. `progress` gets the fraction done and the step's name;
+/// `cancelled` is polled between steps.
+fn plan_with(
+    faces: &[FaceInput],
+    options: &PlanOptions,
+    library: &ToolLibrary,
+    limits: &MachineLimits,
+    progress: &(dyn Fn(f64, &str) + Sync),
+    cancelled: &(dyn Fn() -> bool + Sync),
+) -> Result<PlanOutput, CamError> {
+    if faces.is_empty() {
+        return Err(CamError::param("faces", "no depth map to plan"));
+    }
+    let Settings {
+        stock,
+        material,
+        dialect,
+        rough_tool,
+        fin_tool,
+        step_down,
+        leave,
+        pattern,
+        tolerance,
+        arcs,
+        fin_pattern,
+        step_over,
+        rough_data,
+        fin_data,
+    } = settings(options, library, limits)?;
 
     let mut steps = Steps { progress, cancelled, timings: Default::default() };
     let mut programs = Vec::new();
@@ -603,6 +686,28 @@ mod tests {
             .expect("ball-3 cannot reach");
         assert!(matches!(e, CamError::HolderCollision { .. }), "{e}");
         assert!(e.to_string().contains("ball-3") && !e.to_string().contains("also tried"), "{e}");
+        // Tools and materials are checked before any map, naming the job's field.
+        let bad = PlanOptions {
+            finishing: Some(FinishingOptions { tool: Some("ball-3x".into()), ..Default::default() }),
+            ..Default::default()
+        };
+        let library = ToolLibrary::builtin().expect("library");
+        match check_options(&bad, &library, &MachineLimits::emco_f1()) {
+            Err(CamError::InvalidParameter { field, message }) => {
+                assert_eq!(field, "plan.finishing.tool");
+                assert!(message.contains("ball-3x"), "{message}");
+            }
+            other => panic!("{other:?}"),
+        }
+        let bad = PlanOptions {
+            stock: Some(StockOptions { material: Some("cheese".into()), ..Default::default() }),
+            ..Default::default()
+        };
+        assert!(matches!(
+            check_options(&bad, &library, &MachineLimits::emco_f1()),
+            Err(CamError::InvalidParameter { field, .. }) if field == "plan.stock.material"
+        ));
+        assert!(check_options(&PlanOptions::default(), &library, &MachineLimits::emco_f1()).is_ok());
         // The error says which standard tool would reach: 30 mm under the holder takes ball-10.
         assert!(e.to_string().contains("ball-10 (cutting length 30 mm, stick-out 50 mm)"), "{e}");
     }
