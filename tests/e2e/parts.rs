@@ -4,36 +4,12 @@
 
 use depthmill_geometry::Mesh;
 use depthmill_tests::{StackOptions, TestStack};
-use nalgebra::Point3;
 use serde_json::json;
 
 /// A closed box mesh of `x` x `y` x `z` mm, corner at the origin, as binary STL.
 fn box_stl(x: f64, y: f64, z: f64, header: &str) -> Vec<u8> {
-    let vertices: Vec<Point3<f64>> = (0..8)
-        .map(|k| {
-            Point3::new(
-                if k & 1 == 0 { 0.0 } else { x },
-                if k & 2 == 0 { 0.0 } else { y },
-                if k & 4 == 0 { 0.0 } else { z },
-            )
-        })
-        .collect();
-    let triangles = vec![
-        [0, 2, 1],
-        [1, 2, 3],
-        [4, 5, 6],
-        [5, 7, 6],
-        [0, 1, 4],
-        [1, 5, 4],
-        [2, 6, 3],
-        [3, 6, 7],
-        [0, 4, 2],
-        [2, 4, 6],
-        [1, 3, 5],
-        [3, 7, 5],
-    ];
     let mut bytes = Vec::new();
-    depthmill_geometry::formats::write_stl(&mut bytes, &Mesh { vertices, triangles }, header)
+    depthmill_geometry::formats::write_stl(&mut bytes, &Mesh::cuboid(x, y, z), header)
         .expect("writing to memory");
     bytes
 }

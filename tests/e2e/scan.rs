@@ -122,19 +122,7 @@ async fn a_mesh_job_is_scanned_into_a_cloud_on_the_part_and_goes_on_to_reconstru
     assert!(report["coverage_before_rescan"]["covered_pct"].as_f64().is_some(), "{report}");
 
     // The depth map of the scan matches the part.
-    let map = depthmill_geometry::read_png_from(Cursor::new(fetch(&stack, &done, "depth_map").await?), None)?;
-    let meta = *map.meta();
-    let mut errs = Vec::new();
-    for row in 0..meta.height {
-        for col in 0..meta.width {
-            let (x, y) = meta.cell_center(col, row);
-            let z = map.get(col, row).unwrap_or(f32::NAN);
-            if x.abs() < 13.0 && y.abs() < 13.0 && z.is_finite() {
-                errs.push((f64::from(z) - dome(x, y)).abs());
-            }
-        }
-    }
-    errs.sort_by(f64::total_cmp);
+    let errs = errors_against_dome(fetch(&stack, &done, "depth_map").await?)?;
     let median = errs[errs.len() / 2];
     let p99 = errs[errs.len() * 99 / 100];
     println!(
@@ -146,8 +134,8 @@ async fn a_mesh_job_is_scanned_into_a_cloud_on_the_part_and_goes_on_to_reconstru
     stack.shutdown().await
 }
 
-/// Median |depth map - dome| over the dome's inner cells, mm.
-fn median_error_against_dome(png: Vec<u8>) -> anyhow::Result<f64> {
+/// |depth map - dome| over the dome's inner cells (at least 100), mm, sorted.
+fn errors_against_dome(png: Vec<u8>) -> anyhow::Result<Vec<f64>> {
     let map = depthmill_geometry::read_png_from(Cursor::new(png), None)?;
     let meta = *map.meta();
     let mut errs = Vec::new();
@@ -162,7 +150,7 @@ fn median_error_against_dome(png: Vec<u8>) -> anyhow::Result<f64> {
     }
     anyhow::ensure!(errs.len() > 100, "only {} cells on the dome", errs.len());
     errs.sort_by(f64::total_cmp);
-    Ok(errs[errs.len() / 2])
+    Ok(errs)
 }
 
 #[tokio::test]
@@ -188,7 +176,8 @@ async fn meshes_in_metres_and_inches_are_scanned_in_millimetres() -> anyhow::Res
         let report: serde_json::Value = serde_json::from_slice(&fetch(&stack, &done, "scan_report").await?)?;
         assert_eq!(report["units"]["unit"], want_unit, "{}", report["units"]);
         assert_eq!(report["units"]["source"], want_source, "{}", report["units"]);
-        let median = median_error_against_dome(fetch(&stack, &done, "depth_map").await?)?;
+        let errs = errors_against_dome(fetch(&stack, &done, "depth_map").await?)?;
+        let median = errs[errs.len() / 2];
         println!("dome in {want_unit} ({want_source}): depth map vs the dome in mm, median {median:.4} mm");
         assert!(median < 0.1, "median {median}");
     }

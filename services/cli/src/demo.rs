@@ -73,11 +73,10 @@ pub async fn run(args: &DemoArgs) -> anyhow::Result<()> {
     // The part.
     let part = match &args.part {
         Some(path) => {
-            let (kind, media_type) =
+            let (_, media_type) =
                 crate::client::classify(path).filter(|(kind, _)| *kind == "mesh").with_context(|| {
                     format!("{}: --part takes a mesh (.stl, or .ply with faces)", path.display())
                 })?;
-            debug_assert_eq!(kind, "mesh");
             let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
             let (geometry, stats) = depthmill_geometry::formats::read_any_from(
                 std::io::Cursor::new(&bytes),

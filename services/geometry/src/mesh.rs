@@ -26,6 +26,34 @@ impl Mesh {
         Ok(Mesh { vertices, triangles })
     }
 
+    /// A closed box `[0, x] × [0, y] × [0, z]`, 8 vertices and 12 triangles wound outward.
+    pub fn cuboid(x: f64, y: f64, z: f64) -> Self {
+        let vertices = (0..8)
+            .map(|k| {
+                Point3::new(
+                    if k & 1 == 0 { 0.0 } else { x },
+                    if k & 2 == 0 { 0.0 } else { y },
+                    if k & 4 == 0 { 0.0 } else { z },
+                )
+            })
+            .collect();
+        let triangles = vec![
+            [0, 2, 1],
+            [1, 2, 3],
+            [4, 5, 6],
+            [5, 7, 6],
+            [0, 1, 4],
+            [1, 5, 4],
+            [2, 6, 3],
+            [3, 6, 7],
+            [0, 4, 2],
+            [2, 4, 6],
+            [1, 3, 5],
+            [3, 7, 5],
+        ];
+        Mesh { vertices, triangles }
+    }
+
     /// The three corners of triangle `t`.
     pub fn triangle(&self, t: usize) -> [Point3<f64>; 3] {
         let [a, b, c] = self.triangles[t];
@@ -51,5 +79,31 @@ impl Mesh {
         for p in &mut self.vertices {
             *p = iso * *p;
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_cuboid_is_closed_and_wound_outward() {
+        let m = Mesh::cuboid(2.0, 3.0, 5.0);
+        // Every directed edge once, its reverse once: closed and consistently wound.
+        let mut edges = std::collections::BTreeMap::new();
+        for t in &m.triangles {
+            for k in 0..3 {
+                *edges.entry((t[k], t[(k + 1) % 3])).or_insert(0) += 1;
+            }
+        }
+        assert!(edges.iter().all(|(&(a, b), &n)| n == 1 && edges.get(&(b, a)) == Some(&1)));
+        // Outward: the signed volume is the box's.
+        let vol: f64 = (0..m.triangles.len())
+            .map(|t| {
+                let [a, b, c] = m.triangle(t);
+                a.coords.dot(&b.coords.cross(&c.coords)) / 6.0
+            })
+            .sum();
+        assert!((vol - 30.0).abs() < 1e-9, "{vol}");
     }
 }

@@ -113,37 +113,9 @@ impl SilhouetteCoverage {
 mod tests {
     use super::*;
 
-    /// A closed box `[0, x] × [0, y] × [0, z]`.
-    fn cube(x: f64, y: f64, z: f64) -> Mesh {
-        let v: Vec<Point3<f64>> = (0..8)
-            .map(|k| {
-                Point3::new(
-                    if k & 1 == 0 { 0.0 } else { x },
-                    if k & 2 == 0 { 0.0 } else { y },
-                    if k & 4 == 0 { 0.0 } else { z },
-                )
-            })
-            .collect();
-        let t = vec![
-            [0, 2, 1],
-            [1, 2, 3],
-            [4, 5, 6],
-            [5, 7, 6],
-            [0, 1, 4],
-            [1, 5, 4],
-            [2, 6, 3],
-            [3, 6, 7],
-            [0, 4, 2],
-            [2, 4, 6],
-            [1, 3, 5],
-            [3, 7, 5],
-        ];
-        Mesh::new(v, t).expect("valid cube")
-    }
-
     #[test]
     fn an_unseen_strip_is_counted_and_located() {
-        let s = Silhouette::of(&cube(20.0, 10.0, 5.0), 0.5).expect("silhouette");
+        let s = Silhouette::of(&Mesh::cuboid(20.0, 10.0, 5.0), 0.5).expect("silhouette");
         assert_eq!(s.cells, 40 * 20);
         // Points on the top everywhere but the strip 15 <= x < 20.
         let mut pts = Vec::new();
