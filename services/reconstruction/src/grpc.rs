@@ -19,6 +19,7 @@ use tokio::sync::mpsc;
 use tonic::{Request, Response, Status};
 
 use crate::domain::error::ReconError;
+use crate::domain::face_choice::FaceChoiceOptions;
 use crate::domain::pipeline::{
     FaceFrame, FaceOptions, FillOptions, FilterOptions, IntensityOptions, RadiusOptions, ReconstructOptions,
     RoiOptions, StatisticalOptions, reconstruct_with_free_space,
@@ -113,6 +114,14 @@ pub(crate) fn options(p: pb::ReconstructParams) -> Result<ReconstructOptions, St
     Ok(ReconstructOptions {
         pixel_mm: p.pixel_mm,
         faces: if faces.is_empty() { None } else { Some(faces) },
+        face_choice: p.face_choice.map(|c| FaceChoiceOptions {
+            step_deg: c.step_deg,
+            max_faces: c.max_faces,
+            min_gain_pct: c.min_gain_pct,
+            cell_mm: c.cell_mm,
+            reach_radius_mm: c.reach_radius_mm,
+            tolerance_mm: c.tolerance_mm,
+        }),
         fill,
         roi: p.roi.map(|r| RoiOptions {
             x_min_mm: r.x_min_mm,

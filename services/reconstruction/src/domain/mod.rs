@@ -13,6 +13,7 @@
 //! - [`pipeline`]: the reconstruct stage: options (the job's `reconstruct` object) -> maps.
 
 pub mod error;
+pub mod face_choice;
 pub mod filters;
 pub mod image_ops;
 pub mod pipeline;

@@ -22,6 +22,9 @@ use nalgebra::{Isometry3, Point3, Translation3, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::error::{ReconError, Result};
+use super::face_choice::{
+    FaceChoiceOptions, FaceChoiceReport, FaceChoiceSettings, SurfaceSamples, choose_faces,
+};
 use super::filters::{
     FilterReport, intensity_window, radius_outlier_removal, rigid_from_matrix, statistical_outlier_removal,
     voxel_decimate,
@@ -50,6 +53,9 @@ pub struct ReconstructOptions {
     pub pixel_mm: Option<f64>,
     #[serde(default)]
     pub faces: Option<Vec<FaceOptions>>,
+    /// Choose the faces from the shape ([`crate::domain::face_choice`]); not with `faces`.
+    #[serde(default)]
+    pub face_choice: Option<FaceChoiceOptions>,
     #[serde(default)]
     pub fill: Option<FillOptions>,
     #[serde(default)]
@@ -232,7 +238,10 @@ impl FaceOptions {
 #[derive(Debug, Clone)]
 pub struct Resolved {
     pub pixel_mm: f64,
+    /// The faces the job names (`+Z` when it names none and asks for no choice).
     pub faces: Vec<FaceFrame>,
+    /// When set, the faces are chosen from the shape and `faces` is ignored.
+    pub face_choice: Option<FaceChoiceSettings>,
     pub fill: FillParams,
     pub roi: Option<Roi>,
     pub margin_mm: f64,
@@ -253,6 +262,14 @@ impl ReconstructOptions {
                 "must be positive and at most 100 mm",
             ));
         }
+        if self.faces.is_some() && self.face_choice.is_some() {
+            return Err(ReconError::param(
+                "reconstruct.face_choice",
+                "{..}",
+                "give either faces or face_choice, not both",
+            ));
+        }
+        let face_choice = self.face_choice.as_ref().map(FaceChoiceOptions::resolve).transpose()?;
         let faces = match &self.faces {
             None => vec![FaceFrame { face: Face::PosZ, origin: None }],
             Some(f) if f.is_empty() || f.len() > 36 => {
@@ -355,6 +372,7 @@ impl ReconstructOptions {
         Ok(Resolved {
             pixel_mm,
             faces,
+            face_choice,
             fill,
             roi,
             margin_mm,
@@ -424,6 +442,9 @@ pub struct ReconstructReport {
     /// How the input's units were decided (set by the caller that read the file).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub units: Option<depthmill_geometry::UnitsDecision>,
+    /// How the faces were chosen, when the job asked for a choice (`reconstruct.face_choice`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub face_choice: Option<FaceChoiceReport>,
 }
 
 /// Progress callback: fraction in [0, 1] and a short message.
@@ -490,13 +511,13 @@ pub fn reconstruct_with_free_space(
     cancelled: CancelFn<'_>,
 ) -> Result<ReconstructOutput> {
     let started = Instant::now();
-    let r = opts.resolve()?;
-    let n_faces = r.faces.len() as f64;
+    let mut r = opts.resolve()?;
+    let mut choice_report = None;
     let (points_in, triangles) = match &input {
         Geometry::Cloud(c) => (c.len(), 0),
         Geometry::Mesh(m) => (m.vertices.len(), m.triangles.len()),
     };
-    let mut faces = Vec::with_capacity(r.faces.len());
+    let mut faces = Vec::new();
     let (kind, points_kept, filter_reports) = match input {
         Geometry::Cloud(cloud) => {
             progress(0.02, "cleaning the point cloud");
@@ -505,6 +526,12 @@ pub fn reconstruct_with_free_space(
                 return Err(ReconError::Empty("no points left after the clean-up filters".into()));
             }
             check_cancel(cancelled)?;
+            if let Some(settings) = r.face_choice {
+                progress(0.2, "choosing the faces from the shape");
+                let samples = SurfaceSamples::from_cloud(&cloud, settings.cell_mm)?;
+                choice_report = Some(choose(&mut r, &samples, &settings, cancelled)?);
+            }
+            let n_faces = r.faces.len() as f64;
             let kept = cloud.len();
             for (i, frame) in r.faces.iter().enumerate() {
                 progress(0.3 + 0.7 * i as f64 / n_faces, &format!("face {}: rasterising", frame.face));
@@ -519,6 +546,12 @@ pub fn reconstruct_with_free_space(
             ("point_cloud", kept, reports)
         }
         Geometry::Mesh(mesh) => {
+            if let Some(settings) = r.face_choice {
+                progress(0.02, "choosing the faces from the shape");
+                let samples = SurfaceSamples::from_mesh(&mesh, settings.cell_mm)?;
+                choice_report = Some(choose(&mut r, &samples, &settings, cancelled)?);
+            }
+            let n_faces = r.faces.len() as f64;
             for (i, frame) in r.faces.iter().enumerate() {
                 progress(
                     0.05 + 0.95 * i as f64 / n_faces,
@@ -541,8 +574,22 @@ pub fn reconstruct_with_free_space(
         faces: faces.iter().map(|f| f.stats.clone()).collect(),
         seconds: started.elapsed().as_secs_f64(),
         units: None,
+        face_choice: choice_report,
     };
     Ok(ReconstructOutput { faces, report })
+}
+
+/// Runs the face choice and puts its faces in `r`.
+fn choose(
+    r: &mut Resolved,
+    samples: &SurfaceSamples,
+    settings: &FaceChoiceSettings,
+    cancelled: CancelFn<'_>,
+) -> Result<FaceChoiceReport> {
+    let (faces, report) = choose_faces(samples, settings, cancelled)?;
+    tracing::info!(faces = ?faces.iter().map(ToString::to_string).collect::<Vec<_>>(), covered_pct = report.covered_pct, "faces chosen");
+    r.faces = faces.into_iter().map(|face| FaceFrame { face, origin: None }).collect();
+    Ok(report)
 }
 
 fn face_roi(r: &Resolved, points: &[Point3<f64>], index: usize) -> Result<Roi> {
