@@ -134,7 +134,7 @@ async fn real_cad_parts_run_end_to_end() -> anyhow::Result<()> {
             "name": file,
             "input": {"kind": "mesh", "artifact": sha},
             "scan": {"table_angles_deg": [0, 180], "line_spacing_mm": 0.6, "line_rate_hz": 150},
-            "reconstruct": {"pixel_mm": 0.5},
+            "reconstruct": {"pixel_mm": 0.5, "face_choice": {"step_deg": 30}},
             "plan": {"stock": {"material": "wax"},
                      "roughing": {"tool": "flat-6", "step_down_mm": 4.0},
                      "finishing": {"tool": "ball-3", "step_over_mm": 1.0}},
@@ -174,6 +174,15 @@ async fn real_cad_parts_run_end_to_end() -> anyhow::Result<()> {
             "{file}: {}",
             rec["faces"][0]
         );
+        // The faces came from the shape: each chosen face says what it adds, the first the most.
+        let chosen = rec["face_choice"]["chosen"].as_array().cloned().unwrap_or_default();
+        assert!(!chosen.is_empty(), "{file}: {}", rec["face_choice"]);
+        assert!(
+            rec["face_choice"]["covered_pct"].as_f64().unwrap_or(0.0) > 80.0,
+            "{file}: {}",
+            rec["face_choice"]
+        );
+        assert_eq!(rec["faces"].as_array().map(Vec::len), Some(chosen.len()), "{file}");
         assert!(m["part_rms_mm"].as_f64().is_some(), "{file}: the report measures against the part: {m}");
         // Against the CAM's target at this coarse pixel: no gouge beyond a cell's quantum.
         assert!(m["max_gouge_mm"].as_f64().unwrap_or(1.0) < 0.1, "{file}: {m}");

@@ -141,13 +141,18 @@ struct Part {
     name: Option<String>,
 }
 
-/// The demo job for a part of the user's: the sample's sections with the stock sized from the
-/// part (its top at the part's highest point, the CAM's default) instead of the sample's 13 mm,
-/// and the tools left to the CAM (the same defaults, replaced by longer-reaching ones of the
+/// The demo job for a part of the user's: the sample's sections with the faces chosen from the
+/// part's shape (`reconstruct.face_choice`), the stock sized from the part (its top at the part's
+/// highest point, the CAM's default) instead of the sample's 13 mm, and the tools left to the CAM (the same defaults, replaced by longer-reaching ones of the
 /// library when they cannot reach the part; the plan report says why).
 pub fn part_job(name: &str) -> Value {
     let mut job = demo_job();
     job["name"] = json!(format!("demo: {name}"));
+    // The faces come from the part's shape: the fewest A-axis turns that reach its surface.
+    if let Some(rec) = job["reconstruct"].as_object_mut() {
+        rec.remove("faces");
+        rec.insert("face_choice".into(), json!({}));
+    }
     if let Some(stock) = job["plan"]["stock"].as_object_mut() {
         stock.remove("z_mm");
     }

@@ -9,10 +9,10 @@ use depthmill_proto::scanning::v1 as scan;
 use depthmill_proto::types::v1 as types;
 
 use crate::domain::spec::{
-    AdaptiveMode, CellEstimator, Dialect, ExecuteParams, FaceSpec, FillMethod, FillParams, Filters,
-    Finishing, FinishingStrategy, InputKind, InputUnits, IntensityWindow, JobInput, Obstacle, PlanParams,
-    RadiusFilter, ReconstructParams, Roi, Roughing, RoughingDirection, ScanMode, ScanParams, ScanPassSpec,
-    StatisticalFilter, Stock,
+    AdaptiveMode, CellEstimator, Dialect, ExecuteParams, FaceChoice, FaceSpec, FillMethod, FillParams,
+    Filters, Finishing, FinishingStrategy, InputKind, InputUnits, IntensityWindow, JobInput, Obstacle,
+    PlanParams, RadiusFilter, ReconstructParams, Roi, Roughing, RoughingDirection, ScanMode, ScanParams,
+    ScanPassSpec, StatisticalFilter, Stock,
 };
 use crate::domain::{Job, JobSpec, JobStatus, SpecError, Stage};
 use depthmill_proto::types::v1::Vec3;
@@ -133,6 +133,14 @@ pub fn reconstruct_params(p: &ReconstructParams) -> rec::ReconstructParams {
     rec::ReconstructParams {
         pixel_mm: p.pixel_mm,
         faces: p.faces.iter().flatten().map(face).collect(),
+        face_choice: p.face_choice.as_ref().map(|c| rec::FaceChoiceParams {
+            step_deg: c.step_deg,
+            max_faces: c.max_faces,
+            min_gain_pct: c.min_gain_pct,
+            cell_mm: c.cell_mm,
+            reach_radius_mm: c.reach_radius_mm,
+            tolerance_mm: c.tolerance_mm,
+        }),
         fill: p.fill.as_ref().map(|f| rec::FillParams {
             method: match f.method {
                 None => rec::FillMethod::Unspecified,
@@ -503,6 +511,14 @@ pub fn job_spec_from_pb(s: pb::JobSpec) -> Result<JobSpec, SpecError> {
             Ok(ReconstructParams {
                 pixel_mm: p.pixel_mm,
                 faces: (!faces.is_empty()).then_some(faces),
+                face_choice: p.face_choice.map(|c| FaceChoice {
+                    step_deg: c.step_deg,
+                    max_faces: c.max_faces,
+                    min_gain_pct: c.min_gain_pct,
+                    cell_mm: c.cell_mm,
+                    reach_radius_mm: c.reach_radius_mm,
+                    tolerance_mm: c.tolerance_mm,
+                }),
                 fill: p
                     .fill
                     .map(|f| -> Result<FillParams, SpecError> {
@@ -661,6 +677,14 @@ mod tests {
                      "dialect": "fanuc"},
             "execute": {"machine": "emco-f1", "adaptive": "feed_only"}}"#;
         let spec: JobSpec = serde_json::from_str(json).expect("parse");
+        assert_eq!(job_spec_from_pb(job_spec(&spec)).expect("back"), spec);
+        // Faces chosen from the shape.
+        let chosen = json.replace(
+            r#""faces": [{"view": "+Z"}, {"a_deg": 90}]"#,
+            r#""face_choice": {"step_deg": 30, "max_faces": 3, "min_gain_pct": 0.5, "cell_mm": 0.4, "reach_radius_mm": 1, "tolerance_mm": 0.1}"#,
+        );
+        let spec: JobSpec = serde_json::from_str(&chosen).expect("parse");
+        assert!(spec.reconstruct.as_ref().is_some_and(|r| r.face_choice.is_some()));
         assert_eq!(job_spec_from_pb(job_spec(&spec)).expect("back"), spec);
     }
 

@@ -350,6 +350,22 @@ impl pb::reconstruction_service_server::ReconstructionService for Reconstruction
                         });
                     }
                 }
+                if let Some(fc) = &out.report.face_choice {
+                    let faces: Vec<String> =
+                        fc.chosen.iter().map(|c| format!("{} (+{:.1} %)", c.face, c.gain_pct)).collect();
+                    diagnostics.push(Diagnostic {
+                        code: "face_choice".into(),
+                        message: format!(
+                            "faces chosen from the shape: {}; {:.1} % of the surface reached, {:.1} % from no orientation",
+                            faces.join(", "),
+                            fc.covered_pct,
+                            fc.unreached_pct
+                        ),
+                    });
+                    for d in fc.diagnostics() {
+                        diagnostics.push(Diagnostic { code: "unreachable_surface".into(), message: d });
+                    }
+                }
                 for r in &out.report.filters {
                     diagnostics.push(Diagnostic {
                         code: format!("filter_{}", r.filter),

@@ -214,6 +214,12 @@ pub struct ReconstructParams {
     pub pixel_mm: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub faces: Option<Vec<FaceSpec>>,
+    /// Choose the faces from the shape instead of naming them (not with `faces`): the fewest
+    /// orientations about the machine's A axis from which a tool of `reach_radius_mm` reaches the
+    /// surface; the reconstruct report's `face_choice` gives what each face adds and where no
+    /// orientation reaches. `{}` takes every default.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub face_choice: Option<FaceChoice>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub fill: Option<FillParams>,
     /// Region of interest in the face frame (default: the points' extent plus `margin_mm`).
@@ -237,6 +243,31 @@ pub struct ReconstructParams {
     /// How a cell's points make the depth map (default `max`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub estimator: Option<CellEstimator>,
+}
+
+/// How faces are chosen from the shape (every field optional).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct FaceChoice {
+    /// Angle between candidate orientations about the A axis, degrees (default 15).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub step_deg: Option<f64>,
+    /// Most faces, 1 to 8 (default 4).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_faces: Option<u32>,
+    /// Least share of the surface a face must add, percent (default 1).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub min_gain_pct: Option<f64>,
+    /// Surface sampling cell, mm (default 0.5).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cell_mm: Option<f64>,
+    /// Radius of the smallest tool that must reach, mm (default 1.5, the default finishing
+    /// tool's); a pocket narrower than about twice it is not reached.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reach_radius_mm: Option<f64>,
+    /// Height tolerance of the reach test, mm (default 0.2).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tolerance_mm: Option<f64>,
 }
 
 /// How the points of a cell make its height in the depth map, the finishing target.

@@ -25,8 +25,83 @@ impl Ctx<'_> {
         n.into_iter().map(|i| if i == 0 { String::new() } else { format!("@{i}") }).collect()
     }
 
+    /// The reconstruction's face choice, when the job asked for one: what each chosen face adds
+    /// and where no orientation reaches.
+    pub(crate) fn face_choice(&self) -> String {
+        let rep = ["reconstruct_report", "reconstruction_report"]
+            .iter()
+            .find_map(|k| self.artifacts.get(*k))
+            .and_then(|b| serde_json::from_slice::<Value>(b).ok());
+        let Some(fc) = rep.as_ref().map(|r| &r["face_choice"]).filter(|c| c.is_object()) else {
+            return String::new();
+        };
+        let f = |v: &Value| v.as_f64().map_or("—".into(), |x| format!("{x:.1} %"));
+        let rows: Vec<Vec<String>> = fc["chosen"]
+            .as_array()
+            .into_iter()
+            .flatten()
+            .enumerate()
+            .map(|(i, c)| {
+                vec![
+                    format!("{}", i + 1),
+                    esc(c["face"].as_str().unwrap_or("?")),
+                    f(&c["gain_pct"]),
+                    f(&c["cumulative_pct"]),
+                ]
+            })
+            .collect();
+        let mut body = String::from(
+            "<h3>Faces chosen from the shape</h3><p>The fewest turns of the part about the A axis from which \
+             a tool of the reach radius gets at the surface; each face adds what the ones before it leave.</p>",
+        );
+        body.push_str(&table(&["Face", "Orientation", "Adds", "Reached so far"], &rows));
+        let settings = &fc["settings"];
+        let kv = vec![
+            ("Reached by the chosen faces".to_string(), f(&fc["covered_pct"])),
+            (
+                "Reachable but left (each other face adds too little)".to_string(),
+                f(&fc["left_reachable_pct"]),
+            ),
+            ("Reached from no orientation".to_string(), f(&fc["unreached_pct"])),
+            (
+                "Candidates, reach radius".to_string(),
+                esc(&format!(
+                    "every {} deg about A, {} mm",
+                    settings["step_deg"].as_f64().unwrap_or(0.0),
+                    settings["reach_radius_mm"].as_f64().unwrap_or(0.0)
+                )),
+            ),
+        ];
+        body.push_str(&kv_table(&kv));
+        let regions: Vec<Vec<String>> = fc["unreached_regions"]
+            .as_array()
+            .into_iter()
+            .flatten()
+            .map(|r| {
+                let v = |k: &str| -> Vec<f64> {
+                    r[k].as_array().into_iter().flatten().filter_map(Value::as_f64).collect()
+                };
+                let (c, sz) = (v("center_mm"), v("size_mm"));
+                let three = |a: &[f64]| a.iter().map(|x| format!("{x:.1}")).collect::<Vec<_>>().join(", ");
+                vec![
+                    esc(&format!("({})", three(&c))),
+                    esc(&three(&sz).replace(", ", " x ")),
+                    fmt_num(r["area_mm2"].as_f64().unwrap_or(0.0)),
+                ]
+            })
+            .collect();
+        if !regions.is_empty() {
+            body.push_str(
+                "<p>Surface no orientation reaches (undercuts, pockets narrower than the tool, \
+                 faces along the A axis): it is left as the faces' cuts leave it.</p>",
+            );
+            body.push_str(&table(&["Centre, mm", "Size, mm", "Area, mm²"], &regions));
+        }
+        body
+    }
+
     pub(crate) fn maps(&mut self) -> Result<String, ReportError> {
-        let mut body = String::new();
+        let mut body = self.face_choice();
         let faces = self.face_suffixes();
         for (fi, suffix) in faces.iter().enumerate() {
             let dkey = format!("depth_map{suffix}");

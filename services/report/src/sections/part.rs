@@ -123,7 +123,9 @@ impl Ctx<'_> {
                         && f0["normal"].is_null()
                 }),
             };
-        let Some(bytes) = self.artifacts.get("mesh").filter(|_| same_frame) else {
+        // Faces chosen from the shape: the first may be turned.
+        let first_up = self.decode("depth_map").is_ok_and(|d| d.map.face() == depthmill_geometry::Face::PosZ);
+        let Some(bytes) = self.artifacts.get("mesh").filter(|_| same_frame && first_up) else {
             return Ok(String::new());
         };
         let Ok(stock) = self.decode("final_stock") else { return Ok(String::new()) };
