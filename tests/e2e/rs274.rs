@@ -40,7 +40,7 @@ fn cam_programs_run_in_linuxcnc_rs274() -> anyhow::Result<()> {
     }
     let dir = tempfile::tempdir()?;
     let table = dir.path().join("tool.tbl");
-    std::fs::write(&table, "T1 P1 D6.0 Z0 ;roughing\nT2 P2 D3.0 Z0 ;finishing\n")?;
+    std::fs::write(&table, "T1 P1 D6.0 Z0 ;roughing\nT2 P2 D3.0 Z0 ;finishing\nT3 P3 D1.0 Z0 ;rest\n")?;
     let library = ToolLibrary::builtin()?;
     let cases = [
         ("x", "raster_x", None, "linuxcnc"),
@@ -67,6 +67,8 @@ fn cam_programs_run_in_linuxcnc_rs274() -> anyhow::Result<()> {
                 arcs: Some(true),
             }),
             dialect: Some(dialect.into()),
+            // Rest finishing on (the default): ball-1 as T3 where ball-3 left the dome's foot.
+            rest: None,
         };
         let out = plan(
             &[FaceInput { a_deg: None, map: dome()?, roughing_map: None }],
@@ -100,8 +102,10 @@ fn cam_programs_run_in_linuxcnc_rs274() -> anyhow::Result<()> {
         );
         // The machine service's interpreter agrees with rs274 move by move on the same program.
         let theirs = gcode::rs274::run_rs274(&program, &table)?;
-        let config =
-            gcode::InterpConfig { tools: [(1, 0.0), (2, 0.0)].into_iter().collect(), ..Default::default() };
+        let config = gcode::InterpConfig {
+            tools: [(1, 0.0), (2, 0.0), (3, 0.0)].into_iter().collect(),
+            ..Default::default()
+        };
         let mut ours = Vec::new();
         gcode::run(std::io::Cursor::new(out.gcode.as_bytes()), config, |c| ours.push(c))?;
         let compared = gcode::rs274::compare(&ours, &theirs, 1e-4)

@@ -16,7 +16,9 @@ use tonic::{Request, Response, Status};
 
 use crate::domain::CamError;
 use crate::domain::feeds::MachineLimits;
-use crate::domain::plan::{FaceInput, FinishingOptions, PlanOptions, RoughingOptions, StockOptions, plan};
+use crate::domain::plan::{
+    FaceInput, FinishingOptions, PlanOptions, RestOptions, RoughingOptions, StockOptions, plan,
+};
 use crate::domain::tool::ToolLibrary;
 
 pub(crate) const SERVICE_NAME: &str = "depthmill.cam.v1.CamService";
@@ -105,9 +107,53 @@ pub(crate) fn check_params(
     }
 }
 
+/// What the job should hear about the plan: how unnamed tools were chosen, each face's rest pass
+/// (or why there is none) and the material no tool of the plan gets at, with where it is.
+fn plan_diagnostics(r: &crate::domain::plan::PlanReport) -> Vec<depthmill_proto::types::v1::Diagnostic> {
+    let d =
+        |code: &str, message: String| depthmill_proto::types::v1::Diagnostic { code: code.into(), message };
+    let mut out: Vec<_> = r.tool_choice.iter().map(|m| d("tool_choice", m.clone())).collect();
+    for (i, f) in r.faces.iter().enumerate() {
+        let face = i + 1;
+        if let Some(rest) = &f.rest {
+            out.push(d(
+                "rest_finishing",
+                format!(
+                    "face {face}: {} went over {:.1} mm² where finishing left material: leftover max {:.3} -> {:.3} mm, mean {:.4} -> {:.4} mm",
+                    rest.tool,
+                    rest.region_mm2,
+                    rest.max_leftover_before_mm,
+                    f.max_leftover_mm,
+                    rest.mean_leftover_before_mm,
+                    f.mean_leftover_mm
+                ),
+            ));
+        }
+        if let Some(note) = &f.rest_note {
+            out.push(d("rest_finishing", format!("face {face}: {note}")));
+        }
+        let smallest = f.operations.last().map_or("the finishing tool", |o| o.tool.as_str());
+        for g in f.left_regions.iter().filter(|g| g.area_mm2 >= 1.0) {
+            out.push(d(
+                "material_left",
+                format!(
+                    "face {face}: {:.1} mm² around ({:.1}, {:.1}) mm stay up to {:.3} mm above the part: a feature narrower than {smallest} (or out of its reach)",
+                    g.area_mm2, g.center_mm[0], g.center_mm[1], g.max_leftover_mm
+                ),
+            ));
+        }
+    }
+    out
+}
+
 /// Wire parameters -> the plan options of a job request.
 fn options(p: pb::PlanParams) -> Result<PlanOptions, Status> {
     Ok(PlanOptions {
+        rest: p.rest.map(|r| RestOptions {
+            enabled: r.enabled,
+            tool: r.tool,
+            min_leftover_mm: r.min_leftover_mm,
+        }),
         stock: p.stock.map(|s| StockOptions {
             x_mm: s.x_mm,
             y_mm: s.y_mm,
@@ -324,15 +370,7 @@ impl pb::cam_service_server::CamService for CamServiceImpl {
                     plan_report: Some(report.into()),
                     estimated_time_s: out.report.estimated_time_s,
                     blocks: out.report.blocks as u64,
-                    diagnostics: out
-                        .report
-                        .tool_choice
-                        .iter()
-                        .map(|m| depthmill_proto::types::v1::Diagnostic {
-                            code: "tool_choice".into(),
-                            message: m.clone(),
-                        })
-                        .collect(),
+                    diagnostics: plan_diagnostics(&out.report),
                     leftover_map: leftover,
                     max_gouge_mm: out.preview.max_gouge_mm,
                     max_leftover_mm: out.preview.max_leftover_mm,

@@ -11,8 +11,8 @@ use depthmill_proto::types::v1 as types;
 use crate::domain::spec::{
     AdaptiveMode, CellEstimator, Dialect, ExecuteParams, FaceChoice, FaceSpec, FillMethod, FillParams,
     Filters, Finishing, FinishingStrategy, InputKind, InputUnits, IntensityWindow, JobInput, Obstacle,
-    PlanParams, RadiusFilter, ReconstructParams, Roi, Roughing, RoughingDirection, ScanMode, ScanParams,
-    ScanPassSpec, StatisticalFilter, Stock,
+    PlanParams, RadiusFilter, ReconstructParams, Rest, Roi, Roughing, RoughingDirection, ScanMode,
+    ScanParams, ScanPassSpec, StatisticalFilter, Stock,
 };
 use crate::domain::{Job, JobSpec, JobStatus, SpecError, Stage};
 use depthmill_proto::types::v1::Vec3;
@@ -220,6 +220,11 @@ pub fn plan_params(p: &PlanParams) -> cam::PlanParams {
             Some(Dialect::Linuxcnc) => cam::Dialect::Linuxcnc,
             Some(Dialect::Fanuc) => cam::Dialect::Fanuc,
         } as i32,
+        rest: p.rest.as_ref().map(|r| cam::Rest {
+            enabled: r.enabled,
+            tool: r.tool.clone(),
+            min_leftover_mm: r.min_leftover_mm,
+        }),
     }
 }
 
@@ -610,6 +615,11 @@ pub fn job_spec_from_pb(s: pb::JobSpec) -> Result<JobSpec, SpecError> {
                     cam::Dialect::Linuxcnc => Some(Dialect::Linuxcnc),
                     cam::Dialect::Fanuc => Some(Dialect::Fanuc),
                 },
+                rest: p.rest.map(|r| Rest {
+                    enabled: r.enabled,
+                    tool: r.tool,
+                    min_leftover_mm: r.min_leftover_mm,
+                }),
             })
         })
         .transpose()?;
@@ -674,7 +684,7 @@ mod tests {
             "plan": {"stock": {"x_mm": 100, "material": "brass"},
                      "roughing": {"tool": "flat-6", "direction": "contour"},
                      "finishing": {"strategy": "raster_angle", "angle_deg": 30, "arcs": false},
-                     "dialect": "fanuc"},
+                     "dialect": "fanuc", "rest": {"enabled": true, "tool": "ball-1", "min_leftover_mm": 0.1}},
             "execute": {"machine": "emco-f1", "adaptive": "feed_only"}}"#;
         let spec: JobSpec = serde_json::from_str(json).expect("parse");
         assert_eq!(job_spec_from_pb(job_spec(&spec)).expect("back"), spec);

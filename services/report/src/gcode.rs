@@ -82,7 +82,7 @@ fn kind_of(strategy: &str) -> OpKind {
     let s = strategy.trim_start();
     if s.starts_with("roughing") {
         OpKind::Roughing
-    } else if s.starts_with("finishing") {
+    } else if s.starts_with("finishing") || s.starts_with("rest-finishing") {
         OpKind::Finishing
     } else {
         OpKind::Other

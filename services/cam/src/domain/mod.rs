@@ -18,6 +18,7 @@ pub mod holder;
 pub mod path;
 pub mod plan;
 pub mod preview;
+pub mod rest;
 pub mod roughing;
 pub mod tool;
 

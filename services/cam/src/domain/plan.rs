@@ -25,6 +25,7 @@ use super::gcode::{Dialect, FaceProgram, Operation, ProgramInfo, write_program};
 use super::holder::check_holder;
 use super::path::{Segment, Toolpath};
 use super::preview::{PreviewReport, SweptOp, simulate};
+use super::rest::{LeftRegion, RestReport, left_regions};
 use super::roughing::{RoughingParams, RoughingPattern, roughing};
 use super::tool::ToolLibrary;
 
@@ -41,6 +42,24 @@ pub struct PlanOptions {
     /// `linuxcnc` or `fanuc`.
     #[serde(default)]
     pub dialect: Option<String>,
+    /// Rest finishing with a smaller ball where finishing left material ([`super::rest`]).
+    #[serde(default)]
+    pub rest: Option<RestOptions>,
+}
+
+/// The `plan.rest` object: rest finishing after the finishing pass.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RestOptions {
+    /// `false`: no rest pass (default `true`: one wherever it removes something).
+    #[serde(default)]
+    pub enabled: Option<bool>,
+    /// The rest tool (default: the library's largest ball smaller than the finishing tool).
+    #[serde(default)]
+    pub tool: Option<String>,
+    /// Least leftover the rest pass goes after, mm (default 0.05).
+    #[serde(default)]
+    pub min_leftover_mm: Option<f64>,
 }
 
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
@@ -135,6 +154,16 @@ pub struct FaceReport {
     pub gouge_at_mm: Option<[f64; 2]>,
     pub max_leftover_mm: f64,
     pub mean_leftover_mm: f64,
+    /// The rest finishing pass, when there is one.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub rest: Option<RestReport>,
+    /// Why there is no rest pass although one was asked for (no region, the tool cannot reach).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub rest_note: Option<String>,
+    /// Material still above the part after every operation (more than the rest threshold), largest
+    /// groups first: features narrower than the smallest tool used.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub left_regions: Vec<LeftRegion>,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -293,6 +322,16 @@ struct Settings {
     step_over: f64,
     rough_data: super::feeds::CuttingData,
     fin_data: super::feeds::CuttingData,
+    rest: Option<RestSettings>,
+    /// Least leftover reported as left material, mm.
+    min_leftover: f64,
+}
+
+/// Rest finishing, resolved.
+struct RestSettings {
+    tool: super::tool::Tool,
+    step_over: f64,
+    data: super::feeds::CuttingData,
 }
 
 /// Checks and resolves `options` (tools, material, dialect, strategies, steps) without any map:
@@ -378,6 +417,45 @@ fn settings(
     };
     let rough_data = cutting_data(&rough_tool, &material, limits).map_err(material_field)?;
     let fin_data = cutting_data(&fin_tool, &material, limits).map_err(material_field)?;
+    let rest_opts = options.rest.clone().unwrap_or_default();
+    let min_leftover = match rest_opts.min_leftover_mm {
+        None => super::rest::DEFAULT_MIN_LEFTOVER_MM,
+        Some(v) if v.is_finite() && v > 0.0 && v <= 10.0 => v,
+        Some(v) => {
+            return Err(CamError::param(
+                "plan.rest.min_leftover_mm",
+                format!("must be in (0, 10] mm, got {v}"),
+            ));
+        }
+    };
+    let rest_tool = match (rest_opts.enabled.unwrap_or(true), &rest_opts.tool) {
+        (false, _) => None,
+        (true, Some(name)) => Some(library.resolve(name).map_err(|e| tool_field("plan.rest.tool", e))?),
+        // The largest ball smaller than the finishing tool; of equal ones, the longest reach.
+        (true, None) => library
+            .tools()
+            .filter(|t| {
+                t.kind == super::tool::ToolKind::Ball && t.diameter_mm() < fin_tool.diameter_mm() - 1e-9
+            })
+            .max_by(|a, b| {
+                a.diameter_mm().total_cmp(&b.diameter_mm()).then(
+                    a.stickout_mm.min(a.cutting_length_mm).total_cmp(&b.stickout_mm.min(b.cutting_length_mm)),
+                )
+            })
+            .cloned(),
+    };
+    let rest = match rest_tool {
+        None => None,
+        Some(tool) => {
+            let data = cutting_data(&tool, &material, limits).map_err(material_field)?;
+            // The finishing scallop with the smaller ball: the step-over scales with the diameter.
+            let step_over = match fin.step_over_mm {
+                Some(_) => step_over * tool.diameter_mm() / fin_tool.diameter_mm(),
+                None => step_over_for_scallop(&tool, 0.01)?,
+            };
+            Some(RestSettings { tool, step_over, data })
+        }
+    };
     Ok(Settings {
         stock,
         material,
@@ -393,6 +471,8 @@ fn settings(
         step_over,
         rough_data,
         fin_data,
+        rest,
+        min_leftover,
     })
 }
 
@@ -417,6 +497,76 @@ fn reach_hint(library: &ToolLibrary, failing: &str, need_mm: f64) -> String {
         4.0 * d + 10.0,
         if kind == "ball" { "finishing" } else { "roughing" }
     )
+}
+
+/// The rest pass of one face (see [`super::rest`]): the toolpath, its holder check and the region's
+/// size in cells; `Err(note)` says why there is none.
+#[allow(clippy::type_complexity)]
+fn plan_rest(
+    map: &HeightMap,
+    rs: &RestSettings,
+    pattern: FinishingPattern,
+    preview: &PreviewReport,
+    min_leftover: f64,
+    safe_z: f64,
+    opts: &CompensateOptions,
+) -> Result<Result<(Toolpath, super::holder::HolderCheck, usize), String>, CamError> {
+    use super::rest::{MIN_REGION_CELLS, envelope, positions, region, restrict};
+    let tip = compensate(map, &rs.tool.profile, opts)?;
+    let k = super::compensate::kernel(&rs.tool.profile, map.pixel_mm(), opts.pixel_model);
+    let env = envelope(&tip, &k);
+    let reg = region(preview.final_surface.data(), map, &env, min_leftover);
+    let cells = reg.iter().filter(|r| **r).count();
+    if cells < MIN_REGION_CELLS {
+        return Ok(Err(format!(
+            "no rest pass: finishing leaves nothing more than {min_leftover} mm above the part that {} would take off",
+            rs.tool.name
+        )));
+    }
+    let mut pos = positions(&reg, map.width() as usize, map.height() as usize, &k);
+    // Only where the shank and the holder clear the part: the highest point of the part under
+    // each (flat disks of their diameters) must stay below the tip plus the fluted length and
+    // the stick-out, with a margin of 0.1 mm.
+    let clear = |d: f64, reach: f64| -> Result<Vec<bool>, CamError> {
+        let profile = depthmill_geometry::ToolProfile::flat(d.max(rs.tool.diameter_mm()))
+            .map_err(|e| CamError::param("plan.rest.tool", e.to_string()))?;
+        let under = compensate(map, &profile, opts)?;
+        Ok(under.data().iter().zip(tip.data()).map(|(u, t)| f64::from(u - t) < reach - 0.1).collect())
+    };
+    let shank = clear(rs.tool.shank_diameter_mm, rs.tool.cutting_length_mm)?;
+    let holder = clear(rs.tool.holder_diameter_mm, rs.tool.stickout_mm)?;
+    let mut unreachable = 0usize;
+    for ((p, s), h) in pos.iter_mut().zip(&shank).zip(&holder) {
+        if *p && !(*s && *h) {
+            *p = false;
+            unreachable += 1;
+        }
+    }
+    if unreachable > 0 {
+        tracing::debug!(unreachable, tool = %rs.tool.name, "rest positions the shank or holder cannot take");
+    }
+    let full = finishing(
+        &tip,
+        &rs.tool,
+        &FinishingParams {
+            pattern,
+            step_over_mm: rs.step_over,
+            level_step_mm: rs.step_over,
+            zigzag: true,
+            safe_z_mm: safe_z,
+        },
+    )?;
+    let strategy = full.strategy.replacen("finishing", "rest-finishing", 1);
+    let path = restrict(full, &pos, &tip, &strategy);
+    if path.passes.is_empty() {
+        return Ok(Err(format!("no {} pass line crosses the rest region", rs.tool.name)));
+    }
+    let points: Vec<Point3<f64>> = path.passes.iter().flat_map(|p| p.points.iter().copied()).collect();
+    match check_holder(map, &rs.tool, &tip, &points, opts.outside_z_mm.unwrap_or(map.z_min_mm())) {
+        Ok(h) => Ok(Ok((path, h, cells))),
+        Err(CamError::HolderCollision { message, .. }) => Ok(Err(format!("no rest pass: {message}"))),
+        Err(e) => Err(e),
+    }
 }
 
 /// Plans every face into one program. `progress` gets the fraction done and the step's name;
@@ -447,6 +597,8 @@ fn plan_with(
         step_over,
         rough_data,
         fin_data,
+        rest,
+        min_leftover,
     } = settings(options, library, limits)?;
 
     let mut steps = Steps { progress, cancelled, timings: Default::default() };
@@ -549,21 +701,71 @@ fn plan_with(
                 ],
             )
         })?;
+        // Rest finishing where the stock model says finishing left material.
+        let mut preview = preview;
+        let mut rest_report = None;
+        let mut rest_note = None;
+        let mut rest_op = None;
+        if let Some(rs) = &rest {
+            let rest_pattern = match fin_pattern {
+                FinishingPattern::IsoLevel => FinishingPattern::RasterX,
+                p => p,
+            };
+            let planned = steps.run("rest", base + 0.8 * per_face, || {
+                plan_rest(map, rs, rest_pattern, &preview, min_leftover, safe_z, &opts)
+            })?;
+            match planned {
+                Err(note) => rest_note = Some(note),
+                Ok((path, holder, region_cells)) => {
+                    let segs = super::cleanup::link(&path, tolerance, arcs);
+                    let before = (preview.max_leftover_mm, preview.mean_leftover_mm);
+                    preview = steps.run("preview", base + 0.9 * per_face, || {
+                        simulate(
+                            map,
+                            top,
+                            &[
+                                SweptOp { tool: &rough_tool, start, segments: &rough_segs },
+                                SweptOp {
+                                    tool: &fin_tool,
+                                    start: rough_segs.last().map_or(start, Segment::end),
+                                    segments: &fin_segs,
+                                },
+                                SweptOp {
+                                    tool: &rs.tool,
+                                    start: fin_segs.last().map_or(start, Segment::end),
+                                    segments: &segs,
+                                },
+                            ],
+                        )
+                    })?;
+                    rest_report = Some(RestReport {
+                        tool: rs.tool.name.clone(),
+                        region_mm2: region_cells as f64 * map.pixel_mm() * map.pixel_mm(),
+                        max_leftover_before_mm: before.0,
+                        mean_leftover_before_mm: before.1,
+                    });
+                    rest_op = Some((3u32, path, segs, &rs.tool, rs.data.clone(), holder, rs.step_over));
+                }
+            }
+        }
+        let left_regions = left_regions(&preview.leftover, min_leftover, 5);
         let mut ops_report = Vec::new();
         let mut operations = Vec::new();
         let mut prev_end = start;
-        for (number, path, segs, tool, data, holder, so) in [
+        let mut ops = vec![
             (
                 1u32,
-                &rough_path,
+                rough_path,
                 rough_segs,
                 &rough_tool,
                 rough_data.clone(),
                 holders.0,
                 0.4 * rough_tool.diameter_mm(),
             ),
-            (2u32, &fin_path, fin_segs, &fin_tool, fin_data.clone(), holders.1, step_over),
-        ] {
+            (2u32, fin_path, fin_segs, &fin_tool, fin_data.clone(), holders.1, step_over),
+        ];
+        ops.extend(rest_op);
+        for (number, path, segs, tool, data, holder, so) in ops {
             let time = estimate_time_s(prev_end, &segs, &data, limits);
             prev_end = segs.last().map_or(prev_end, Segment::end);
             total_time += time;
@@ -606,6 +808,9 @@ fn plan_with(
             gouge_at_mm: preview.gouge_at_mm,
             max_leftover_mm: preview.max_leftover_mm,
             mean_leftover_mm: preview.mean_leftover_mm,
+            rest: rest_report,
+            rest_note,
+            left_regions,
         });
         programs.push(FaceProgram { a_deg: face.a_deg, operations });
         if first_preview.is_none() {
@@ -710,5 +915,58 @@ mod tests {
         assert!(check_options(&PlanOptions::default(), &library, &MachineLimits::emco_f1()).is_ok());
         // The error says which standard tool would reach: 30 mm under the holder takes ball-10.
         assert!(e.to_string().contains("ball-10 (cutting length 30 mm, stick-out 50 mm)"), "{e}");
+    }
+
+    #[test]
+    fn rest_finishing_takes_what_the_finishing_ball_left_in_the_corners() {
+        // A 40 x 40 mm plate 6 mm high with a 12 mm slot 2.5 mm deep (0.25 mm cells; ball-1 has 3
+        // mm of flutes): ball-3 leaves a fillet along the slot's foot, ball-1 most of it.
+        let n = 160u32;
+        let meta = HeightMapMeta { z_min_mm: 0.0, z_max_mm: 6.0, ..HeightMapMeta::new(n, n, 0.25) };
+        let data =
+            (0..n * n).map(|i| if ((i % n) as f64 * 0.25 - 20.0).abs() < 6.0 { 3.5 } else { 6.0 }).collect();
+        let map = HeightMap::new(meta, data).expect("map");
+        let library = ToolLibrary::builtin().expect("library");
+        let options = |rest: Option<RestOptions>| PlanOptions {
+            finishing: Some(FinishingOptions { step_over_mm: Some(0.5), ..Default::default() }),
+            rest,
+            ..Default::default()
+        };
+        let go = |o: &PlanOptions| {
+            let faces = [FaceInput { a_deg: None, map: map.clone(), roughing_map: None }];
+            plan(&faces, o, &library, &MachineLimits::emco_f1(), &|_, _| {}, &|| false)
+        };
+        let with = go(&options(None)).expect("planned");
+        let f = &with.report.faces[0];
+        let rest = f.rest.as_ref().unwrap_or_else(|| panic!("no rest pass: {:?}", f.rest_note));
+        assert_eq!(rest.tool, "ball-1");
+        assert!(rest.region_mm2 > 10.0, "{rest:?}");
+        assert_eq!(f.operations.len(), 3);
+        assert_eq!((f.operations[2].tool_number, f.operations[2].tool.as_str()), (3, "ball-1"));
+        assert!(f.operations[2].strategy.starts_with("rest-finishing"), "{}", f.operations[2].strategy);
+        assert!(with.gcode.contains("T3 M6"));
+        // The stock model after the rest pass: less left, nothing gouged.
+        assert!(f.max_leftover_mm < rest.max_leftover_before_mm - 0.2, "{} vs {rest:?}", f.max_leftover_mm);
+        assert!(f.mean_leftover_mm < rest.mean_leftover_before_mm, "{} vs {rest:?}", f.mean_leftover_mm);
+        assert!(f.max_gouge_mm < 1e-3, "gouge {}", f.max_gouge_mm);
+        // What even ball-1 leaves is reported where it is: along the slot's two feet.
+        assert!(f.left_regions.iter().all(|r| r.max_leftover_mm <= f.max_leftover_mm + 1e-6));
+        // Off: two operations, as before.
+        let off =
+            go(&options(Some(RestOptions { enabled: Some(false), ..Default::default() }))).expect("planned");
+        let f = &off.report.faces[0];
+        assert_eq!(f.operations.len(), 2);
+        assert!(f.rest.is_none() && f.rest_note.is_none());
+        assert!(!off.gcode.contains("T3 M6"));
+        // A bad rest tool or threshold names its field.
+        for (rest, field) in [
+            (RestOptions { tool: Some("ball-3x".into()), ..Default::default() }, "plan.rest.tool"),
+            (RestOptions { min_leftover_mm: Some(0.0), ..Default::default() }, "plan.rest.min_leftover_mm"),
+        ] {
+            match check_options(&options(Some(rest)), &library, &MachineLimits::emco_f1()) {
+                Err(CamError::InvalidParameter { field: f, .. }) => assert_eq!(f, field),
+                other => panic!("{field}: {other:?}"),
+            }
+        }
     }
 }

@@ -394,6 +394,25 @@ pub struct PlanParams {
     /// G-code dialect. Default `linuxcnc`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub dialect: Option<Dialect>,
+    /// Rest finishing: a smaller ball where the finishing tool left material on the simulated
+    /// stock. On by default (when the library has a smaller ball and it removes something).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rest: Option<Rest>,
+}
+
+/// Rest finishing after the finishing pass.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct Rest {
+    /// `false`: no rest pass (default `true`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub enabled: Option<bool>,
+    /// The rest tool (default: the library's largest ball smaller than the finishing tool).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tool: Option<String>,
+    /// Least leftover the rest pass goes after, mm (default 0.05).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub min_leftover_mm: Option<f64>,
 }
 
 /// The raw block. Default: the depth map's extent and Z range, aluminium.
