@@ -336,6 +336,30 @@ pub fn link(toolpath: &Toolpath, tol_mm: f64, arcs: bool) -> Vec<Segment> {
     out
 }
 
+/// `segments` with every rapid straight up out of a cut preceded by a feed move up by
+/// `clearance_mm` (or to the rapid's height when that is lower): the tool leaves the material
+/// at the cutting feed, so a sliver over its face left by the last cut is taken off cutting, not
+/// by a rapid. Used for the rest pass, whose small tool engages little enough that such a sliver
+/// is a large share of its face.
+pub fn feed_retracts(segments: Vec<Segment>, clearance_mm: f64) -> Vec<Segment> {
+    let mut out: Vec<Segment> = Vec::with_capacity(segments.len());
+    for seg in segments {
+        if let (Segment::Rapid(to), Some(prev)) = (seg, out.last())
+            && matches!(prev, Segment::Linear(_) | Segment::Arc { .. } | Segment::Plunge(_))
+        {
+            let from = prev.end();
+            if (to.x - from.x).abs() < 1e-9 && (to.y - from.y).abs() < 1e-9 && to.z > from.z {
+                let z = (from.z + clearance_mm).min(to.z);
+                if z < to.z {
+                    out.push(Segment::Linear(Point3::new(from.x, from.y, z)));
+                }
+            }
+        }
+        out.push(seg);
+    }
+    out
+}
+
 /// Length (mm) of a move from `from`, and its unit tangents at start and end. Arcs sweep as the
 /// G-code does: in their direction from the start angle to the end angle, a full turn when the
 /// two coincide; the radius is the start's.
@@ -669,5 +693,34 @@ mod tests {
         let lin = link(&tp, 0.01, false);
         assert!(lin.iter().all(|s| !matches!(s, Segment::Arc { .. })));
         assert_within(&pts, &lin[2..lin.len() - 1], 0.01);
+    }
+
+    #[test]
+    fn feed_retracts_go_before_rapids_straight_up_out_of_a_cut() {
+        let p = |x: f64, y: f64, z: f64| Point3::new(x, y, z);
+        let segs = vec![
+            Segment::Rapid(p(0.0, 0.0, 10.0)),
+            Segment::Plunge(p(0.0, 0.0, 1.0)),
+            Segment::Linear(p(2.0, 0.0, 1.0)),
+            Segment::Rapid(p(2.0, 0.0, 10.0)),
+            Segment::Rapid(p(5.0, 0.0, 10.0)),
+            Segment::Plunge(p(5.0, 0.0, 9.5)),
+            Segment::Rapid(p(5.0, 0.0, 10.0)),
+        ];
+        let out = feed_retracts(segs, 1.0);
+        assert_eq!(
+            out,
+            vec![
+                Segment::Rapid(p(0.0, 0.0, 10.0)),
+                Segment::Plunge(p(0.0, 0.0, 1.0)),
+                Segment::Linear(p(2.0, 0.0, 1.0)),
+                Segment::Linear(p(2.0, 0.0, 2.0)),
+                Segment::Rapid(p(2.0, 0.0, 10.0)),
+                Segment::Rapid(p(5.0, 0.0, 10.0)),
+                Segment::Plunge(p(5.0, 0.0, 9.5)),
+                // Less than the clearance to go: the rapid stays as it was.
+                Segment::Rapid(p(5.0, 0.0, 10.0)),
+            ]
+        );
     }
 }

@@ -186,7 +186,9 @@ impl Writer {
     fn line<E>(&mut self, sink: &mut Sink<'_, E>, text: &str) -> Result<(), Fail<E>> {
         match self.dialect {
             Dialect::Fanuc => {
-                self.block += 10;
+                // Sequence numbers are labels of at most five digits: a long program starts
+                // over at N10 after N99990.
+                self.block = if self.block >= 99_990 { 10 } else { self.block + 10 };
                 sink(&format!("N{} {text}", self.block)).map_err(Fail::Sink)
             }
             Dialect::Linuxcnc => sink(text).map_err(Fail::Sink),
@@ -499,6 +501,26 @@ mod tests {
         ];
         let info = ProgramInfo { title: "depthmill".into(), lines: vec!["tolerance 0.01 mm".into()] };
         (info, vec![FaceProgram { a_deg: Some(90.0), operations: vec![op(segs, true)] }])
+    }
+
+    #[test]
+    fn fanuc_sequence_numbers_keep_to_five_digits() {
+        let segs: Vec<Segment> =
+            (0..12_000).map(|i| Segment::Linear(p(f64::from(i % 100), f64::from(i / 100), -1.0))).collect();
+        let info = ProgramInfo { title: "long".into(), lines: Vec::new() };
+        let text = write_program(
+            &info,
+            &[FaceProgram { a_deg: None, operations: vec![op(segs, false)] }],
+            Dialect::Fanuc,
+        );
+        let numbers: Vec<u64> = text
+            .lines()
+            .filter_map(|l| l.strip_prefix('N'))
+            .filter_map(|l| l.split_whitespace().next()?.parse().ok())
+            .collect();
+        assert!(numbers.len() > 10_000);
+        assert!(numbers.iter().all(|&n| (10..=99_990).contains(&n)), "{:?}", numbers.iter().max());
+        assert_eq!(numbers.iter().filter(|&&n| n == 10).count(), 2, "starts over once");
     }
 
     #[test]

@@ -224,6 +224,8 @@ fn face_top(map: &HeightMap) -> Result<f64, CamError> {
 
 /// Default roughing tool when the job names none.
 const DEFAULT_ROUGHING: &str = "flat-6";
+/// The rest pass leaves each cut at the feed for this far before a rapid, mm.
+const REST_FEED_RETRACT_MM: f64 = 1.0;
 /// Default finishing tool when the job names none.
 const DEFAULT_FINISHING: &str = "ball-3";
 
@@ -524,13 +526,14 @@ fn plan_rest(
         )));
     }
     let mut pos = positions(&reg, map.width() as usize, map.height() as usize, &k);
-    // Only where the shank and the holder clear the part: the highest point of the part under
-    // each (flat disks of their diameters) must stay below the tip plus the fluted length and
-    // the stick-out, with a margin of 0.1 mm.
+    // Only where the shank and the holder clear what is there: the highest point of the stock
+    // model (the part plus what roughing and finishing left) under each (flat disks of their
+    // diameters) must stay below the tip plus the fluted length and the stick-out, with a
+    // margin of 0.1 mm.
     let clear = |d: f64, reach: f64| -> Result<Vec<bool>, CamError> {
         let profile = depthmill_geometry::ToolProfile::flat(d.max(rs.tool.diameter_mm()))
             .map_err(|e| CamError::param("plan.rest.tool", e.to_string()))?;
-        let under = compensate(map, &profile, opts)?;
+        let under = compensate(&preview.final_surface, &profile, opts)?;
         Ok(under.data().iter().zip(tip.data()).map(|(u, t)| f64::from(u - t) < reach - 0.1).collect())
     };
     let shank = clear(rs.tool.shank_diameter_mm, rs.tool.cutting_length_mm)?;
@@ -565,6 +568,51 @@ fn plan_rest(
     match check_holder(map, &rs.tool, &tip, &points, opts.outside_z_mm.unwrap_or(map.z_min_mm())) {
         Ok(h) => Ok(Ok((path, h, cells))),
         Err(CamError::HolderCollision { message, .. }) => Ok(Err(format!("no rest pass: {message}"))),
+        Err(e) => Err(e),
+    }
+}
+
+/// The flats iso-level finishing skipped (see [`super::rest`]; the region is taken against the
+/// finishing tool's own envelope): raster passes over them on the finishing tip surface `tip`,
+/// each entered from the safe height; `Err(note)` when there are none to add.
+#[allow(clippy::too_many_arguments)]
+fn plan_flats(
+    map: &HeightMap,
+    tool: &super::tool::Tool,
+    tip: &HeightMap,
+    preview: &PreviewReport,
+    min_leftover: f64,
+    step_over: f64,
+    safe_z: f64,
+    floor: f64,
+) -> Result<Result<Vec<super::path::Pass>, String>, CamError> {
+    use super::rest::{MIN_REGION_CELLS, envelope, positions, region, restrict};
+    let k = super::compensate::kernel(&tool.profile, map.pixel_mm(), PixelModel::Column);
+    let env = envelope(tip, &k);
+    let reg = region(preview.final_surface.data(), map, &env, min_leftover);
+    if reg.iter().filter(|r| **r).count() < MIN_REGION_CELLS {
+        return Ok(Err("the contours left no flat area".into()));
+    }
+    let pos = positions(&reg, map.width() as usize, map.height() as usize, &k);
+    let full = finishing(
+        tip,
+        tool,
+        &FinishingParams {
+            pattern: FinishingPattern::RasterX,
+            step_over_mm: step_over,
+            level_step_mm: step_over,
+            zigzag: true,
+            safe_z_mm: safe_z,
+        },
+    )?;
+    let flats = restrict(full, &pos, tip, "finishing-flats");
+    if flats.passes.is_empty() {
+        return Ok(Err("no raster line crosses the flat areas".into()));
+    }
+    let points: Vec<Point3<f64>> = flats.passes.iter().flat_map(|p| p.points.iter().copied()).collect();
+    match check_holder(map, tool, tip, &points, floor) {
+        Ok(_) => Ok(Ok(flats.passes)),
+        Err(CamError::HolderCollision { message, .. }) => Ok(Err(message)),
         Err(e) => Err(e),
     }
 }
@@ -656,7 +704,7 @@ fn plan_with(
         let opts = CompensateOptions { pixel_model: PixelModel::Column, outside_z_mm: Some(floor) };
         let tip =
             steps.run("compensate", base + 0.25 * per_face, || compensate(map, &fin_tool.profile, &opts))?;
-        let fin_path = steps.run("finishing", base + 0.4 * per_face, || {
+        let mut fin_path = steps.run("finishing", base + 0.4 * per_face, || {
             finishing(
                 &tip,
                 &fin_tool,
@@ -680,7 +728,7 @@ fn plan_with(
                 check_holder(map, &fin_tool, &tip, &points(&fin_path), floor)?,
             ))
         })?;
-        let (rough_segs, fin_segs) = steps.run("cleanup", base + 0.6 * per_face, || {
+        let (rough_segs, mut fin_segs) = steps.run("cleanup", base + 0.6 * per_face, || {
             Ok((
                 super::cleanup::link(&rough_path, tolerance, arcs),
                 super::cleanup::link(&fin_path, tolerance, arcs),
@@ -701,8 +749,40 @@ fn plan_with(
                 ],
             )
         })?;
-        // Rest finishing where the stock model says finishing left material.
         let mut preview = preview;
+        // Iso-level contours step over flat areas wider than the tool: a raster over what the
+        // stock model shows they left, with the same tool (no tool change).
+        let mut flats_note = None;
+        if matches!(fin_pattern, FinishingPattern::IsoLevel) {
+            let flats = steps.run("flats", base + 0.75 * per_face, || {
+                plan_flats(map, &fin_tool, &tip, &preview, min_leftover, step_over, safe_z, floor)
+            })?;
+            match flats {
+                Err(note) => flats_note = Some(note),
+                Ok(passes) => {
+                    fin_path.passes.extend(passes);
+                    fin_segs = super::cleanup::link(&fin_path, tolerance, arcs);
+                    preview = steps.run("preview", base + 0.78 * per_face, || {
+                        simulate(
+                            map,
+                            top,
+                            &[
+                                SweptOp { tool: &rough_tool, start, segments: &rough_segs },
+                                SweptOp {
+                                    tool: &fin_tool,
+                                    start: rough_segs.last().map_or(start, Segment::end),
+                                    segments: &fin_segs,
+                                },
+                            ],
+                        )
+                    })?;
+                }
+            }
+        }
+        if let Some(note) = &flats_note {
+            tracing::debug!(note, "no flats pass");
+        }
+        // Rest finishing where the stock model says finishing left material.
         let mut rest_report = None;
         let mut rest_note = None;
         let mut rest_op = None;
@@ -717,7 +797,10 @@ fn plan_with(
             match planned {
                 Err(note) => rest_note = Some(note),
                 Ok((path, holder, region_cells)) => {
-                    let segs = super::cleanup::link(&path, tolerance, arcs);
+                    let segs = super::cleanup::feed_retracts(
+                        super::cleanup::link(&path, tolerance, arcs),
+                        REST_FEED_RETRACT_MM,
+                    );
                     let before = (preview.max_leftover_mm, preview.mean_leftover_mm);
                     preview = steps.run("preview", base + 0.9 * per_face, || {
                         simulate(
@@ -968,5 +1051,49 @@ mod tests {
                 other => panic!("{field}: {other:?}"),
             }
         }
+    }
+
+    #[test]
+    fn iso_level_finishing_also_finishes_the_flats_between_its_contours() {
+        // A 30 x 30 mm plate 2 mm high with a dome up to 8 mm in the middle (0.25 mm cells).
+        let n = 120u32;
+        let meta = HeightMapMeta { z_min_mm: 0.0, z_max_mm: 8.0, ..HeightMapMeta::new(n, n, 0.25) };
+        let map = HeightMap::from_fn(meta, |c, r| {
+            let (x, y) = (f64::from(c) * 0.25 - 15.0, f64::from(r) * 0.25 - 15.0);
+            (2.0 + (36.0 - x * x - y * y).max(0.0).sqrt()) as f32
+        })
+        .expect("map");
+        let library = ToolLibrary::builtin().expect("library");
+        let options = PlanOptions {
+            finishing: Some(FinishingOptions {
+                strategy: Some("iso_level".into()),
+                step_over_mm: Some(0.5),
+                ..Default::default()
+            }),
+            rest: Some(RestOptions { enabled: Some(false), ..Default::default() }),
+            ..Default::default()
+        };
+        let faces = [FaceInput { a_deg: None, map: map.clone(), roughing_map: None }];
+        let out =
+            plan(&faces, &options, &library, &MachineLimits::emco_f1(), &|_, _| {}, &|| false).expect("plan");
+        let f = &out.report.faces[0];
+        assert_eq!(f.operations.len(), 2);
+        assert_eq!(f.operations[1].strategy, "finishing-iso-level");
+        // The preview samples moves at half a pixel: a few µm of apparent gouge on the dome.
+        assert!(f.max_gouge_mm < 5e-3, "gouge {}", f.max_gouge_mm);
+        // The flat ring between the dome and the plate's edge comes out within the threshold
+        // (the roughing left 0.3 mm there, which no contour crosses).
+        let left = &out.preview.leftover;
+        let mut worst = 0f32;
+        for r in 0..n {
+            for c in 0..n {
+                let (x, y) = (f64::from(c) * 0.25 - 15.0, f64::from(r) * 0.25 - 15.0);
+                let d = (x * x + y * y).sqrt();
+                if d > 8.0 && x.abs() < 13.0 && y.abs() < 13.0 {
+                    worst = worst.max(left.get(c, r).unwrap_or(0.0));
+                }
+            }
+        }
+        assert!(worst <= 0.06, "flat left {worst} mm above the part");
     }
 }

@@ -71,18 +71,32 @@ pub fn positions(region: &[bool], width: usize, height: usize, kernel: &Kernel) 
     out
 }
 
-/// `path` cut to its runs of consecutive points over `positions` (module docs, step 4); each run
-/// of two points or more becomes a pass entered from the safe height.
+/// `path` cut to its runs of consecutive points over `positions` (module docs, step 4), its
+/// straight moves first cut at half a pixel; each run of two points or more becomes a pass
+/// entered from the safe height.
 pub fn restrict(path: Toolpath, positions: &[bool], tip: &HeightMap, strategy: &str) -> Toolpath {
     let meta = tip.meta();
     let w = meta.width as usize;
     let over = |p: &nalgebra::Point3<f64>| {
         raster_cell(meta, p.x, p.y).is_some_and(|(c, r)| positions[r as usize * w + c as usize])
     };
+    let step = meta.pixel_mm / 2.0;
     let mut passes = Vec::new();
     for pass in path.passes {
+        // The moves between a pass's points are straight: cut them at half a pixel so a long
+        // stretch (a flat drawn with two points) is kept where it crosses the positions.
+        let mut dense: Vec<nalgebra::Point3<f64>> = Vec::with_capacity(pass.points.len());
+        for (i, &b) in pass.points.iter().enumerate() {
+            if let Some(&a) = i.checked_sub(1).and_then(|j| pass.points.get(j)) {
+                let n = ((b.xy() - a.xy()).norm() / step).ceil().clamp(1.0, 1e6) as usize;
+                for k in 1..n {
+                    dense.push(a + (b - a) * (k as f64 / n as f64));
+                }
+            }
+            dense.push(b);
+        }
         let mut run: Vec<nalgebra::Point3<f64>> = Vec::new();
-        for p in pass.points {
+        for p in dense {
             if over(&p) {
                 run.push(p);
             } else if !run.is_empty() {
