@@ -178,6 +178,7 @@ pub fn reconstruct_params(p: &ReconstructParams) -> rec::ReconstructParams {
             None => rec::CellEstimator::Unspecified,
             Some(CellEstimator::Max) => rec::CellEstimator::Max,
             Some(CellEstimator::Median) => rec::CellEstimator::Median,
+            Some(CellEstimator::MedianBilateral) => rec::CellEstimator::MedianBilateral,
         } as i32,
     }
 }
@@ -555,6 +556,7 @@ pub fn job_spec_from_pb(s: pb::JobSpec) -> Result<JobSpec, SpecError> {
                     rec::CellEstimator::Unspecified => None,
                     rec::CellEstimator::Max => Some(CellEstimator::Max),
                     rec::CellEstimator::Median => Some(CellEstimator::Median),
+                    rec::CellEstimator::MedianBilateral => Some(CellEstimator::MedianBilateral),
                 },
             })
         })

@@ -279,6 +279,9 @@ pub enum CellEstimator {
     Max,
     /// The median point: unbiased under symmetric noise; the roughing map still comes from the max.
     Median,
+    /// The median, then an edge-preserving average of the neighbouring cells (a bilateral filter,
+    /// σ one pixel across and 0.1 mm in height): the noise averaged down, steps and walls kept.
+    MedianBilateral,
 }
 
 /// A face to cut from above: exactly one of a named view, an angle about the machine's A axis,
