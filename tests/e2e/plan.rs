@@ -91,6 +91,8 @@ async fn a_plan_the_cam_service_rejects_fails_without_retries() -> anyhow::Resul
     assert_eq!(done["error"]["stage"], "plan");
     assert!(done["error"]["message"].as_str().unwrap_or_default().contains("plan.stock.z_mm"), "{done}");
     assert_eq!(done["attempts"].as_array().map(Vec::len), Some(1));
+    // The failed stage's time is there too.
+    assert!(done["stage_timings_s"]["plan"].as_f64().is_some_and(|t| t >= 0.0), "{done}");
     stack.shutdown().await
 }
 

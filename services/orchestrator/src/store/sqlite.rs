@@ -77,6 +77,16 @@ impl SqliteStore {
             metrics.absorb(&r.outputs.metrics);
         }
         let attempts = self.attempts(&id).await?;
+        // A stage without a result (failed, cancelled, running) shows the time its finished
+        // attempts took, retries included.
+        for a in &attempts {
+            let Some(end) = a.finished_at_ms else { continue };
+            if results.iter().any(|r| r.stage == a.stage) {
+                continue;
+            }
+            *stage_timings_s.entry(a.stage.as_str().to_string()).or_insert(0.0) +=
+                (end - a.started_at_ms).max(0) as f64 / 1000.0;
+        }
         Ok(Job {
             name: row.try_get("name")?,
             status,
