@@ -58,7 +58,7 @@ for name in sorted(f[:-3] for f in os.listdir(out) if f.endswith('.rc')):
         msg = (err[-1] if err else log.strip().splitlines()[-1])
         if '"message":"' in msg:
             msg = msg.split('"message":"', 1)[1].split('","', 1)[0]
-        rows.append(f"| {name} | refused: {msg[:400]} |" + " |" * 13)
+        rows.append(f"| {name} | refused: {msg[:400]} |" + " |" * 14)
         continue
     job = json.load(open(job_path))
     m = job.get('metrics', {})
@@ -73,16 +73,29 @@ for name in sorted(f[:-3] for f in os.listdir(out) if f.endswith('.rc')):
     status = job.get('status')
     if status != 'succeeded':
         err = job.get('error') or {}
-        rows.append(f"| {name} | {status}: {err.get('message', '')[:200]} |" + " |" * 13)
+        rows.append(f"| {name} | {status}: {err.get('message', '')[:200]} |" + " |" * 14)
         continue
     tools = ''
     try:
         pr = json.load(open(os.path.join(out, name, 'artifacts', 'plan_report.json')))
         tools = ' + '.join(o['tool'] for o in pr['faces'][0]['operations'])
+        if len(pr['faces']) > 1:
+            tools += f" ({len(pr['faces'])} faces)"
     except Exception:
         pass
-    rows.append(f"| {name} | {units} | {tools} | {f('scan_silhouette_coverage_pct', 1)} | {f('coverage_pct', 1)} | {f('part_mean_mm')} | {f('part_rms_mm')} | {f('part_max_gouge_mm')} | {f('part_off_walls_max_gouge_mm')} | {f('part_off_walls_rms_mm')} | {f('preview_rms_mm')} | {f('max_gouge_mm')} | {f('cycle_time_s', 0)} | {f('cycle_time_no_adaptive_s', 0)} | {float(secs):.0f} |")
-hdr = "| part | units read | tools | silhouette seen % | depth-map coverage % | mean vs part mm | RMS vs part mm | max gouge vs part mm | max gouge off walls mm | RMS off walls mm | RMS vs tools' surface mm | max gouge vs target mm | cycle s (adaptive) | cycle s (none) | wall s |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+    faces = ''
+    try:
+        rr = json.load(open(os.path.join(out, name, 'artifacts', 'reconstruct_report.json')))
+        fc = rr.get('face_choice')
+        if fc:
+            faces = ', '.join(f"{c['face']} +{c['gain_pct']:.1f}" for c in fc['chosen'])
+            faces += f" ({fc['covered_pct']:.1f} reached, {fc['unreached_pct']:.1f} from none)"
+        else:
+            faces = ', '.join(f['face'] for f in rr.get('faces', []))
+    except Exception:
+        pass
+    rows.append(f"| {name} | {units} | {faces} | {tools} | {f('scan_silhouette_coverage_pct', 1)} | {f('coverage_pct', 1)} | {f('part_mean_mm')} | {f('part_rms_mm')} | {f('part_max_gouge_mm')} | {f('part_off_walls_max_gouge_mm')} | {f('part_off_walls_rms_mm')} | {f('preview_rms_mm')} | {f('max_gouge_mm')} | {f('cycle_time_s', 0)} | {f('cycle_time_no_adaptive_s', 0)} | {float(secs):.0f} |")
+hdr = "| part | units read | faces (surface share each adds, %) | tools | silhouette seen % | depth-map coverage % | mean vs part mm | RMS vs part mm | max gouge vs part mm | max gouge off walls mm | RMS off walls mm | RMS vs tools' surface mm | max gouge vs target mm | cycle s (adaptive) | cycle s (none) | wall s |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
 open(os.path.join(out, 'table.md'), 'w').write(hdr + "\n" + "\n".join(rows) + "\n")
 print(hdr); print("\n".join(rows))
 PYEOF
