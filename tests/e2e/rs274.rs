@@ -7,7 +7,7 @@ use std::process::Command;
 
 use depthmill_cam::domain::feeds::MachineLimits;
 use depthmill_cam::domain::plan::{
-    FaceInput, FinishingOptions, PlanOptions, RoughingOptions, StockOptions, plan,
+    FaceInput, FinishingOptions, PlanOptions, RestOptions, RoughingOptions, StockOptions, plan,
 };
 use depthmill_cam::domain::tool::ToolLibrary;
 use depthmill_geometry::{HeightMap, HeightMapMeta};
@@ -67,8 +67,8 @@ fn cam_programs_run_in_linuxcnc_rs274() -> anyhow::Result<()> {
                 arcs: Some(true),
             }),
             dialect: Some(dialect.into()),
-            // Rest finishing on (the default): ball-1 as T3 where ball-3 left the dome's foot.
-            rest: None,
+            // Rest finishing: ball-1 as T3 where ball-3 left the dome's foot.
+            rest: Some(RestOptions { enabled: Some(true), ..Default::default() }),
         };
         let out = plan(
             &[FaceInput { a_deg: None, map: dome()?, roughing_map: None }],

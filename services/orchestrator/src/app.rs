@@ -216,16 +216,13 @@ impl App {
         .await
         .map_err(|e| ApiError::new(ErrorCode::Internal, format!("reading the mesh failed: {e}")))?;
         let e = read.map_err(|m| ApiError::field(ErrorCode::InvalidArgument, "input.artifact", m))?;
-        // Faces other than +Z, or faces still to be chosen, turn the part about the A (X) axis.
-        let turns = spec.reconstruct.as_ref().is_some_and(|r| {
-            r.face_choice.is_some()
-                || r.faces.as_ref().is_some_and(|f| {
-                    f.iter().any(|f| {
-                        f.a_deg.is_some()
-                            || f.normal.is_some()
-                            || f.view.as_deref().is_some_and(|v| v != "+Z")
-                    })
-                })
+        // Faces other than +Z turn the part about the A (X) axis. Faces still to be chosen are
+        // checked as the part stands (it must at least fit that way); a chosen turn that leaves
+        // the travel is refused by the machine before any motion, with the line.
+        let turns = spec.reconstruct.as_ref().and_then(|r| r.faces.as_ref()).is_some_and(|f| {
+            f.iter().any(|f| {
+                f.a_deg.is_some() || f.normal.is_some() || f.view.as_deref().is_some_and(|v| v != "+Z")
+            })
         });
         Ok(Some(if turns {
             let d = e.y.hypot(e.z);

@@ -51,7 +51,7 @@ pub struct PlanOptions {
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RestOptions {
-    /// `false`: no rest pass (default `true`: one wherever it removes something).
+    /// `true`: a rest pass wherever it removes something (default `false`).
     #[serde(default)]
     pub enabled: Option<bool>,
     /// The rest tool (default: the library's largest ball smaller than the finishing tool).
@@ -235,7 +235,8 @@ const DEFAULT_FINISHING: &str = "ball-3";
 /// wall higher than its stick-out), the library's tools of its kind with a longer reach, shortest
 /// first, until one reaches. A tool the job names is never replaced. The plan report says what
 /// was tried and why (`tool_choice`); when no tool reaches, the error is the last one's, naming
-/// the tools tried.
+/// the tools tried, unless the job named no tool: then the maps are raised to what the last tools
+/// tried reach ([`raise_to_reach`]) and the report says how much was left where.
 pub fn plan(
     faces: &[FaceInput],
     options: &PlanOptions,
@@ -261,7 +262,10 @@ pub fn plan(
     let mut fin_alts = if fin_given { Vec::new() } else { longer(DEFAULT_FINISHING)? }.into_iter();
     let mut o = options.clone();
     let mut tried: Vec<String> = Vec::new();
+    // Last resort when no tool of the library reaches: the maps raised to what the tools reach.
+    let mut within_reach: Option<Vec<FaceInput>> = None;
     loop {
+        let faces = within_reach.as_deref().unwrap_or(faces);
         let rough =
             o.roughing.as_ref().and_then(|r| r.tool.clone()).unwrap_or_else(|| DEFAULT_ROUGHING.into());
         let fin =
@@ -286,6 +290,17 @@ pub fn plan(
                     None
                 };
                 let Some((is_rough, tool)) = next else {
+                    // Tools left to the CAM: machine what they reach and say what is left. A job
+                    // that names its tools gets the error (and the hint) instead.
+                    if within_reach.is_none()
+                        && !(rough_given || fin_given)
+                        && let Some((raised, notes)) = raise_to_reach(faces, &o, library)?
+                    {
+                        tried.push(format!("roughing {rough}, finishing {fin}: {message}"));
+                        tried.extend(notes);
+                        within_reach = Some(raised);
+                        continue;
+                    }
                     let failing = if message.starts_with(&format!("tool {fin}:")) { &fin } else { &rough };
                     let hint = reach_hint(library, failing, min_stickout_mm);
                     let message = if tried.is_empty() {
@@ -334,6 +349,55 @@ struct RestSettings {
     tool: super::tool::Tool,
     step_over: f64,
     data: super::feeds::CuttingData,
+}
+
+/// The faces with every cell deeper than the job's tools reach below the face's highest point
+/// raised to that depth (the fluted length and the stick-out, whichever is shorter, less 0.5 mm),
+/// and a note per face saying how much was raised and to what height; `None` when nothing is
+/// deeper than that (the collision is elsewhere).
+#[allow(clippy::type_complexity)]
+fn raise_to_reach(
+    faces: &[FaceInput],
+    options: &PlanOptions,
+    library: &ToolLibrary,
+) -> Result<Option<(Vec<FaceInput>, Vec<String>)>, CamError> {
+    let named = |t: Option<&String>, default: &str| library.resolve(t.map_or(default, String::as_str));
+    let rough = named(options.roughing.as_ref().and_then(|r| r.tool.as_ref()), DEFAULT_ROUGHING)?;
+    let fin = named(options.finishing.as_ref().and_then(|f| f.tool.as_ref()), DEFAULT_FINISHING)?;
+    let reach =
+        [&rough, &fin].iter().map(|t| t.cutting_length_mm.min(t.stickout_mm)).fold(f64::INFINITY, f64::min)
+            - 0.5;
+    if !(reach.is_finite() && reach > 0.0) {
+        return Ok(None);
+    }
+    let mut out = Vec::with_capacity(faces.len());
+    let mut notes = Vec::new();
+    for (i, f) in faces.iter().enumerate() {
+        let lowest = (face_top(&f.map)? - reach) as f32;
+        let raise = |m: &HeightMap| -> (HeightMap, usize) {
+            let mut r = m.clone();
+            let mut n = 0;
+            for z in r.data_mut() {
+                if z.is_finite() && *z < lowest {
+                    *z = lowest;
+                    n += 1;
+                }
+            }
+            (r, n)
+        };
+        let (map, n) = raise(&f.map);
+        let roughing_map = f.roughing_map.as_ref().map(|m| raise(m).0);
+        if n > 0 {
+            let p = f.map.pixel_mm();
+            notes.push(format!(
+                "face {}: no tool reaches the whole depth; {:.1} mm² deeper than {reach:.1} mm below the part's top are left standing at Z {lowest:.3} mm (a longer tool, or another face, would reach them)",
+                i + 1,
+                n as f64 * p * p
+            ));
+        }
+        out.push(FaceInput { a_deg: f.a_deg, map, roughing_map });
+    }
+    Ok((!notes.is_empty()).then_some((out, notes)))
 }
 
 /// Checks and resolves `options` (tools, material, dialect, strategies, steps) without any map:
@@ -430,7 +494,7 @@ fn settings(
             ));
         }
     };
-    let rest_tool = match (rest_opts.enabled.unwrap_or(true), &rest_opts.tool) {
+    let rest_tool = match (rest_opts.enabled.unwrap_or(false), &rest_opts.tool) {
         (false, _) => None,
         (true, Some(name)) => Some(library.resolve(name).map_err(|e| tool_field("plan.rest.tool", e))?),
         // The largest ball smaller than the finishing tool; of equal ones, the longest reach.
@@ -1019,7 +1083,8 @@ mod tests {
             let faces = [FaceInput { a_deg: None, map: map.clone(), roughing_map: None }];
             plan(&faces, o, &library, &MachineLimits::emco_f1(), &|_, _| {}, &|| false)
         };
-        let with = go(&options(None)).expect("planned");
+        let with =
+            go(&options(Some(RestOptions { enabled: Some(true), ..Default::default() }))).expect("planned");
         let f = &with.report.faces[0];
         let rest = f.rest.as_ref().unwrap_or_else(|| panic!("no rest pass: {:?}", f.rest_note));
         assert_eq!(rest.tool, "ball-1");
@@ -1034,16 +1099,18 @@ mod tests {
         assert!(f.max_gouge_mm < 1e-3, "gouge {}", f.max_gouge_mm);
         // What even ball-1 leaves is reported where it is: along the slot's two feet.
         assert!(f.left_regions.iter().all(|r| r.max_leftover_mm <= f.max_leftover_mm + 1e-6));
-        // Off: two operations, as before.
-        let off =
-            go(&options(Some(RestOptions { enabled: Some(false), ..Default::default() }))).expect("planned");
+        // Off (the default): two operations.
+        let off = go(&options(None)).expect("planned");
         let f = &off.report.faces[0];
         assert_eq!(f.operations.len(), 2);
         assert!(f.rest.is_none() && f.rest_note.is_none());
         assert!(!off.gcode.contains("T3 M6"));
         // A bad rest tool or threshold names its field.
         for (rest, field) in [
-            (RestOptions { tool: Some("ball-3x".into()), ..Default::default() }, "plan.rest.tool"),
+            (
+                RestOptions { enabled: Some(true), tool: Some("ball-3x".into()), ..Default::default() },
+                "plan.rest.tool",
+            ),
             (RestOptions { min_leftover_mm: Some(0.0), ..Default::default() }, "plan.rest.min_leftover_mm"),
         ] {
             match check_options(&options(Some(rest)), &library, &MachineLimits::emco_f1()) {
@@ -1095,5 +1162,40 @@ mod tests {
             }
         }
         assert!(worst <= 0.06, "flat left {worst} mm above the part");
+    }
+
+    #[test]
+    fn tools_left_to_the_cam_machine_what_they_reach_when_none_reaches_everything() {
+        // A 70 mm deep, 20 mm wide slot: deeper than any ball of the library reaches.
+        let n = 80u32;
+        let meta = HeightMapMeta { z_min_mm: 0.0, z_max_mm: 70.0, ..HeightMapMeta::new(n, n, 0.5) };
+        let data =
+            (0..n * n).map(|i| if ((i % n) as f64 * 0.5 - 20.0).abs() < 10.0 { 0.0 } else { 70.0 }).collect();
+        let map = HeightMap::new(meta, data).expect("map");
+        let library = ToolLibrary::builtin().expect("library");
+        let faces = [FaceInput { a_deg: None, map, roughing_map: None }];
+        let coarse = FinishingOptions { step_over_mm: Some(2.0), ..Default::default() };
+        let out = plan(
+            &faces,
+            &PlanOptions { finishing: Some(coarse.clone()), ..Default::default() },
+            &library,
+            &MachineLimits::emco_f1(),
+            &|_, _| {},
+            &|| false,
+        )
+        .expect("planned within reach");
+        let note =
+            out.report.tool_choice.iter().find(|t| t.contains("left standing")).cloned().unwrap_or_default();
+        assert!(note.contains("face 1") && note.contains("mm²"), "{:?}", out.report.tool_choice);
+        assert!(out.report.faces[0].max_gouge_mm < 0.05);
+        // Named tools: the error stands.
+        let named = PlanOptions {
+            finishing: Some(FinishingOptions { tool: Some("ball-6".into()), ..coarse }),
+            ..Default::default()
+        };
+        let e = plan(&faces, &named, &library, &MachineLimits::emco_f1(), &|_, _| {}, &|| false)
+            .err()
+            .expect("error");
+        assert!(matches!(e, CamError::HolderCollision { .. }), "{e}");
     }
 }

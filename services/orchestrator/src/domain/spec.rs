@@ -398,7 +398,7 @@ pub struct PlanParams {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub dialect: Option<Dialect>,
     /// Rest finishing: a smaller ball where the finishing tool left material on the simulated
-    /// stock. On by default (when the library has a smaller ball and it removes something).
+    /// stock (off unless `enabled`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub rest: Option<Rest>,
 }
@@ -407,7 +407,7 @@ pub struct PlanParams {
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Rest {
-    /// `false`: no rest pass (default `true`).
+    /// `true`: a rest pass wherever it removes something (default `false`, see the README).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub enabled: Option<bool>,
     /// The rest tool (default: the library's largest ball smaller than the finishing tool).
