@@ -23,7 +23,10 @@
 //! The choice is exact where it can be: for `k = 1, 2, …` faces, every `k`-subset of the
 //! candidates is tried while there are at most [`EXACT_SUBSETS`] of them (greedy beyond), and the
 //! smallest `k` whose best subset leaves less than `min_gain_pct` of the surface for another face
-//! to add is taken. What no candidate reaches is reported as regions (centre, extent, area).
+//! to add is taken; subsets within `min_gain_pct` of the best count as equal and the one that
+//! turns the part least wins (`+Z` when it does about as well). A cloud's candidates stop
+//! at |A| = 90°: beyond, a view looks up into what the scanner never saw. What no candidate
+//! reaches is reported as regions (centre, extent, area).
 
 use std::collections::HashMap;
 
@@ -144,6 +147,9 @@ pub struct SurfaceSamples {
     pub points: Vec<Point3<f64>>,
     /// Points that block the view but need no tool (the cap under a cloud).
     pub occluders: Vec<Point3<f64>>,
+    /// Largest turn about A worth trying, degrees: 90 for a cloud (what lies beyond was never
+    /// measured: a view from below would look into it through its open bottom), 180 for a mesh.
+    pub max_turn_deg: f64,
     /// The sampling cell actually used, mm (coarsened from the requested one for huge parts).
     pub cell_mm: f64,
 }
@@ -179,7 +185,7 @@ impl SurfaceSamples {
                 }
             }
         }
-        Ok(SurfaceSamples { points, occluders, cell_mm: cell })
+        Ok(SurfaceSamples { points, occluders, cell_mm: cell, max_turn_deg: 90.0 })
     }
 
     /// Samples of a mesh: each triangle sampled on a barycentric lattice of about `cell_mm`, then
@@ -215,12 +221,13 @@ impl SurfaceSamples {
         }
         let keep = voxel_keep_mask(&raw, cell)?;
         let points = raw.iter().zip(&keep).filter(|(_, k)| **k).map(|(p, _)| *p).collect();
-        Ok(SurfaceSamples { points, occluders: Vec::new(), cell_mm: cell })
+        Ok(SurfaceSamples { points, occluders: Vec::new(), cell_mm: cell, max_turn_deg: 180.0 })
     }
 }
 
-/// The candidate orientations: A = 0, ±step, ±2·step, … up to 180 (each once).
-pub fn candidates(step_deg: f64) -> Vec<Face> {
+/// The candidate orientations: A = 0, ±step, ±2·step, … up to 180 (each once), keeping those
+/// with |A| <= `max_abs_deg`.
+pub fn candidates(step_deg: f64, max_abs_deg: f64) -> Vec<Face> {
     let n = (360.0 / step_deg).floor().max(1.0) as i64;
     let mut out = Vec::new();
     for k in 0..n {
@@ -228,9 +235,20 @@ pub fn candidates(step_deg: f64) -> Vec<Face> {
         if a > 180.0 + 1e-9 {
             a -= 360.0;
         }
-        out.push(if a == 0.0 { Face::PosZ } else { Face::A { angle_deg: a } });
+        if a.abs() <= max_abs_deg + 1e-9 {
+            out.push(if a == 0.0 { Face::PosZ } else { Face::A { angle_deg: a } });
+        }
     }
     out
+}
+
+/// How far a face turns the part, degrees: what the choice keeps low among subsets that reach
+/// about as much.
+fn turn_of(f: Face) -> f64 {
+    match f {
+        Face::A { angle_deg } => angle_deg.abs(),
+        _ => 0.0,
+    }
 }
 
 /// Which samples the tools reach from above with the part turned to `face` (module docs).
@@ -403,21 +421,36 @@ fn for_each_subset(n: usize, k: usize, f: &mut dyn FnMut(&[usize])) {
 /// subset in lexicographic order, so lower candidate indices, A nearer 0, win). Exhaustive while
 /// a size has at most [`EXACT_SUBSETS`] subsets, then greedy from the best smaller one.
 /// Returns, per size, the subset and its count, and whether every size was exhaustive.
-fn best_subsets(sets: &[Bits], max_k: usize) -> (Vec<(Vec<usize>, u64)>, bool) {
+fn best_subsets(sets: &[Bits], max_k: usize, tol: u64, cost: &[f64]) -> (Vec<(Vec<usize>, u64)>, bool) {
     let n = sets.len();
     let mut out: Vec<(Vec<usize>, u64)> = Vec::new();
     let mut exact = true;
     for k in 1..=max_k.min(n) {
         if binomial(n as u64, k as u64) <= EXACT_SUBSETS {
-            let mut best: (Vec<usize>, u64) = (Vec::new(), 0);
+            let mut all: Vec<(Vec<usize>, u64)> = Vec::new();
             for_each_subset(n, k, &mut |s| {
                 let refs: Vec<&Bits> = s.iter().map(|&i| &sets[i]).collect();
-                let c = Bits::union_count(&refs);
-                if best.0.is_empty() || c > best.1 {
-                    best = (s.to_vec(), c);
-                }
+                all.push((s.to_vec(), Bits::union_count(&refs)));
             });
-            out.push(best);
+            let most = all.iter().map(|(_, c)| *c).max().unwrap_or(0);
+            // Of the subsets within `tol` of the most, the one that turns the part least (then
+            // the one that reaches more, then the first).
+            let turn = |s: &[usize]| s.iter().map(|&i| cost.get(i).copied().unwrap_or(0.0)).sum::<f64>();
+            let mut best: Option<(Vec<usize>, u64)> = None;
+            for (s, c) in all.into_iter().filter(|(_, c)| c + tol >= most) {
+                let better = match &best {
+                    None => true,
+                    Some((bs, bc)) => match turn(&s).total_cmp(&turn(bs)) {
+                        std::cmp::Ordering::Less => true,
+                        std::cmp::Ordering::Equal => c > *bc,
+                        std::cmp::Ordering::Greater => false,
+                    },
+                };
+                if better {
+                    best = Some((s, c));
+                }
+            }
+            out.push(best.unwrap_or_default());
         } else {
             exact = false;
             let Some((prev, _)) = out.last().cloned() else { break };
@@ -455,7 +488,7 @@ pub fn choose_faces(
     if n == 0 {
         return Err(ReconError::Empty("face choice: no surface samples".into()));
     }
-    let cands = candidates(s.step_deg);
+    let cands = candidates(s.step_deg, samples.max_turn_deg);
     let reach: Vec<Vec<bool>> = cands.par_iter().map(|&f| reached(samples, f, s)).collect::<Result<_>>()?;
     if cancelled() {
         return Err(ReconError::Cancelled);
@@ -464,7 +497,11 @@ pub fn choose_faces(
     let pct = |c: u64| 100.0 * c as f64 / n as f64;
     let all_refs: Vec<&Bits> = sets.iter().collect();
     let any = Bits::union_count(&all_refs);
-    let (best, exact) = best_subsets(&sets, s.max_faces as usize);
+    // Subsets within `min_gain_pct` of the best count as equal (turning the part is worth what a
+    // face must add); the least turning wins.
+    let tol = (s.min_gain_pct / 100.0 * n as f64).floor() as u64;
+    let costs: Vec<f64> = cands.iter().map(|&f| turn_of(f)).collect();
+    let (best, exact) = best_subsets(&sets, s.max_faces as usize, tol, &costs);
     // The smallest k whose best subset leaves less than min_gain_pct of what some candidate
     // reaches (no further face can add as much), else the largest searched.
     let pick = best

@@ -51,7 +51,7 @@ fn settings_are_checked_and_named() {
 
 #[test]
 fn candidates_go_round_once() {
-    let c = candidates(90.0);
+    let c = candidates(90.0, 180.0);
     assert_eq!(
         c,
         vec![
@@ -61,8 +61,10 @@ fn candidates_go_round_once() {
             Face::A { angle_deg: -90.0 }
         ]
     );
-    assert_eq!(candidates(15.0).len(), 24);
-    assert_eq!(candidates(180.0).len(), 2);
+    assert_eq!(candidates(15.0, 180.0).len(), 24);
+    assert_eq!(candidates(180.0, 180.0).len(), 2);
+    // A cloud's: none looking up from below.
+    assert_eq!(candidates(15.0, 90.0).len(), 13);
 }
 
 #[test]
@@ -109,7 +111,7 @@ fn an_overhang_is_reached_from_below_and_a_tunnel_along_the_axis_from_nowhere() 
     ]);
     let samples = SurfaceSamples::from_mesh(&tunnel, s.cell_mm).expect("samples");
     let floor = sample_index(&samples, Point3::new(10.0, 10.0, 8.0));
-    for f in candidates(s.step_deg) {
+    for f in candidates(s.step_deg, 180.0) {
         assert!(!reached(&samples, f, &s).expect("reach")[floor], "{f} reaches the tunnel floor");
     }
     let (_, report) = choose_faces(&samples, &s, &never).expect("choice");
@@ -135,7 +137,7 @@ fn a_slot_narrower_than_the_tool_is_not_reached() {
     let floor = sample_index(&samples, Point3::new(10.0, 10.0, 10.0));
     assert!(reached(&samples, Face::PosZ, &wide).expect("reach")[floor], "a 0.8 mm tool goes in");
     let ball3 = FaceChoiceSettings { reach_radius_mm: 1.5, ..wide };
-    for f in candidates(ball3.step_deg) {
+    for f in candidates(ball3.step_deg, 180.0) {
         assert!(!reached(&samples, f, &ball3).expect("reach")[floor], "{f}: a 3 mm tool does not");
     }
 }
@@ -239,7 +241,7 @@ fn reach_equals_the_reference_on_random_surfaces() {
                 .map(|_| Point3::new(rng.random_range(0.0..8.0), rng.random_range(0.0..6.0), 0.0))
                 .collect()
         };
-        let samples = SurfaceSamples { points, occluders, cell_mm: 0.5 };
+        let samples = SurfaceSamples { points, occluders, cell_mm: 0.5, max_turn_deg: 180.0 };
         // 2.6 cells: no cell centre lies near the disk's edge.
         let s = FaceChoiceSettings { reach_radius_mm: 1.3, tolerance_mm: 0.1, ..Default::default() };
         for face in [Face::PosZ, Face::A { angle_deg: 60.0 }, Face::A { angle_deg: 180.0 }] {
@@ -261,7 +263,7 @@ fn the_best_subsets_are_the_brute_force_ones() {
         let bools: Vec<Vec<bool>> =
             (0..n_sets).map(|_| (0..n).map(|_| rng.random_bool(0.3)).collect()).collect();
         let sets: Vec<Bits> = bools.iter().map(|b| Bits::from_bools(b)).collect();
-        let (best, exact) = best_subsets(&sets, 4);
+        let (best, exact) = best_subsets(&sets, 4, 0, &vec![0.0; n_sets]);
         assert!(exact);
         for (k, (subset, count)) in best.iter().enumerate() {
             assert_eq!(subset.len(), k + 1);
@@ -279,4 +281,17 @@ fn the_best_subsets_are_the_brute_force_ones() {
             assert_eq!(c, *count);
         }
     }
+}
+
+#[test]
+fn about_as_much_reach_with_less_turning_wins() {
+    // Candidate 0 (+Z) reaches one sample fewer than candidate 1 (A=15): within the tolerance,
+    // +Z is taken; beyond it, the better one.
+    let a: Vec<bool> = (0..100).map(|i| i < 99).collect();
+    let b: Vec<bool> = vec![true; 100];
+    let sets = [Bits::from_bools(&a), Bits::from_bools(&b)];
+    let (best, _) = best_subsets(&sets, 1, 1, &[0.0, 15.0]);
+    assert_eq!(best[0], (vec![0], 99));
+    let (best, _) = best_subsets(&sets, 1, 0, &[0.0, 15.0]);
+    assert_eq!(best[0], (vec![1], 100));
 }
