@@ -374,7 +374,9 @@ fn raise_to_reach(
     let mut notes = Vec::new();
     for (i, f) in faces.iter().enumerate() {
         let lowest = (face_top(&f.map)? - reach) as f32;
-        let raise = |m: &HeightMap| -> (HeightMap, usize) {
+        // The floor too: outside the map and in cells without data the tools go down to the
+        // map's lowest Z, which must be within reach as well.
+        let raise = |m: &HeightMap| -> Result<(HeightMap, usize), CamError> {
             let mut r = m.clone();
             let mut n = 0;
             for z in r.data_mut() {
@@ -383,11 +385,14 @@ fn raise_to_reach(
                     n += 1;
                 }
             }
-            (r, n)
+            let lo = r.z_min_mm().max(f64::from(lowest));
+            let hi = r.z_max_mm().max(lo + 1e-3);
+            r.set_z_range(lo, hi).map_err(|e| CamError::InvalidMap { message: e.to_string() })?;
+            Ok((r, n))
         };
-        let (map, n) = raise(&f.map);
-        let roughing_map = f.roughing_map.as_ref().map(|m| raise(m).0);
-        if n > 0 {
+        let (map, n) = raise(&f.map)?;
+        let roughing_map = f.roughing_map.as_ref().map(|m| raise(m).map(|r| r.0)).transpose()?;
+        if n > 0 || f.map.z_min_mm() < f64::from(lowest) {
             let p = f.map.pixel_mm();
             notes.push(format!(
                 "face {}: no tool reaches the whole depth; {:.1} mm² deeper than {reach:.1} mm below the part's top are left standing at Z {lowest:.3} mm (a longer tool, or another face, would reach them)",
