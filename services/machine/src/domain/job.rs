@@ -452,7 +452,10 @@ pub fn execute_faces(
     let extent =
         if target.is_none() && opts.stock.is_none() { feed_extent(open()?, cfg, &profile)? } else { None };
     setup.stock = stock_spec(opts, target, extent, max_radius, cell)?;
-    if targets.len() > 1 {
+    // Faces are cut as indexed stocks when there are several, or when the one face is turned
+    // (a single face at A != 0 is cut with the A axis at its angle, not at 0).
+    let indexed = targets.len() > 1 || targets.iter().any(|t| t.a_deg.abs() > 1e-9);
+    if indexed {
         setup.faces = targets
             .iter()
             .map(|t| {
@@ -501,7 +504,7 @@ pub fn execute_faces(
         .first()
         .map(|(_, m)| m.clone())
         .ok_or_else(|| invalid("stock", "none", "the run kept no stock"))?;
-    let faces: Vec<FaceResult> = if targets.len() > 1 {
+    let faces: Vec<FaceResult> = if indexed {
         targets
             .iter()
             .zip(&stocks)
@@ -728,5 +731,40 @@ mod tests {
                 && p.axes.z.contains(zhi + RETRACT_ALLOWANCE_MM + z + lmax, 1e-9)
         );
         assert_eq!(p.quantise(z), z);
+    }
+
+    #[test]
+    fn a_single_turned_face_is_cut_at_its_angle() {
+        // A flat 20 x 20 mm target at Z 5 on a stock 10 mm high, seen with the part turned to
+        // A=30; the program turns A to 30 and cuts a slot 2 mm deep.
+        let meta = HeightMapMeta {
+            z_min_mm: 0.0,
+            z_max_mm: 10.0,
+            origin_x_mm: 0.0,
+            origin_y_mm: 0.0,
+            face: depthmill_geometry::Face::A { angle_deg: 30.0 },
+            ..HeightMapMeta::new(40, 40, 0.5)
+        };
+        let target = HeightMap::filled(meta, 5.0).expect("map");
+        let program = "(T1 flat-6: flat D6.0000 mm, 2 flutes - roughing-x with flat-6)\nG21 G90 G17 G94 G40 G49 G80\n\
+                       G53 G0 Z0\nG0 A30\nT1 M6\nS1800 M3\nG43 H1\nG0 X-4 Y10\nZ15\nG1 Z8 F100\nG1 X24 F300\nG0 Z15\nM30\n";
+        let open = || -> std::io::Result<Box<dyn BufRead + Send>> {
+            Ok(Box::new(std::io::Cursor::new(program.as_bytes().to_vec())))
+        };
+        let opts = ExecuteOptions { stock_z_mm: Some(10.0), compare: false, ..Default::default() };
+        let out =
+            execute_faces(&open, &opts, &[FaceTarget { a_deg: 30.0, map: &target }], &|| false, &mut |_| {})
+                .expect("ran");
+        assert_eq!(out.faces.len(), 1);
+        assert_eq!(out.faces[0].a_deg, 30.0);
+        // The slot is in the stock: at Y 10 the top came down from 10 to 8.
+        let (c, r) = out.final_stock.cell_of(10.0, 10.0).expect("on the stock");
+        let z = out.final_stock.get(c, r).unwrap_or(f32::NAN);
+        assert!((z - 8.0).abs() < 0.05, "stock at the slot {z}");
+        assert!(
+            !out.report.run.warnings.iter().any(|w| w.contains("not cut")),
+            "{:?}",
+            out.report.run.warnings
+        );
     }
 }
