@@ -412,6 +412,46 @@ fn the_machined_part_is_compared_with_the_original_mesh() {
 }
 
 #[test]
+fn a_part_turned_for_its_first_face_is_compared_turned_the_same_way() {
+    // The dome seen with the part turned to A=30: the mesh is the dome turned back by -30° about
+    // X, so that the report, turning it to the first face's view, finds the dome again.
+    let n = 161;
+    let (x0, y0, w, h) = (X0, Y0, f64::from(W) * P, f64::from(H) * P);
+    let face = depthmill_geometry::Face::A { angle_deg: 30.0 };
+    let back = face.view_from_part_pose().inverse();
+    let mut vertices = Vec::new();
+    for j in 0..n {
+        for i in 0..n {
+            let x = x0 + w * i as f64 / (n - 1) as f64;
+            let y = y0 + h * j as f64 / (n - 1) as f64;
+            vertices.push(back * depthmill_geometry::nalgebra::Point3::new(x, y, dome_z(x, y)));
+        }
+    }
+    let mut triangles = Vec::new();
+    for j in 0..n - 1 {
+        for i in 0..n - 1 {
+            let a = (j * n + i) as u32;
+            triangles.push([a, a + 1, a + 1 + n as u32]);
+            triangles.push([a, a + 1 + n as u32, a + n as u32]);
+        }
+    }
+    let mesh = depthmill_geometry::Mesh { vertices, triangles };
+    let mut stl = Vec::new();
+    depthmill_geometry::formats::write_stl(&mut stl, &mesh, "report test").expect("stl");
+    let mut arts = full_artifacts();
+    let mut turned = depth_map();
+    turned.set_face(face).expect("face");
+    arts.insert("depth_map".into(), map_png(&turned, PngDepth::Bits16));
+    arts.insert("mesh".into(), stl);
+    let job = job("turned", "succeeded", &arts);
+    let out = render_ok(&job, &arts);
+    let at = out.html.find("Against the original part").expect("the turned part is compared");
+    let part = &out.html[at..];
+    let row = &part[part.find("Mean leftover").expect("row")..][..60];
+    assert!(row.contains("0.03"), "{row}");
+}
+
+#[test]
 fn the_machined_part_is_compared_with_the_cams_preview() {
     let mut arts = full_artifacts();
     let stock = final_stock();

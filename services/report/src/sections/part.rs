@@ -108,24 +108,20 @@ impl Ctx<'_> {
     }
 
     /// The machined part against the original part itself, when the job started from its mesh
-    /// (a simulated scan): the mesh's top surface rasterised on the final stock's grid (exact
-    /// z-buffer at cell centres). Only when the maps are in the mesh's own frame: first face `+Z`
+    /// (a simulated scan): the mesh's top surface, seen as the first face sees it (turned to its
+    /// view when that is not `+Z`), rasterised on the final stock's grid (exact z-buffer at cell
+    /// centres). Only when the maps are in the mesh's own frame up to that turn: a first face
     /// without a moved origin, and no `filters.transform`.
     pub(crate) fn against_part(&mut self) -> Result<String, ReportError> {
         let rec = &self.job["spec"]["reconstruct"];
         let same_frame = rec["filters"]["transform"].is_null()
             && match rec["faces"].as_array() {
                 None => true,
-                Some(f) => f.first().is_none_or(|f0| {
-                    f0["view"].as_str().is_none_or(|v| v == "+Z")
-                        && f0["origin"].is_null()
-                        && f0["a_deg"].is_null()
-                        && f0["normal"].is_null()
-                }),
+                Some(f) => f.first().is_none_or(|f0| f0["origin"].is_null()),
             };
-        // Faces chosen from the shape: the first may be turned.
-        let first_up = self.decode("depth_map").is_ok_and(|d| d.map.face() == depthmill_geometry::Face::PosZ);
-        let Some(bytes) = self.artifacts.get("mesh").filter(|_| same_frame && first_up) else {
+        // The first face's view (chosen from the shape or named), as the depth map records it.
+        let Ok(face) = self.decode("depth_map").map(|d| d.map.face()) else { return Ok(String::new()) };
+        let Some(bytes) = self.artifacts.get("mesh").filter(|_| same_frame) else {
             return Ok(String::new());
         };
         let Ok(stock) = self.decode("final_stock") else { return Ok(String::new()) };
@@ -152,6 +148,9 @@ impl Ctx<'_> {
             .unwrap_or(1.0);
         if scale != 1.0 {
             mesh.scale(scale);
+        }
+        if face != depthmill_geometry::Face::PosZ {
+            mesh.transform(&face.view_from_part_pose());
         }
         let meta = *stock.map.meta();
         let Ok((part, _)) = depthmill_geometry::mesh_raster::rasterize_mesh_with_stats(&mesh, &meta) else {
