@@ -141,10 +141,12 @@ fn invalid(field: &str, value: impl std::fmt::Display, reason: &str) -> ExecuteE
     ExecuteError::Invalid { field: field.into(), value: value.to_string(), reason: reason.into() }
 }
 
-/// Tool lines of the CAM header: `(T<n> <name>: <kind> D<d> mm, <z> flutes - ...)`.
+/// Tool lines of the CAM's program: `(T<n> <name>: <kind> D<d> mm, <z> flutes - ...)`, the first
+/// of each number, wherever it is (the CAM writes each at its operation's start, which in a long
+/// program lies far past the header).
 pub fn header_tools(program: impl BufRead) -> Vec<(u32, String, Option<f64>, Option<u32>)> {
     let mut out: Vec<(u32, String, Option<f64>, Option<u32>)> = Vec::new();
-    for line in program.lines().map_while(Result::ok).take(20_000) {
+    for line in program.lines().map_while(Result::ok) {
         let t = line.trim();
         let Some(rest) = t.strip_prefix("(T") else { continue };
         let Some((num, rest)) = rest.split_once(' ') else { continue };
@@ -766,5 +768,22 @@ mod tests {
             "{:?}",
             out.report.run.warnings
         );
+    }
+
+    #[test]
+    fn a_tool_named_deep_in_a_long_program_is_the_one_cut_with() {
+        let mut program = String::from("(T1 flat-6: flat D6.0000 mm, 2 flutes - roughing-x with flat-6)\n");
+        for i in 0..30_000 {
+            program.push_str(&format!("G1 X{} F100\n", i % 10));
+        }
+        program.push_str(
+            "(T3 ball-1: ball D1.0000 mm, 2 flutes - rest-finishing-raster-x with ball-1)\nT3 M6\n",
+        );
+        let header = header_tools(std::io::Cursor::new(program.as_bytes()));
+        assert_eq!(header.len(), 2);
+        let tools = tools_for(&emco(), &header).expect("tools");
+        let t3 = tools.iter().find(|t| t.number == 3).expect("T3");
+        // Not the table's T3 (ball-6): the program's.
+        assert_eq!((t3.name.as_str(), t3.profile.diameter_mm()), ("ball-1", 1.0));
     }
 }
