@@ -768,6 +768,14 @@ fn cloud_face(
             let closed = close_mask(&hits, grid.width as usize, grid.height as usize, k);
             Some(FreeCells { hits, closed })
         }
+        // A face other than +Z has no evidence of where the part is not (the scanner saw the
+        // table from above only): a cell no point falls in may hide the part, so every one is
+        // lidded at the highest height around it, and the tools leave material there instead of
+        // cutting down to the floor through a part nobody saw from that side.
+        None if frame.face != Face::PosZ => {
+            let n = grid.width as usize * grid.height as usize;
+            Some(FreeCells { hits: vec![false; n], closed: vec![false; n] })
+        }
         None => None,
     };
     let (max, raster) = try_rasterize_max(points, &grid)?;
@@ -977,6 +985,43 @@ mod tests {
         for row in 2..m.height() - 2 {
             let (lo, hi) = (m.get(19, row).unwrap_or(0.0), m.get(20, row).unwrap_or(0.0));
             assert!((lo - 5.0).abs() < 0.03 && (hi - 7.0).abs() < 0.03, "row {row}: {lo} | {hi}");
+        }
+    }
+
+    #[test]
+    fn a_turned_face_of_a_cloud_lids_what_no_point_shows() {
+        // A plate at z = 5 with a 4 mm band no point fell in: from +Z without free space it stays
+        // empty (as before); seen turned, where nothing says the part is not there, it is lidded.
+        let mut rng = StdRng::seed_from_u64(3);
+        let points: Vec<Point3<f64>> = (0..30_000)
+            .filter_map(|_| {
+                let (x, y) = (rng.random_range(0.0..30.0), rng.random_range(0.0..20.0));
+                (!(10.0..14.0).contains(&x)).then(|| Point3::new(x, y, 5.0))
+            })
+            .collect();
+        let run = |face: FaceOptions| {
+            let opts = ReconstructOptions {
+                pixel_mm: Some(0.5),
+                faces: Some(vec![face]),
+                filters: Some(FilterOptions::default()),
+                ..Default::default()
+            };
+            reconstruct(Geometry::Cloud(PointCloud::from_points(points.clone())), &opts, &|_, _| {}, &|| {
+                false
+            })
+            .expect("reconstruct")
+            .faces
+            .remove(0)
+        };
+        let up = run(FaceOptions { view: Some("+Z".into()), ..Default::default() });
+        assert_eq!(up.stats.unseen_filled, 0);
+        assert!(up.depth_map.data().iter().any(|z| z.is_nan()), "the band stays empty from +Z");
+        let turned = run(FaceOptions { a_deg: Some(10.0), ..Default::default() });
+        assert!(turned.stats.unseen_filled > 0);
+        assert!(turned.depth_map.data().iter().all(|z| z.is_finite()), "every empty cell is lidded");
+        // The roughing map stays at or above the target.
+        for (r, t) in turned.roughing_map.data().iter().zip(turned.depth_map.data()) {
+            assert!(r >= t, "roughing {r} below target {t}");
         }
     }
 
