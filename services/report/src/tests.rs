@@ -371,9 +371,8 @@ fn a_scanned_job_shows_its_scan() {
     assert!(!plain.html.contains("Registration error"));
 }
 
-#[test]
-fn the_machined_part_is_compared_with_the_original_mesh() {
-    // The dome as a fine height-field mesh; the final stock is the dome plus up to 0.05 mm.
+/// The dome as a fine height-field mesh, each vertex moved by `place`, as binary STL.
+fn dome_stl(place: &depthmill_geometry::Pose) -> Vec<u8> {
     let n = 161;
     let (x0, y0, w, h) = (X0, Y0, f64::from(W) * P, f64::from(H) * P);
     let mut vertices = Vec::new();
@@ -381,7 +380,7 @@ fn the_machined_part_is_compared_with_the_original_mesh() {
         for i in 0..n {
             let x = x0 + w * i as f64 / (n - 1) as f64;
             let y = y0 + h * j as f64 / (n - 1) as f64;
-            vertices.push(depthmill_geometry::nalgebra::Point3::new(x, y, dome_z(x, y)));
+            vertices.push(place * depthmill_geometry::nalgebra::Point3::new(x, y, dome_z(x, y)));
         }
     }
     let mut triangles = Vec::new();
@@ -395,8 +394,14 @@ fn the_machined_part_is_compared_with_the_original_mesh() {
     let mesh = depthmill_geometry::Mesh { vertices, triangles };
     let mut stl = Vec::new();
     depthmill_geometry::formats::write_stl(&mut stl, &mesh, "report test").expect("stl");
+    stl
+}
+
+#[test]
+fn the_machined_part_is_compared_with_the_original_mesh() {
+    // The dome as a fine height-field mesh; the final stock is the dome plus up to 0.05 mm.
     let mut arts = full_artifacts();
-    arts.insert("mesh".into(), stl);
+    arts.insert("mesh".into(), dome_stl(&depthmill_geometry::Pose::identity()));
     let job = job("from a mesh", "succeeded", &arts);
     let out = render_ok(&job, &arts);
     assert!(out.html.contains("Against the original part"));
@@ -415,29 +420,8 @@ fn the_machined_part_is_compared_with_the_original_mesh() {
 fn a_part_turned_for_its_first_face_is_compared_turned_the_same_way() {
     // The dome seen with the part turned to A=30: the mesh is the dome turned back by -30° about
     // X, so that the report, turning it to the first face's view, finds the dome again.
-    let n = 161;
-    let (x0, y0, w, h) = (X0, Y0, f64::from(W) * P, f64::from(H) * P);
     let face = depthmill_geometry::Face::A { angle_deg: 30.0 };
-    let back = face.view_from_part_pose().inverse();
-    let mut vertices = Vec::new();
-    for j in 0..n {
-        for i in 0..n {
-            let x = x0 + w * i as f64 / (n - 1) as f64;
-            let y = y0 + h * j as f64 / (n - 1) as f64;
-            vertices.push(back * depthmill_geometry::nalgebra::Point3::new(x, y, dome_z(x, y)));
-        }
-    }
-    let mut triangles = Vec::new();
-    for j in 0..n - 1 {
-        for i in 0..n - 1 {
-            let a = (j * n + i) as u32;
-            triangles.push([a, a + 1, a + 1 + n as u32]);
-            triangles.push([a, a + 1 + n as u32, a + n as u32]);
-        }
-    }
-    let mesh = depthmill_geometry::Mesh { vertices, triangles };
-    let mut stl = Vec::new();
-    depthmill_geometry::formats::write_stl(&mut stl, &mesh, "report test").expect("stl");
+    let stl = dome_stl(&face.view_from_part_pose().inverse());
     let mut arts = full_artifacts();
     let mut turned = depth_map();
     turned.set_face(face).expect("face");

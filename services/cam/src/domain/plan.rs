@@ -570,117 +570,70 @@ fn reach_hint(library: &ToolLibrary, failing: &str, need_mm: f64) -> String {
     )
 }
 
-/// The rest pass of one face (see [`super::rest`]): the toolpath, its holder check and the region's
-/// size in cells; `Err(note)` says why there is none.
-#[allow(clippy::type_complexity)]
-fn plan_rest(
-    map: &HeightMap,
-    rs: &RestSettings,
-    pattern: FinishingPattern,
-    preview: &PreviewReport,
-    min_leftover: f64,
-    safe_z: f64,
-    opts: &CompensateOptions,
-) -> Result<Result<(Toolpath, super::holder::HolderCheck, usize), String>, CamError> {
-    use super::rest::{MIN_REGION_CELLS, envelope, positions, region, restrict};
-    let tip = compensate(map, &rs.tool.profile, opts)?;
-    let k = super::compensate::kernel(&rs.tool.profile, map.pixel_mm(), opts.pixel_model);
-    let env = envelope(&tip, &k);
-    let reg = region(preview.final_surface.data(), map, &env, min_leftover);
-    let cells = reg.iter().filter(|r| **r).count();
-    if cells < MIN_REGION_CELLS {
-        return Ok(Err(format!(
-            "no rest pass: finishing leaves nothing more than {min_leftover} mm above the part that {} would take off",
-            rs.tool.name
-        )));
-    }
-    let mut pos = positions(&reg, map.width() as usize, map.height() as usize, &k);
-    // Only where the shank and the holder clear what is there: the highest point of the stock
-    // model (the part plus what roughing and finishing left) under each (flat disks of their
-    // diameters) must stay below the tip plus the fluted length and the stick-out, with a
-    // margin of 0.1 mm.
-    let clear = |d: f64, reach: f64| -> Result<Vec<bool>, CamError> {
-        let profile = depthmill_geometry::ToolProfile::flat(d.max(rs.tool.diameter_mm()))
-            .map_err(|e| CamError::param("plan.rest.tool", e.to_string()))?;
-        let under = compensate(&preview.final_surface, &profile, opts)?;
-        Ok(under.data().iter().zip(tip.data()).map(|(u, t)| f64::from(u - t) < reach - 0.1).collect())
-    };
-    let shank = clear(rs.tool.shank_diameter_mm, rs.tool.cutting_length_mm)?;
-    let holder = clear(rs.tool.holder_diameter_mm, rs.tool.stickout_mm)?;
-    let mut unreachable = 0usize;
-    for ((p, s), h) in pos.iter_mut().zip(&shank).zip(&holder) {
-        if *p && !(*s && *h) {
-            *p = false;
-            unreachable += 1;
-        }
-    }
-    if unreachable > 0 {
-        tracing::debug!(unreachable, tool = %rs.tool.name, "rest positions the shank or holder cannot take");
-    }
-    let full = finishing(
-        &tip,
-        &rs.tool,
-        &FinishingParams {
-            pattern,
-            step_over_mm: rs.step_over,
-            level_step_mm: rs.step_over,
-            zigzag: true,
-            safe_z_mm: safe_z,
-        },
-    )?;
-    let strategy = full.strategy.replacen("finishing", "rest-finishing", 1);
-    let path = restrict(full, &pos, &tip, &strategy);
-    if path.passes.is_empty() {
-        return Ok(Err(format!("no {} pass line crosses the rest region", rs.tool.name)));
-    }
-    let points: Vec<Point3<f64>> = path.passes.iter().flat_map(|p| p.points.iter().copied()).collect();
-    match check_holder(map, &rs.tool, &tip, &points, opts.outside_z_mm.unwrap_or(map.z_min_mm())) {
-        Ok(h) => Ok(Ok((path, h, cells))),
-        Err(CamError::HolderCollision { message, .. }) => Ok(Err(format!("no rest pass: {message}"))),
-        Err(e) => Err(e),
-    }
-}
-
-/// The flats iso-level finishing skipped (see [`super::rest`]; the region is taken against the
-/// finishing tool's own envelope): raster passes over them on the finishing tip surface `tip`,
-/// each entered from the safe height; `Err(note)` when there are none to add.
-#[allow(clippy::too_many_arguments)]
-fn plan_flats(
+/// A pass of `tool` over what the stock model `preview` left (see [`super::rest`]): the region
+/// where the stock stands more than `min_leftover` above the part and `tool`, visiting every
+/// position of its tip surface `tip`, would take that much off; the tip positions over it where
+/// the shank and holder clear the stock model; a `pattern` raster on `tip` cut to runs over those
+/// positions, its strategy's name after `prefix`. The toolpath, its holder check and the region's size in cells, or
+/// `Err(note)` saying why there is none.
+#[allow(clippy::too_many_arguments, clippy::type_complexity)]
+fn pass_over_leftover(
     map: &HeightMap,
     tool: &super::tool::Tool,
     tip: &HeightMap,
     preview: &PreviewReport,
     min_leftover: f64,
+    pattern: FinishingPattern,
     step_over: f64,
     safe_z: f64,
-    floor: f64,
-) -> Result<Result<Vec<super::path::Pass>, String>, CamError> {
+    opts: &CompensateOptions,
+    prefix: &str,
+) -> Result<Result<(Toolpath, super::holder::HolderCheck, usize), String>, CamError> {
     use super::rest::{MIN_REGION_CELLS, envelope, positions, region, restrict};
-    let k = super::compensate::kernel(&tool.profile, map.pixel_mm(), PixelModel::Column);
-    let env = envelope(tip, &k);
-    let reg = region(preview.final_surface.data(), map, &env, min_leftover);
-    if reg.iter().filter(|r| **r).count() < MIN_REGION_CELLS {
-        return Ok(Err("the contours left no flat area".into()));
+    let k = super::compensate::kernel(&tool.profile, map.pixel_mm(), opts.pixel_model);
+    let reg = region(preview.final_surface.data(), map, &envelope(tip, &k), min_leftover);
+    let cells = reg.iter().filter(|r| **r).count();
+    if cells < MIN_REGION_CELLS {
+        return Ok(Err(format!(
+            "nothing stands more than {min_leftover} mm above the part that {} would take off",
+            tool.name
+        )));
     }
-    let pos = positions(&reg, map.width() as usize, map.height() as usize, &k);
+    let mut pos = positions(&reg, map.width() as usize, map.height() as usize, &k);
+    // Only where the shank and the holder clear what is there: the highest point of the stock
+    // model (the part plus what the operations before left) under each (flat disks of their
+    // diameters) must stay below the tip plus the fluted length and the stick-out, with a
+    // margin of 0.1 mm.
+    let clear = |d: f64, reach: f64| -> Result<Vec<bool>, CamError> {
+        let profile = depthmill_geometry::ToolProfile::flat(d.max(tool.diameter_mm()))
+            .map_err(|e| CamError::param("tool", e.to_string()))?;
+        let under = compensate(&preview.final_surface, &profile, opts)?;
+        Ok(under.data().iter().zip(tip.data()).map(|(u, t)| f64::from(u - t) < reach - 0.1).collect())
+    };
+    let shank = clear(tool.shank_diameter_mm, tool.cutting_length_mm)?;
+    let holder = clear(tool.holder_diameter_mm, tool.stickout_mm)?;
+    for ((p, s), h) in pos.iter_mut().zip(&shank).zip(&holder) {
+        *p &= *s && *h;
+    }
     let full = finishing(
         tip,
         tool,
         &FinishingParams {
-            pattern: FinishingPattern::RasterX,
+            pattern,
             step_over_mm: step_over,
             level_step_mm: step_over,
             zigzag: true,
             safe_z_mm: safe_z,
         },
     )?;
-    let flats = restrict(full, &pos, tip, "finishing-flats");
-    if flats.passes.is_empty() {
-        return Ok(Err("no raster line crosses the flat areas".into()));
+    let strategy = format!("{prefix}{}", full.strategy);
+    let path = restrict(full, &pos, tip, &strategy);
+    if path.passes.is_empty() {
+        return Ok(Err(format!("no {} pass line crosses the region", tool.name)));
     }
-    let points: Vec<Point3<f64>> = flats.passes.iter().flat_map(|p| p.points.iter().copied()).collect();
-    match check_holder(map, tool, tip, &points, floor) {
-        Ok(_) => Ok(Ok(flats.passes)),
+    let points: Vec<Point3<f64>> = path.passes.iter().flat_map(|p| p.points.iter().copied()).collect();
+    match check_holder(map, tool, tip, &points, opts.outside_z_mm.unwrap_or(map.z_min_mm())) {
+        Ok(h) => Ok(Ok((path, h, cells))),
         Err(CamError::HolderCollision { message, .. }) => Ok(Err(message)),
         Err(e) => Err(e),
     }
@@ -804,52 +757,45 @@ fn plan_with(
             ))
         })?;
         let start = Point3::new(map.origin_x_mm(), map.origin_y_mm(), safe_z);
-        let preview = steps.run("preview", base + 0.7 * per_face, || {
-            simulate(
-                map,
-                top,
-                &[
-                    SweptOp { tool: &rough_tool, start, segments: &rough_segs },
-                    SweptOp {
-                        tool: &fin_tool,
-                        start: rough_segs.last().map_or(start, Segment::end),
-                        segments: &fin_segs,
-                    },
-                ],
-            )
-        })?;
-        let mut preview = preview;
+        // The stock model: roughing, finishing and, when there is one, the rest pass swept in turn.
+        let sweep = |fin_segs: &[Segment], rest: Option<(&super::tool::Tool, &[Segment])>| {
+            let fin_start = rough_segs.last().map_or(start, Segment::end);
+            let mut ops = vec![
+                SweptOp { tool: &rough_tool, start, segments: &rough_segs },
+                SweptOp { tool: &fin_tool, start: fin_start, segments: fin_segs },
+            ];
+            if let Some((tool, segments)) = rest {
+                ops.push(SweptOp { tool, start: fin_segs.last().map_or(fin_start, Segment::end), segments });
+            }
+            simulate(map, top, &ops)
+        };
+        let mut preview = steps.run("preview", base + 0.7 * per_face, || sweep(&fin_segs, None))?;
         // Iso-level contours step over flat areas wider than the tool: a raster over what the
         // stock model shows they left, with the same tool (no tool change).
-        let mut flats_note = None;
         if matches!(fin_pattern, FinishingPattern::IsoLevel) {
             let flats = steps.run("flats", base + 0.75 * per_face, || {
-                plan_flats(map, &fin_tool, &tip, &preview, min_leftover, step_over, safe_z, floor)
+                let raster = FinishingPattern::RasterX;
+                pass_over_leftover(
+                    map,
+                    &fin_tool,
+                    &tip,
+                    &preview,
+                    min_leftover,
+                    raster,
+                    step_over,
+                    safe_z,
+                    &opts,
+                    "",
+                )
             })?;
             match flats {
-                Err(note) => flats_note = Some(note),
-                Ok(passes) => {
-                    fin_path.passes.extend(passes);
+                Err(note) => tracing::debug!(note, "no flats pass"),
+                Ok((flats, ..)) => {
+                    fin_path.passes.extend(flats.passes);
                     fin_segs = super::cleanup::link(&fin_path, tolerance, arcs);
-                    preview = steps.run("preview", base + 0.78 * per_face, || {
-                        simulate(
-                            map,
-                            top,
-                            &[
-                                SweptOp { tool: &rough_tool, start, segments: &rough_segs },
-                                SweptOp {
-                                    tool: &fin_tool,
-                                    start: rough_segs.last().map_or(start, Segment::end),
-                                    segments: &fin_segs,
-                                },
-                            ],
-                        )
-                    })?;
+                    preview = steps.run("preview", base + 0.78 * per_face, || sweep(&fin_segs, None))?;
                 }
             }
-        }
-        if let Some(note) = &flats_note {
-            tracing::debug!(note, "no flats pass");
         }
         // Rest finishing where the stock model says finishing left material.
         let mut rest_report = None;
@@ -861,10 +807,22 @@ fn plan_with(
                 p => p,
             };
             let planned = steps.run("rest", base + 0.8 * per_face, || {
-                plan_rest(map, rs, rest_pattern, &preview, min_leftover, safe_z, &opts)
+                let rest_tip = compensate(map, &rs.tool.profile, &opts)?;
+                pass_over_leftover(
+                    map,
+                    &rs.tool,
+                    &rest_tip,
+                    &preview,
+                    min_leftover,
+                    rest_pattern,
+                    rs.step_over,
+                    safe_z,
+                    &opts,
+                    "rest-",
+                )
             })?;
             match planned {
-                Err(note) => rest_note = Some(note),
+                Err(note) => rest_note = Some(format!("no rest pass: {note}")),
                 Ok((path, holder, region_cells)) => {
                     let segs = super::cleanup::feed_retracts(
                         super::cleanup::link(&path, tolerance, arcs),
@@ -872,23 +830,7 @@ fn plan_with(
                     );
                     let before = (preview.max_leftover_mm, preview.mean_leftover_mm);
                     preview = steps.run("preview", base + 0.9 * per_face, || {
-                        simulate(
-                            map,
-                            top,
-                            &[
-                                SweptOp { tool: &rough_tool, start, segments: &rough_segs },
-                                SweptOp {
-                                    tool: &fin_tool,
-                                    start: rough_segs.last().map_or(start, Segment::end),
-                                    segments: &fin_segs,
-                                },
-                                SweptOp {
-                                    tool: &rs.tool,
-                                    start: fin_segs.last().map_or(start, Segment::end),
-                                    segments: &segs,
-                                },
-                            ],
-                        )
+                        sweep(&fin_segs, Some((&rs.tool, &segs)))
                     })?;
                     rest_report = Some(RestReport {
                         tool: rs.tool.name.clone(),
