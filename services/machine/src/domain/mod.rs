@@ -17,6 +17,7 @@
 
 pub mod adaptive;
 pub mod cutting;
+pub mod dexel;
 pub mod gcode;
 pub mod job;
 pub mod profile;

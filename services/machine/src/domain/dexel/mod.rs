@@ -1,0 +1,798 @@
+//! The stock as dexels, for cutting at any tool orientation and for every face of a part on one
+//! stock (seed 004's "map of height segments").
+//!
+//! # Model
+//!
+//! - **Grids** ([`DexelStock`]): up to three, one per axis of the part frame (tri-dexel). The grid
+//!   along axis `k` has its rays parallel to `k`, one ray per cell centre of a square grid over
+//!   the other two axes (`(k+1) % 3`, `(k+2) % 3`), cell size set per grid ([`DexelCells`]).
+//!   Each ray holds its material as sorted disjoint intervals `[lo, hi]` of the coordinate along
+//!   `k` (f32, mm). Every grid holds the whole solid: one grid alone (the seed's model) is exact
+//!   along its rays and resolves the surfaces across them to its cell; the other two add the
+//!   walls and undercuts that are parallel to the first grid's rays.
+//! - **Storage**: a ray is a `SmallVec<[[f32; 2]; 1]>` (24 bytes, the first interval inline, a heap
+//!   list once a ray holds two or more); [`DexelStock::new`] refuses a stock whose rays would
+//!   take more than [`MAX_DEXEL_BYTES`] before allocating anything.
+//! - **Blank** ([`Blank`]): the material common to one or more boxes, each in its own rotated
+//!   frame (a plain block is one box; a part seen from several A-axis faces is the intersection of
+//!   every face's block). Each ray starts with its one interval inside all boxes.
+//! - **Sectors**: a cut visits only the rays whose cell centre lies in the tool's bounding box
+//!   projected on the grid, and skips a ray at once when its material's range along the ray
+//!   does not meet that box; only the remaining rays get the exact test.
+//!
+//! # Cutting
+//!
+//! [`DexelStock::cut_line`] sweeps a [`ToolSolid`] along a straight move at a fixed orientation
+//! and subtracts, on every ray, the exact interval the ray spends in each convex piece of the
+//! swept tool ([`sweep`]; no sampling along the move). Arcs are chords, as in the Z-map
+//! ([`crate::domain::removal::ARC_SAGITTA_CELLS`]). [`DexelStock::cut_moving`] cuts a move whose
+//! orientation changes (a feed move that turns the A axis): the move is split into steps, each
+//! swept as a straight move at its start orientation, and the steps are fine enough that every
+//! tool point stays within `max_error_mm` of where it truly is (see [`DexelStock::cut_moving`]).
+//!
+//! # What a cut reports
+//!
+//! The Z-map's [`Cut`]: the volume is measured on the primary grid (Z, else X, else Y) as the sum
+//! of the removed lengths times the cell area; the engagement and axial depth come from the
+//! removed segments of every grid, seen from the tool at the end of the move, with the same
+//! definitions as [`crate::domain::removal`] (front half, contact radius, half a cell of
+//! padding; 10° sectors for a plunge).
+
+pub mod sweep;
+#[cfg(test)]
+mod tests;
+
+use std::f64::consts::PI;
+
+use depthmill_geometry::{HeightMap, HeightMapMeta};
+use nalgebra::{Point3, Rotation3, Unit, Vector3};
+use rayon::prelude::*;
+use smallvec::SmallVec;
+
+pub use sweep::{AxisFrame, Piece, RayMove, ToolSolid};
+
+use super::removal::Cut;
+
+/// The most memory the rays of one stock may take, bytes (4 GiB).
+pub const MAX_DEXEL_BYTES: u64 = 4 << 30;
+/// Largest absolute coordinate accepted, mm.
+pub const MAX_COORD_MM: f64 = 1.0e6;
+/// Material shorter than this along a ray is dropped after a cut, mm.
+pub const MIN_SEGMENT_MM: f32 = 1.0e-6;
+/// A cut visiting more rays than this runs its rows in parallel.
+const PAR_RAYS: usize = 1 << 14;
+/// Most steps one orientation-changing move is split into.
+pub const MAX_STEPS: usize = 1_000_000;
+
+/// One ray's material: sorted disjoint `[lo, hi]` intervals.
+pub type Ray = SmallVec<[[f32; 2]; 1]>;
+
+/// Bytes one ray takes in memory (without its heap list).
+pub const RAY_BYTES: u64 = std::mem::size_of::<Ray>() as u64;
+
+/// Invalid dexel-stock parameters; each names the field, its value and the limit.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum DexelError {
+    #[error("invalid {field} {value}: expected {expected}")]
+    Invalid { field: String, value: f64, expected: &'static str },
+    #[error(
+        "the dexel stock would take {bytes} bytes in {rays} rays, more than the limit of {limit} bytes: make {field} coarser"
+    )]
+    TooLarge { field: String, rays: u64, bytes: u64, limit: u64 },
+    #[error("invalid {field} ({x}, {y}, {z}): expected finite coordinates within ±{limit} mm")]
+    InvalidPoint { field: String, x: f64, y: f64, z: f64, limit: f64 },
+    #[error("the blank is empty: its boxes have no material in common")]
+    EmptyBlank,
+    #[error("invalid view grid: {0}")]
+    Map(String),
+    #[error("no dexel grid: set at least one of the cell sizes along X, Y and Z")]
+    NoGrid,
+    #[error("a move turning the tool by {angle_deg:.3}° needs {steps} steps, more than the limit of {limit}")]
+    TooManySteps { angle_deg: f64, steps: f64, limit: usize },
+}
+
+fn check_point(field: &str, p: &Point3<f64>) -> Result<(), DexelError> {
+    if p.iter().all(|v| v.is_finite() && v.abs() <= MAX_COORD_MM) {
+        Ok(())
+    } else {
+        Err(DexelError::InvalidPoint { field: field.into(), x: p.x, y: p.y, z: p.z, limit: MAX_COORD_MM })
+    }
+}
+
+/// A box given in its own frame, placed in the part frame by a rotation (`part = R · box`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct OrientedBox {
+    pub part_from_box: Rotation3<f64>,
+    pub min: Point3<f64>,
+    pub max: Point3<f64>,
+}
+
+impl OrientedBox {
+    /// An axis-aligned box of the part frame.
+    pub fn aligned(min: Point3<f64>, max: Point3<f64>) -> Self {
+        OrientedBox { part_from_box: Rotation3::identity(), min, max }
+    }
+
+    /// The `t` interval of the ray `o + t·d` inside the box (slab method).
+    fn clip(&self, o: &Point3<f64>, d: &Vector3<f64>) -> Option<(f64, f64)> {
+        let ob = self.part_from_box.inverse() * o;
+        let db = self.part_from_box.inverse() * d;
+        let (mut lo, mut hi) = (f64::NEG_INFINITY, f64::INFINITY);
+        for k in 0..3 {
+            if db[k].abs() < 1e-12 {
+                if ob[k] < self.min[k] || ob[k] > self.max[k] {
+                    return None;
+                }
+            } else {
+                let (a, b) = ((self.min[k] - ob[k]) / db[k], (self.max[k] - ob[k]) / db[k]);
+                lo = lo.max(a.min(b));
+                hi = hi.min(a.max(b));
+            }
+        }
+        (lo < hi).then_some((lo, hi))
+    }
+
+    /// Axis-aligned bounds in the part frame.
+    fn aabb(&self) -> ([f64; 3], [f64; 3]) {
+        let mut lo = [f64::INFINITY; 3];
+        let mut hi = [f64::NEG_INFINITY; 3];
+        for c in 0..8 {
+            let p = Point3::new(
+                if c & 1 == 0 { self.min.x } else { self.max.x },
+                if c & 2 == 0 { self.min.y } else { self.max.y },
+                if c & 4 == 0 { self.min.z } else { self.max.z },
+            );
+            let q = self.part_from_box * p;
+            for k in 0..3 {
+                lo[k] = lo[k].min(q[k]);
+                hi[k] = hi[k].max(q[k]);
+            }
+        }
+        (lo, hi)
+    }
+}
+
+/// The blank: the material common to every box.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Blank {
+    pub boxes: Vec<OrientedBox>,
+}
+
+impl Blank {
+    /// Bounds in the part frame (the intersection of the boxes' bounds), or `None` when empty.
+    pub fn aabb(&self) -> Option<([f64; 3], [f64; 3])> {
+        let mut lo = [f64::NEG_INFINITY; 3];
+        let mut hi = [f64::INFINITY; 3];
+        for b in &self.boxes {
+            let (l, h) = b.aabb();
+            for k in 0..3 {
+                lo[k] = lo[k].max(l[k]);
+                hi[k] = hi[k].min(h[k]);
+            }
+        }
+        (!self.boxes.is_empty() && (0..3).all(|k| lo[k] < hi[k])).then_some((lo, hi))
+    }
+}
+
+/// Cell size of each grid, by the axis its rays run along; `None` leaves that grid out.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct DexelCells {
+    pub x_mm: Option<f64>,
+    pub y_mm: Option<f64>,
+    pub z_mm: Option<f64>,
+}
+
+impl DexelCells {
+    /// All three grids at one cell size.
+    pub fn tri(cell_mm: f64) -> Self {
+        DexelCells { x_mm: Some(cell_mm), y_mm: Some(cell_mm), z_mm: Some(cell_mm) }
+    }
+
+    fn get(&self, axis: usize) -> Option<f64> {
+        [self.x_mm, self.y_mm, self.z_mm][axis]
+    }
+}
+
+/// The two plane axes of the grid along `axis`.
+fn plane_axes(axis: usize) -> (usize, usize) {
+    ((axis + 1) % 3, (axis + 2) % 3)
+}
+
+/// One dexel grid.
+#[derive(Debug, Clone)]
+struct Grid {
+    axis: usize,
+    cell: f64,
+    /// Plane coordinates of the grid's minimum corner (axes `plane_axes(axis)`).
+    origin: [f64; 2],
+    n: [usize; 2],
+    rays: Vec<Ray>,
+}
+
+impl Grid {
+    fn ray_origin(&self, i: usize, j: usize) -> Point3<f64> {
+        let (a, b) = plane_axes(self.axis);
+        let mut p = Point3::origin();
+        p[a] = self.origin[0] + (i as f64 + 0.5) * self.cell;
+        p[b] = self.origin[1] + (j as f64 + 0.5) * self.cell;
+        p
+    }
+
+    fn dir(&self) -> Vector3<f64> {
+        let mut d = Vector3::zeros();
+        d[self.axis] = 1.0;
+        d
+    }
+
+    /// Index range of the cell centres within `[lo, hi]` on plane axis `k` (0 or 1).
+    fn span(&self, k: usize, lo: f64, hi: f64) -> Option<(usize, usize)> {
+        let a = ((lo - self.origin[k]) / self.cell - 0.5).ceil().max(0.0);
+        let b = ((hi - self.origin[k]) / self.cell - 0.5).floor().min(self.n[k] as f64 - 1.0);
+        (a <= b && b >= 0.0).then_some((a as usize, b as usize))
+    }
+
+    /// The ray through the cell containing plane coordinates of `p`.
+    fn ray_at(&self, p: &Point3<f64>) -> Option<&Ray> {
+        let (a, b) = plane_axes(self.axis);
+        let i = ((p[a] - self.origin[0]) / self.cell).floor();
+        let j = ((p[b] - self.origin[1]) / self.cell).floor();
+        if i < 0.0 || j < 0.0 || i >= self.n[0] as f64 || j >= self.n[1] as f64 {
+            return None;
+        }
+        self.rays.get(j as usize * self.n[0] + i as usize)
+    }
+
+    fn contains(&self, p: &Point3<f64>) -> bool {
+        let x = p[self.axis] as f32;
+        self.ray_at(p).is_some_and(|r| r.iter().any(|s| x >= s[0] && x <= s[1]))
+    }
+}
+
+/// What one row of rays removed (merged into a [`Cut`]).
+#[derive(Debug, Clone, Copy)]
+struct Tally {
+    visited: u64,
+    updated: u64,
+    volume: f64,
+    hard_extra: f64,
+    max_depth: f64,
+    e_min: f64,
+    e_max: f64,
+    rho_c: f64,
+    sectors: u64,
+    axial: f64,
+    any: bool,
+}
+
+impl Tally {
+    fn new() -> Self {
+        Tally {
+            visited: 0,
+            updated: 0,
+            volume: 0.0,
+            hard_extra: 0.0,
+            max_depth: 0.0,
+            e_min: f64::INFINITY,
+            e_max: f64::NEG_INFINITY,
+            rho_c: 0.0,
+            sectors: 0,
+            axial: 0.0,
+            any: false,
+        }
+    }
+
+    fn merge(&mut self, o: &Tally) {
+        self.visited += o.visited;
+        self.updated += o.updated;
+        self.volume += o.volume;
+        self.hard_extra += o.hard_extra;
+        self.max_depth = self.max_depth.max(o.max_depth);
+        self.e_min = self.e_min.min(o.e_min);
+        self.e_max = self.e_max.max(o.e_max);
+        self.rho_c = self.rho_c.max(o.rho_c);
+        self.sectors |= o.sectors;
+        self.axial = self.axial.max(o.axial);
+        self.any |= o.any;
+    }
+}
+
+/// How the tool sits at the end of a move, for the engagement.
+#[derive(Debug, Clone, Copy)]
+struct EndView {
+    tip: Point3<f64>,
+    u: Vector3<f64>,
+    e1: Vector3<f64>,
+    e2: Vector3<f64>,
+    /// Travel direction across the axis and the lateral direction, when the move travels across.
+    fwd: Option<(Vector3<f64>, Vector3<f64>)>,
+    radius: f64,
+    half_cell: f64,
+}
+
+impl EndView {
+    fn observe(&self, x: &Point3<f64>, t: &mut Tally) {
+        let y = x - self.tip;
+        let w = y.dot(&self.u);
+        let perp = y - self.u * w;
+        let rho = perp.norm();
+        if rho > self.radius + self.half_cell {
+            return;
+        }
+        t.any = true;
+        t.axial = t.axial.max(w);
+        match self.fwd {
+            Some((f, g)) => {
+                if perp.dot(&f) >= -self.half_cell {
+                    let e = perp.dot(&g);
+                    t.e_min = t.e_min.min(e);
+                    t.e_max = t.e_max.max(e);
+                    t.rho_c = t.rho_c.max(rho);
+                }
+            }
+            None => {
+                let ang = perp.dot(&self.e2).atan2(perp.dot(&self.e1)).rem_euclid(2.0 * PI);
+                t.sectors |= 1 << ((ang.to_degrees() / 10.0) as u32).min(35);
+            }
+        }
+    }
+}
+
+/// A hard inclusion: material inside the sphere weighs `factor`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HardSphere {
+    pub center: Point3<f64>,
+    pub radius_mm: f64,
+    pub factor: f64,
+}
+
+/// The stock as up to three dexel grids (see the module docs).
+#[derive(Debug, Clone)]
+pub struct DexelStock {
+    grids: Vec<Grid>,
+    hard: Vec<HardSphere>,
+}
+
+impl DexelStock {
+    /// The blank on the grids `cells` asks for.
+    ///
+    /// Errors: a non-positive or non-finite cell, an empty blank, no grid, or rays that would take
+    /// more than [`MAX_DEXEL_BYTES`] (checked before anything is allocated).
+    pub fn new(blank: &Blank, cells: &DexelCells) -> Result<Self, DexelError> {
+        for b in &blank.boxes {
+            check_point("blank min", &b.min)?;
+            check_point("blank max", &b.max)?;
+        }
+        let (lo, hi) = blank.aabb().ok_or(DexelError::EmptyBlank)?;
+        let mut sizes = Vec::new();
+        let mut total: u64 = 0;
+        for axis in [2, 0, 1] {
+            let Some(cell) = cells.get(axis) else { continue };
+            let name = ["dexel.x_cell_mm", "dexel.y_cell_mm", "dexel.z_cell_mm"][axis];
+            if !(cell.is_finite() && cell > 0.0) {
+                return Err(DexelError::Invalid {
+                    field: name.into(),
+                    value: cell,
+                    expected: "a finite positive cell",
+                });
+            }
+            let (a, b) = plane_axes(axis);
+            let na = ((hi[a] - lo[a]) / cell).ceil().max(1.0);
+            let nb = ((hi[b] - lo[b]) / cell).ceil().max(1.0);
+            let rays = na * nb;
+            let bytes = rays * RAY_BYTES as f64;
+            total = total.saturating_add(if bytes.is_finite() && bytes < u64::MAX as f64 {
+                bytes as u64
+            } else {
+                u64::MAX
+            });
+            if total > MAX_DEXEL_BYTES {
+                return Err(DexelError::TooLarge {
+                    field: name.into(),
+                    rays: rays.min(u64::MAX as f64) as u64,
+                    bytes: total,
+                    limit: MAX_DEXEL_BYTES,
+                });
+            }
+            sizes.push((axis, cell, [na as usize, nb as usize], [lo[a], lo[b]]));
+        }
+        if sizes.is_empty() {
+            return Err(DexelError::NoGrid);
+        }
+        let grids = sizes
+            .into_iter()
+            .map(|(axis, cell, n, origin)| {
+                let mut g = Grid { axis, cell, origin, n, rays: Vec::new() };
+                let d = g.dir();
+                g.rays = (0..n[0] * n[1])
+                    .into_par_iter()
+                    .map(|k| {
+                        let o = g.ray_origin(k % n[0], k / n[0]);
+                        let mut iv = (f64::NEG_INFINITY, f64::INFINITY);
+                        for b in &blank.boxes {
+                            match b.clip(&o, &d) {
+                                Some((l, h)) => iv = (iv.0.max(l), iv.1.min(h)),
+                                None => return Ray::new(),
+                            }
+                        }
+                        let (l, h) = (iv.0 as f32, iv.1 as f32);
+                        if h - l > MIN_SEGMENT_MM { smallvec::smallvec![[l, h]] } else { Ray::new() }
+                    })
+                    .collect();
+                g
+            })
+            .collect();
+        Ok(DexelStock { grids, hard: Vec::new() })
+    }
+
+    /// Makes the material inside a sphere weigh `factor` (a hard inclusion).
+    ///
+    /// Errors: a non-finite centre, a radius or factor not finite and positive.
+    pub fn add_hard_sphere(&mut self, s: HardSphere) -> Result<(), DexelError> {
+        check_point("inclusion center", &s.center)?;
+        if !(s.radius_mm.is_finite() && s.radius_mm > 0.0) {
+            return Err(DexelError::Invalid {
+                field: "inclusion radius_mm".into(),
+                value: s.radius_mm,
+                expected: "a finite positive radius",
+            });
+        }
+        if !(s.factor.is_finite() && s.factor > 0.0) {
+            return Err(DexelError::Invalid {
+                field: "inclusion factor".into(),
+                value: s.factor,
+                expected: "a finite positive factor",
+            });
+        }
+        self.hard.push(s);
+        Ok(())
+    }
+
+    /// The grids' axes and cell sizes, primary first.
+    pub fn grids(&self) -> Vec<(usize, f64, [usize; 2])> {
+        self.grids.iter().map(|g| (g.axis, g.cell, g.n)).collect()
+    }
+
+    /// Memory the rays take now, bytes (inline part and heap lists).
+    pub fn bytes(&self) -> u64 {
+        self.grids
+            .iter()
+            .map(|g| {
+                let heap: u64 = g.rays.iter().filter(|r| r.spilled()).map(|r| r.capacity() as u64 * 8).sum();
+                g.rays.len() as u64 * RAY_BYTES + heap
+            })
+            .sum()
+    }
+
+    /// Material volume on the primary grid, mm³.
+    pub fn volume_mm3(&self) -> f64 {
+        let Some(g) = self.grids.first() else { return 0.0 };
+        let len: f64 =
+            g.rays.par_iter().map(|r| r.iter().map(|s| f64::from(s[1]) - f64::from(s[0])).sum::<f64>()).sum();
+        len * g.cell * g.cell
+    }
+
+    /// Whether `p` is material on every grid (each grid reads the ray of the cell `p` is in).
+    pub fn contains(&self, p: &Point3<f64>) -> bool {
+        self.grids.iter().all(|g| g.contains(p))
+    }
+
+    /// The smallest cell of the grids, mm.
+    pub fn min_cell_mm(&self) -> f64 {
+        self.grids.iter().map(|g| g.cell).fold(f64::INFINITY, f64::min)
+    }
+
+    /// Sweeps `tool` with its tip moving straight `from → to` and its axis along `axis` (part
+    /// frame), and removes everything it occupies (see the module docs).
+    ///
+    /// Errors: a non-finite point.
+    pub fn cut_line(
+        &mut self,
+        tool: &ToolSolid,
+        from: &Point3<f64>,
+        to: &Point3<f64>,
+        axis: &Unit<Vector3<f64>>,
+    ) -> Result<Cut, DexelError> {
+        check_point("from", from)?;
+        check_point("to", to)?;
+        let f = AxisFrame::new(axis);
+        let v = to - from;
+        let perp = v - f.u * v.dot(&f.u);
+        let fwd = (perp.norm() > 1e-9).then(|| {
+            let fw = perp.normalize();
+            (fw, f.u.cross(&fw))
+        });
+        let end = EndView {
+            tip: *to,
+            u: f.u,
+            e1: f.e1,
+            e2: f.e2,
+            fwd,
+            radius: tool.radius_mm(),
+            half_cell: 0.5 * self.min_cell_mm(),
+        };
+        // Bounds of the swept tool: both ends, from the tip to the tool's length, ± R.
+        let mut lo = [f64::INFINITY; 3];
+        let mut hi = [f64::NEG_INFINITY; 3];
+        for p in [from, to] {
+            for w in [0.0, tool.length_mm()] {
+                let q = p + f.u * w;
+                for k in 0..3 {
+                    lo[k] = lo[k].min(q[k] - tool.radius_mm());
+                    hi[k] = hi[k].max(q[k] + tool.radius_mm());
+                }
+            }
+        }
+        let hard = &self.hard;
+        let mut total = Tally::new();
+        for (gi, g) in self.grids.iter_mut().enumerate() {
+            let primary = gi == 0;
+            let (a, b) = plane_axes(g.axis);
+            let (Some((i0, i1)), Some((j0, j1))) = (g.span(0, lo[a], hi[a]), g.span(1, lo[b], hi[b])) else {
+                continue;
+            };
+            let (tlo, thi) = (lo[g.axis] as f32, hi[g.axis] as f32);
+            let d = g.dir();
+            let area = g.cell * g.cell;
+            let ni = g.n[0];
+            let geo = (g.axis, g.cell, g.origin);
+            let row = |j: usize, rays: &mut [Ray]| -> Tally {
+                let mut t = Tally::new();
+                let (axis, cell, origin) = geo;
+                for (i, ray) in rays.iter_mut().enumerate().take(i1 + 1).skip(i0) {
+                    let (Some(first), Some(last)) = (ray.first(), ray.last()) else { continue };
+                    if last[1] < tlo || first[0] > thi {
+                        continue;
+                    }
+                    t.visited += 1;
+                    let mut o = Point3::origin();
+                    o[a] = origin[0] + (i as f64 + 0.5) * cell;
+                    o[b] = origin[1] + (j as f64 + 0.5) * cell;
+                    let rm = RayMove::new(&o, &d, from, &v, &f);
+                    let mut changed = false;
+                    for piece in tool.pieces() {
+                        let Some((l, h)) = rm.extent(piece) else { continue };
+                        subtract(ray, l as f32, h as f32, |sa, sb| {
+                            changed = true;
+                            let (sa, sb) = (f64::from(sa), f64::from(sb));
+                            if primary {
+                                t.volume += (sb - sa) * area;
+                                t.max_depth = t.max_depth.max(sb - sa);
+                                for s in hard {
+                                    let mut c = o;
+                                    c[axis] = 0.0;
+                                    let dd = (s.center - c) - d * (s.center[axis]);
+                                    let h2 = s.radius_mm * s.radius_mm - dd.norm_squared();
+                                    if h2 > 0.0 {
+                                        let half = h2.sqrt();
+                                        let ov = (sb.min(s.center[axis] + half)
+                                            - sa.max(s.center[axis] - half))
+                                        .max(0.0);
+                                        t.hard_extra += (s.factor - 1.0) * ov * area;
+                                    }
+                                }
+                            }
+                            for x in [sa, 0.5 * (sa + sb), sb] {
+                                let mut p = o;
+                                p[axis] = x;
+                                end.observe(&p, &mut t);
+                            }
+                        });
+                    }
+                    if changed {
+                        t.updated += 1;
+                    }
+                }
+                t
+            };
+            let rays = &mut g.rays[j0 * ni..(j1 + 1) * ni];
+            let count = (i1 - i0 + 1) * (j1 - j0 + 1);
+            let tally = if count > PAR_RAYS {
+                rays.par_chunks_mut(ni).enumerate().map(|(k, r)| row(j0 + k, r)).reduce(
+                    Tally::new,
+                    |mut x, y| {
+                        x.merge(&y);
+                        x
+                    },
+                )
+            } else {
+                let mut x = Tally::new();
+                for (k, r) in rays.chunks_mut(ni).enumerate() {
+                    x.merge(&row(j0 + k, r));
+                }
+                x
+            };
+            total.merge(&tally);
+        }
+        Ok(to_cut(&total, &end))
+    }
+
+    /// Cuts a move whose tool pose changes along it: `pose(s)`, `s ∈ [0, 1]`, gives the tip and
+    /// the axis (part frame). The move is split into `n` steps, each swept straight at its start
+    /// orientation, with `n` the smallest count for which, on every step, the axis turns by at
+    /// most `max_error_mm / √(L² + R²)` (so no tool point moves more than `max_error_mm` through
+    /// the turn) and the true tip at the step's middle lies within `max_error_mm / 2` of the
+    /// straight step (checked, doubling `n` until it holds). The swept volume is then within
+    /// `max_error_mm` (plus the chord's half) of the true one at every point.
+    ///
+    /// Errors: a bad pose, `max_error_mm` not positive, more than [`MAX_STEPS`] steps.
+    pub fn cut_moving(
+        &mut self,
+        tool: &ToolSolid,
+        pose: &dyn Fn(f64) -> (Point3<f64>, Unit<Vector3<f64>>),
+        max_error_mm: f64,
+    ) -> Result<Cut, DexelError> {
+        if !(max_error_mm.is_finite() && max_error_mm > 0.0) {
+            return Err(DexelError::Invalid {
+                field: "max_error_mm".into(),
+                value: max_error_mm,
+                expected: "a finite positive error",
+            });
+        }
+        let (p0, u0) = pose(0.0);
+        let (p1, u1) = pose(1.0);
+        check_point("from", &p0)?;
+        check_point("to", &p1)?;
+        let reach = (tool.length_mm().powi(2) + tool.radius_mm().powi(2)).sqrt();
+        let angle = u0.angle(&u1);
+        // Sample the turn to find the largest angle (the axis may turn and come back).
+        let mut turn = angle;
+        for k in 1..16 {
+            turn = turn.max(u0.angle(&pose(k as f64 / 16.0).1) * 1.0);
+        }
+        let mut n = ((turn * 1.25 * reach / max_error_mm).ceil() as usize).max(1);
+        loop {
+            if n > MAX_STEPS {
+                return Err(DexelError::TooManySteps {
+                    angle_deg: turn.to_degrees(),
+                    steps: n as f64,
+                    limit: MAX_STEPS,
+                });
+            }
+            let ok = (0..n).all(|k| {
+                let (a, b) = (k as f64 / n as f64, (k + 1) as f64 / n as f64);
+                let (pa, ua) = pose(a);
+                let (pb, ub) = pose(b);
+                let (pm, _) = pose(0.5 * (a + b));
+                let chord = (pm - (pa + (pb - pa) * 0.5)).norm();
+                ua.angle(&ub) * reach <= max_error_mm && chord <= 0.5 * max_error_mm
+            });
+            if ok {
+                break;
+            }
+            n *= 2;
+        }
+        let mut total = Cut::default();
+        for k in 0..n {
+            let (pa, ua) = pose(k as f64 / n as f64);
+            let (pb, _) = pose((k + 1) as f64 / n as f64);
+            let cut = self.cut_line(tool, &pa, &pb, &ua)?;
+            total.accumulate(&cut);
+        }
+        Ok(total)
+    }
+
+    /// The stock seen from a view, as a height map on `meta`'s grid: for each cell centre
+    /// `(x, y)` the highest view-frame Z of material on the vertical through it, from `z_top`
+    /// down (`meta.z_min_mm` where there is none). `part_from_view` turns view coordinates into
+    /// the part frame.
+    ///
+    /// The grid whose rays are most nearly along the view's vertical answers. When they are
+    /// exactly along it (a face at A = 0, 90, 180 or 270 degrees seen by the grid along Z or Y) the
+    /// answer is the end of a dexel, exact; otherwise the vertical is marched in steps of half
+    /// that grid's cell and the surface found by bisection to 1e-4 mm.
+    ///
+    /// Errors: a grid the height map refuses (named by the map's checks).
+    pub fn view_heights(
+        &self,
+        part_from_view: &Rotation3<f64>,
+        meta: &HeightMapMeta,
+        z_top: f64,
+    ) -> Result<HeightMap, DexelError> {
+        let floor = meta.z_min_mm;
+        let down = part_from_view * Vector3::new(0.0, 0.0, -1.0);
+        let best = self.grids.iter().max_by(|a, b| down[a.axis].abs().total_cmp(&down[b.axis].abs()));
+        let (w, h) = (meta.width as usize, meta.height as usize);
+        let data: Vec<f32> = (0..w * h)
+            .into_par_iter()
+            .map(|k| {
+                let Some(g) = best else { return floor as f32 };
+                let (c, r) = (k % w, k / w);
+                let x = meta.origin_x_mm + (c as f64 + 0.5) * meta.pixel_mm;
+                let y = meta.origin_y_mm + (r as f64 + 0.5) * meta.pixel_mm;
+                let start = part_from_view * Point3::new(x, y, z_top);
+                let depth = surface_along(g, &start, &down, z_top - floor);
+                depth.map_or(floor, |d| z_top - d) as f32
+            })
+            .collect();
+        let mut m = *meta;
+        m.z_max_mm = m.z_max_mm.max(z_top);
+        HeightMap::new(m, data).map_err(|e| DexelError::Map(e.to_string()))
+    }
+}
+
+/// Distance along `dir` from `start` to the first material of grid `g`, within `max_len`.
+fn surface_along(g: &Grid, start: &Point3<f64>, dir: &Vector3<f64>, max_len: f64) -> Option<f64> {
+    let along = dir[g.axis];
+    if (along.abs() - 1.0).abs() < 1e-9 {
+        let ray = g.ray_at(start)?;
+        let s0 = start[g.axis];
+        // Walking +axis from s0 or −axis from s0: the nearest interval end in that direction.
+        let hit = if along > 0.0 {
+            ray.iter().find(|s| f64::from(s[1]) >= s0).map(|s| (f64::from(s[0]) - s0).max(0.0))
+        } else {
+            ray.iter().rev().find(|s| f64::from(s[0]) <= s0).map(|s| (s0 - f64::from(s[1])).max(0.0))
+        };
+        return hit.filter(|d| *d <= max_len);
+    }
+    let step = 0.5 * g.cell;
+    let n = (max_len / step).ceil() as usize;
+    let mut prev = 0.0;
+    for k in 0..=n {
+        let d = (k as f64 * step).min(max_len);
+        if g.contains(&(start + dir * d)) {
+            if k == 0 {
+                return Some(0.0);
+            }
+            let (mut a, mut b) = (prev, d);
+            while b - a > 1e-4 {
+                let m = 0.5 * (a + b);
+                if g.contains(&(start + dir * m)) {
+                    b = m;
+                } else {
+                    a = m;
+                }
+            }
+            return Some(b);
+        }
+        prev = d;
+    }
+    None
+}
+
+/// Subtracts `[lo, hi]` from a ray, calling `removed(a, b)` for each piece of material taken.
+fn subtract(ray: &mut Ray, lo: f32, hi: f32, mut removed: impl FnMut(f32, f32)) {
+    if !(lo < hi) || !ray.iter().any(|s| s[1] > lo && s[0] < hi) {
+        return;
+    }
+    let mut out = Ray::new();
+    for s in ray.iter() {
+        if s[1] <= lo || s[0] >= hi {
+            out.push(*s);
+            continue;
+        }
+        removed(s[0].max(lo), s[1].min(hi));
+        if lo - s[0] > MIN_SEGMENT_MM {
+            out.push([s[0], lo]);
+        }
+        if s[1] - hi > MIN_SEGMENT_MM {
+            out.push([hi, s[1]]);
+        }
+    }
+    *ray = out;
+}
+
+fn to_cut(t: &Tally, end: &EndView) -> Cut {
+    let engagement_deg = if !t.any {
+        0.0
+    } else if end.fwd.is_some() {
+        if t.rho_c <= 0.0 || t.e_min > t.e_max {
+            0.0
+        } else {
+            let p = end.half_cell;
+            let a = ((t.e_max + p) / t.rho_c).clamp(-1.0, 1.0).asin();
+            let b = ((t.e_min - p) / t.rho_c).clamp(-1.0, 1.0).asin();
+            (a - b).to_degrees().clamp(0.0, 180.0)
+        }
+    } else {
+        180.0 * f64::from(t.sectors.count_ones()) / 36.0
+    };
+    Cut {
+        cells_visited: t.visited,
+        cells_updated: t.updated,
+        volume_mm3: t.volume,
+        hard_volume_mm3: t.volume + t.hard_extra,
+        max_depth_mm: t.max_depth,
+        engagement_deg: if t.volume > 0.0 { engagement_deg } else { 0.0 },
+        axial_depth_mm: if t.volume > 0.0 { t.axial.max(0.0) } else { 0.0 },
+    }
+}

@@ -1,0 +1,351 @@
+use super::*;
+use crate::domain::removal::Stock;
+use depthmill_geometry::ToolProfile;
+use rand::{Rng, SeedableRng, rngs::StdRng};
+
+fn block(x: f64, y: f64, z: f64) -> Blank {
+    Blank { boxes: vec![OrientedBox::aligned(Point3::origin(), Point3::new(x, y, z))] }
+}
+
+fn z_axis() -> Unit<Vector3<f64>> {
+    Vector3::z_axis()
+}
+
+/// The top of the Z grid's ray through `(x, y)`.
+fn top(stock: &DexelStock, x: f64, y: f64) -> Option<f32> {
+    let g = stock.grids.iter().find(|g| g.axis == 2)?;
+    g.ray_at(&Point3::new(x, y, 0.0)).and_then(|r| r.last().map(|s| s[1]))
+}
+
+fn tools() -> Vec<ToolProfile> {
+    vec![
+        ToolProfile::ball(3.0).expect("ball"),
+        ToolProfile::flat(2.0).expect("flat"),
+        ToolProfile::bull(4.0, 1.0).expect("bull"),
+        ToolProfile::v(3.0, 90.0, 0.0).expect("v"),
+    ]
+}
+
+#[test]
+fn three_axis_programs_leave_the_z_maps_tops() {
+    // Random 3-axis programs: the Z grid's top of every ray equals the Z-map's top of the same
+    // cell within one f32 quantum of the heights (both take the exact envelope at cell centres).
+    let mut rng = StdRng::seed_from_u64(3);
+    for case in 0..12 {
+        let profile = &tools()[case % 4];
+        let cell = 0.25;
+        let mut zmap = Stock::block(Point3::origin(), 20.0, 15.0, 10.0, cell).expect("zmap");
+        let mut dex = DexelStock::new(
+            &block(20.0, 15.0, 10.0),
+            &DexelCells { x_mm: None, y_mm: None, z_mm: Some(cell) },
+        )
+        .expect("dexel");
+        let solid = ToolSolid::new(profile, 40.0).expect("solid");
+        let mut p = Point3::new(rng.random_range(0.0..20.0), rng.random_range(0.0..15.0), 11.0);
+        for _ in 0..15 {
+            let q = Point3::new(
+                rng.random_range(-2.0..22.0),
+                rng.random_range(-2.0..17.0),
+                rng.random_range(4.0..11.0),
+            );
+            let a = zmap.cut_line(profile, p, q).expect("zmap cut");
+            let b = dex.cut_line(&solid, &p, &q, &z_axis()).expect("dexel cut");
+            assert!(
+                (a.volume_mm3 - b.volume_mm3).abs() <= 1e-3 * (1.0 + a.volume_mm3),
+                "case {case}: volumes {} vs {}",
+                a.volume_mm3,
+                b.volume_mm3
+            );
+            p = q;
+        }
+        let map = zmap.height_map();
+        for r in 0..map.height() {
+            for c in 0..map.width() {
+                let (x, y) = map.cell_center(c, r);
+                let z = map.get(c, r).unwrap_or(f32::NAN);
+                let d = top(&dex, x, y).unwrap_or(0.0);
+                // Exact tools agree to the f32 quantum; the bull nose's torus is a 64-segment
+                // polyline in the dexel solid (inscribed: never lower), whose last chord, near the
+                // vertical end of the arc, stands up to c·Δ/4 = c·π/512 above the arc (Δ the
+                // segment's angle, c = 1 mm the corner radius).
+                let tol = if case % 4 == 2 {
+                    std::f64::consts::PI / 512.0 + 2e-5
+                } else {
+                    2e-5 * f64::from(z.abs().max(1.0))
+                };
+                let tol = tol as f32;
+                assert!(
+                    d - z <= tol && z - d <= 2e-5 * z.abs().max(1.0),
+                    "case {case} cell ({c}, {r}): zmap {z} dexel {d}"
+                );
+            }
+        }
+        let vtol = if case % 4 == 2 { 0.05 } else { 1e-2 };
+        assert!(
+            (zmap.volume_mm3() - dex.volume_mm3()).abs() < vtol,
+            "case {case}: {} vs {}",
+            zmap.volume_mm3(),
+            dex.volume_mm3()
+        );
+    }
+}
+
+/// Whether `x` lies in `tool` swept from `p0` along `v` with axis frame `f` (dense sampling).
+fn in_swept(
+    tool: &ToolSolid,
+    x: &Point3<f64>,
+    pose: &dyn Fn(f64) -> (Point3<f64>, Unit<Vector3<f64>>),
+) -> bool {
+    let n = 300;
+    (0..=n).any(|i| {
+        let (p, u) = pose(i as f64 / n as f64);
+        let y = x - p;
+        let w = y.dot(&u);
+        tool.contains((y - u.into_inner() * w).norm(), w, 0.0)
+    })
+}
+
+#[test]
+fn removed_volume_matches_a_voxel_reference_at_any_orientation() {
+    // Small cases: a block cut by a tilted tool on one straight move, on all three grids; the
+    // removed volume of the primary grid against a brute-force count of voxel centres in the
+    // swept tool (voxels of a quarter cell), and every grid's removed material against the same
+    // membership test at the segment ends.
+    let mut rng = StdRng::seed_from_u64(5);
+    for case in 0..4 {
+        let profile = &tools()[case % 4];
+        let solid = ToolSolid::new(profile, 12.0).expect("solid");
+        let (sx, sy, sz) = (10.0, 8.0, 6.0);
+        let mut dex = DexelStock::new(&block(sx, sy, sz), &DexelCells::tri(0.2)).expect("dexel");
+        let axis =
+            Unit::new_normalize(Vector3::new(rng.random_range(-0.7..0.7), rng.random_range(-0.7..0.7), 1.0));
+        let p0 =
+            Point3::new(rng.random_range(2.0..8.0), rng.random_range(2.0..6.0), rng.random_range(3.0..5.5));
+        let p1 =
+            Point3::new(rng.random_range(2.0..8.0), rng.random_range(2.0..6.0), rng.random_range(3.0..5.5));
+        let before = dex.volume_mm3();
+        let cut = dex.cut_line(&solid, &p0, &p1, &axis).expect("cut");
+        assert!((before - dex.volume_mm3() - cut.volume_mm3).abs() < 1e-6 * before, "case {case}");
+        let pose = |s: f64| (p0 + (p1 - p0) * s, axis);
+        let vox = 0.1;
+        let (nx, ny, nz) = ((sx / vox) as usize, (sy / vox) as usize, (sz / vox) as usize);
+        // Only voxels near the move's bounding box can be inside.
+        let near = |x: &Point3<f64>| {
+            (0..3).all(|k| {
+                let (a, b) = (p0[k].min(p1[k]) - 3.0, p0[k].max(p1[k]) + 3.0 + 12.0 * axis[k].max(0.0));
+                let lo = a + 12.0 * axis[k].min(0.0);
+                x[k] >= lo && x[k] <= b
+            })
+        };
+        let inside: usize = (0..nz)
+            .into_par_iter()
+            .map(|k| {
+                let mut n = 0;
+                for j in 0..ny {
+                    for i in 0..nx {
+                        let x = Point3::new(
+                            (i as f64 + 0.5) * vox,
+                            (j as f64 + 0.5) * vox,
+                            (k as f64 + 0.5) * vox,
+                        );
+                        if near(&x) && in_swept(&solid, &x, &pose) {
+                            n += 1;
+                        }
+                    }
+                }
+                n
+            })
+            .sum();
+        let reference = inside as f64 * vox.powi(3);
+        // The two samplings differ by about half a voxel of depth over the cut surface.
+        let tol = 0.05 * reference + 0.3;
+        assert!(
+            (cut.volume_mm3 - reference).abs() <= tol,
+            "case {case} {profile:?}: dexel {} voxels {reference}",
+            cut.volume_mm3
+        );
+    }
+}
+
+#[test]
+fn every_grid_keeps_what_the_tool_misses_and_loses_what_it_sweeps() {
+    let mut rng = StdRng::seed_from_u64(9);
+    let profile = ToolProfile::bull(4.0, 1.0).expect("bull");
+    let solid = ToolSolid::new(&profile, 12.0).expect("solid");
+    let mut dex = DexelStock::new(&block(10.0, 8.0, 6.0), &DexelCells::tri(0.25)).expect("dexel");
+    let axis = Unit::new_normalize(Vector3::new(0.4, -0.3, 1.0));
+    let (p0, p1) = (Point3::new(3.0, 3.0, 4.0), Point3::new(7.5, 5.0, 3.0));
+    dex.cut_line(&solid, &p0, &p1, &axis).expect("cut");
+    let pose = |s: f64| (p0 + (p1 - p0) * s, axis);
+    for g in &dex.grids {
+        for _ in 0..3000 {
+            let (i, j) = (rng.random_range(0..g.n[0]), rng.random_range(0..g.n[1]));
+            let mut x = g.ray_origin(i, j);
+            x[g.axis] = rng.random_range(0.0..[10.0, 8.0, 6.0][g.axis]);
+            let solid_here = g.contains(&x);
+            // Points well inside or well outside the swept tool (the membership of a point at
+            // the sampled positions is exact only away from the surface).
+            let near = |d: f64| {
+                let mut y = x;
+                y[g.axis] += d;
+                in_swept(&solid, &y, &pose)
+            };
+            let (a, b, c) = (near(-0.02), near(0.0), near(0.02));
+            if a && b && c {
+                assert!(!solid_here, "grid {} keeps material at {x:?} inside the swept tool", g.axis);
+            } else if !a && !b && !c {
+                assert!(solid_here, "grid {} lost material at {x:?} outside the swept tool", g.axis);
+            }
+        }
+    }
+}
+
+#[test]
+fn turning_moves_are_cut_within_the_stated_error() {
+    // The part turns 40° about X (an A-axis feed move) under a ball end: the stepped sweep
+    // removes everything the densely sampled tool passes through, deeper than the stated error,
+    // and nothing farther than it from the tool's path.
+    let profile = ToolProfile::ball(4.0).expect("ball");
+    let solid = ToolSolid::new(&profile, 10.0).expect("solid");
+    let blank = Blank {
+        boxes: vec![OrientedBox::aligned(Point3::new(0.0, -6.0, -6.0), Point3::new(10.0, 6.0, 6.0))],
+    };
+    let mut dex = DexelStock::new(&blank, &DexelCells::tri(0.2)).expect("dexel");
+    // Machine frame: tip at (5, 0, 4.5), axis +Z; the part turns from A 0 to A 40: in the part
+    // frame the tip and the axis turn by −A about X.
+    let pose = |s: f64| {
+        let a = (40.0 * s).to_radians();
+        let r = Rotation3::from_axis_angle(&Vector3::x_axis(), -a);
+        (r * Point3::new(5.0, 0.0, 4.5), Unit::new_normalize(r * Vector3::z()))
+    };
+    let err = 0.05;
+    let cut = dex.cut_moving(&solid, &pose, err).expect("cut");
+    assert!(cut.volume_mm3 > 5.0, "removed {}", cut.volume_mm3);
+    let mut rng = StdRng::seed_from_u64(2);
+    let mut checked = 0;
+    for _ in 0..20_000 {
+        let x =
+            Point3::new(rng.random_range(0.5..9.5), rng.random_range(-5.5..5.5), rng.random_range(-5.5..5.5));
+        let inside = |d: f64| {
+            // Every point within d of x is in (d > 0) or out (d < 0) of the swept tool.
+            [
+                Vector3::zeros(),
+                Vector3::x(),
+                -Vector3::x(),
+                Vector3::y(),
+                -Vector3::y(),
+                Vector3::z(),
+                -Vector3::z(),
+            ]
+            .iter()
+            .all(|e| in_swept(&solid, &(x + e * d.abs()), &pose) == (d > 0.0))
+        };
+        let material = dex.contains(&x);
+        if inside(2.0 * err) {
+            assert!(!material, "material left at {x:?}");
+            checked += 1;
+        } else if inside(-(2.0 * err + 0.2)) {
+            assert!(material, "material lost at {x:?}");
+        }
+    }
+    assert!(checked > 50, "{checked}");
+}
+
+#[test]
+fn engagement_reads_a_slot_and_a_half_immersion_cut() {
+    let profile = ToolProfile::flat(6.0).expect("flat");
+    let solid = ToolSolid::new(&profile, 30.0).expect("solid");
+    let mut dex = DexelStock::new(&block(40.0, 20.0, 10.0), &DexelCells::tri(0.1)).expect("dexel");
+    // A slot along X through the middle, then one revolution further.
+    dex.cut_line(&solid, &Point3::new(-5.0, 10.0, 8.0), &Point3::new(20.0, 10.0, 8.0), &z_axis())
+        .expect("slot");
+    let c = dex
+        .cut_line(&solid, &Point3::new(20.0, 10.0, 8.0), &Point3::new(20.1, 10.0, 8.0), &z_axis())
+        .expect("rev");
+    assert!((c.engagement_deg - 180.0).abs() < 5.0, "slot {}", c.engagement_deg);
+    assert!((c.axial_depth_mm - 2.0).abs() < 0.05, "axial {}", c.axial_depth_mm);
+    // Half immersion: beside a slot through the whole stock, the tool 3 mm over.
+    let mut dex = DexelStock::new(&block(40.0, 20.0, 10.0), &DexelCells::tri(0.1)).expect("dexel");
+    dex.cut_line(&solid, &Point3::new(-5.0, 10.0, 8.0), &Point3::new(45.0, 10.0, 8.0), &z_axis())
+        .expect("slot");
+    dex.cut_line(&solid, &Point3::new(-5.0, 13.0, 8.0), &Point3::new(20.0, 13.0, 8.0), &z_axis())
+        .expect("side");
+    let c = dex
+        .cut_line(&solid, &Point3::new(20.0, 13.0, 8.0), &Point3::new(20.1, 13.0, 8.0), &z_axis())
+        .expect("rev");
+    assert!((c.engagement_deg - 90.0).abs() < 6.0, "half {}", c.engagement_deg);
+    // A plunge engages all around.
+    let mut dex = DexelStock::new(&block(40.0, 20.0, 10.0), &DexelCells::tri(0.1)).expect("dexel");
+    let c = dex
+        .cut_line(&solid, &Point3::new(20.0, 10.0, 11.0), &Point3::new(20.0, 10.0, 9.0), &z_axis())
+        .expect("plunge");
+    assert!(c.engagement_deg > 170.0, "plunge {}", c.engagement_deg);
+}
+
+#[test]
+fn view_heights_read_each_face_of_one_stock() {
+    // A 10 mm cube centred on the A axis; a 2 mm deep slot cut into the top (A 0) and, turning
+    // the part, one into the side that faces up at A 90. Seen from A 0 and A 90, each view
+    // shows its slot and, at the edge, the other face's.
+    let blank = Blank {
+        boxes: vec![OrientedBox::aligned(Point3::new(0.0, -5.0, -5.0), Point3::new(10.0, 5.0, 5.0))],
+    };
+    let mut dex = DexelStock::new(&blank, &DexelCells::tri(0.1)).expect("dexel");
+    let solid = ToolSolid::new(&ToolProfile::flat(2.0).expect("flat"), 20.0).expect("solid");
+    dex.cut_line(&solid, &Point3::new(-2.0, 0.0, 3.0), &Point3::new(12.0, 0.0, 3.0), &z_axis()).expect("top");
+    // At A 90 the view's +Z is the part's +Y: a point (x, y, z) of the view is R_x(−90)·p.
+    let part_from_view = |a: f64| Rotation3::from_axis_angle(&Vector3::x_axis(), -a.to_radians());
+    let r = part_from_view(90.0);
+    let axis = Unit::new_normalize(r * Vector3::z());
+    dex.cut_line(&solid, &(r * Point3::new(-2.0, 0.0, 3.0)), &(r * Point3::new(12.0, 0.0, 3.0)), &axis)
+        .expect("side");
+    let mut meta = HeightMapMeta::new(100, 100, 0.1);
+    meta.origin_x_mm = 0.0;
+    meta.origin_y_mm = -5.0;
+    meta.z_min_mm = -5.0;
+    meta.z_max_mm = 5.0;
+    for a in [0.0, 90.0] {
+        let map = dex.view_heights(&part_from_view(a), &meta, 8.0).expect("view");
+        let at = |y: f64| {
+            let (c, r) = map.cell_of(5.0, y).expect("on the map");
+            map.get(c, r).unwrap_or(f32::NAN)
+        };
+        assert!((at(0.0) - 3.0).abs() < 1e-4, "A {a}: slot floor {}", at(0.0));
+        assert!((at(-3.0) - 5.0).abs() < 1e-4, "A {a}: top {}", at(-3.0));
+    }
+    // A 45° view marches: the top face there is the cube's edge region.
+    let map = dex.view_heights(&part_from_view(45.0), &meta, 8.0).expect("view");
+    let (c, r) = map.cell_of(5.0, 0.0).expect("on");
+    let z = map.get(c, r).unwrap_or(f32::NAN);
+    // Along the 45° diagonal the cube's corner is at 5√2 = 7.07; both slots cut 2 mm: the corner
+    // region (|y|, |z| <= 1 excluded) is intact there: the ray hits the corner.
+    assert!((z - 7.071).abs() < 0.1, "45° {z}");
+}
+
+#[test]
+fn bad_parameters_are_named_before_anything_is_allocated() {
+    // The seed's stock, 30 x 30 x 320 mm at 5 µm, on three grids: refused with the limit.
+    let blank = block(30.0, 30.0, 320.0);
+    let err = DexelStock::new(&blank, &DexelCells::tri(0.005)).expect_err("too large");
+    assert!(err.to_string().contains("limit of 4294967296 bytes"), "{err}");
+    let err =
+        DexelStock::new(&blank, &DexelCells { x_mm: Some(-1.0), y_mm: None, z_mm: None }).expect_err("cell");
+    assert!(err.to_string().contains("dexel.x_cell_mm"), "{err}");
+    assert!(matches!(
+        DexelStock::new(&blank, &DexelCells { x_mm: None, y_mm: None, z_mm: None }),
+        Err(DexelError::NoGrid)
+    ));
+    let two = Blank {
+        boxes: vec![
+            OrientedBox::aligned(Point3::origin(), Point3::new(1.0, 1.0, 1.0)),
+            OrientedBox::aligned(Point3::new(2.0, 2.0, 2.0), Point3::new(3.0, 3.0, 3.0)),
+        ],
+    };
+    assert!(matches!(DexelStock::new(&two, &DexelCells::tri(0.1)), Err(DexelError::EmptyBlank)));
+    let mut dex = DexelStock::new(&block(5.0, 5.0, 5.0), &DexelCells::tri(0.5)).expect("dexel");
+    let solid = ToolSolid::new(&ToolProfile::ball(2.0).expect("ball"), 10.0).expect("solid");
+    let err = dex
+        .cut_line(&solid, &Point3::new(f64::NAN, 0.0, 0.0), &Point3::origin(), &z_axis())
+        .expect_err("nan");
+    assert!(err.to_string().contains("from"), "{err}");
+}
