@@ -43,6 +43,7 @@ pub fn run_check(program: &Path, args: &MachineArgs) -> anyhow::Result<()> {
             cell_mm: 1.0,
         },
         faces: Vec::new(),
+        dexel: None,
         tools,
         policy: PolicyKind::Off,
         clamp: args.clamp,

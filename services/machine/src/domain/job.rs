@@ -21,6 +21,7 @@ use depthmill_report::plot::{Chart, Panel, Series};
 use serde::Serialize;
 
 use super::cutting::{Material, material, materials};
+use super::dexel::DexelCells;
 use super::gcode::{Canon, InterpConfig, run};
 use super::profile::MachineProfile;
 use super::sim::{
@@ -50,6 +51,9 @@ pub struct ExecuteOptions {
     /// Also run the comparison policies (cycle times with and without adaptation).
     pub compare: bool,
     pub seed: u64,
+    /// Cell sizes of the dexel grids of a multi-axis part (every grid at the cell size when
+    /// `None`).
+    pub dexel: Option<DexelCells>,
 }
 
 impl Default for ExecuteOptions {
@@ -65,6 +69,7 @@ impl Default for ExecuteOptions {
             inclusions: Vec::new(),
             compare: true,
             seed: 1,
+            dexel: None,
         }
     }
 }
@@ -427,6 +432,7 @@ pub fn execute_faces(
             cell_mm: cell,
         },
         faces: Vec::new(),
+        dexel: None,
         tools: tools.clone(),
         policy: opts.policy,
         clamp: opts.clamp,
@@ -454,20 +460,7 @@ pub fn execute_faces(
     let extent =
         if target.is_none() && opts.stock.is_none() { feed_extent(open()?, cfg, &profile)? } else { None };
     setup.stock = stock_spec(opts, target, extent, max_radius, cell)?;
-    // Faces are cut as indexed stocks when there are several, or when the one face is turned
-    // (a single face at A != 0 is cut with the A axis at its angle, not at 0).
-    let indexed = targets.len() > 1 || targets.iter().any(|t| t.a_deg.abs() > 1e-9);
-    if indexed {
-        setup.faces = targets
-            .iter()
-            .map(|t| {
-                Ok(super::sim::FaceStock {
-                    a_deg: t.a_deg,
-                    stock: stock_spec(opts, Some(t.map), None, max_radius, cell)?,
-                })
-            })
-            .collect::<Result<Vec<_>, ExecuteError>>()?;
-    }
+    setup.dexel = opts.dexel;
 
     let other = match (opts.compare, opts.policy) {
         (true, PolicyKind::Aco) => Some(PolicyKind::FeedOnly),
@@ -481,6 +474,25 @@ pub fn execute_faces(
         let s = SimSetup { policy: PolicyKind::Off, motion_only: true, ..setup.clone() };
         simulate(open()?, &s, stop, &mut |_| {})?.0
     };
+    // A multi-axis part is cut on one dexel stock: several faces, a turned face, or a program
+    // that feeds at A != 0.
+    let indexed =
+        targets.len() > 1 || targets.iter().any(|t| t.a_deg.abs() > 1e-9) || plain.turned_moves > 0;
+    if indexed {
+        setup.faces = targets
+            .iter()
+            .map(|t| {
+                Ok(super::sim::FaceStock {
+                    a_deg: t.a_deg,
+                    stock: stock_spec(opts, Some(t.map), None, max_radius, cell)?,
+                })
+            })
+            .collect::<Result<Vec<_>, ExecuteError>>()?;
+        if setup.faces.is_empty() {
+            // No target: the program's own stock, at A = 0.
+            setup.faces = vec![super::sim::FaceStock { a_deg: 0.0, stock: setup.stock }];
+        }
+    }
     let mut rows: Vec<TelemetryRow> = Vec::new();
     let main_setup = setup.clone();
     let (main, other_run) = rayon::join(

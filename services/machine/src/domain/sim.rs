@@ -30,11 +30,22 @@
 //! volume and the engagement, motor current, sensor readings (several samples per revolution,
 //! averaged), and one step of the feed/speed policy, whose feed and speed apply from the next
 //! revolution. XY arcs are cut as sub-arcs; arcs in other planes as chords.
+//!
+//! # Multi-axis parts
+//! A part machined from several A-axis faces, or whose program turns the A axis, is cut on one
+//! dexel stock ([`super::dexel`]) in the part frame (the frame of the A = 0 face): the work frame
+//! at A = `a` is the part turned by `a` about X (`work = R_x(a) · part`, the axis through the work
+//! origin), so a tip at work point `w` with the spindle along +Z is at `R_x(−a) · w` with its axis
+//! along `R_x(−a) · Z` in the part. The blank is the material common to every face's block (each
+//! face's stock spec in its own view frame). Feed moves at a fixed A are swept exactly; pieces
+//! that turn A or follow an arc are stepped so that no tool point strays more than a quarter of
+//! the finest dexel cell ([`DexelStock::cut_moving`]); every material removal, from any face,
+//! is seen by every other. Each face's final stock is the one stock seen from that face.
 
 use std::io::BufRead;
 
 use depthmill_geometry::{HeightMap, ToolProfile};
-use nalgebra::Point3;
+use nalgebra::{Point3, Rotation3, Unit, Vector3};
 use serde::Serialize;
 
 use super::adaptive::{
@@ -45,8 +56,12 @@ use super::gcode::{
     Canon, FeedMode, GcodeError, InterpConfig, Interpreter, PathMode, Plane, Pos, SpindleDir,
 };
 use super::profile::MachineProfile;
+use super::dexel::{Blank, DexelCells, DexelError, DexelStock, HardSphere, OrientedBox, ToolSolid};
 use super::removal::{Cut, RemovalError, Stock};
 use super::sensors::{RevAverager, SensorBank};
+
+/// Largest error of a stepped (turning or arc) piece on the dexel stock, in its finest cells.
+pub const DEXEL_STEP_CELLS: f64 = 0.25;
 
 /// Raw sensor samples averaged per revolution.
 const SAMPLES_PER_REV: usize = 8;
@@ -128,10 +143,11 @@ pub struct SimSetup {
     pub material: Material,
     /// The stock at A = 0 when `faces` is empty.
     pub stock: StockSpec,
-    /// Multi-face parts: one stock per face at its A angle (then `stock` is not used). Feed moves
-    /// cut the stock of the face the A axis is turned to; material removed from one face does not
-    /// update the others (each is a Z-map along the tool; a dexel model would couple them).
+    /// Multi-axis parts: each face's block at its A angle (then `stock` is not used). The part is
+    /// cut on one dexel stock, the material common to every face's block (see the module docs),
+    /// with the cell sizes of `dexel` (every grid at `stock.cell_mm` when `None`).
     pub faces: Vec<FaceStock>,
+    pub dexel: Option<DexelCells>,
     pub tools: Vec<MachineTool>,
     pub policy: PolicyKind,
     /// Clamp F and S to the machine's ranges (with a warning) instead of refusing the program.
@@ -158,6 +174,8 @@ pub enum SimError {
     Setup(String),
     #[error(transparent)]
     Removal(#[from] RemovalError),
+    #[error("dexel stock: {0}")]
+    Dexel(#[from] DexelError),
     #[error("stopped at line {line}")]
     Stopped { line: u64 },
 }
@@ -207,6 +225,9 @@ pub struct SimReport {
     pub revs_over_power: u64,
     pub productivity_index: f64,
     pub cells_updated: u64,
+    /// Moves that turn the A axis or run at A != 0 (a program that has any is cut on the dexel
+    /// stock).
+    pub turned_moves: u64,
     pub warnings: Vec<String>,
 }
 
@@ -287,8 +308,10 @@ struct Pending {
 pub struct Machine<'a> {
     setup: &'a SimSetup,
     interp_cfg: InterpConfig,
-    /// The stock of each face, by A angle (one at A = 0 for a 3-axis part); empty when motion only.
+    /// The Z-map stock of a 3-axis part (at A = 0); empty when motion only or multi-axis.
     stocks: Vec<(f64, Stock)>,
+    /// The one stock of a multi-axis part, and each tool as a solid (by index in `setup.tools`).
+    dexel: Option<(DexelStock, Vec<ToolSolid>)>,
     sensors: SensorBank,
     policy: Box<dyn Policy>,
     policy_enabled: bool,
@@ -328,14 +351,12 @@ impl<'a> Machine<'a> {
         for t in &setup.tools {
             interp_cfg.tools.insert(t.number, t.length_mm);
         }
-        let specs: Vec<(f64, StockSpec)> = if setup.faces.is_empty() {
-            vec![(0.0, setup.stock)]
-        } else {
-            setup.faces.iter().map(|f| (f.a_deg, f.stock)).collect()
-        };
         let mut stocks = Vec::new();
-        if !setup.motion_only {
-            for (a_deg, s) in specs {
+        let mut dexel = None;
+        if !setup.motion_only && !setup.faces.is_empty() {
+            dexel = Some(dexel_stock(setup)?);
+        } else if !setup.motion_only {
+            for (a_deg, s) in [(0.0, setup.stock)] {
                 let mut stock = Stock::block(
                     Point3::new(s.min_x_mm, s.min_y_mm, s.min_z_mm),
                     s.x_mm,
@@ -355,6 +376,7 @@ impl<'a> Machine<'a> {
             pos: interp_cfg.initial_position,
             interp_cfg,
             stocks,
+            dexel,
             sensors: SensorBank::new(p.sensors, setup.seed),
             policy,
             policy_enabled: true,
@@ -387,9 +409,39 @@ impl<'a> Machine<'a> {
         self.stocks.first().map(|(_, s)| s)
     }
 
-    /// Every face's stock with its A angle.
+    /// The 3-axis stock with its A angle (empty for a multi-axis part).
     pub fn stocks(&self) -> &[(f64, Stock)] {
         &self.stocks
+    }
+
+    /// The multi-axis part's one stock.
+    pub fn dexel(&self) -> Option<&DexelStock> {
+        self.dexel.as_ref().map(|(d, _)| d)
+    }
+
+    /// Each face's final stock: the Z-map of a 3-axis part, or the one dexel stock seen from every
+    /// face on the grid of its block (from 1 mm above the block's top; the block's bottom where
+    /// the view finds no material).
+    pub fn face_maps(&self) -> Result<Vec<(f64, HeightMap)>, SimError> {
+        let Some((dexel, _)) = &self.dexel else {
+            return Ok(self.stocks.iter().map(|(a, s)| (*a, s.to_height_map())).collect());
+        };
+        self.setup
+            .faces
+            .iter()
+            .map(|f| {
+                let s = f.stock;
+                let nx = (s.x_mm / s.cell_mm).ceil().max(1.0) as u32;
+                let ny = (s.y_mm / s.cell_mm).ceil().max(1.0) as u32;
+                let mut meta = depthmill_geometry::HeightMapMeta::new(nx, ny, s.cell_mm);
+                meta.origin_x_mm = s.min_x_mm;
+                meta.origin_y_mm = s.min_y_mm;
+                meta.z_min_mm = s.min_z_mm;
+                meta.z_max_mm = s.min_z_mm + s.z_mm;
+                let map = dexel.view_heights(&part_from_work(f.a_deg), &meta, s.min_z_mm + s.z_mm + 1.0)?;
+                Ok((f.a_deg, map))
+            })
+            .collect()
     }
 
     /// The face whose A angle is `a_deg` (to 0.001°, modulo 360).
@@ -403,13 +455,7 @@ impl<'a> Machine<'a> {
     /// The tip in the work frame for a commanded machine position, on whole motor steps (the
     /// steppers move in `step_mm` increments).
     fn work(&self, p: Pos) -> Point3<f64> {
-        let prof = &self.setup.profile;
-        let w = prof.work_offset;
-        Point3::new(
-            prof.quantise(p.x) - w.x_mm,
-            prof.quantise(p.y) - w.y_mm,
-            prof.quantise(p.z - self.tlo_mm) - w.z_mm,
-        )
+        work_tip(&self.setup.profile, self.tlo_mm, p, true)
     }
 
     fn current_tool(&self) -> Option<&MachineTool> {
@@ -643,7 +689,32 @@ impl<'a> Machine<'a> {
         let to = m.canon.end_point().unwrap_or(m.from);
         let line = m.canon.line();
         let a_move = (to.a - m.from.a).abs();
-        if m.rapid || self.stocks.is_empty() {
+        if !m.rapid && (a_move > 1e-9 || to.a.abs() > 1e-9) {
+            self.report.turned_moves += 1;
+        }
+        if m.rapid
+            && let (Some(ti), true) = (self.tool, self.dexel.is_some())
+        {
+            // A rapid that touches material is a crash (see below); on the one stock.
+            let cut = self.cut_dexel(&m, ti, 0.0, 1.0)?;
+            let r = self.setup.tools[ti].profile.radius_mm();
+            // Besides the scrape the Z-map allows, the slivers a turning feed move's stepped
+            // sweep may leave along the tool's side (at most the step error thick over the
+            // tool's length and diameter).
+            let sliver = self.dexel.as_ref().map_or(0.0, |(d, solids)| {
+                let len = solids.get(ti).map_or(0.0, ToolSolid::length_mm);
+                2.0 * r * len * DEXEL_STEP_CELLS * d.min_cell_mm()
+            });
+            let allowed = (std::f64::consts::PI * r * r * RAPID_SCRAPE_MM + sliver).max(1e-3);
+            if cut.volume_mm3 > allowed {
+                return Err(SimError::Crash {
+                    line,
+                    message: format!("rapid move into the stock ({:.3} mm³ in the way)", cut.volume_mm3),
+                });
+            }
+        }
+        let prof = &self.setup.profile;
+        if m.rapid || (self.stocks.is_empty() && self.dexel.is_none()) {
             let vmax = if m.rapid { prof.motion.rapid_mm_min } else { self.feed_now } / 60.0;
             let mut t = trapezoid_time(m.len, self.v_end, v_exit, vmax, a);
             t = t.max(a_move / (prof.motion.a_rate_deg_min / 60.0));
@@ -684,17 +755,12 @@ impl<'a> Machine<'a> {
         if self.feed_now <= 0.0 {
             return Err(SimError::Rejected { line, message: "feed move with no feed rate".into() });
         }
-        if a_move > 1e-9 || self.face_index(to.a).is_none() {
-            let faces: Vec<String> = self.stocks.iter().map(|(a, _)| format!("{a}°")).collect();
-            self.report.warnings.push(if a_move > 1e-9 {
-                format!("line {line}: a feed move turning A to {:.3}° is timed but not cut: the stock models indexed faces, not simultaneous 4-axis cutting", to.a)
-            } else {
-                format!(
-                    "line {line}: a feed move at A={:.3}° is timed but not cut: the stock has faces at {} only",
-                    to.a,
-                    faces.join(", ")
-                )
-            });
+        if self.dexel.is_none() && (a_move > 1e-9 || self.face_index(to.a).is_none()) {
+            self.report.warnings.push(format!(
+                "line {line}: a feed move {} A={:.3}° is timed but not cut: a 3-axis run's Z-map stock cuts at A = 0 only (a multi-axis setup cuts it on the dexel stock)",
+                if a_move > 1e-9 { "turning to" } else { "at" },
+                to.a
+            ));
             let t = trapezoid_time(m.len, self.v_end, v_exit, self.feed_now / 60.0, a);
             self.time_s += t.max(a_move / (prof.motion.a_rate_deg_min / 60.0));
             self.pos = to;
@@ -704,12 +770,15 @@ impl<'a> Machine<'a> {
         let Some(tool) = self.current_tool().cloned() else {
             return Err(SimError::Rejected { line, message: "feed move with no tool in the spindle".into() });
         };
-        // Cut per revolution.
+        // Cut per revolution. A move that only turns A runs its degrees at the feed read as
+        // degrees per minute (as LinuxCNC does), capped by the A axis's rate.
+        let rotary_only = m.len <= 1e-9 && a_move > 1e-9;
+        let plen = if rotary_only { a_move } else { m.len };
         let mut s = 0.0;
         let mut v = self.v_end;
         let mut prev_tip = self.work(m.from);
         let mut guard = 0u64;
-        while s < m.len - 1e-12 {
+        while s < plen - 1e-12 {
             guard += 1;
             if guard > 50_000_000 {
                 return Err(SimError::Setup(format!(
@@ -718,19 +787,23 @@ impl<'a> Machine<'a> {
             }
             let rpm = if self.spindle == SpindleDir::Off { 0.0 } else { self.rpm_now };
             let w = self.feed_now;
-            let per_rev = if rpm > 0.0 { w / rpm } else { m.len };
-            let ds = per_rev.min(m.len - s).max(1e-6);
-            let s1 = (s + ds).min(m.len);
+            let vmax = if rotary_only { w.min(self.setup.profile.motion.a_rate_deg_min) } else { w };
+            let per_rev = if rpm > 0.0 { w / rpm } else { plen };
+            let ds = per_rev.min(plen - s).max(1e-6);
+            let s1 = (s + ds).min(plen);
             // Speed along the piece: accelerate toward w, decelerate to reach v_exit at the end.
-            let v_target = (w / 60.0).min((v_exit * v_exit + 2.0 * a * (m.len - s1)).sqrt());
+            let v_target = (vmax / 60.0).min((v_exit * v_exit + 2.0 * a * (plen - s1)).sqrt());
             let v1 = if v_target >= v {
                 v_target.min((v * v + 2.0 * a * ds).sqrt())
             } else {
                 v_target.max((v * v - 2.0 * a * ds).max(0.0).sqrt())
             };
             let dt = 2.0 * ds / (v + v1).max(1e-9);
-            let tip = self.work(point_at(&m, s1 / m.len));
-            let cut = self.cut_piece(&m, &tool.profile, prev_tip, tip)?;
+            let tip = self.work(point_at(&m, s1 / plen));
+            let cut = match (self.tool, self.dexel.is_some()) {
+                (Some(ti), true) => self.cut_dexel(&m, ti, s / plen, s1 / plen)?,
+                _ => self.cut_piece(&m, &tool.profile, prev_tip, tip)?,
+            };
             if cut.volume_mm3 > 1e-6 && rpm <= 0.0 {
                 return Err(SimError::Crash {
                     line,
@@ -767,6 +840,36 @@ impl<'a> Machine<'a> {
             }
             _ => Ok(stock.cut_line(tool, from, to)?),
         }
+    }
+
+    /// Cuts the piece `[t0, t1]` (fractions of the move) of move `m` with tool `ti` on the dexel
+    /// stock, in the part frame (see the module docs). The piece's ends are on whole motor steps;
+    /// a piece at a fixed A along a line is swept exactly, one that turns A or follows an arc is
+    /// stepped within a quarter of the finest cell (between the stepped ends, the true path is
+    /// shifted linearly so it meets them).
+    fn cut_dexel(&mut self, m: &Pending, ti: usize, t0: f64, t1: f64) -> Result<Cut, SimError> {
+        let prof = &self.setup.profile;
+        let tlo = self.tlo_mm;
+        let Some((stock, solids)) = &mut self.dexel else { return Ok(Cut::default()) };
+        let Some(solid) = solids.get(ti) else { return Ok(Cut::default()) };
+        let (p0, p1) = (point_at(m, t0), point_at(m, t1));
+        let exact = |p: Pos| work_tip(prof, tlo, p, false);
+        let (q0, q1) = (work_tip(prof, tlo, p0, true), work_tip(prof, tlo, p1, true));
+        let (d0, d1) = (q0 - exact(p0), q1 - exact(p1));
+        let straight = !matches!(m.canon, Canon::Arc { .. }) && (p1.a - p0.a).abs() < 1e-12;
+        if straight {
+            let r = part_from_work(p0.a);
+            let axis = Unit::new_normalize(r * Vector3::z());
+            return Ok(stock.cut_line(solid, &(r * q0), &(r * q1), &axis)?);
+        }
+        let pose = |s: f64| {
+            let p = point_at(m, t0 + (t1 - t0) * s);
+            let w = exact(p) + d0 * (1.0 - s) + d1 * s;
+            let r = part_from_work(p.a);
+            (r * w, Unit::new_normalize(r * Vector3::z()))
+        };
+        let err = DEXEL_STEP_CELLS * stock.min_cell_mm();
+        Ok(stock.cut_moving(solid, &pose, err)?)
     }
 
     #[allow(clippy::too_many_arguments)]
@@ -863,6 +966,54 @@ impl<'a> Machine<'a> {
             );
         }
     }
+}
+
+/// The rotation taking work coordinates at A = `a_deg` to the part frame (`R_x(−a)`).
+pub fn part_from_work(a_deg: f64) -> Rotation3<f64> {
+    Rotation3::from_axis_angle(&Vector3::x_axis(), -a_deg.to_radians())
+}
+
+/// The tip in the work frame for a commanded machine position, on whole motor steps when
+/// `stepped`.
+fn work_tip(prof: &MachineProfile, tlo_mm: f64, p: Pos, stepped: bool) -> Point3<f64> {
+    let w = prof.work_offset;
+    let q = |v: f64| if stepped { prof.quantise(v) } else { v };
+    Point3::new(q(p.x) - w.x_mm, q(p.y) - w.y_mm, q(p.z - tlo_mm) - w.z_mm)
+}
+
+/// The one dexel stock of a multi-axis setup and its tools as solids (see the module docs).
+fn dexel_stock(setup: &SimSetup) -> Result<(DexelStock, Vec<ToolSolid>), SimError> {
+    let boxes = setup
+        .faces
+        .iter()
+        .map(|f| {
+            let s = f.stock;
+            OrientedBox {
+                part_from_box: part_from_work(f.a_deg),
+                min: Point3::new(s.min_x_mm, s.min_y_mm, s.min_z_mm),
+                max: Point3::new(s.min_x_mm + s.x_mm, s.min_y_mm + s.y_mm, s.min_z_mm + s.z_mm),
+            }
+        })
+        .collect();
+    let cell = setup.faces.iter().map(|f| f.stock.cell_mm).fold(setup.stock.cell_mm, f64::min);
+    let cells = setup.dexel.unwrap_or(DexelCells::tri(cell));
+    let mut stock = DexelStock::new(&Blank { boxes }, &cells)?;
+    for inc in &setup.inclusions {
+        stock.add_hard_sphere(HardSphere {
+            center: Point3::from(inc.center),
+            radius_mm: inc.radius_mm,
+            factor: f64::from(inc.factor),
+        })?;
+    }
+    let solids = setup
+        .tools
+        .iter()
+        .map(|t| {
+            let p = &t.profile;
+            ToolSolid::new(p, t.length_mm.max(p.max_height_mm() + 4.0 * p.radius_mm()))
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok((stock, solids))
 }
 
 /// Bit `i` set when `Constraint::ALL[i]` is active.
@@ -984,7 +1135,7 @@ pub fn simulate_faces<R: BufRead>(
     machine.finish(observe)?;
     machine.report.blocks = interp.blocks();
     machine.finish_report();
-    let maps = machine.stocks().iter().map(|(a, s)| (*a, s.to_height_map())).collect();
+    let maps = machine.face_maps()?;
     Ok((machine.report, maps))
 }
 
@@ -1009,6 +1160,7 @@ mod tests {
                 cell_mm: 0.1,
             },
             faces: Vec::new(),
+            dexel: None,
             tools: vec![MachineTool {
                 number: 1,
                 name: "flat-6".into(),
@@ -1038,13 +1190,16 @@ mod tests {
     }
 
     #[test]
-    fn each_face_is_cut_when_the_a_axis_is_turned_to_it() {
+    fn every_face_cuts_the_one_stock_and_sees_the_others_cuts() {
+        // A 30 x 20 x 20 mm bar centred on the A axis, the same block seen from A 0 and A 90.
         let mut s = setup(PolicyKind::Off);
-        s.faces = vec![FaceStock { a_deg: 0.0, stock: s.stock }, FaceStock { a_deg: 90.0, stock: s.stock }];
-        // A slot along X at Y 10 on face A0, one at Y 5 on face A90, and a cut at A45 (no face).
-        let program = "%\nG21 G90 G17 G94 G40 G49 G80\nT1 M6\nS1500 M3\nG43 H1\nG0 X-5 Y10\nG0 Z5\n\
-                       G1 Z8 F100\nG1 X35 F200\nG0 Z15\nG0 A90\nG0 X-5 Y5\nG1 Z9 F100\nG1 X35 F200\nG0 Z15\n\
-                       G0 A45\nG1 Z9 F100\nG0 Z15\nG0 A0\nG53 G0 Z0\nM30\n%\n";
+        let bar = StockSpec { min_x_mm: 0.0, min_y_mm: -10.0, min_z_mm: -10.0, x_mm: 30.0, y_mm: 20.0, z_mm: 20.0, cell_mm: 0.1 };
+        s.faces = vec![FaceStock { a_deg: 0.0, stock: bar }, FaceStock { a_deg: 90.0, stock: bar }];
+        // A0: a slot 2 mm deep along the edge at Y 7 (Y 4 to 10); A90: a slot 1 mm deep on the
+        // middle of the face then facing up.
+        let program = "%\nG21 G90 G17 G94 G40 G49 G80\nT1 M6\nS1500 M3\nG43 H1\nG0 X-5 Y7\nG0 Z15\n\
+                       G1 Z8 F100\nG1 X35 F200\nG0 Z15\nG0 A90\nG0 X-5 Y0\nG1 Z9 F100\nG1 X35 F200\nG0 Z15\n\
+                       G0 A0\nG53 G0 Z0\nM30\n%\n";
         let mut rows = Vec::new();
         let (report, maps) =
             simulate_faces(Cursor::new(program), &s, &|| false, &mut |r| rows.push(*r)).expect("runs");
@@ -1055,15 +1210,34 @@ mod tests {
         };
         let (a0, a90) = (&maps[0].1, &maps[1].1);
         assert_eq!((maps[0].0, maps[1].0), (0.0, 90.0));
-        assert!((depth(a0, 10.0) - 8.0).abs() < 0.02 && (depth(a0, 5.0) - 10.0).abs() < 1e-6, "face A0");
-        assert!((depth(a90, 5.0) - 9.0).abs() < 0.02 && (depth(a90, 10.0) - 10.0).abs() < 1e-6, "face A90");
+        assert!((depth(a0, 7.0) - 8.0).abs() < 0.02 && (depth(a0, 0.0) - 10.0).abs() < 1e-4, "face A0");
+        assert!((depth(a90, 0.0) - 9.0).abs() < 0.02 && (depth(a90, 5.0) - 10.0).abs() < 1e-4, "face A90");
+        // The A0 slot seen from A90: at view Y −9 (the part's Z 9) the first material is at the
+        // slot's wall, the part's Y 4.
+        assert!((depth(a90, -9.0) - 4.0).abs() < 0.1, "A0's slot from A90: {}", depth(a90, -9.0));
         let expected = 30.0 * 6.0 * 2.0 + 30.0 * 6.0 * 1.0;
         assert!((report.removed_mm3 - expected).abs() < 0.03 * expected, "{}", report.removed_mm3);
-        assert!(
-            report.warnings.iter().any(|w| w.contains("A=45.000") && w.contains("not cut")),
-            "{:?}",
-            report.warnings
-        );
+        assert_eq!(report.turned_moves, 2, "the A90 feed moves");
+        assert!(report.warnings.iter().all(|w| !w.contains("not cut")), "{:?}", report.warnings);
+    }
+
+    #[test]
+    fn a_feed_move_turning_the_a_axis_cuts_a_groove_around_the_bar() {
+        // The tool at Z 9, 1 mm into the bar's top, while the part turns from A 0 to A 90 (a
+        // feed move of the A axis alone, at 400°/min): it takes the bar's corner off.
+        let mut s = setup(PolicyKind::Off);
+        let bar = StockSpec { min_x_mm: 0.0, min_y_mm: -10.0, min_z_mm: -10.0, x_mm: 30.0, y_mm: 20.0, z_mm: 20.0, cell_mm: 0.4 };
+        s.faces = vec![FaceStock { a_deg: 0.0, stock: bar }];
+        let program = "%\nG21 G90 G17 G94 G40 G49 G80\nT1 M6\nS1500 M3\nG43 H1\nG0 X15 Y0\nG0 Z15\n\
+                       G1 Z9 F100\nG1 A90 F400\nG0 Z15\nG53 G0 Z0\nM30\n%\n";
+        let (report, maps) = simulate_faces(Cursor::new(program), &s, &|| false, &mut |_| {}).expect("runs");
+        assert!(report.warnings.iter().all(|w| !w.contains("not cut")), "{:?}", report.warnings);
+        // The tool sweeps radius 9 about X: everything of the bar farther than 9 mm from the
+        // axis within the tool's width is gone, from the top face (A0) round to the face at A90.
+        let a0 = &maps[0].1;
+        let (c, r) = a0.cell_of(15.0, 0.0).expect("inside");
+        assert!((f64::from(a0.get(c, r).unwrap_or(f32::NAN)) - 9.0).abs() < 0.2);
+        assert!(report.removed_mm3 > 10.0, "{}", report.removed_mm3);
     }
 
     #[test]

@@ -535,6 +535,18 @@ impl DexelStock {
             let area = g.cell * g.cell;
             let ni = g.n[0];
             let geo = (g.axis, g.cell, g.origin);
+            // Each piece's swept core (its axis segment moved along the move) seen along the
+            // rays: a ray farther than the piece's radius from it misses the piece.
+            let shadows: Vec<Shadow> = tool
+                .pieces()
+                .iter()
+                .map(|piece| {
+                    let (w0, w1, rho) = piece.bounds();
+                    let c = from + f.u * w0;
+                    let e = f.u * (w1 - w0);
+                    Shadow::new([c[a], c[b]], [v[a], v[b]], [e[a], e[b]], rho + 1e-6)
+                })
+                .collect();
             let row = |j: usize, rays: &mut [Ray]| -> Tally {
                 let mut t = Tally::new();
                 let (axis, cell, origin) = geo;
@@ -549,7 +561,10 @@ impl DexelStock {
                     o[b] = origin[1] + (j as f64 + 0.5) * cell;
                     let rm = RayMove::new(&o, &d, from, &v, &f);
                     let mut changed = false;
-                    for piece in tool.pieces() {
+                    for (piece, shadow) in tool.pieces().iter().zip(&shadows) {
+                        if !shadow.near(o[a], o[b]) {
+                            continue;
+                        }
                         let Some((l, h)) = rm.extent(piece) else { continue };
                         subtract(ray, l as f32, h as f32, |sa, sb| {
                             changed = true;
@@ -747,6 +762,48 @@ fn surface_along(g: &Grid, start: &Point3<f64>, dir: &Vector3<f64>, max_len: f64
         prev = d;
     }
     None
+}
+
+/// A parallelogram `c + x·p + y·q` (`x, y ∈ [0, 1]`) of a grid's plane, grown by `r`: the
+/// shadow of a piece's swept axis segment along the rays.
+#[derive(Debug, Clone, Copy)]
+struct Shadow {
+    c: [f64; 2],
+    p: [f64; 2],
+    q: [f64; 2],
+    r: f64,
+    det: f64,
+}
+
+impl Shadow {
+    fn new(c: [f64; 2], p: [f64; 2], q: [f64; 2], r: f64) -> Self {
+        Shadow { c, p, q, r, det: p[0] * q[1] - p[1] * q[0] }
+    }
+
+    /// Whether the point is within `r` of the parallelogram.
+    fn near(&self, x: f64, y: f64) -> bool {
+        let d = [x - self.c[0], y - self.c[1]];
+        let scale = (self.p[0].abs() + self.p[1].abs()) * (self.q[0].abs() + self.q[1].abs());
+        if self.det.abs() > 1e-12 * scale && scale > 0.0 {
+            let u = (d[0] * self.q[1] - d[1] * self.q[0]) / self.det;
+            let w = (self.p[0] * d[1] - self.p[1] * d[0]) / self.det;
+            if (0.0..=1.0).contains(&u) && (0.0..=1.0).contains(&w) {
+                return true;
+            }
+        }
+        let r2 = self.r * self.r;
+        let seg = |o: [f64; 2], e: [f64; 2]| {
+            let rel = [x - o[0], y - o[1]];
+            let ee = e[0] * e[0] + e[1] * e[1];
+            let t = if ee > 0.0 { ((rel[0] * e[0] + rel[1] * e[1]) / ee).clamp(0.0, 1.0) } else { 0.0 };
+            let (dx, dy) = (rel[0] - t * e[0], rel[1] - t * e[1]);
+            dx * dx + dy * dy <= r2
+        };
+        let c = self.c;
+        let cp = [c[0] + self.p[0], c[1] + self.p[1]];
+        let cq = [c[0] + self.q[0], c[1] + self.q[1]];
+        seg(c, self.p) || seg(c, self.q) || seg(cp, self.q) || seg(cq, self.p)
+    }
 }
 
 /// Subtracts `[lo, hi]` from a ray, calling `removed(a, b)` for each piece of material taken.

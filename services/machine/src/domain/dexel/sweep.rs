@@ -225,6 +225,9 @@ impl RayMove {
     }
 }
 
+/// Candidate points `(t, s)` (at most 23 for five lines: kept on the stack).
+type Candidates = smallvec::SmallVec<[(f64, f64); 32]>;
+
 /// The quadratic `F(t, s) = |M|² − L²` as `att·t² + 2·ats·t·s + ass·s² + 2·bt·t + 2·bs·s + cc`.
 #[derive(Debug, Clone, Copy)]
 struct Conic {
@@ -258,7 +261,7 @@ impl Conic {
     }
 
     /// Points of `F = 0` on the line `lin = 0`.
-    fn on_line(&self, lin: &Aff, out: &mut Vec<(f64, f64)>) {
+    fn on_line(&self, lin: &Aff, out: &mut Candidates) {
         if lin.is_constant() {
             return;
         }
@@ -333,7 +336,7 @@ fn cross(a: &Aff, b: &Aff) -> Option<(f64, f64)> {
 /// The `t` extent of `{ |M(t, s)| <= L(t, s), lin_i(t, s) >= 0 }` (see the module docs).
 fn extent(m: &[Aff], l: Aff, lins: &[Aff]) -> Option<(f64, f64)> {
     let q = Conic::new(m, l);
-    let mut cand: Vec<(f64, f64)> = Vec::with_capacity(32);
+    let mut cand = Candidates::new();
     for (i, a) in lins.iter().enumerate() {
         for b in &lins[i + 1..] {
             if let Some(p) = cross(a, b) {
