@@ -51,12 +51,19 @@ fn peak_rss_mib() -> f64 {
     std::fs::read_to_string("/proc/self/status")
         .ok()
         .and_then(|s| {
-            s.lines().find(|l| l.starts_with("VmHWM:")).and_then(|l| l.split_whitespace().nth(1)?.parse::<f64>().ok())
+            s.lines()
+                .find(|l| l.starts_with("VmHWM:"))
+                .and_then(|l| l.split_whitespace().nth(1)?.parse::<f64>().ok())
         })
         .map_or(f64::NAN, |kib| kib / 1024.0)
 }
 
-fn run_dexel(stock: &mut DexelStock, tool: &ToolSolid, pts: &[Point3<f64>], axis: &Unit<Vector3<f64>>) -> (f64, f64) {
+fn run_dexel(
+    stock: &mut DexelStock,
+    tool: &ToolSolid,
+    pts: &[Point3<f64>],
+    axis: &Unit<Vector3<f64>>,
+) -> (f64, f64) {
     let t = Instant::now();
     let mut vol = 0.0;
     for w in pts.windows(2) {
@@ -83,7 +90,8 @@ fn main() {
     let tool = ToolSolid::new(&profile, 30.0).expect("tool");
     let pts = program(moves);
     let vertical = Vector3::z_axis();
-    let tilted = Unit::new_normalize(Vector3::new((20f64).to_radians().sin(), 0.0, (20f64).to_radians().cos()));
+    let tilted =
+        Unit::new_normalize(Vector3::new((20f64).to_radians().sin(), 0.0, (20f64).to_radians().cos()));
 
     let t = Instant::now();
     let fresh = DexelStock::new(&blank, &cells).expect("stock");
@@ -121,7 +129,7 @@ fn main() {
     for threads in [1, cores] {
         let mut z = zmap.clone();
         let t = Instant::now();
-        let run = || {
+        let mut run = || {
             let mut vol = 0.0;
             for w in pts.windows(2) {
                 vol += z.cut_line(&profile, w[0], w[1]).expect("cut").volume_mm3;

@@ -476,8 +476,7 @@ pub fn execute_faces(
     };
     // A multi-axis part is cut on one dexel stock: several faces, a turned face, or a program
     // that feeds at A != 0.
-    let indexed =
-        targets.len() > 1 || targets.iter().any(|t| t.a_deg.abs() > 1e-9) || plain.turned_moves > 0;
+    let indexed = targets.len() > 1 || targets.iter().any(|t| t.a_deg.abs() > 1e-9) || plain.turned_moves > 0;
     if indexed {
         setup.faces = targets
             .iter()

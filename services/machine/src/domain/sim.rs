@@ -37,7 +37,9 @@
 //! at A = `a` is the part turned by `a` about X (`work = R_x(a) · part`, the axis through the work
 //! origin), so a tip at work point `w` with the spindle along +Z is at `R_x(−a) · w` with its axis
 //! along `R_x(−a) · Z` in the part. The blank is the material common to every face's block (each
-//! face's stock spec in its own view frame). Feed moves at a fixed A are swept exactly; pieces
+//! face's stock spec in its own view frame), each block reaching down through the A axis to the
+//! far side of all of them when there are several (a map bounds the part from above and across,
+//! not from below): the bar the faces' tops and sides bound. Feed moves at a fixed A are swept exactly; pieces
 //! that turn A or follow an arc are stepped so that no tool point strays more than a quarter of
 //! the finest dexel cell ([`DexelStock::cut_moving`]); every material removal, from any face,
 //! is seen by every other. Each face's final stock is the one stock seen from that face.
@@ -52,11 +54,11 @@ use super::adaptive::{
     Aco, Constraint, Economics, FeedOnly, Fixed, Limits, Measured, Policy, Tuning, productivity,
 };
 use super::cutting::{Material, rev_load};
+use super::dexel::{Blank, DexelCells, DexelError, DexelStock, HardSphere, OrientedBox, ToolSolid};
 use super::gcode::{
     Canon, FeedMode, GcodeError, InterpConfig, Interpreter, PathMode, Plane, Pos, SpindleDir,
 };
 use super::profile::MachineProfile;
-use super::dexel::{Blank, DexelCells, DexelError, DexelStock, HardSphere, OrientedBox, ToolSolid};
 use super::removal::{Cut, RemovalError, Stock};
 use super::sensors::{RevAverager, SensorBank};
 
@@ -983,6 +985,23 @@ fn work_tip(prof: &MachineProfile, tlo_mm: f64, p: Pos, stepped: bool) -> Point3
 
 /// The one dexel stock of a multi-axis setup and its tools as solids (see the module docs).
 fn dexel_stock(setup: &SimSetup) -> Result<(DexelStock, Vec<ToolSolid>), SimError> {
+    // A face's map bounds the part from above and across in its view, not from below (its floor
+    // is where its data ends): with several faces, each block reaches down through the A axis to
+    // the far side of every block, so the blank is the bar their tops and sides bound.
+    let far = if setup.faces.len() > 1 {
+        setup
+            .faces
+            .iter()
+            .flat_map(|f| {
+                let s = f.stock;
+                [s.min_y_mm, s.min_y_mm + s.y_mm]
+                    .into_iter()
+                    .flat_map(move |y| [s.min_z_mm, s.min_z_mm + s.z_mm].map(|z| y.hypot(z)))
+            })
+            .fold(f64::NEG_INFINITY, f64::max)
+    } else {
+        f64::NEG_INFINITY
+    };
     let boxes = setup
         .faces
         .iter()
@@ -990,7 +1009,7 @@ fn dexel_stock(setup: &SimSetup) -> Result<(DexelStock, Vec<ToolSolid>), SimErro
             let s = f.stock;
             OrientedBox {
                 part_from_box: part_from_work(f.a_deg),
-                min: Point3::new(s.min_x_mm, s.min_y_mm, s.min_z_mm),
+                min: Point3::new(s.min_x_mm, s.min_y_mm, s.min_z_mm.min(-far)),
                 max: Point3::new(s.min_x_mm + s.x_mm, s.min_y_mm + s.y_mm, s.min_z_mm + s.z_mm),
             }
         })
@@ -1193,7 +1212,15 @@ mod tests {
     fn every_face_cuts_the_one_stock_and_sees_the_others_cuts() {
         // A 30 x 20 x 20 mm bar centred on the A axis, the same block seen from A 0 and A 90.
         let mut s = setup(PolicyKind::Off);
-        let bar = StockSpec { min_x_mm: 0.0, min_y_mm: -10.0, min_z_mm: -10.0, x_mm: 30.0, y_mm: 20.0, z_mm: 20.0, cell_mm: 0.1 };
+        let bar = StockSpec {
+            min_x_mm: 0.0,
+            min_y_mm: -10.0,
+            min_z_mm: -10.0,
+            x_mm: 30.0,
+            y_mm: 20.0,
+            z_mm: 20.0,
+            cell_mm: 0.1,
+        };
         s.faces = vec![FaceStock { a_deg: 0.0, stock: bar }, FaceStock { a_deg: 90.0, stock: bar }];
         // A0: a slot 2 mm deep along the edge at Y 7 (Y 4 to 10); A90: a slot 1 mm deep on the
         // middle of the face then facing up.
@@ -1226,7 +1253,15 @@ mod tests {
         // The tool at Z 9, 1 mm into the bar's top, while the part turns from A 0 to A 90 (a
         // feed move of the A axis alone, at 400°/min): it takes the bar's corner off.
         let mut s = setup(PolicyKind::Off);
-        let bar = StockSpec { min_x_mm: 0.0, min_y_mm: -10.0, min_z_mm: -10.0, x_mm: 30.0, y_mm: 20.0, z_mm: 20.0, cell_mm: 0.4 };
+        let bar = StockSpec {
+            min_x_mm: 0.0,
+            min_y_mm: -10.0,
+            min_z_mm: -10.0,
+            x_mm: 30.0,
+            y_mm: 20.0,
+            z_mm: 20.0,
+            cell_mm: 0.4,
+        };
         s.faces = vec![FaceStock { a_deg: 0.0, stock: bar }];
         let program = "%\nG21 G90 G17 G94 G40 G49 G80\nT1 M6\nS1500 M3\nG43 H1\nG0 X15 Y0\nG0 Z15\n\
                        G1 Z9 F100\nG1 A90 F400\nG0 Z15\nG53 G0 Z0\nM30\n%\n";

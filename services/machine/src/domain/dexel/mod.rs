@@ -531,6 +531,16 @@ impl DexelStock {
                 continue;
             };
             let (tlo, thi) = (lo[g.axis] as f32, hi[g.axis] as f32);
+            // Rays along the tool's axis (the Z grid of a 3-axis cut): the swept tool starts on
+            // such a ray no nearer than the lowest tip plus the tool's lower surface at the ray's
+            // distance from the tip's path (exact for a level move), so material that ends
+            // before that is untouched and the exact test is skipped.
+            let along = f.u[g.axis];
+            let axial = (along.abs() > 1.0 - 1e-12).then(|| {
+                let sgn = along.signum();
+                let tip_low = (sgn * from[g.axis]).min(sgn * to[g.axis]);
+                (sgn, tip_low, [from[a], from[b]], [to[a] - from[a], to[b] - from[b]])
+            });
             let d = g.dir();
             let area = g.cell * g.cell;
             let ni = g.n[0];
@@ -544,7 +554,14 @@ impl DexelStock {
                     let (w0, w1, rho) = piece.bounds();
                     let c = from + f.u * w0;
                     let e = f.u * (w1 - w0);
-                    Shadow::new([c[a], c[b]], [v[a], v[b]], [e[a], e[b]], rho + 1e-6)
+                    // The piece's range along the rays: its axis segment's ends at both ends of
+                    // the move, widened by a disc of its radius across the axis.
+                    let k = g.axis;
+                    let ends = [c[k], c[k] + e[k], c[k] + v[k], c[k] + e[k] + v[k]];
+                    let widen = rho * (1.0 - f.u[k] * f.u[k]).max(0.0).sqrt() + 1e-6;
+                    let lo = ends.iter().copied().fold(f64::INFINITY, f64::min) - widen;
+                    let hi = ends.iter().copied().fold(f64::NEG_INFINITY, f64::max) + widen;
+                    Shadow::new([c[a], c[b]], [v[a], v[b]], [e[a], e[b]], rho + 1e-6, (lo, hi))
                 })
                 .collect();
             let row = |j: usize, rays: &mut [Ray]| -> Tally {
@@ -559,10 +576,31 @@ impl DexelStock {
                     let mut o = Point3::origin();
                     o[a] = origin[0] + (i as f64 + 0.5) * cell;
                     o[b] = origin[1] + (j as f64 + 0.5) * cell;
+                    if let Some((sgn, tip_low, p0, e)) = axial {
+                        let rel = [o[a] - p0[0], o[b] - p0[1]];
+                        let ee = e[0] * e[0] + e[1] * e[1];
+                        let k = if ee > 0.0 {
+                            ((rel[0] * e[0] + rel[1] * e[1]) / ee).clamp(0.0, 1.0)
+                        } else {
+                            0.0
+                        };
+                        let dist = (rel[0] - k * e[0]).hypot(rel[1] - k * e[1]);
+                        let Some(h) = tool.lower(dist) else { continue };
+                        // The tool spans sgn·t >= tip_low + h on this ray.
+                        let bound = tip_low + h - 1e-9;
+                        let reach = if sgn > 0.0 { f64::from(last[1]) } else { -f64::from(first[0]) };
+                        if reach <= bound {
+                            continue;
+                        }
+                    }
                     let rm = RayMove::new(&o, &d, from, &v, &f);
                     let mut changed = false;
                     for (piece, shadow) in tool.pieces().iter().zip(&shadows) {
-                        if !shadow.near(o[a], o[b]) {
+                        let (Some(first), Some(last)) = (ray.first(), ray.last()) else { break };
+                        if f64::from(last[1]) < shadow.range.0
+                            || f64::from(first[0]) > shadow.range.1
+                            || !shadow.near(o[a], o[b])
+                        {
                             continue;
                         }
                         let Some((l, h)) = rm.extent(piece) else { continue };
@@ -773,11 +811,13 @@ struct Shadow {
     q: [f64; 2],
     r: f64,
     det: f64,
+    /// The piece's range along the rays.
+    range: (f64, f64),
 }
 
 impl Shadow {
-    fn new(c: [f64; 2], p: [f64; 2], q: [f64; 2], r: f64) -> Self {
-        Shadow { c, p, q, r, det: p[0] * q[1] - p[1] * q[0] }
+    fn new(c: [f64; 2], p: [f64; 2], q: [f64; 2], r: f64, range: (f64, f64)) -> Self {
+        Shadow { c, p, q, r, det: p[0] * q[1] - p[1] * q[0], range }
     }
 
     /// Whether the point is within `r` of the parallelogram.

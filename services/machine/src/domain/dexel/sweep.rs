@@ -128,6 +128,26 @@ impl ToolSolid {
         self.length
     }
 
+    /// The lowest axial height of the tool at radial distance `rho` (its lower surface
+    /// `h(rho)`), or `None` beyond its radius.
+    pub fn lower(&self, rho: f64) -> Option<f64> {
+        self.pieces
+            .iter()
+            .filter_map(|p| match *p {
+                Piece::Sphere { c, r } => (rho <= r).then(|| c - (r * r - rho * rho).max(0.0).sqrt()),
+                Piece::Frustum { h0, h1, r0, r1 } => {
+                    if rho <= r0 {
+                        Some(h0)
+                    } else if rho <= r1 && r1 > r0 {
+                        Some(h0 + (rho - r0) * (h1 - h0) / (r1 - r0))
+                    } else {
+                        None
+                    }
+                }
+            })
+            .reduce(f64::min)
+    }
+
     /// Whether a tool-frame point (radial `rho`, axial `w`) is in the tool, within `tol`.
     pub fn contains(&self, rho: f64, w: f64, tol: f64) -> bool {
         self.pieces.iter().any(|p| p.contains(rho, w, tol))
