@@ -1,5 +1,5 @@
 //! A part machined on two faces: reconstruction makes a depth map per face, CAM one program that
-//! turns the A axis between them, the machine cuts each face's stock at its angle, and the report
+//! turns the A axis between them, the machine cuts both faces on one dexel stock, and the report
 //! shows both.
 
 use std::fmt::Write as _;
@@ -99,9 +99,15 @@ async fn a_two_face_part_is_planned_with_the_a_axis_and_machined_on_both_faces()
         let gouge = f["deviation"]["max_gouge_mm"].as_f64().unwrap_or(1.0);
         let rms = f["deviation"]["rms_deviation_mm"].as_f64().unwrap_or(1.0);
         println!("face A={}: max gouge {gouge:.4} mm, RMS {rms:.4} mm", f["a_deg"]);
-        // No face is cut below its map; leftover is where a 3 mm ball cannot follow (each map's
-        // border holds the other sheet seen edge-on, a near-vertical wall), so the RMS is loose.
-        assert!(gouge < 0.05, "face {}: gouge {gouge}", f["a_deg"]);
+    }
+    for f in &faces {
+        let gouge = f["deviation"]["max_gouge_mm"].as_f64().unwrap_or(1.0);
+        let rms = f["deviation"]["rms_deviation_mm"].as_f64().unwrap_or(1.0);
+        // Both faces are cut on one stock, so each face's deviation also holds what the other
+        // face's program took off the shared edge, where each map sees the other sheet edge-on
+        // as a near-vertical wall on 0.3 mm cells: no face is cut below its map by more than a
+        // third of a cell. Leftover is where a 3 mm ball cannot follow, so the RMS is loose.
+        assert!(gouge < 0.1, "face {}: gouge {gouge}", f["a_deg"]);
         assert!(rms < 1.0, "face {}: RMS {rms}", f["a_deg"]);
     }
     assert_eq!(faces[1]["a_deg"], 90.0);
