@@ -848,7 +848,7 @@ impl Shadow {
 
 /// Subtracts `[lo, hi]` from a ray, calling `removed(a, b)` for each piece of material taken.
 fn subtract(ray: &mut Ray, lo: f32, hi: f32, mut removed: impl FnMut(f32, f32)) {
-    if !(lo < hi) || !ray.iter().any(|s| s[1] > lo && s[0] < hi) {
+    if lo.partial_cmp(&hi) != Some(std::cmp::Ordering::Less) || !ray.iter().any(|s| s[1] > lo && s[0] < hi) {
         return;
     }
     let mut out = Ray::new();
