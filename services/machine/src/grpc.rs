@@ -24,6 +24,7 @@ use depthmill_proto::types::v1::{CancelStageRequest, CancelStageResponse, Diagno
 use tokio::sync::mpsc;
 use tonic::{Request, Response, Status};
 
+use crate::domain::dexel::DexelCells;
 use crate::domain::job::{ExecuteError, ExecuteOptions, FaceTarget, execute_faces};
 use crate::domain::sim::{PolicyKind, SimError, active_names};
 
@@ -116,6 +117,7 @@ fn options(p: pb::ExecuteParams) -> Result<ExecuteOptions, Status> {
         cell_mm: p.cell_mm,
         clamp: p.clamp,
         compare: p.compare.unwrap_or(true),
+        dexel: p.dexel.map(|d| DexelCells { x_mm: d.x_cell_mm, y_mm: d.y_cell_mm, z_mm: d.z_cell_mm }),
         ..Default::default()
     })
 }
@@ -129,6 +131,24 @@ pub(crate) fn check_params(req: pb::ValidateExecuteRequest) -> Vec<pb_types::Fie
         Err(status) => return vec![violation("execute", status.message().into())],
     };
     let mut out = Vec::new();
+    if let Some(d) = opts.dexel {
+        for (name, c) in [("x_cell_mm", d.x_mm), ("y_cell_mm", d.y_mm), ("z_cell_mm", d.z_mm)] {
+            if let Some(c) = c
+                && !(c.is_finite() && (0.001..=10.0).contains(&c))
+            {
+                out.push(violation(
+                    &format!("execute.dexel.{name}"),
+                    format!("{c} mm is outside [0.001, 10] mm"),
+                ));
+            }
+        }
+        if d.x_mm.is_none() && d.y_mm.is_none() && d.z_mm.is_none() {
+            out.push(violation(
+                "execute.dexel",
+                "set at least one of x_cell_mm, y_cell_mm, z_cell_mm".into(),
+            ));
+        }
+    }
     if let Some(m) = &opts.material
         && crate::domain::cutting::material(m).is_none()
     {

@@ -243,6 +243,11 @@ pub fn execute_params(p: &ExecuteParams) -> machine::ExecuteParams {
         cell_mm: p.cell_mm,
         clamp: p.clamp.unwrap_or(false),
         compare: p.compare,
+        dexel: p.dexel.map(|d| machine::DexelCells {
+            x_cell_mm: d.x_cell_mm,
+            y_cell_mm: d.y_cell_mm,
+            z_cell_mm: d.z_cell_mm,
+        }),
     }
 }
 
@@ -635,6 +640,11 @@ pub fn job_spec_from_pb(s: pb::JobSpec) -> Result<JobSpec, SpecError> {
                 cell_mm: p.cell_mm,
                 clamp: Some(p.clamp).filter(|c| *c),
                 compare: p.compare,
+                dexel: p.dexel.map(|d| crate::domain::spec::DexelCells {
+                    x_cell_mm: d.x_cell_mm,
+                    y_cell_mm: d.y_cell_mm,
+                    z_cell_mm: d.z_cell_mm,
+                }),
                 adaptive: match enum_value::<machine::AdaptiveMode>("execute.adaptive", p.adaptive)? {
                     machine::AdaptiveMode::Unspecified => None,
                     machine::AdaptiveMode::Aco => Some(AdaptiveMode::Aco),

@@ -518,6 +518,22 @@ pub struct ExecuteParams {
     /// Also time the program without adaptation and with the other policy (default true).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub compare: Option<bool>,
+    /// Cell sizes of the dexel grids a multi-axis part is cut on (default: every grid at
+    /// `cell_mm`); a grid left out is not kept when another is given.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub dexel: Option<DexelCells>,
+}
+
+/// The dexel grids, by the axis their rays run along (part frame), mm.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct DexelCells {
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub x_cell_mm: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub y_cell_mm: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub z_cell_mm: Option<f64>,
 }
 
 /// Adaptive feed/speed control while cutting.
@@ -640,6 +656,17 @@ impl JobSpec {
         if let Some(ex) = &self.execute {
             positive("execute.stock_z_mm", ex.stock_z_mm, 10_000.0)?;
             positive("execute.cell_mm", ex.cell_mm, 10.0)?;
+            if let Some(d) = &ex.dexel {
+                positive("execute.dexel.x_cell_mm", d.x_cell_mm, 10.0)?;
+                positive("execute.dexel.y_cell_mm", d.y_cell_mm, 10.0)?;
+                positive("execute.dexel.z_cell_mm", d.z_cell_mm, 10.0)?;
+                if d.x_cell_mm.is_none() && d.y_cell_mm.is_none() && d.z_cell_mm.is_none() {
+                    return Err(err(
+                        "execute.dexel",
+                        "must set at least one of x_cell_mm, y_cell_mm, z_cell_mm",
+                    ));
+                }
+            }
             if let Some(c) = ex.cell_mm
                 && c < 0.005
             {
