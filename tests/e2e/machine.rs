@@ -40,7 +40,7 @@ async fn machine(stack: &TestStack) -> anyhow::Result<MachineServiceClient<tonic
 async fn wait_running(
     m: &mut MachineServiceClient<tonic::transport::Channel>,
 ) -> anyhow::Result<pb::MachineStatus> {
-    for _ in 0..600 {
+    for _ in 0..3000 {
         let s = m.get_status(pb::GetStatusRequest {}).await?.into_inner();
         if s.state == "running" && s.line > 20 {
             return Ok(s);
