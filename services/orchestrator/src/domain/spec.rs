@@ -765,11 +765,19 @@ mod tests {
             (r#", "reconstruct": {"pixel_mm": 0.1}"#, "reconstruct"),
             (r#", "plan": {"roughing": {"tool": " "}}"#, "plan.roughing.tool"),
             (r#", "plan": {"finishing": {"angle_deg": 30}}"#, "plan.finishing.angle_deg"),
+            (
+                r#", "execute": {"machine": "emco-f1", "dexel": {"x_cell_mm": -0.1}}"#,
+                "execute.dexel.x_cell_mm",
+            ),
+            (r#", "execute": {"machine": "emco-f1", "dexel": {}}"#, "execute.dexel"),
         ];
         for (extra, field) in cases {
             let spec = parse(&base(extra)).expect("parse");
             assert_eq!(spec.validate().expect_err(extra).field, field, "{extra}");
         }
+        let spec = parse(&base(r#", "execute": {"machine": "emco-f1", "dexel": {"z_cell_mm": 0.05}}"#))
+            .expect("parse");
+        assert!(spec.validate().is_ok(), "one dexel grid is a valid choice");
         let spec = parse(r#"{"input": {"kind": "gcode", "artifact": "abc"}}"#).expect("parse");
         assert_eq!(spec.validate().expect_err("digest").field, "input.artifact");
     }
