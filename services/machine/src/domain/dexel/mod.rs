@@ -536,6 +536,7 @@ impl DexelStock {
             // distance from the tip's path (exact for a level move), so material that ends
             // before that is untouched and the exact test is skipped.
             let along = f.u[g.axis];
+            let r2 = tool.radius_mm() * tool.radius_mm();
             let axial = (along.abs() > 1.0 - 1e-12).then(|| {
                 let sgn = along.signum();
                 let tip_low = (sgn * from[g.axis]).min(sgn * to[g.axis]);
@@ -584,8 +585,12 @@ impl DexelStock {
                         } else {
                             0.0
                         };
-                        let dist = (rel[0] - k * e[0]).hypot(rel[1] - k * e[1]);
-                        let Some(h) = tool.lower(dist) else { continue };
+                        let (dx, dy) = (rel[0] - k * e[0], rel[1] - k * e[1]);
+                        let d2 = dx * dx + dy * dy;
+                        if d2 > r2 {
+                            continue;
+                        }
+                        let Some(h) = tool.lower(d2.sqrt()) else { continue };
                         // The tool spans sgn·t >= tip_low + h on this ray.
                         let bound = tip_low + h - 1e-9;
                         let reach = if sgn > 0.0 { f64::from(last[1]) } else { -f64::from(first[0]) };
