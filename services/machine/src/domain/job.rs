@@ -32,7 +32,7 @@ use super::sim::{
 /// A box as (min, max) corners.
 type Extent = ([f64; 3], [f64; 3]);
 
-/// Default Z-map cell, mm.
+/// Default cell of the Z-map and of the dexel grids, mm.
 pub const DEFAULT_CELL_MM: f64 = 0.1;
 
 /// The `execute` object of a job, plus what the CLI can give.
@@ -392,9 +392,10 @@ pub struct FaceSummary {
 }
 
 /// [`execute`] for a part machined on several faces, each with its target map at its A angle:
-/// every face gets its own stock (sized from its map), cut while the A axis is turned to it. The
-/// report's deviation is over all faces together (worst gouge and leftover, RMS over every cell);
-/// `faces` has each one.
+/// the part is cut on one dexel stock (the blank every face's block bounds; see
+/// [`super::sim`]), and each face's final stock is that stock seen from the face. So is a single
+/// turned face, and a program that feeds at A != 0. The report's deviation is over all faces
+/// together (worst gouge and leftover, RMS over every cell); `faces` has each one.
 pub fn execute_faces(
     open: &(dyn Fn() -> std::io::Result<Box<dyn BufRead + Send>> + Sync),
     opts: &ExecuteOptions,

@@ -122,8 +122,9 @@ pub struct StockSpec {
     pub cell_mm: f64,
 }
 
-/// The stock of one face of a multi-face part: the part turned to `a_deg` about the A axis, seen
-/// along the tool as a Z-map in the work frame (the frame the CAM planned that face in).
+/// One face of a multi-axis part: the part turned to `a_deg` about the A axis, and the block of
+/// stock that face's map bounds, in the work frame at that angle (the frame the CAM planned the
+/// face in). The one dexel stock is the material every face's block holds.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct FaceStock {
     pub a_deg: f64,

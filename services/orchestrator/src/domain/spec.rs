@@ -509,7 +509,7 @@ pub struct ExecuteParams {
     /// Stock height above the depth map's z_min (default: the plan's stock height, else up to the highest point).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub stock_z_mm: Option<f64>,
-    /// Z-map cell of the simulated stock, mm (default: the depth map's pixel, at most 0.1).
+    /// Cell of the simulated stock, mm: the Z-map, and every dexel grid unless `dexel` sets them (default: the depth map's pixel, at most 0.1).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub cell_mm: Option<f64>,
     /// Clamp F and S to the machine's ranges with a warning instead of refusing the program.
