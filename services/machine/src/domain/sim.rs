@@ -801,7 +801,16 @@ impl<'a> Machine<'a> {
             } else {
                 v_target.max((v * v - 2.0 * a * ds).max(0.0).sqrt())
             };
-            let dt = 2.0 * ds / (v + v1).max(1e-9);
+            // Constant acceleration from v to v1, or, when the piece starts and ends (nearly) at
+            // rest (a move shorter than one revolution between two stops), the time to speed up
+            // and slow down within it.
+            let dt = (2.0 * ds / (v + v1).max(1e-9)).min(trapezoid_time(
+                ds,
+                v,
+                v1,
+                (vmax / 60.0).max(v).max(v1),
+                a,
+            ));
             let tip = self.work(point_at(&m, s1 / plen));
             let cut = match (self.tool, self.dexel.is_some()) {
                 (Some(ti), true) => self.cut_dexel(&m, ti, s / plen, s1 / plen)?,
@@ -1274,6 +1283,28 @@ mod tests {
         let (c, r) = a0.cell_of(15.0, 0.0).expect("inside");
         assert!((f64::from(a0.get(c, r).unwrap_or(f32::NAN)) - 9.0).abs() < 0.2);
         assert!(report.removed_mm3 > 10.0, "{}", report.removed_mm3);
+    }
+
+    #[test]
+    fn moves_shorter_than_a_revolution_between_stops_take_their_motion_time() {
+        // Step-downs of 0.01 mm (less than one revolution's feed) between passes that reverse:
+        // each starts and ends at rest. Without adaptation the cutting run takes the time of the
+        // motion-only run.
+        let mut program =
+            String::from("%\nG21 G90 G17 G94 G40 G49 G80\nT1 M6\nS1500 M3\nG43 H1\nG0 X-5 Y10\nG0 Z10.5\n");
+        for k in 0..20 {
+            program.push_str(&format!(
+                "G1 Z{:.2} F100\nG1 X{} F200\n",
+                10.0 - 0.01 * f64::from(k),
+                if k % 2 == 0 { 35 } else { -5 }
+            ));
+        }
+        program.push_str("G0 Z15\nG53 G0 Z0\nM30\n%\n");
+        let s = setup(PolicyKind::Off);
+        let (cut, _, _) = run(&s, &program).expect("runs");
+        let (motion, _, _) = run(&SimSetup { motion_only: true, ..s.clone() }, &program).expect("runs");
+        let ratio = cut.cycle_time_s / motion.cycle_time_s;
+        assert!((ratio - 1.0).abs() < 0.02, "cut {} s, motion {} s", cut.cycle_time_s, motion.cycle_time_s);
     }
 
     #[test]
