@@ -1218,19 +1218,24 @@ mod tests {
         Ok((report, rows, map))
     }
 
-    #[test]
-    fn every_face_cuts_the_one_stock_and_sees_the_others_cuts() {
-        // A 30 x 20 x 20 mm bar centred on the A axis, the same block seen from A 0 and A 90.
-        let mut s = setup(PolicyKind::Off);
-        let bar = StockSpec {
+    /// A 30 x 20 x 20 mm bar centred on the A axis (X), on cells of `cell_mm`.
+    fn bar(cell_mm: f64) -> StockSpec {
+        StockSpec {
             min_x_mm: 0.0,
             min_y_mm: -10.0,
             min_z_mm: -10.0,
             x_mm: 30.0,
             y_mm: 20.0,
             z_mm: 20.0,
-            cell_mm: 0.1,
-        };
+            cell_mm,
+        }
+    }
+
+    #[test]
+    fn every_face_cuts_the_one_stock_and_sees_the_others_cuts() {
+        // A 30 x 20 x 20 mm bar centred on the A axis, the same block seen from A 0 and A 90.
+        let mut s = setup(PolicyKind::Off);
+        let bar = bar(0.1);
         s.faces = vec![FaceStock { a_deg: 0.0, stock: bar }, FaceStock { a_deg: 90.0, stock: bar }];
         // A0: a slot 2 mm deep along the edge at Y 7 (Y 4 to 10); A90: a slot 1 mm deep on the
         // middle of the face then facing up.
@@ -1263,15 +1268,7 @@ mod tests {
         // The tool at Z 9, 1 mm into the bar's top, while the part turns from A 0 to A 90 (a
         // feed move of the A axis alone, at 400°/min): it takes the bar's corner off.
         let mut s = setup(PolicyKind::Off);
-        let bar = StockSpec {
-            min_x_mm: 0.0,
-            min_y_mm: -10.0,
-            min_z_mm: -10.0,
-            x_mm: 30.0,
-            y_mm: 20.0,
-            z_mm: 20.0,
-            cell_mm: 0.4,
-        };
+        let bar = bar(0.4);
         s.faces = vec![FaceStock { a_deg: 0.0, stock: bar }];
         let program = "%\nG21 G90 G17 G94 G40 G49 G80\nT1 M6\nS1500 M3\nG43 H1\nG0 X15 Y0\nG0 Z15\n\
                        G1 Z9 F100\nG1 A90 F400\nG0 Z15\nG53 G0 Z0\nM30\n%\n";

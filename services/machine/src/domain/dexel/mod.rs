@@ -691,12 +691,9 @@ impl DexelStock {
         check_point("from", &p0)?;
         check_point("to", &p1)?;
         let reach = (tool.length_mm().powi(2) + tool.radius_mm().powi(2)).sqrt();
-        let angle = u0.angle(&u1);
-        // Sample the turn to find the largest angle (the axis may turn and come back).
-        let mut turn = angle;
-        for k in 1..16 {
-            turn = turn.max(u0.angle(&pose(k as f64 / 16.0).1) * 1.0);
-        }
+        // A first step count from the largest turn seen at 16 samples (the axis may turn and come
+        // back); the loop below checks every step and refines it.
+        let turn = (1..16).map(|k| u0.angle(&pose(k as f64 / 16.0).1)).fold(u0.angle(&u1), f64::max);
         let mut n = ((turn * 1.25 * reach / max_error_mm).ceil() as usize).max(1);
         loop {
             if n > MAX_STEPS {
