@@ -170,6 +170,9 @@ pub fn run_simulate(program: &Path, args: &SimulateArgs, out_dir: &Path) -> anyh
         d.map.write(out_dir.join("deviation.png"), HeightMapFormat::Png8)?;
         d.map.write(out_dir.join("deviation.npy"), HeightMapFormat::Npy)?;
     }
+    if let Some(stl) = &out.part_stl {
+        write("part.stl", stl)?;
+    }
     write("telemetry.csv", out.telemetry_csv.as_bytes())?;
     write("telemetry.svg", out.telemetry_svg.as_bytes())?;
     write("report.json", &serde_json::to_vec_pretty(&out.report)?)?;

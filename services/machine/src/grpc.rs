@@ -25,7 +25,8 @@ use tokio::sync::mpsc;
 use tonic::{Request, Response, Status};
 
 use crate::domain::dexel::DexelCells;
-use crate::domain::job::{ExecuteError, ExecuteOptions, FaceTarget, execute_faces};
+use crate::domain::job::{ExecuteError, ExecuteOptions, FaceTarget, Reference, execute_faces};
+use crate::domain::part::{MAX_REFERENCE_POINTS, mesh_samples};
 use crate::domain::sim::{PolicyKind, SimError, active_names};
 
 pub(crate) const SERVICE_NAME: &str = "depthmill.machine.v1.MachineService";
@@ -203,6 +204,46 @@ fn update(u: pb::execute_program_update::Update) -> pb::ExecuteProgramUpdate {
     pb::ExecuteProgramUpdate { update: Some(u) }
 }
 
+impl MachineServiceImpl {
+    /// The original part's points (see [`crate::domain::part`]): sampled on a mesh, or a cloud
+    /// thinned to [`MAX_REFERENCE_POINTS`], scaled to millimetres.
+    async fn read_reference(&self, sha: &str, units: i32) -> Result<Reference, Status> {
+        use depthmill_geometry::formats::{Geometry, ReadLimits, read_any_from};
+        let units = depthmill_proto::convert::units(units)
+            .map_err(|v| ErrorCode::InvalidArgument.status(format!("reference_units: unknown unit {v}")))?;
+        let stat = self.store.stat(sha).await.map_err(artifact_status)?.ok_or_else(|| {
+            ErrorCode::InvalidArgument.status(format!("reference: no artifact {sha}"))
+        })?;
+        let path = self.store.local_path(sha).ok_or_else(|| {
+            ErrorCode::Internal.status("the artifact store has no local file for the reference")
+        })?;
+        let name = format!("reference {} ({})", &sha[..12.min(sha.len())], stat.media_type);
+        tokio::task::spawn_blocking(move || {
+            let file = std::fs::File::open(&path)
+                .map_err(|e| ErrorCode::Internal.status(format!("{name}: cannot open: {e}")))?;
+            let (mut geometry, _) = read_any_from(
+                BufReader::with_capacity(1 << 20, file),
+                &name,
+                Some(stat.size),
+                &ReadLimits::default(),
+            )
+            .map_err(|e| ErrorCode::InvalidArgument.status(e.to_string()))?;
+            let head = depthmill_geometry::units::read_head(&path)
+                .map_err(|e| ErrorCode::Internal.status(format!("{name}: cannot read: {e}")))?;
+            depthmill_geometry::units::normalise(&mut geometry, &head, units);
+            Ok(match geometry {
+                Geometry::Mesh(m) => Reference { source: "mesh".into(), points: mesh_samples(&m, MAX_REFERENCE_POINTS) },
+                Geometry::Cloud(c) => {
+                    let stride = c.points.len().div_ceil(MAX_REFERENCE_POINTS).max(1);
+                    Reference { source: "point cloud".into(), points: c.points.into_iter().step_by(stride).collect() }
+                }
+            })
+        })
+        .await
+        .map_err(|e| Status::internal(format!("reading the reference failed: {e}")))?
+    }
+}
+
 #[tonic::async_trait]
 impl pb::machine_service_server::MachineService for MachineServiceImpl {
     type ExecuteProgramStream = UpdateStream;
@@ -217,7 +258,7 @@ impl pb::machine_service_server::MachineService for MachineServiceImpl {
         tracing::Span::current().record("job_id", job_id.as_str());
         let gcode =
             req.gcode.ok_or_else(|| ErrorCode::InvalidArgument.status("gcode: an artifact is required"))?;
-        let opts = options(req.params.unwrap_or_default())?;
+        let mut opts = options(req.params.unwrap_or_default())?;
         let stat = self.store.stat(&gcode.sha256).await.map_err(artifact_status)?.ok_or_else(|| {
             ErrorCode::InvalidArgument.status(format!("gcode: no artifact {}", gcode.sha256))
         })?;
@@ -261,6 +302,12 @@ impl pb::machine_service_server::MachineService for MachineServiceImpl {
                 }
             };
             targets.push((a, map));
+        }
+        // The original part, for a part cut on the one dexel stock (several faces or a turned one).
+        if let Some(r) = &req.reference
+            && (targets.len() > 1 || targets.iter().any(|(a, _)| a.abs() > 1e-9))
+        {
+            opts.reference = Some(Arc::new(self.read_reference(&r.sha256, req.reference_units).await?));
         }
         let guard = self.running.start(&job_id);
         let (tx, rx) = mpsc::channel(64);
@@ -410,9 +457,26 @@ impl pb::machine_service_server::MachineService for MachineServiceImpl {
                         rms_deviation_mm: d.map_or(0.0, |d| d.rms_deviation_mm),
                     });
                 }
+                let part_mesh = match &out.part_stl {
+                    Some(b) => Some(store.put_bytes("model/stl", b).await?.into()),
+                    None => None,
+                };
+                let part_view = match &out.part_view_ply {
+                    Some(b) => Some(store.put_bytes("application/x-ply", b).await?.into()),
+                    None => None,
+                };
                 let r = &out.report;
                 let d = r.deviation.as_ref();
+                let figures = |f: &crate::domain::part::Figures| pb::PartFigures {
+                    points: f.points as u64,
+                    max_gouge_mm: f.max_gouge_mm,
+                    max_leftover_mm: f.max_leftover_mm,
+                    mean_leftover_mm: f.mean_leftover_mm,
+                    rms_deviation_mm: f.rms_deviation_mm,
+                };
                 Ok::<_, ArtifactError>(pb::ExecuteProgramResult {
+                    part_mesh,
+                    part_view,
                     faces,
                     final_stock: Some(final_stock.into()),
                     deviation_map,
@@ -426,6 +490,8 @@ impl pb::machine_service_server::MachineService for MachineServiceImpl {
                         cycle_time_no_adaptive_s: r.cycle_time_no_adaptive_s,
                         cycle_time_other_s: r.cycle_time_other_s,
                         removed_mm3: r.run.removed_mm3,
+                        against_part: r.part.as_ref().map(|p| figures(&p.against_part)),
+                        against_opened: r.part.as_ref().and_then(|p| p.against_opened.as_ref()).map(figures),
                     }),
                     diagnostics: r
                         .run

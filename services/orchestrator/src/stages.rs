@@ -441,6 +441,21 @@ impl StageRunner for GrpcStages {
                             Vec::new()
                         },
                         params: Some(convert::execute_params_for_job(&call.spec)),
+                        // The original part a multi-axis part is measured against: the input mesh,
+                        // else the cloud (the job's own in its units, a scanned one in millimetres).
+                        reference: call
+                            .artifacts
+                            .get("mesh")
+                            .or_else(|| call.artifacts.get("point_cloud"))
+                            .cloned()
+                            .map(Into::into),
+                        reference_units: if call.artifacts.contains_key("mesh")
+                            || call.spec.first_stage() == Stage::Reconstruct
+                        {
+                            convert::input_units(call.spec.input.units)
+                        } else {
+                            types::LengthUnit::Mm
+                        } as i32,
                     };
                     let mut client = machine::machine_service_client::MachineServiceClient::new(channel);
                     let stream =
@@ -461,7 +476,17 @@ impl StageRunner for GrpcStages {
                     put(&mut out, "telemetry", r.telemetry);
                     put(&mut out, "telemetry_plot", r.telemetry_plot);
                     put(&mut out, "machine_report", r.machine_report);
+                    put(&mut out, "machined_part", r.part_mesh);
+                    put(&mut out, "machined_part_view", r.part_view);
                     if let Some(m) = r.metrics {
+                        for (prefix, f) in [("original", &m.against_part), ("opened", &m.against_opened)] {
+                            let Some(f) = f else { continue };
+                            out.metrics.insert(format!("{prefix}_points"), f.points as f64);
+                            out.metrics.insert(format!("{prefix}_max_gouge_mm"), f.max_gouge_mm);
+                            out.metrics.insert(format!("{prefix}_max_leftover_mm"), f.max_leftover_mm);
+                            out.metrics.insert(format!("{prefix}_mean_leftover_mm"), f.mean_leftover_mm);
+                            out.metrics.insert(format!("{prefix}_rms_deviation_mm"), f.rms_deviation_mm);
+                        }
                         if let Some(other) = m.cycle_time_other_s {
                             out.metrics.insert("cycle_time_other_policy_s".into(), other);
                         }

@@ -1,5 +1,5 @@
-//! The job report: one self-contained HTML page (inline CSS, pictures as `data:` URIs, no script,
-//! no external request) showing what a job did, with pictures where a person would rather look
+//! The job report: one self-contained HTML page (inline CSS, pictures as `data:` URIs, one inline
+//! script for the 3-D view of a multi-axis part, no external request) showing what a job did, with pictures where a person would rather look
 //! than read; and the same pictures as files for `depthmill demo`'s output folder.
 //!
 //! [`render`] takes the job as `GET /v1/jobs/{id}` returns it and the bytes of its artifacts by
@@ -26,6 +26,9 @@
 //! - Machined part: `final_stock` (16-bit PNG height map), Lambert-lit; else the CAM's
 //!   `toolpath_preview`.
 //! - Deviation: `deviation_map` (8-bit PNG, stock − target, Z range ±max) on a diverging scale.
+//! - Simulated part in 3-D: `machined_part_view` (binary PLY mesh, deviation per vertex, from the
+//!   machine service for a multi-axis part) in an interactive viewer (`sections/solid.rs`), and
+//!   `machine_report.part` (figures against the original part and the opened part, per face).
 //! - Telemetry: `telemetry_plot` (SVG, embedded as an image so nothing in it runs), else the
 //!   `telemetry` CSV drawn with [`plot`].
 //! - Cycle time: `job.metrics` (or `machine_report`) with and without adaptation.
@@ -39,6 +42,7 @@
 //! - `sections/toolpaths.rs`: toolpaths over the depth map ([`toolpath_image`]);
 //! - `sections/part.rs`: the machined part, its deviation, against the original part and the
 //!   CAM's prediction;
+//! - `sections/solid.rs`: the simulated part in 3-D (the page's one script);
 //! - `sections/machine.rs`: telemetry and cycle time.
 //!
 //! The picture kit they share:
@@ -87,8 +91,8 @@ pub struct ReportInput<'a> {
 
 /// The rendered report.
 pub struct ReportOutput {
-    /// One self-contained HTML page: images embedded as `data:` URIs (PNG or SVG), inline CSS, no
-    /// scripts, no external requests.
+    /// One self-contained HTML page: images embedded as `data:` URIs (PNG or SVG), inline CSS, the
+    /// 3-D viewer's inline script when there is a simulated part mesh, no external requests.
     pub html: String,
     /// The same pictures as files (`depth_map.png`, `telemetry.svg`, ...), for an output folder.
     pub files: Vec<(String, Vec<u8>)>,
@@ -149,6 +153,7 @@ pub fn render(input: &ReportInput<'_>) -> Result<ReportOutput, ReportError> {
     body.push_str(&ctx.maps()?);
     body.push_str(&ctx.toolpaths()?);
     body.push_str(&ctx.machined()?);
+    body.push_str(&ctx.solid()?);
     body.push_str(&ctx.deviation()?);
     body.push_str(&ctx.telemetry());
     body.push_str(&ctx.cycle_time());

@@ -186,12 +186,47 @@ fn full_artifacts() -> BTreeMap<String, Vec<u8>> {
             "machine": "emco-f1", "cycle_time_s": 812.5, "cycle_time_no_adaptive_s": 1040.0,
             "cycle_time_other_s": 900.0, "other_policy": "feed_only",
             "run": {"policy": "aco"},
-            "deviation": {"max_gouge_mm": 0.012, "max_leftover_mm": 0.2, "mean_leftover_mm": 0.05, "rms_deviation_mm": 0.07, "cells": 9600}
+            "deviation": {"max_gouge_mm": 0.012, "max_leftover_mm": 0.2, "mean_leftover_mm": 0.05, "rms_deviation_mm": 0.07, "cells": 9600},
+            "part": {"source": "mesh", "points": 5000, "unseen": 1200, "max_search_mm": 10.0, "opened_by": "ball-3",
+                     "against_part": {"points": 3800, "max_gouge_mm": 0.021, "max_leftover_mm": 0.61, "mean_leftover_mm": 0.08, "rms_deviation_mm": 0.11},
+                     "against_opened": {"points": 3800, "max_gouge_mm": 0.021, "max_leftover_mm": 0.09, "mean_leftover_mm": 0.02, "rms_deviation_mm": 0.03},
+                     "faces": [{"a_deg": 0.0, "against_part": {"points": 2000, "max_gouge_mm": 0.02, "max_leftover_mm": 0.6, "mean_leftover_mm": 0.07, "rms_deviation_mm": 0.1}, "against_opened": null}]}
         }))
         .expect("json"),
     );
     a.insert("plan_report".to_string(), br#"{"estimated_time_s": 990.0}"#.to_vec());
+    a.insert("machined_part_view".to_string(), part_view_ply());
     a
+}
+
+/// A bumpy ball 20 mm across as the machine's view mesh, its deviation varying over it (NaN on a
+/// cap: not measured).
+fn part_view_ply() -> Vec<u8> {
+    let (nu, nv) = (48u32, 24u32);
+    let mut vertices = Vec::new();
+    let mut dev = Vec::new();
+    for j in 0..=nv {
+        let th = std::f64::consts::PI * f64::from(j) / f64::from(nv);
+        for i in 0..nu {
+            let ph = 2.0 * std::f64::consts::PI * f64::from(i) / f64::from(nu);
+            let r = 10.0 + 0.5 * (3.0 * ph).sin() * th.sin();
+            vertices.push(Point3::new(r * th.sin() * ph.cos(), r * th.sin() * ph.sin(), r * th.cos()));
+            dev.push(if j < 3 { f32::NAN } else { (0.05 * (2.0 * ph).sin()) as f32 });
+        }
+    }
+    let mut triangles = Vec::new();
+    for j in 0..nv {
+        for i in 0..nu {
+            let (a, b) = (j * nu + i, j * nu + (i + 1) % nu);
+            let (c, d) = (a + nu, b + nu);
+            triangles.push([a, c, b]);
+            triangles.push([b, c, d]);
+        }
+    }
+    let mesh = depthmill_geometry::Mesh::new(vertices, triangles).expect("mesh");
+    let mut out = Vec::new();
+    depthmill_geometry::formats::write_mesh_ply(&mut out, &mesh, "deviation", &dev, &[]).expect("ply");
+    out
 }
 
 fn job(name: &str, status: &str, artifacts: &BTreeMap<String, Vec<u8>>) -> Value {
@@ -318,7 +353,9 @@ fn a_full_job_has_every_section_and_every_picture_decodes() {
     }
     assert!(uris.iter().any(|u| u.0 == "image/svg+xml"));
     assert!(!out.html.contains("src=\"http") && !out.html.contains("href=\"http"));
-    assert!(!out.html.to_ascii_lowercase().contains("<script"));
+    // The one script is the 3-D viewer's.
+    assert_eq!(out.html.to_ascii_lowercase().matches("<script").count(), 1);
+    assert!(out.html.contains(&format!("<script>{}</script>", sections::solid::VIEWER_JS)));
     // Metrics and numbers a reader looks for.
     for needle in ["97.3 %", "0.012 mm", "0.200 mm", "0.050 mm", "0.070 mm", "21.9 %", "13 min", "feed_only"]
     {
@@ -545,7 +582,9 @@ fn text_from_the_job_is_escaped() {
     j["error"] = json!({"code": "<b>", "message": "<iframe>", "stage": "plan"});
     let out = render_ok(&j, &arts);
     let lower = out.html.to_ascii_lowercase();
-    assert!(!lower.contains("<script"), "unescaped script");
+    // The viewer's script only.
+    assert_eq!(lower.matches("<script").count(), 1, "unescaped script");
+    assert!(out.html.contains(&format!("<script>{}</script>", sections::solid::VIEWER_JS)));
     assert!(!lower.contains("<iframe") && !lower.contains("<img src=x"));
     assert!(out.html.contains("&lt;script&gt;alert(&#39;x&#39;)&lt;/script&gt;"));
 }
@@ -669,6 +708,97 @@ fn chromium_renders_the_page() {
     } else {
         let _ = std::fs::remove_dir_all(&dir);
     }
+}
+
+#[test]
+fn the_3d_view_shows_the_part_and_the_figures() {
+    let arts = full_artifacts();
+    let out = render_ok(&job("viewer", "succeeded", &arts), &arts);
+    let html = &out.html;
+    assert!(html.contains(r#"<section id="part3d">"#), "no 3-D section");
+    assert_eq!(html.matches("<script>").count(), 1, "one script: the viewer");
+    assert!(html.contains("class=\"viewer3d\"") && html.contains("tabindex=\"0\"") && html.contains("aria-label="));
+    assert!(html.contains("Part opened by ball-3") && html.contains("0.6100"), "figures table");
+    // No mesh: no section, no script. A bad mesh: a note, no script.
+    let mut none = full_artifacts();
+    none.remove("machined_part_view");
+    let out = render_ok(&job("no viewer", "succeeded", &none), &none);
+    assert!(!out.html.contains("<script>") && !out.html.contains("part3d"));
+    let mut bad = full_artifacts();
+    bad.insert("machined_part_view".into(), b"ply\nformat ascii 1.0\nend_header\n".to_vec());
+    let out = render_ok(&job("bad viewer", "succeeded", &bad), &bad);
+    assert!(!out.html.contains("<script>") && out.html.contains("could not be read"), "a note names the problem");
+}
+
+/// The viewer runs in the real browser: it draws the part, and dragging, a key and the wheel turn
+/// and zoom it.
+#[test]
+fn chromium_turns_the_3d_view() {
+    let Some(bin) = chromium() else {
+        if std::env::var("DEPTHMILL_REQUIRE_CHROMIUM").as_deref() == Ok("1") {
+            panic!("DEPTHMILL_REQUIRE_CHROMIUM=1 but no chromium, chromium-browser or google-chrome on PATH");
+        }
+        eprintln!("skipped: no chromium on PATH (set DEPTHMILL_REQUIRE_CHROMIUM=1 to make this fail)");
+        return;
+    };
+    let arts = full_artifacts();
+    let out = render_ok(&job("viewer check", "succeeded", &arts), &arts);
+    // After the page's own script: count the canvas's drawn pixels, then drag, press a key and
+    // turn the wheel, and write what the viewer reports into the page for --dump-dom.
+    let probe = r#"<script>
+(function () {
+  var f = document.querySelector('figure.viewer3d'), cv = f.querySelector('canvas');
+  var px = cv.getContext('2d').getImageData(0, 0, cv.width, cv.height).data, coloured = 0;
+  for (var i = 0; i < px.length; i += 4) {
+    var mx = Math.max(px[i], px[i + 1], px[i + 2]), mn = Math.min(px[i], px[i + 1], px[i + 2]);
+    if (mx < 250 || mx - mn > 30) coloured++;
+  }
+  var before = [f.dataset.yaw, f.dataset.pitch, f.dataset.zoom, f.dataset.drawn];
+  var ev = function (type, x, y) { return new PointerEvent(type, { clientX: x, clientY: y, pointerId: 7, bubbles: true }); };
+  cv.dispatchEvent(ev('pointerdown', 100, 100));
+  cv.dispatchEvent(ev('pointermove', 160, 130));
+  cv.dispatchEvent(ev('pointerup', 160, 130));
+  var dragged = [f.dataset.yaw, f.dataset.pitch];
+  cv.dispatchEvent(new KeyboardEvent('keydown', { key: 'ArrowRight', bubbles: true }));
+  cv.dispatchEvent(new WheelEvent('wheel', { deltaY: -200, bubbles: true, cancelable: true }));
+  var out = document.createElement('pre');
+  out.id = 'probe';
+  out.textContent = JSON.stringify({ coloured: coloured, before: before, dragged: dragged, after: [f.dataset.yaw, f.dataset.zoom] });
+  document.body.appendChild(out);
+})();
+</script>"#;
+    let page_html = out.html.replace("</body>", &format!("{probe}</body>"));
+    let dir = std::env::temp_dir().join(format!("depthmill-viewer-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("tmp");
+    let page = dir.join("report.html");
+    std::fs::write(&page, page_html).expect("write");
+    let output = std::process::Command::new(&bin)
+        .args([
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            &format!("--user-data-dir={}", dir.join("profile").display()),
+            "--virtual-time-budget=5000",
+            "--dump-dom",
+            &format!("file://{}", page.display()),
+        ])
+        .stderr(std::process::Stdio::null())
+        .output()
+        .expect("run chromium");
+    let _ = std::fs::remove_dir_all(&dir);
+    assert!(output.status.success(), "chromium exited with {}", output.status);
+    let dom = String::from_utf8_lossy(&output.stdout);
+    let start = dom.find("<pre id=\"probe\">").expect("the probe ran") + "<pre id=\"probe\">".len();
+    let end = start + dom[start..].find("</pre>").expect("end of the probe");
+    let probe: Value = serde_json::from_str(&dom[start..end].replace("&quot;", "\"")).expect("probe JSON");
+    let num = |v: &Value| v.as_str().and_then(|s| s.parse::<f64>().ok()).expect("a number");
+    assert!(probe["coloured"].as_u64().unwrap_or(0) > 20_000, "the part is drawn: {probe}");
+    let drawn = num(&probe["before"][3]);
+    assert!(drawn > 500.0 && drawn < 2304.0, "front faces only: {probe}");
+    assert!((num(&probe["dragged"][0]) - num(&probe["before"][0]) - 0.6).abs() < 1e-3, "drag turns: {probe}");
+    assert!((num(&probe["dragged"][1]) - num(&probe["before"][1]) - 0.3).abs() < 1e-3, "drag tilts: {probe}");
+    assert!((num(&probe["after"][0]) - num(&probe["dragged"][0]) - 0.1).abs() < 1e-3, "the arrow key turns: {probe}");
+    assert!(num(&probe["after"][1]) > num(&probe["before"][2]) * 1.2, "the wheel zooms in: {probe}");
 }
 
 /// Release timing on a realistic job: `cargo test --release -- --ignored --nocapture timing`.

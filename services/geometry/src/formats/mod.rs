@@ -32,6 +32,7 @@
 //!   `max_bytes` is checked against the size when it is known and enforced on the stream as well.
 
 pub mod error;
+pub mod mesh_ply;
 pub mod ply;
 pub mod stl;
 pub mod xyz;
@@ -47,6 +48,7 @@ use nalgebra::{Point3, Vector3};
 use crate::mesh::Mesh;
 pub use error::{FormatError, Location, Result};
 
+pub use mesh_ply::{read_mesh_ply, write_mesh_ply};
 pub use ply::{PlyEncoding, read_ply_cloud_with_pass, read_ply_from, write_ply};
 pub use stl::{read_stl_from, write_stl};
 pub use xyz::read_xyz_from;

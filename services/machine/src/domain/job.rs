@@ -15,6 +15,7 @@
 //! deepest feed move up to Z 0 (the common hand-written convention: work Z 0 on the stock top).
 
 use std::io::BufRead;
+use std::sync::Arc;
 
 use depthmill_geometry::{HeightMap, HeightMapMeta, ToolProfile, ToolSpec};
 use depthmill_report::plot::{Chart, Panel, Series};
@@ -22,11 +23,13 @@ use serde::Serialize;
 
 use super::cutting::{Material, material, materials};
 use super::dexel::DexelCells;
+use super::dexel::surface::MAX_SURFACE_SAMPLES;
+use super::part::{MeasureFace, PartDeviation, measure, vertex_deviation};
 use super::gcode::{Canon, InterpConfig, run};
 use super::profile::MachineProfile;
 use super::sim::{
     Inclusion, MachineTool, PolicyKind, SimError, SimReport, SimSetup, StockSpec, TelemetryRow, active_names,
-    simulate,
+    simulate, simulate_stock,
 };
 
 /// A box as (min, max) corners.
@@ -54,6 +57,34 @@ pub struct ExecuteOptions {
     /// Cell sizes of the dexel grids of a multi-axis part (every grid at the cell size when
     /// `None`).
     pub dexel: Option<DexelCells>,
+    /// The original part, which a multi-axis part's simulated stock is measured against.
+    pub reference: Option<Arc<Reference>>,
+}
+
+/// Points on the original part's surface in the part frame (see [`super::part`]).
+#[derive(Debug, Clone)]
+pub struct Reference {
+    /// What they are, for the report (e.g. `point_cloud`, `mesh`).
+    pub source: String,
+    pub points: Vec<nalgebra::Point3<f64>>,
+}
+
+/// Lattice samples of the simulated part's mesh in the report's 3-D view (2^20: about 100 per
+/// side).
+pub const VIEW_SAMPLES: u64 = 1 << 20;
+
+/// The simulated part's meshes.
+#[derive(Debug, Clone, Serialize)]
+pub struct PartMesh {
+    /// The STL's lattice step and size.
+    pub step_mm: f64,
+    pub triangles: usize,
+    /// Volume the mesh encloses, and the dexels' own volume.
+    pub volume_mm3: f64,
+    pub dexel_volume_mm3: f64,
+    /// The view mesh's step and size.
+    pub view_step_mm: f64,
+    pub view_triangles: usize,
 }
 
 impl Default for ExecuteOptions {
@@ -70,6 +101,7 @@ impl Default for ExecuteOptions {
             compare: true,
             seed: 1,
             dexel: None,
+            reference: None,
         }
     }
 }
@@ -108,6 +140,10 @@ pub struct ExecuteReport {
     pub notes: Vec<String>,
     /// Each face of a multi-face part (empty for one face).
     pub faces: Vec<FaceSummary>,
+    /// A multi-axis part against the original part (when the job gave one).
+    pub part: Option<PartDeviation>,
+    /// A multi-axis part's simulated meshes.
+    pub part_mesh: Option<PartMesh>,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -127,6 +163,11 @@ pub struct ExecuteOutput {
     pub faces: Vec<FaceResult>,
     pub telemetry_csv: String,
     pub telemetry_svg: String,
+    /// A multi-axis part: the simulated part as binary STL (closed, wound outward).
+    pub part_stl: Option<Vec<u8>>,
+    /// ... and a coarser mesh with each vertex's deviation from the original part (NaN where it
+    /// was not measured) as binary PLY ([`depthmill_geometry::formats::write_mesh_ply`]).
+    pub part_view_ply: Option<Vec<u8>>,
 }
 
 /// Errors of the stage.
@@ -501,7 +542,7 @@ pub fn execute_faces(
                 rows.push(*r);
                 observe(r);
             };
-            Ok(super::sim::simulate_faces(open()?, &main_setup, stop, &mut sink)?)
+            Ok(simulate_stock(open()?, &main_setup, stop, &mut sink)?)
         },
         || {
             other
@@ -512,7 +553,7 @@ pub fn execute_faces(
                 .transpose()
         },
     );
-    let (run_report, stocks) = main?;
+    let (run_report, stocks, dexel) = main?;
     let other_run = other_run?;
     let final_stock = stocks
         .first()
@@ -536,6 +577,23 @@ pub fn execute_faces(
         }]
     };
     let deviation = combine_deviations(&faces);
+    // The program's smallest tool opens the part (the finest it can reach).
+    let opening = tools
+        .iter()
+        .filter(|t| header.iter().any(|h| h.0 == t.number))
+        .min_by(|a, b| a.profile.radius_mm().total_cmp(&b.profile.radius_mm()));
+    let measured = match (&dexel, &opts.reference) {
+        (Some(stock), Some(r)) => {
+            let faces: Vec<MeasureFace<'_>> =
+                targets.iter().map(|t| MeasureFace { a_deg: t.a_deg, map: t.map }).collect();
+            Some(measure(stock, &r.source, &r.points, &faces, opening.map(|t| (t.name.as_str(), &t.profile))))
+        }
+        _ => None,
+    };
+    let meshes = match &dexel {
+        Some(stock) => Some(part_meshes(stock, opts.reference.as_deref(), measured.as_ref())?),
+        None => None,
+    };
     let cycle = run_report.cycle_time_s;
     let report = ExecuteReport {
         machine: profile.name.clone(),
@@ -568,10 +626,52 @@ pub fn execute_faces(
         } else {
             Vec::new()
         },
+        part: measured,
+        part_mesh: meshes.as_ref().map(|m| m.0.clone()),
     };
     let telemetry_csv = telemetry_csv(&rows);
     let telemetry_svg = telemetry_chart(&rows, report.run.policy).to_svg();
-    Ok(ExecuteOutput { report, final_stock, faces, telemetry_csv, telemetry_svg })
+    let (part_stl, part_view_ply) = meshes.map_or((None, None), |(_, stl, ply)| (Some(stl), Some(ply)));
+    Ok(ExecuteOutput { report, final_stock, faces, telemetry_csv, telemetry_svg, part_stl, part_view_ply })
+}
+
+/// The simulated part as STL (on the finest lattice within [`MAX_SURFACE_SAMPLES`]) and as the
+/// view mesh (within [`VIEW_SAMPLES`]) coloured by the deviation of the nearest measured point.
+fn part_meshes(
+    stock: &super::dexel::DexelStock,
+    reference: Option<&Reference>,
+    measured: Option<&PartDeviation>,
+) -> Result<(PartMesh, Vec<u8>, Vec<u8>), ExecuteError> {
+    let mesh_err = |e: super::dexel::DexelError| invalid("part mesh", "dexel stock", &e.to_string());
+    let write_err = |e: depthmill_geometry::formats::FormatError| invalid("part mesh", "bytes", &e.to_string());
+    let step = stock.surface_step_mm(MAX_SURFACE_SAMPLES);
+    let mesh = stock.surface_mesh(step).map_err(mesh_err)?;
+    let mut stl = Vec::new();
+    depthmill_geometry::formats::write_stl(&mut stl, &mesh, "depthmill simulated part (mm)").map_err(write_err)?;
+    let view_step = stock.surface_step_mm(VIEW_SAMPLES);
+    let view = stock.surface_mesh(view_step).map_err(mesh_err)?;
+    let values = match (reference, measured) {
+        (Some(r), Some(m)) => vertex_deviation(&view.vertices, &r.points, &m.per_point, (2.0 * view_step).max(0.5)),
+        _ => vec![f32::NAN; view.vertices.len()],
+    };
+    let mut ply = Vec::new();
+    depthmill_geometry::formats::write_mesh_ply(
+        &mut ply,
+        &view,
+        "deviation",
+        &values,
+        &["depthmill simulated part: deviation from the original part, mm (NaN: not measured)".into()],
+    )
+    .map_err(write_err)?;
+    let info = PartMesh {
+        step_mm: step,
+        triangles: mesh.triangles.len(),
+        volume_mm3: super::dexel::surface::mesh_volume_mm3(&mesh),
+        dexel_volume_mm3: stock.volume_mm3(),
+        view_step_mm: view_step,
+        view_triangles: view.triangles.len(),
+    };
+    Ok((info, stl, ply))
 }
 
 /// The deviation over every face: worst gouge and leftover, mean and RMS over all cells; the

@@ -1135,6 +1135,18 @@ pub fn simulate_faces<R: BufRead>(
     stop: &dyn Fn() -> bool,
     observe: Observer<'_>,
 ) -> Result<(SimReport, Vec<(f64, HeightMap)>), SimError> {
+    let (report, maps, _) = simulate_stock(program, setup, stop, observe)?;
+    Ok((report, maps))
+}
+
+/// Like [`simulate_faces`], also returning the one dexel stock of a multi-axis part (`None` for
+/// a 3-axis part on its Z-map, or motion only).
+pub fn simulate_stock<R: BufRead>(
+    program: R,
+    setup: &SimSetup,
+    stop: &dyn Fn() -> bool,
+    observe: Observer<'_>,
+) -> Result<(SimReport, Vec<(f64, HeightMap)>, Option<DexelStock>), SimError> {
     let mut machine = Machine::new(setup)?;
     let mut interp = Interpreter::new(machine.interp_config());
     let mut buf: Vec<Canon> = Vec::with_capacity(8);
@@ -1165,7 +1177,8 @@ pub fn simulate_faces<R: BufRead>(
     machine.report.blocks = interp.blocks();
     machine.finish_report();
     let maps = machine.face_maps()?;
-    Ok((machine.report, maps))
+    let dexel = machine.dexel.take().map(|(d, _)| d);
+    Ok((machine.report, maps, dexel))
 }
 
 #[cfg(test)]

@@ -5,6 +5,7 @@ mod faces;
 mod machine;
 pub(crate) mod part;
 mod scan;
+pub(crate) mod solid;
 mod summary;
 mod toolpaths;
 

@@ -38,6 +38,7 @@
 //! definitions as [`crate::domain::removal`] (front half, contact radius, half a cell of
 //! padding; 10° sectors for a plunge).
 
+pub mod surface;
 pub mod sweep;
 #[cfg(test)]
 mod tests;
@@ -87,6 +88,10 @@ pub enum DexelError {
     Map(String),
     #[error("no dexel grid: set at least one of the cell sizes along X, Y and Z")]
     NoGrid,
+    #[error(
+        "the surface lattice at a step of {step_mm} mm would take {samples} samples, more than the limit of {limit}: take a coarser step"
+    )]
+    TooManySamples { step_mm: f64, samples: u64, limit: u64 },
     #[error("a move turning the tool by {angle_deg:.3}° needs {steps} steps, more than the limit of {limit}")]
     TooManySteps { angle_deg: f64, steps: f64, limit: usize },
 }
@@ -350,6 +355,8 @@ pub struct HardSphere {
 pub struct DexelStock {
     grids: Vec<Grid>,
     hard: Vec<HardSphere>,
+    /// The blank's bounding box (the material only shrinks).
+    extent: ([f64; 3], [f64; 3]),
 }
 
 impl DexelStock {
@@ -421,7 +428,7 @@ impl DexelStock {
                 g
             })
             .collect();
-        Ok(DexelStock { grids, hard: Vec::new() })
+        Ok(DexelStock { grids, hard: Vec::new(), extent: (lo, hi) })
     }
 
     /// Makes the material inside a sphere weigh `factor` (a hard inclusion).

@@ -1,3 +1,4 @@
+use super::surface::MAX_SURFACE_SAMPLES;
 use super::*;
 use crate::domain::removal::Stock;
 use depthmill_geometry::ToolProfile;
@@ -360,4 +361,100 @@ fn bad_parameters_are_named_before_anything_is_allocated() {
         .cut_line(&solid, &Point3::new(f64::NAN, 0.0, 0.0), &Point3::origin(), &z_axis())
         .expect_err("nan");
     assert!(err.to_string().contains("from"), "{err}");
+}
+
+/// A block with a tilted ball groove and a flat pocket, on three grids.
+fn cut_block(cell: f64) -> DexelStock {
+    let mut dex = DexelStock::new(&block(20.0, 16.0, 10.0), &DexelCells::tri(cell)).expect("dexel");
+    let ball = ToolSolid::new(&ToolProfile::ball(6.0).expect("ball"), 30.0).expect("solid");
+    let flat = ToolSolid::new(&ToolProfile::flat(4.0).expect("flat"), 30.0).expect("solid");
+    let tilted = Unit::new_normalize(Vector3::new(0.0, -0.5, 1.0));
+    dex.cut_line(&ball, &Point3::new(-4.0, 5.0, 7.0), &Point3::new(24.0, 9.0, 8.0), &tilted).expect("groove");
+    dex.cut_line(&flat, &Point3::new(5.0, 12.0, 6.0), &Point3::new(14.0, 12.0, 6.0), &z_axis()).expect("pocket");
+    dex
+}
+
+/// Brute force: the squared distance from `p` to the nearest dexel end of any grid, each end
+/// taken as its ray's cell square.
+fn nearest_end_reference(dex: &DexelStock, p: &Point3<f64>) -> f64 {
+    let mut best = f64::INFINITY;
+    for g in &dex.grids {
+        let (a, b) = plane_axes(g.axis);
+        for j in 0..g.n[1] {
+            for i in 0..g.n[0] {
+                let gap = |x: f64, lo: f64| {
+                    if x < lo {
+                        lo - x
+                    } else if x > lo + g.cell {
+                        x - lo - g.cell
+                    } else {
+                        0.0
+                    }
+                };
+                let dx = gap(p[a], g.origin[0] + i as f64 * g.cell);
+                let dy = gap(p[b], g.origin[1] + j as f64 * g.cell);
+                for s in &g.rays[j * g.n[0] + i] {
+                    for e in [s[0], s[1]] {
+                        let d = f64::from(e) - p[g.axis];
+                        best = best.min(dx * dx + dy * dy + d * d);
+                    }
+                }
+            }
+        }
+    }
+    best
+}
+
+#[test]
+fn surface_distance_is_the_nearest_dexel_end() {
+    let dex = cut_block(0.4);
+    let mut rng = StdRng::seed_from_u64(21);
+    for _ in 0..400 {
+        let p = Point3::new(
+            rng.random_range(-3.0..23.0),
+            rng.random_range(-3.0..19.0),
+            rng.random_range(-3.0..13.0),
+        );
+        let reference = nearest_end_reference(&dex, &p).sqrt();
+        match dex.surface_distance(&p, 5.0) {
+            Some(d) => assert!((d - reference).abs() < 1e-9, "{p:?}: {d} against {reference}"),
+            None => assert!(reference > 5.0 - 1e-9, "{p:?}: none within 5 mm, the reference has {reference}"),
+        }
+        let signed = dex.deviation_at(&p, 5.0);
+        assert_eq!(signed > 0.0, dex.inside(&p) && reference > 0.0, "{p:?}: sign of {signed}");
+    }
+    // On a face seen along a grid's rays the distance is exact: 0.3 mm above the untouched top.
+    let d = dex.surface_distance(&Point3::new(18.9, 1.1, 10.3), 5.0).expect("near the top");
+    assert!((d - 0.3).abs() < 1e-5, "{d}");
+    assert!(dex.deviation_at(&Point3::new(18.9, 1.1, 9.8), 5.0) > 0.19);
+}
+
+#[test]
+fn the_surface_mesh_is_closed_wound_outward_and_holds_the_stocks_volume() {
+    let dex = cut_block(0.25);
+    let step = dex.surface_step_mm(MAX_SURFACE_SAMPLES);
+    assert!((step - 0.25).abs() < 1e-12, "a small stock is meshed at its cell: {step}");
+    let mesh = dex.surface_mesh(step).expect("mesh");
+    assert!(mesh.triangles.len() > 1000);
+    // Watertight: every directed edge is matched by the same edge the other way.
+    let mut edges: std::collections::HashMap<(u32, u32), i64> = std::collections::HashMap::new();
+    for t in &mesh.triangles {
+        for k in 0..3 {
+            let (a, b) = (t[k], t[(k + 1) % 3]);
+            *edges.entry((a.min(b), a.max(b))).or_default() += if a < b { 1 } else { -1 };
+        }
+    }
+    assert!(edges.values().all(|&c| c == 0), "an edge is not matched by its reverse");
+    let (v_mesh, v_dex) = (surface::mesh_volume_mm3(&mesh), dex.volume_mm3());
+    assert!(v_mesh > 0.0, "wound outward");
+    assert!((v_mesh - v_dex).abs() < 0.01 * v_dex, "mesh {v_mesh} mm³ against the dexels' {v_dex}");
+    // Every vertex lies on the part's surface within a lattice step.
+    for v in mesh.vertices.iter().step_by(7) {
+        let d = dex.surface_distance(v, 2.0).unwrap_or(2.0);
+        assert!(d <= step, "vertex {v:?} is {d} mm from the surface");
+    }
+    // A coarser lattice when the samples are limited; a bad step is named.
+    assert!(dex.surface_step_mm(20_000) > 0.25);
+    assert!(matches!(dex.surface_mesh(0.001), Err(DexelError::TooManySamples { .. })));
+    assert!(matches!(dex.surface_mesh(f64::NAN), Err(DexelError::Invalid { .. })));
 }
