@@ -111,8 +111,39 @@ async fn a_two_face_part_is_planned_with_the_a_axis_and_machined_on_both_faces()
         assert!(rms < 1.0, "face {}: RMS {rms}", f["a_deg"]);
     }
     assert_eq!(faces[1]["a_deg"], 90.0);
+    // The one stock measured against the original part (the input mesh, sampled) and against the
+    // part opened by the smallest tool (ball-3).
+    let m = &done["metrics"];
+    println!(
+        "against the part: {}; opened: {}; faces {}",
+        report["part"]["against_part"], report["part"]["against_opened"], report["part"]["faces"]
+    );
+    let metric = |k: &str| m[k].as_f64().unwrap_or_else(|| panic!("metric {k} missing: {m}"));
+    assert!(metric("original_points") > 10_000.0, "{m}");
+    assert!(metric("original_max_gouge_mm") < 0.15, "{m}");
+    assert_eq!(report["part"]["opened_by"], "ball-3", "{report}");
+    assert!(metric("opened_max_gouge_mm") <= metric("original_max_gouge_mm") + 1e-12);
+    assert!(metric("opened_mean_leftover_mm") <= metric("original_mean_leftover_mm") + 1e-12);
+    // The simulated part as a closed STL whose volume is the stock's.
+    let sha = done["artifacts"]["machined_part"]["sha256"].as_str().expect("machined_part");
+    let stl = stack.http.get(stack.url(&format!("/v1/artifacts/{sha}"))).send().await?.bytes().await?;
+    let (mesh, stats) = depthmill_geometry::formats::read_stl_from(
+        std::io::Cursor::new(stl.to_vec()),
+        "machined_part",
+        Some(stl.len() as u64),
+        &depthmill_geometry::formats::ReadLimits::default(),
+    )?;
+    let info = &report["part_mesh"];
+    // Every triangle written is read back but the few flat slivers a reader drops as zero-area.
+    let written = info["triangles"].as_u64().unwrap_or(0);
+    assert_eq!(mesh.triangles.len() as u64 + stats.dropped_triangles, written, "{info}");
+    assert!(stats.dropped_triangles * 100 < written, "{} of {written} dropped", stats.dropped_triangles);
+    let (v_mesh, v_dexel) =
+        (info["volume_mm3"].as_f64().unwrap_or(0.0), info["dexel_volume_mm3"].as_f64().unwrap_or(1.0));
+    assert!((v_mesh - v_dexel).abs() < 0.02 * v_dexel, "{info}");
     // The report shows each face.
     let page = stack.http.get(stack.url(&format!("/v1/jobs/{id}/report"))).send().await?.text().await?;
     assert!(page.contains("Face 2"), "the report shows the second face");
+    assert!(page.contains(r#"<section id="part3d">"#), "the report shows the part in 3-D");
     stack.shutdown().await
 }

@@ -26,11 +26,14 @@
 //!   [`mesh_raster`]: a mesh's exact top surface at cell centres (z-buffer).
 //! - [`pose`]: [`Pose`], [`XyzYpr`] (ZYX angles), [`Face::view_from_part`].
 //! - [`tool`]: [`ToolProfile`] (solid of revolution) and [`ToolSpec`] (`ball-6`, `v-6-90`, ...).
+//! - [`compensate`]: tool compensation of a height map (grayscale dilation by the tool, exact and
+//!   fast), for the CAM's toolpaths and the machine's part opened by the tools.
 //! - [`artifact`]: [`ArtifactRef`] and [`MediaType`].
 //! - [`units`]: [`LengthUnit`], [`Units`] (given or detected from the header and the size).
 
 pub mod artifact;
 pub mod cloud;
+pub mod compensate;
 pub mod error;
 pub mod face;
 pub mod formats;

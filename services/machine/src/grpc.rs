@@ -211,9 +211,12 @@ impl MachineServiceImpl {
         use depthmill_geometry::formats::{Geometry, ReadLimits, read_any_from};
         let units = depthmill_proto::convert::units(units)
             .map_err(|v| ErrorCode::InvalidArgument.status(format!("reference_units: unknown unit {v}")))?;
-        let stat = self.store.stat(sha).await.map_err(artifact_status)?.ok_or_else(|| {
-            ErrorCode::InvalidArgument.status(format!("reference: no artifact {sha}"))
-        })?;
+        let stat = self
+            .store
+            .stat(sha)
+            .await
+            .map_err(artifact_status)?
+            .ok_or_else(|| ErrorCode::InvalidArgument.status(format!("reference: no artifact {sha}")))?;
         let path = self.store.local_path(sha).ok_or_else(|| {
             ErrorCode::Internal.status("the artifact store has no local file for the reference")
         })?;
@@ -232,10 +235,15 @@ impl MachineServiceImpl {
                 .map_err(|e| ErrorCode::Internal.status(format!("{name}: cannot read: {e}")))?;
             depthmill_geometry::units::normalise(&mut geometry, &head, units);
             Ok(match geometry {
-                Geometry::Mesh(m) => Reference { source: "mesh".into(), points: mesh_samples(&m, MAX_REFERENCE_POINTS) },
+                Geometry::Mesh(m) => {
+                    Reference { source: "mesh".into(), points: mesh_samples(&m, MAX_REFERENCE_POINTS) }
+                }
                 Geometry::Cloud(c) => {
                     let stride = c.points.len().div_ceil(MAX_REFERENCE_POINTS).max(1);
-                    Reference { source: "point cloud".into(), points: c.points.into_iter().step_by(stride).collect() }
+                    Reference {
+                        source: "point cloud".into(),
+                        points: c.points.into_iter().step_by(stride).collect(),
+                    }
                 }
             })
         })

@@ -717,7 +717,11 @@ fn the_3d_view_shows_the_part_and_the_figures() {
     let html = &out.html;
     assert!(html.contains(r#"<section id="part3d">"#), "no 3-D section");
     assert_eq!(html.matches("<script>").count(), 1, "one script: the viewer");
-    assert!(html.contains("class=\"viewer3d\"") && html.contains("tabindex=\"0\"") && html.contains("aria-label="));
+    assert!(
+        html.contains("class=\"viewer3d\"")
+            && html.contains("tabindex=\"0\"")
+            && html.contains("aria-label=")
+    );
     assert!(html.contains("Part opened by ball-3") && html.contains("0.6100"), "figures table");
     // No mesh: no section, no script. A bad mesh: a note, no script.
     let mut none = full_artifacts();
@@ -727,7 +731,10 @@ fn the_3d_view_shows_the_part_and_the_figures() {
     let mut bad = full_artifacts();
     bad.insert("machined_part_view".into(), b"ply\nformat ascii 1.0\nend_header\n".to_vec());
     let out = render_ok(&job("bad viewer", "succeeded", &bad), &bad);
-    assert!(!out.html.contains("<script>") && out.html.contains("could not be read"), "a note names the problem");
+    assert!(
+        !out.html.contains("<script>") && out.html.contains("could not be read"),
+        "a note names the problem"
+    );
 }
 
 /// The viewer runs in the real browser: it draws the part, and dragging, a key and the wheel turn
@@ -797,7 +804,10 @@ fn chromium_turns_the_3d_view() {
     assert!(drawn > 500.0 && drawn < 2304.0, "front faces only: {probe}");
     assert!((num(&probe["dragged"][0]) - num(&probe["before"][0]) - 0.6).abs() < 1e-3, "drag turns: {probe}");
     assert!((num(&probe["dragged"][1]) - num(&probe["before"][1]) - 0.3).abs() < 1e-3, "drag tilts: {probe}");
-    assert!((num(&probe["after"][0]) - num(&probe["dragged"][0]) - 0.1).abs() < 1e-3, "the arrow key turns: {probe}");
+    assert!(
+        (num(&probe["after"][0]) - num(&probe["dragged"][0]) - 0.1).abs() < 1e-3,
+        "the arrow key turns: {probe}"
+    );
     assert!(num(&probe["after"][1]) > num(&probe["before"][2]) * 1.2, "the wheel zooms in: {probe}");
 }
 

@@ -80,21 +80,21 @@ fn bad(at: u64, problem: impl Into<String>) -> FormatError {
 /// Errors: a header of another layout (naming the line that differs), counts the bytes cannot
 /// hold, a face that is not a triangle or an index out of range (naming the face and its byte).
 pub fn read_mesh_ply(bytes: &[u8]) -> Result<(Mesh, String, Vec<f32>)> {
-    let end = bytes
-        .windows(11)
-        .position(|w| w == b"end_header\n")
-        .ok_or_else(|| bad(0, "no `end_header` line"))?;
+    let end =
+        bytes.windows(11).position(|w| w == b"end_header\n").ok_or_else(|| bad(0, "no `end_header` line"))?;
     let head = std::str::from_utf8(&bytes[..end]).map_err(|_| bad(0, "the header is not text"))?;
     let mut lines = head.lines().filter(|l| !l.starts_with("comment"));
     let mut expect = |want: &str| -> Result<String> {
         let line = lines.next().unwrap_or("");
-        if line.starts_with(want) { Ok(line[want.len()..].trim().to_string()) } else {
-            Err(bad(0, format!("expected a header line `{want}...`, found {line:?}")))
+        match line.strip_prefix(want) {
+            Some(rest) => Ok(rest.trim().to_string()),
+            None => Err(bad(0, format!("expected a header line `{want}...`, found {line:?}"))),
         }
     };
     expect("ply")?;
     expect("format binary_little_endian 1.0")?;
-    let nv: usize = expect("element vertex")?.parse().map_err(|_| bad(0, "the vertex count is not a number"))?;
+    let nv: usize =
+        expect("element vertex")?.parse().map_err(|_| bad(0, "the vertex count is not a number"))?;
     for axis in ["x", "y", "z"] {
         let got = expect("property float")?;
         if got != axis {
@@ -111,7 +111,10 @@ pub fn read_mesh_ply(bytes: &[u8]) -> Result<(Mesh, String, Vec<f32>)> {
     let need = (nv as u64).saturating_mul(16).saturating_add((nf as u64).saturating_mul(13));
     let have = bytes.len() as u64 - body;
     if have != need {
-        return Err(bad(body, format!("{nv} vertices and {nf} triangles need {need} bytes, the file has {have}")));
+        return Err(bad(
+            body,
+            format!("{nv} vertices and {nf} triangles need {need} bytes, the file has {have}"),
+        ));
     }
     let f32_at = |o: usize| f32::from_le_bytes([bytes[o], bytes[o + 1], bytes[o + 2], bytes[o + 3]]);
     let mut vertices = Vec::with_capacity(nv);

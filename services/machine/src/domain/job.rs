@@ -24,8 +24,8 @@ use serde::Serialize;
 use super::cutting::{Material, material, materials};
 use super::dexel::DexelCells;
 use super::dexel::surface::MAX_SURFACE_SAMPLES;
-use super::part::{MeasureFace, PartDeviation, measure, vertex_deviation};
 use super::gcode::{Canon, InterpConfig, run};
+use super::part::{MeasureFace, PartDeviation, measure, vertex_deviation};
 use super::profile::MachineProfile;
 use super::sim::{
     Inclusion, MachineTool, PolicyKind, SimError, SimReport, SimSetup, StockSpec, TelemetryRow, active_names,
@@ -643,15 +643,19 @@ fn part_meshes(
     measured: Option<&PartDeviation>,
 ) -> Result<(PartMesh, Vec<u8>, Vec<u8>), ExecuteError> {
     let mesh_err = |e: super::dexel::DexelError| invalid("part mesh", "dexel stock", &e.to_string());
-    let write_err = |e: depthmill_geometry::formats::FormatError| invalid("part mesh", "bytes", &e.to_string());
+    let write_err =
+        |e: depthmill_geometry::formats::FormatError| invalid("part mesh", "bytes", &e.to_string());
     let step = stock.surface_step_mm(MAX_SURFACE_SAMPLES);
     let mesh = stock.surface_mesh(step).map_err(mesh_err)?;
     let mut stl = Vec::new();
-    depthmill_geometry::formats::write_stl(&mut stl, &mesh, "depthmill simulated part (mm)").map_err(write_err)?;
+    depthmill_geometry::formats::write_stl(&mut stl, &mesh, "depthmill simulated part (mm)")
+        .map_err(write_err)?;
     let view_step = stock.surface_step_mm(VIEW_SAMPLES);
     let view = stock.surface_mesh(view_step).map_err(mesh_err)?;
     let values = match (reference, measured) {
-        (Some(r), Some(m)) => vertex_deviation(&view.vertices, &r.points, &m.per_point, (2.0 * view_step).max(0.5)),
+        (Some(r), Some(m)) => {
+            vertex_deviation(&view.vertices, &r.points, &m.per_point, (2.0 * view_step).max(0.5))
+        }
         _ => vec![f32::NAN; view.vertices.len()],
     };
     let mut ply = Vec::new();

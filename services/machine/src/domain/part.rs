@@ -14,11 +14,11 @@
 //!
 //! Against the part opened by the tools: the opening of each face's target map by the program's
 //! smallest tool (dilated by the tool into the surface its tip follows, then eroded back by the
-//! tool: the surface the tool leaves where it cannot reach into a concave corner; the CAM
-//! service's compensation kernel does both). A point's leftover there is what exceeds the
+//! tool: the surface the tool leaves where it cannot reach into a concave corner;
+//! [`depthmill_geometry::compensate`], the CAM service's kernel, does both). A point's leftover there is what exceeds the
 //! material the opening itself leaves above it; gouges are the same as against the part.
 
-use depthmill_cam::domain::compensate::{PixelModel, dilate, kernel};
+use depthmill_geometry::compensate::{PixelModel, dilate, kernel};
 use depthmill_geometry::{HeightMap, ToolProfile};
 use nalgebra::Point3;
 use rayon::prelude::*;
@@ -111,7 +111,11 @@ pub fn opened(map: &HeightMap, tool: &ToolProfile) -> Option<HeightMap> {
     // Erosion = −dilation of the negated surface (the tool is symmetric); outside the map there
     // is nothing to erode against.
     let surface: Vec<f32> = dilate(&neg_map, &k, f32::NEG_INFINITY).into_iter().map(|z| -z).collect();
-    let data = surface.iter().zip(map.data()).map(|(&s, &t)| if t.is_finite() { s.max(t) } else { f32::NAN }).collect();
+    let data = surface
+        .iter()
+        .zip(map.data())
+        .map(|(&s, &t)| if t.is_finite() { s.max(t) } else { f32::NAN })
+        .collect();
     HeightMap::new(meta, data).ok()
 }
 
@@ -229,7 +233,12 @@ pub fn mesh_samples(mesh: &depthmill_geometry::Mesh, max_points: usize) -> Vec<P
 
 /// Each vertex's value: the deviation of the nearest measured reference point within
 /// `radius_mm` (NaN when there is none): the colours of the simulated part in the report.
-pub fn vertex_deviation(vertices: &[Point3<f64>], reference: &[Point3<f64>], per_point: &[f32], radius_mm: f64) -> Vec<f32> {
+pub fn vertex_deviation(
+    vertices: &[Point3<f64>],
+    reference: &[Point3<f64>],
+    per_point: &[f32],
+    radius_mm: f64,
+) -> Vec<f32> {
     let key = |p: &Point3<f64>| [0, 1, 2].map(|k| (p[k] / radius_mm).floor() as i64);
     let mut bins: std::collections::HashMap<[i64; 3], Vec<u32>> = std::collections::HashMap::new();
     for (i, (p, d)) in reference.iter().zip(per_point).enumerate() {
@@ -275,7 +284,12 @@ mod tests {
         assert!(pts.len() <= 5000 && pts.len() > 2000, "{}", pts.len());
         let on = |p: &Point3<f64>, k: usize, v: f64| (p[k] - v).abs() < 1e-9;
         for p in &pts {
-            let on_face = on(p, 0, 0.0) || on(p, 0, 10.0) || on(p, 1, 0.0) || on(p, 1, 20.0) || on(p, 2, 0.0) || on(p, 2, 5.0);
+            let on_face = on(p, 0, 0.0)
+                || on(p, 0, 10.0)
+                || on(p, 1, 0.0)
+                || on(p, 1, 20.0)
+                || on(p, 2, 0.0)
+                || on(p, 2, 5.0);
             assert!(on_face, "{p:?} is off the box");
         }
         for (k, v) in [(0, 0.0), (0, 10.0), (1, 0.0), (1, 20.0), (2, 0.0), (2, 5.0)] {
@@ -288,12 +302,18 @@ mod tests {
     /// too deep; the target is the slot as drawn (2 mm deep) with a sharp inner corner.
     #[test]
     fn a_slot_cut_too_deep_shows_its_gouge_and_the_opened_part_forgives_the_corners() {
-        let blank = Blank { boxes: vec![OrientedBox::aligned(Point3::origin(), Point3::new(20.0, 20.0, 10.0))] };
+        let blank =
+            Blank { boxes: vec![OrientedBox::aligned(Point3::origin(), Point3::new(20.0, 20.0, 10.0))] };
         let mut stock = DexelStock::new(&blank, &DexelCells::tri(0.1)).expect("stock");
         let flat = ToolProfile::flat(4.0).expect("flat");
         let solid = ToolSolid::new(&flat, 30.0).expect("solid");
         stock
-            .cut_line(&solid, &Point3::new(-3.0, 10.0, 7.95), &Point3::new(23.0, 10.0, 7.95), &Vector3::z_axis())
+            .cut_line(
+                &solid,
+                &Point3::new(-3.0, 10.0, 7.95),
+                &Point3::new(23.0, 10.0, 7.95),
+                &Vector3::z_axis(),
+            )
             .expect("cut");
         let meta = HeightMapMeta { z_min_mm: 0.0, z_max_mm: 10.0, ..HeightMapMeta::new(100, 100, 0.2) };
         let target = HeightMap::from_fn(meta, |c, r| {

@@ -1139,6 +1139,9 @@ pub fn simulate_faces<R: BufRead>(
     Ok((report, maps))
 }
 
+/// A run's report, every face's final stock with its A angle, and the one dexel stock.
+pub type SimOutcome = (SimReport, Vec<(f64, HeightMap)>, Option<DexelStock>);
+
 /// Like [`simulate_faces`], also returning the one dexel stock of a multi-axis part (`None` for
 /// a 3-axis part on its Z-map, or motion only).
 pub fn simulate_stock<R: BufRead>(
@@ -1146,7 +1149,7 @@ pub fn simulate_stock<R: BufRead>(
     setup: &SimSetup,
     stop: &dyn Fn() -> bool,
     observe: Observer<'_>,
-) -> Result<(SimReport, Vec<(f64, HeightMap)>, Option<DexelStock>), SimError> {
+) -> Result<SimOutcome, SimError> {
     let mut machine = Machine::new(setup)?;
     let mut interp = Interpreter::new(machine.interp_config());
     let mut buf: Vec<Canon> = Vec::with_capacity(8);

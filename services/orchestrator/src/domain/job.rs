@@ -178,6 +178,38 @@ pub struct JobMetrics {
     /// The machined part against the CAM's predicted surface (the part opened by the tools): RMS, mm.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub preview_rms_mm: Option<f64>,
+    /// A multi-axis part measured on its one dexel stock against the original part (the input mesh sampled, or the input cloud): reference points
+    /// measured (those a face looks at).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub original_points: Option<f64>,
+    /// ... deepest gouge (distance into the part), mm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub original_max_gouge_mm: Option<f64>,
+    /// ... most material left over a point, mm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub original_max_leftover_mm: Option<f64>,
+    /// ... mean material left (gouges count as 0), mm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub original_mean_leftover_mm: Option<f64>,
+    /// ... RMS deviation, mm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub original_rms_deviation_mm: Option<f64>,
+    /// A multi-axis part measured on its one dexel stock against the original part opened by the program's smallest tool: reference points
+    /// measured (those a face looks at).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub opened_points: Option<f64>,
+    /// ... deepest gouge (distance into the part), mm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub opened_max_gouge_mm: Option<f64>,
+    /// ... most material left over a point, mm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub opened_max_leftover_mm: Option<f64>,
+    /// ... mean material left (gouges count as 0), mm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub opened_mean_leftover_mm: Option<f64>,
+    /// ... RMS deviation, mm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub opened_rms_deviation_mm: Option<f64>,
 }
 
 impl JobMetrics {
@@ -205,6 +237,16 @@ impl JobMetrics {
                 "part_off_walls_max_gouge_mm" => &mut self.part_off_walls_max_gouge_mm,
                 "part_off_walls_mean_mm" => &mut self.part_off_walls_mean_mm,
                 "part_off_walls_rms_mm" => &mut self.part_off_walls_rms_mm,
+                "original_points" => &mut self.original_points,
+                "original_max_gouge_mm" => &mut self.original_max_gouge_mm,
+                "original_max_leftover_mm" => &mut self.original_max_leftover_mm,
+                "original_mean_leftover_mm" => &mut self.original_mean_leftover_mm,
+                "original_rms_deviation_mm" => &mut self.original_rms_deviation_mm,
+                "opened_points" => &mut self.opened_points,
+                "opened_max_gouge_mm" => &mut self.opened_max_gouge_mm,
+                "opened_max_leftover_mm" => &mut self.opened_max_leftover_mm,
+                "opened_mean_leftover_mm" => &mut self.opened_mean_leftover_mm,
+                "opened_rms_deviation_mm" => &mut self.opened_rms_deviation_mm,
                 _ => continue,
             };
             *slot = Some(*v);

@@ -188,7 +188,8 @@ impl Ctx<'_> {
         ));
         s.push_str("</figure>");
         let _ = write!(s, "<script>{VIEWER_JS}</script>");
-        if let Some(part) = self.machine_report.as_ref().and_then(|r| r.get("part")).filter(|p| p.is_object()) {
+        if let Some(part) = self.machine_report.as_ref().and_then(|r| r.get("part")).filter(|p| p.is_object())
+        {
             s.push_str(&part_table(part));
         }
         s
@@ -229,6 +230,9 @@ fn part_table(part: &serde_json::Value) -> String {
         part["unseen"].as_u64().unwrap_or(0),
         fmt_num(part["max_search_mm"].as_f64().unwrap_or(0.0))
     );
-    s.push_str(&table(&["against", "points", "max gouge mm", "max leftover mm", "mean leftover mm", "RMS mm"], &rows));
+    s.push_str(&table(
+        &["against", "points", "max gouge mm", "max leftover mm", "mean leftover mm", "RMS mm"],
+        &rows,
+    ));
     s
 }

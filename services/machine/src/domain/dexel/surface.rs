@@ -173,7 +173,8 @@ impl DexelStock {
         let (lo, hi) = self.extent;
         let mut h = self.min_cell_mm();
         for _ in 0..64 {
-            if lattice(lo, hi, h).is_some_and(|n| n.iter().map(|&k| k as u64).product::<u64>() <= max_samples) {
+            if lattice(lo, hi, h).is_some_and(|n| n.iter().map(|&k| k as u64).product::<u64>() <= max_samples)
+            {
                 break;
             }
             h *= 1.25;
@@ -188,11 +189,8 @@ impl DexelStock {
     /// [`MAX_SURFACE_SAMPLES`] samples.
     pub fn surface_mesh(&self, step_mm: f64) -> Result<Mesh, DexelError> {
         let (lo, hi) = self.extent;
-        let too_large = |samples: u64| DexelError::TooManySamples {
-            step_mm,
-            samples,
-            limit: MAX_SURFACE_SAMPLES,
-        };
+        let too_large =
+            |samples: u64| DexelError::TooManySamples { step_mm, samples, limit: MAX_SURFACE_SAMPLES };
         if !(step_mm.is_finite() && step_mm > 0.0) {
             return Err(DexelError::Invalid {
                 field: "surface step_mm".into(),
@@ -222,18 +220,27 @@ impl DexelStock {
         debug_assert_eq!(shape.size() as u64, samples);
         let mut buf = SurfaceNetsBuffer::default();
         surface_nets(&sdf, &shape, [0; 3], [n[0] - 1, n[1] - 1, n[2] - 1], &mut buf);
-        let vertices: Vec<Point3<f64>> = buf
+        // Vertices at the same place (as STL's f32 stores them) are one, and the triangles they
+        // collapse are dropped: what an STL reader that welds vertices sees is what is written.
+        let mut vertices: Vec<Point3<f64>> = Vec::with_capacity(buf.positions.len());
+        let mut index: std::collections::HashMap<[u32; 3], u32> = std::collections::HashMap::new();
+        let remap: Vec<u32> = buf
             .positions
             .iter()
             .map(|p| {
-                Point3::new(
-                    origin[0] + f64::from(p[0]) * step_mm,
-                    origin[1] + f64::from(p[1]) * step_mm,
-                    origin[2] + f64::from(p[2]) * step_mm,
-                )
+                let q = [0, 1, 2].map(|k| (origin[k] + f64::from(p[k]) * step_mm) as f32);
+                *index.entry(q.map(f32::to_bits)).or_insert_with(|| {
+                    vertices.push(Point3::new(f64::from(q[0]), f64::from(q[1]), f64::from(q[2])));
+                    (vertices.len() - 1) as u32
+                })
             })
             .collect();
-        let mut triangles: Vec<[u32; 3]> = buf.indices.chunks_exact(3).map(|t| [t[0], t[1], t[2]]).collect();
+        let mut triangles: Vec<[u32; 3]> = buf
+            .indices
+            .chunks_exact(3)
+            .map(|t| [remap[t[0] as usize], remap[t[1] as usize], remap[t[2] as usize]])
+            .filter(|t| t[0] != t[1] && t[1] != t[2] && t[0] != t[2])
+            .collect();
         // Wind outward whatever the extractor's convention: the enclosed volume comes out positive.
         let signed: f64 = triangles
             .iter()

@@ -370,7 +370,8 @@ fn cut_block(cell: f64) -> DexelStock {
     let flat = ToolSolid::new(&ToolProfile::flat(4.0).expect("flat"), 30.0).expect("solid");
     let tilted = Unit::new_normalize(Vector3::new(0.0, -0.5, 1.0));
     dex.cut_line(&ball, &Point3::new(-4.0, 5.0, 7.0), &Point3::new(24.0, 9.0, 8.0), &tilted).expect("groove");
-    dex.cut_line(&flat, &Point3::new(5.0, 12.0, 6.0), &Point3::new(14.0, 12.0, 6.0), &z_axis()).expect("pocket");
+    dex.cut_line(&flat, &Point3::new(5.0, 12.0, 6.0), &Point3::new(14.0, 12.0, 6.0), &z_axis())
+        .expect("pocket");
     dex
 }
 
