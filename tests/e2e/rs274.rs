@@ -114,3 +114,34 @@ fn cam_programs_run_in_linuxcnc_rs274() -> anyhow::Result<()> {
     }
     Ok(())
 }
+
+/// The table-table words (A and C on every move, G93 inverse time, an arc turning C) read the same
+/// in the machine service's interpreter as in LinuxCNC's, move by move.
+#[test]
+fn five_axis_words_agree_with_linuxcnc_rs274() -> anyhow::Result<()> {
+    if !rs274_available() {
+        assert!(
+            std::env::var_os("DEPTHMILL_REQUIRE_RS274").is_none(),
+            "DEPTHMILL_REQUIRE_RS274 is set but rs274 (linuxcnc-uspace) is not installed"
+        );
+        eprintln!("rs274 not installed (apt-get install linuxcnc-uspace): skipping the interpreter check");
+        return Ok(());
+    }
+    let dir = tempfile::tempdir()?;
+    let table = dir.path().join("tool.tbl");
+    std::fs::write(&table, "T1 P1 D6.0 Z0 ;flat\n")?;
+    let text = "G21 G90 G17 G94\nT1 M6\nS1000 M3\nG43 H1\nG54\nG0 X0 Y0 Z20 A-30 C45\nG1 Z5 F100\n\
+                G1 X10 C90 F200\nG93 G1 X20 Y5 C135 F4\nG2 X30 Y5 I5 J0 C180 F2\nG1 A-60 F30\nG94 G1 X0 F300\n\
+                G91 G0 C-90 A30\nG90 G0 Z20\nM30\n";
+    let program = dir.path().join("five-axis.ngc");
+    std::fs::write(&program, text)?;
+    let theirs = gcode::rs274::run_rs274(&program, &table)?;
+    let config = gcode::InterpConfig { tools: [(1, 0.0)].into_iter().collect(), ..Default::default() };
+    let mut ours = Vec::new();
+    gcode::run(std::io::Cursor::new(text.as_bytes()), config, |c| ours.push(c))?;
+    let compared = gcode::rs274::compare(&ours, &theirs, 1e-4).map_err(|m| anyhow::anyhow!("{m}"))?;
+    assert_eq!(compared, 9, "every move compared");
+    let last = ours.iter().rev().find_map(|c| c.end_point()).expect("a move");
+    assert!((last.c - 90.0).abs() < 1e-9 && (last.a + 30.0).abs() < 1e-9, "{last:?}");
+    Ok(())
+}

@@ -2,7 +2,10 @@
 //! (`services/machine/machines/<name>.toml`; the EMCO F1 class ships built in).
 //!
 //! Machine coordinates: X and Y from the home corner, Z = 0 at the top of travel (where
-//! `G53 G0 Z0` and `G28` go), negative downwards; A in degrees. Every commanded position is
+//! `G53 G0 Z0` and `G28` go), negative downwards; A and C in degrees. A turns the part about X
+//! through the work origin; a table-table machine's C table (`[axes.c]`) sits on the A trunnion
+//! and turns the part about the table's Z axis, also through the work origin: a point `p` of the
+//! part is at `R_x(A)·R_z(C)·p` in the work frame. Every commanded position is
 //! quantised to `step_mm` (the stepper resolution). Feeds in mm/min, accelerations in mm/s²,
 //! spindle in rpm.
 
@@ -12,6 +15,8 @@ use serde::{Deserialize, Serialize};
 
 /// The EMCO F1 profile, as shipped.
 pub const EMCO_F1_TOML: &str = include_str!("../../machines/emco-f1.toml");
+/// The 5-axis table-table profile (the EMCO F1 class with a tilting A trunnion and a C table).
+pub const EMCO_F1_TT_TOML: &str = include_str!("../../machines/emco-f1-tt.toml");
 
 /// A bad profile: the file, the field and why.
 #[derive(Debug, thiserror::Error)]
@@ -58,6 +63,10 @@ pub struct Axes {
     pub y: AxisRange,
     pub z: AxisRange,
     pub a: AxisRange,
+    /// The C table of a table-table machine (degrees; `min = max = 0`: continuous); absent on a
+    /// 4-axis machine, which refuses C words.
+    #[serde(default)]
+    pub c: Option<AxisRange>,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -68,6 +77,9 @@ pub struct Motion {
     pub rapid_mm_min: f64,
     pub accel_mm_s2: f64,
     pub a_rate_deg_min: f64,
+    /// The C table's rate (a machine with a C axis).
+    #[serde(default)]
+    pub c_rate_deg_min: Option<f64>,
 }
 
 /// The spindle and its DC motor: torque at the spindle `T = kt·(I − i0)`, back-EMF `ke = kt`
@@ -159,7 +171,8 @@ impl MachineProfile {
     pub fn builtin(name: &str) -> Result<Self, ProfileError> {
         match name.trim().to_ascii_lowercase().as_str() {
             "emco-f1" | "emco_f1" => Self::parse(EMCO_F1_TOML, "emco-f1.toml"),
-            _ => Err(ProfileError::Unknown { name: name.to_string(), known: "emco-f1".into() }),
+            "emco-f1-tt" | "emco_f1_tt" => Self::parse(EMCO_F1_TT_TOML, "emco-f1-tt.toml"),
+            _ => Err(ProfileError::Unknown { name: name.to_string(), known: "emco-f1, emco-f1-tt".into() }),
         }
     }
 
@@ -271,7 +284,16 @@ impl MachineProfile {
         if self.sensors.encoder_pulses_per_rev == 0 {
             return Err(bad("sensors.encoder_pulses_per_rev", &0, "must be at least 1"));
         }
-        for (axis, r) in [("x", self.axes.x), ("y", self.axes.y), ("z", self.axes.z), ("a", self.axes.a)] {
+        if let Some(rate) = self.motion.c_rate_deg_min
+            && !(rate.is_finite() && rate > 0.0)
+        {
+            return Err(bad("motion.c_rate_deg_min", &rate, "must be finite and positive"));
+        }
+        let c = self.axes.c.map(|c| ("c", c));
+        for (axis, r) in [("x", self.axes.x), ("y", self.axes.y), ("z", self.axes.z), ("a", self.axes.a)]
+            .into_iter()
+            .chain(c)
+        {
             if !(r.min_mm.is_finite() && r.max_mm.is_finite()) || r.min_mm > r.max_mm {
                 return Err(bad(
                     &format!("axes.{axis}"),
@@ -326,6 +348,21 @@ impl MachineProfile {
     /// True when the A axis is continuous (no travel limits).
     pub fn a_is_continuous(&self) -> bool {
         self.axes.a.min_mm == 0.0 && self.axes.a.max_mm == 0.0
+    }
+
+    /// The C axis's travel, `None` when continuous or absent (see [`Self::has_c`]).
+    pub fn c_limits(&self) -> Option<AxisRange> {
+        self.axes.c.filter(|c| !(c.min_mm == 0.0 && c.max_mm == 0.0))
+    }
+
+    /// True on a table-table machine (a C table).
+    pub fn has_c(&self) -> bool {
+        self.axes.c.is_some()
+    }
+
+    /// The C table's rate, °/min (the A axis's when not given).
+    pub fn c_rate_deg_min(&self) -> f64 {
+        self.motion.c_rate_deg_min.unwrap_or(self.motion.a_rate_deg_min)
     }
 }
 

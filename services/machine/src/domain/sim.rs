@@ -324,6 +324,9 @@ pub struct Machine<'a> {
     tool: Option<usize>,
     feed_prog: f64,
     feed_mode: FeedMode,
+    /// Inverse time (G93): the running move's length (mm, or degrees for a rotary-only move),
+    /// which F times gives the feed.
+    inverse_len: f64,
     rpm_prog: f64,
     spindle: SpindleDir,
     /// Feed and speed the policy commands now.
@@ -387,6 +390,7 @@ impl<'a> Machine<'a> {
             tool: None,
             feed_prog: 0.0,
             feed_mode: FeedMode::PerMinute,
+            inverse_len: 0.0,
             rpm_prog: 0.0,
             spindle: SpindleDir::Off,
             feed_now: 0.0,
@@ -478,6 +482,7 @@ impl<'a> Machine<'a> {
         match self.feed_mode {
             FeedMode::PerMinute => self.feed_prog,
             FeedMode::PerRevolution => self.feed_prog * self.rpm_prog,
+            FeedMode::InverseTime => self.feed_prog * self.inverse_len,
         }
     }
 
@@ -523,7 +528,11 @@ impl<'a> Machine<'a> {
                 self.feed_mode = mode;
                 self.feed_prog = rate;
                 let w = self.feed_mm_min();
-                if rate > 0.0 && (mode == FeedMode::PerMinute || self.rpm_prog > 0.0) {
+                // Inverse time: each move's feed is checked as it starts (it depends on its length).
+                if rate > 0.0
+                    && (mode == FeedMode::PerMinute
+                        || (mode == FeedMode::PerRevolution && self.rpm_prog > 0.0))
+                {
                     self.check_range(
                         line,
                         "F",
@@ -652,6 +661,20 @@ impl<'a> Machine<'a> {
                 message: format!("A {:.3}° is outside [{}, {}]", to.a, a.a.min_mm, a.a.max_mm),
             });
         }
+        if !prof.has_c() && to.c.abs() > 1e-9 {
+            return Err(SimError::Rejected {
+                line,
+                message: format!("C {:.3}°: the {} has no C axis (axes X, Y, Z, A)", to.c, prof.name),
+            });
+        }
+        if let Some(c) = prof.c_limits()
+            && !c.contains(to.c, 1e-6)
+        {
+            return Err(SimError::Rejected {
+                line,
+                message: format!("C {:.3}° is outside [{}, {}]", to.c, c.min_mm, c.max_mm),
+            });
+        }
         Ok(())
     }
 
@@ -692,9 +715,14 @@ impl<'a> Machine<'a> {
         let to = m.canon.end_point().unwrap_or(m.from);
         let line = m.canon.line();
         let a_move = (to.a - m.from.a).abs();
-        if !m.rapid && (a_move > 1e-9 || to.a.abs() > 1e-9) {
+        let c_move = (to.c - m.from.c).abs();
+        let turned = a_move > 1e-9 || c_move > 1e-9 || to.a.abs() > 1e-9 || to.c.abs() > 1e-9;
+        if !m.rapid && turned {
             self.report.turned_moves += 1;
         }
+        // The rotary axes' time for the move, each at its rate.
+        let rotary_s =
+            (a_move / (prof.motion.a_rate_deg_min / 60.0)).max(c_move / (prof.c_rate_deg_min() / 60.0));
         if m.rapid
             && let (Some(ti), true) = (self.tool, self.dexel.is_some())
         {
@@ -716,12 +744,29 @@ impl<'a> Machine<'a> {
                 });
             }
         }
+        // Cut per revolution. A move that only turns A or C runs its degrees at the feed read as
+        // degrees per minute (as LinuxCNC does), capped by the axis's rate.
+        let rotary_only = m.len <= 1e-9 && (a_move > 1e-9 || c_move > 1e-9);
+        let plen = if rotary_only { a_move.max(c_move) } else { m.len };
+        if !m.rapid && self.feed_mode == FeedMode::InverseTime {
+            // G93: the move takes 1/F minutes, so its feed is its length times F.
+            self.inverse_len = plen;
+            let w = self.feed_mm_min();
+            if w > prof.motion.feed_max_mm_min {
+                self.report.warnings.push(format!(
+                    "line {line}: inverse time F{} asks {w:.1} mm/min over {plen:.3}, above the machine's {} mm/min: the move takes longer",
+                    self.feed_prog, prof.motion.feed_max_mm_min
+                ));
+            }
+            self.programmed();
+        }
         let prof = &self.setup.profile;
         if m.rapid || (self.stocks.is_empty() && self.dexel.is_none()) {
             let vmax = if m.rapid { prof.motion.rapid_mm_min } else { self.feed_now } / 60.0;
             let mut t = trapezoid_time(m.len, self.v_end, v_exit, vmax, a);
-            t = t.max(a_move / (prof.motion.a_rate_deg_min / 60.0));
+            t = t.max(rotary_s);
             if m.rapid
+                && to.c.abs() < 1e-9
                 && let Some(i) = self.face_index(to.a)
             {
                 let stock = &mut self.stocks[i].1;
@@ -758,14 +803,17 @@ impl<'a> Machine<'a> {
         if self.feed_now <= 0.0 {
             return Err(SimError::Rejected { line, message: "feed move with no feed rate".into() });
         }
-        if self.dexel.is_none() && (a_move > 1e-9 || self.face_index(to.a).is_none()) {
+        if self.dexel.is_none()
+            && (a_move > 1e-9 || c_move > 1e-9 || to.c.abs() > 1e-9 || self.face_index(to.a).is_none())
+        {
             self.report.warnings.push(format!(
-                "line {line}: a feed move {} A={:.3}° is timed but not cut: a 3-axis run's Z-map stock cuts at A = 0 only (a multi-axis setup cuts it on the dexel stock)",
-                if a_move > 1e-9 { "turning to" } else { "at" },
-                to.a
+                "line {line}: a feed move {} A={:.3}° C={:.3}° is timed but not cut: a 3-axis run's Z-map stock cuts at A = 0, C = 0 only (a multi-axis setup cuts it on the dexel stock)",
+                if a_move > 1e-9 || c_move > 1e-9 { "turning to" } else { "at" },
+                to.a,
+                to.c
             ));
             let t = trapezoid_time(m.len, self.v_end, v_exit, self.feed_now / 60.0, a);
-            self.time_s += t.max(a_move / (prof.motion.a_rate_deg_min / 60.0));
+            self.time_s += t.max(rotary_s);
             self.pos = to;
             self.v_end = 0.0;
             return Ok(());
@@ -773,10 +821,11 @@ impl<'a> Machine<'a> {
         let Some(tool) = self.current_tool().cloned() else {
             return Err(SimError::Rejected { line, message: "feed move with no tool in the spindle".into() });
         };
-        // Cut per revolution. A move that only turns A runs its degrees at the feed read as
-        // degrees per minute (as LinuxCNC does), capped by the A axis's rate.
-        let rotary_only = m.len <= 1e-9 && a_move > 1e-9;
-        let plen = if rotary_only { a_move } else { m.len };
+        let rotary_rate = if c_move > a_move {
+            self.setup.profile.c_rate_deg_min()
+        } else {
+            self.setup.profile.motion.a_rate_deg_min
+        };
         let mut s = 0.0;
         let mut v = self.v_end;
         let mut prev_tip = self.work(m.from);
@@ -790,7 +839,7 @@ impl<'a> Machine<'a> {
             }
             let rpm = if self.spindle == SpindleDir::Off { 0.0 } else { self.rpm_now };
             let w = self.feed_now;
-            let vmax = if rotary_only { w.min(self.setup.profile.motion.a_rate_deg_min) } else { w };
+            let vmax = if rotary_only { w.min(rotary_rate) } else { w };
             let per_rev = if rpm > 0.0 { w / rpm } else { plen };
             let ds = per_rev.min(plen - s).max(1e-6);
             let s1 = (s + ds).min(plen);
@@ -868,16 +917,18 @@ impl<'a> Machine<'a> {
         let exact = |p: Pos| work_tip(prof, tlo, p, false);
         let (q0, q1) = (work_tip(prof, tlo, p0, true), work_tip(prof, tlo, p1, true));
         let (d0, d1) = (q0 - exact(p0), q1 - exact(p1));
-        let straight = !matches!(m.canon, Canon::Arc { .. }) && (p1.a - p0.a).abs() < 1e-12;
+        let straight = !matches!(m.canon, Canon::Arc { .. })
+            && (p1.a - p0.a).abs() < 1e-12
+            && (p1.c - p0.c).abs() < 1e-12;
         if straight {
-            let r = part_from_work(p0.a);
+            let r = part_from_table(p0.a, p0.c);
             let axis = Unit::new_normalize(r * Vector3::z());
             return Ok(stock.cut_line(solid, &(r * q0), &(r * q1), &axis)?);
         }
         let pose = |s: f64| {
             let p = point_at(m, t0 + (t1 - t0) * s);
             let w = exact(p) + d0 * (1.0 - s) + d1 * s;
-            let r = part_from_work(p.a);
+            let r = part_from_table(p.a, p.c);
             (r * w, Unit::new_normalize(r * Vector3::z()))
         };
         let err = DEXEL_STEP_CELLS * stock.min_cell_mm();
@@ -982,7 +1033,15 @@ impl<'a> Machine<'a> {
 
 /// The rotation taking work coordinates at A = `a_deg` to the part frame (`R_x(−a)`).
 pub fn part_from_work(a_deg: f64) -> Rotation3<f64> {
-    Rotation3::from_axis_angle(&Vector3::x_axis(), -a_deg.to_radians())
+    part_from_table(a_deg, 0.0)
+}
+
+/// The rotation taking work coordinates at A = `a_deg`, C = `c_deg` to the part frame: the
+/// part sits on the C table, which the A trunnion tilts (`work = R_x(a)·R_z(c)·part`, see
+/// [`super::profile`]).
+pub fn part_from_table(a_deg: f64, c_deg: f64) -> Rotation3<f64> {
+    Rotation3::from_axis_angle(&Vector3::z_axis(), -c_deg.to_radians())
+        * Rotation3::from_axis_angle(&Vector3::x_axis(), -a_deg.to_radians())
 }
 
 /// The tip in the work frame for a commanded machine position, on whole motor steps when
@@ -1108,11 +1167,12 @@ fn point_at(m: &Pending, t: f64) -> Pos {
             p[i1] = center[1] + r * ang.sin();
             p[i2] = f[i2] + (e[i2] - f[i2]) * t;
             p[3] = f[3] + (e[3] - f[3]) * t;
+            p[4] = f[4] + (e[4] - f[4]) * t;
             Pos::from_array(p)
         }
         _ => {
             let (f, e) = (m.from.to_array(), to.to_array());
-            Pos::from_array([0, 1, 2, 3].map(|i| f[i] + (e[i] - f[i]) * t))
+            Pos::from_array([0, 1, 2, 3, 4].map(|i| f[i] + (e[i] - f[i]) * t))
         }
     }
 }
@@ -1296,6 +1356,118 @@ mod tests {
         let (c, r) = a0.cell_of(15.0, 0.0).expect("inside");
         assert!((f64::from(a0.get(c, r).unwrap_or(f32::NAN)) - 9.0).abs() < 0.2);
         assert!(report.removed_mm3 > 10.0, "{}", report.removed_mm3);
+    }
+
+    /// Whether the dexel stock holds material at part point (x, y, z).
+    fn solid_at(s: &SimSetup, program: &str, points: &[([f64; 3], bool)]) -> SimReport {
+        let (report, _, dexel) =
+            simulate_stock(Cursor::new(program), s, &|| false, &mut |_| {}).expect("runs");
+        let dexel = dexel.expect("a dexel stock");
+        for (p, solid) in points {
+            assert_eq!(dexel.contains(&Point3::new(p[0], p[1], p[2])), *solid, "material at {p:?}");
+        }
+        report
+    }
+
+    #[test]
+    fn the_table_table_machine_cuts_the_part_tilted_by_a_and_turned_by_c() {
+        let mut s = setup(PolicyKind::Off);
+        s.profile = MachineProfile::builtin("emco-f1-tt").expect("profile");
+        // A 20 mm cube centred on the work origin (where the A and C axes cross).
+        let cube = StockSpec {
+            min_x_mm: -10.0,
+            min_y_mm: -10.0,
+            min_z_mm: -10.0,
+            x_mm: 20.0,
+            y_mm: 20.0,
+            z_mm: 20.0,
+            cell_mm: 0.25,
+        };
+        s.faces = vec![FaceStock { a_deg: 0.0, stock: cube }];
+        let head = "%\nG21 G90 G17 G94 G40 G49 G80\nT1 M6\nS1500 M3\nG43 H1\n";
+        // C 90: a slot along work X at work Y 5, 2 mm deep, runs along the part's Y at part X 5
+        // (work = R_z(90)·part).
+        let program =
+            format!("{head}G0 C90\nG0 X-15 Y5\nG0 Z15\nG1 Z8 F100\nG1 X15 F200\nG0 Z15\nG53 G0 Z0\nM30\n%\n");
+        let report = solid_at(
+            &s,
+            &program,
+            &[([5.0, 0.0, 9.0], false), ([0.0, 5.0, 9.0], true), ([5.0, 0.0, 7.5], true)],
+        );
+        assert_eq!(report.turned_moves, 2, "the feed moves at C 90");
+        assert!(report.warnings.iter().all(|w| !w.contains("not cut")), "{:?}", report.warnings);
+        // A −90 then C 30: the slot at work Y 0 is on the part's face that the tilt turned up.
+        // part = R_z(−30)·R_x(90)·work: work (x, 0, 9) is part R_z(−30)·(x, −9, 0).
+        let program = format!(
+            "{head}G0 A-90 C30\nG0 X-15 Y0\nG0 Z15\nG1 Z8 F100\nG1 X15 F200\nG0 Z15\nG53 G0 Z0\nM30\n%\n"
+        );
+        let part = |x: f64, z_work: f64| {
+            let p = part_from_table(-90.0, 30.0) * Point3::new(x, 0.0, z_work);
+            [p.x, p.y, p.z]
+        };
+        solid_at(&s, &program, &[(part(0.0, 9.0), false), (part(0.0, 7.5), true), (part(6.0, 9.0), false)]);
+        // The tilt is limited: A 40 is refused with its line before anything moves.
+        let program = format!("{head}G0 X0 Y0 Z15\nG0 A40\nM30\n%\n");
+        let e =
+            simulate_stock(Cursor::new(program), &s, &|| false, &mut |_| {}).map(|_| ()).expect_err("A 40");
+        assert!(matches!(&e, SimError::Rejected { line: 7, message } if message.contains("A 40")), "{e}");
+    }
+
+    #[test]
+    fn a_feed_move_turning_the_c_table_cuts_a_ring() {
+        // The tool 1 mm into the cube's top at 7 mm from the C axis while C turns a full circle:
+        // a ring groove 6 mm wide (radius 4 to 10) around the axis.
+        let mut s = setup(PolicyKind::Off);
+        s.profile = MachineProfile::builtin("emco-f1-tt").expect("profile");
+        let cube = StockSpec {
+            min_x_mm: -12.0,
+            min_y_mm: -12.0,
+            min_z_mm: -10.0,
+            x_mm: 24.0,
+            y_mm: 24.0,
+            z_mm: 20.0,
+            cell_mm: 0.25,
+        };
+        s.faces = vec![FaceStock { a_deg: 0.0, stock: cube }];
+        let program = "%\nG21 G90 G17 G94 G40 G49 G80\nT1 M6\nS1500 M3\nG43 H1\nG0 X7 Y0\nG0 Z15\nG1 Z9 F100\nG1 C360 F400\nG0 Z15\nG53 G0 Z0\nM30\n%\n";
+        let ring = |r: f64, deg: f64| [r * deg.to_radians().cos(), r * deg.to_radians().sin(), 9.5];
+        let report = solid_at(
+            &s,
+            program,
+            &[
+                (ring(7.0, 0.0), false),
+                (ring(7.0, 135.0), false),
+                (ring(7.0, 250.0), false),
+                (ring(2.0, 60.0), true),
+                (ring(11.5, 200.0), true),
+            ],
+        );
+        assert!(report.warnings.iter().all(|w| !w.contains("not cut")), "{:?}", report.warnings);
+        // 360° at 400°/min: 54 s of turning.
+        assert!(report.cycle_time_s > 54.0, "{}", report.cycle_time_s);
+    }
+
+    #[test]
+    fn c_words_are_refused_on_a_machine_without_a_c_axis_and_g93_times_the_move() {
+        let s = setup(PolicyKind::Off);
+        let e =
+            run(&s, "%\nG21 G90\nG0 X5 Y5 Z30\nG0 C10\nM30\n%\n").map(|_| ()).expect_err("no C on the F1");
+        assert!(
+            matches!(&e, SimError::Rejected { line: 4, message } if message.contains("no C axis")),
+            "{e}"
+        );
+        // Inverse time: G1 X20 F6 takes 1/6 min = 10 s (120 mm/min over 20 mm), in the air.
+        let mut m = setup(PolicyKind::Off);
+        m.motion_only = true;
+        let g94 = run(&m, "%\nG21 G90 G94\nG0 X0 Y5 Z30\nG1 X20 F120\nM30\n%\n").expect("runs").0;
+        let g93 = run(&m, "%\nG21 G90 G93\nG0 X0 Y5 Z30\nG1 X20 F6\nM30\n%\n").expect("runs").0;
+        assert!(
+            (g93.cycle_time_s - g94.cycle_time_s).abs() < 1e-9,
+            "{} vs {}",
+            g93.cycle_time_s,
+            g94.cycle_time_s
+        );
+        assert!(g93.cycle_time_s > 10.0, "{}", g93.cycle_time_s);
     }
 
     #[test]

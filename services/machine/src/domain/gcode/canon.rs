@@ -5,7 +5,7 @@
 //!
 //! # Frame and units
 //! Every position is in **machine coordinates of the controlled point** (the spindle gauge line),
-//! in mm, with the A axis in degrees:
+//! in mm, with the A and C axes in degrees:
 //!
 //! ```text
 //! machine = program value x units (1 or 25.4) + work offset (G54-G59) + tool length offset (Z only, G43)
@@ -18,7 +18,7 @@
 
 use std::f64::consts::TAU;
 
-/// A point of the machine: X, Y, Z in mm, A in degrees.
+/// A point of the machine: X, Y, Z in mm, A and C in degrees.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct Pos {
     /// X, mm.
@@ -29,28 +29,35 @@ pub struct Pos {
     pub z: f64,
     /// A (rotation about X), degrees.
     pub a: f64,
+    /// C (rotation about Z), degrees.
+    pub c: f64,
 }
 
 impl Pos {
     /// The origin.
-    pub const ZERO: Pos = Pos { x: 0.0, y: 0.0, z: 0.0, a: 0.0 };
+    pub const ZERO: Pos = Pos { x: 0.0, y: 0.0, z: 0.0, a: 0.0, c: 0.0 };
 
-    /// A point from its coordinates.
+    /// A point from its coordinates, C at 0.
     pub const fn new(x: f64, y: f64, z: f64, a: f64) -> Pos {
-        Pos { x, y, z, a }
+        Pos { x, y, z, a, c: 0.0 }
     }
 
-    /// `[x, y, z, a]`.
-    pub const fn to_array(self) -> [f64; 4] {
-        [self.x, self.y, self.z, self.a]
+    /// The same point with C at `c`.
+    pub const fn with_c(self, c: f64) -> Pos {
+        Pos { c, ..self }
     }
 
-    /// From `[x, y, z, a]`.
-    pub const fn from_array(v: [f64; 4]) -> Pos {
-        Pos { x: v[0], y: v[1], z: v[2], a: v[3] }
+    /// `[x, y, z, a, c]`.
+    pub const fn to_array(self) -> [f64; 5] {
+        [self.x, self.y, self.z, self.a, self.c]
     }
 
-    /// Coordinate `i` (0 X, 1 Y, 2 Z, 3 A); `None` beyond.
+    /// From `[x, y, z, a, c]`.
+    pub const fn from_array(v: [f64; 5]) -> Pos {
+        Pos { x: v[0], y: v[1], z: v[2], a: v[3], c: v[4] }
+    }
+
+    /// Coordinate `i` (0 X, 1 Y, 2 Z, 3 A, 4 C); `None` beyond.
     pub fn get(self, i: usize) -> Option<f64> {
         self.to_array().get(i).copied()
     }
@@ -58,7 +65,7 @@ impl Pos {
     /// Largest absolute coordinate difference (mm or degrees).
     pub fn max_abs_diff(self, other: Pos) -> f64 {
         let (a, b) = (self.to_array(), other.to_array());
-        (0..4).map(|i| (a[i] - b[i]).abs()).fold(0.0, f64::max)
+        (0..5).map(|i| (a[i] - b[i]).abs()).fold(0.0, f64::max)
     }
 }
 
@@ -103,6 +110,8 @@ pub enum FeedMode {
     PerMinute,
     /// G95: mm per spindle revolution.
     PerRevolution,
+    /// G93: inverse time, F is 1 / (the move's duration in minutes), given on every feed move.
+    InverseTime,
 }
 
 /// Spindle state (M3/M4/M5).

@@ -141,6 +141,9 @@ pub enum ErrorKind {
     /// A feed move in G95 with S = 0.
     #[error("feed per revolution (G95) with zero spindle speed (give S)")]
     ZeroSpindleSpeedPerRev,
+    /// A feed move in G93 without its F word.
+    #[error("inverse time feed (G93): every feed move needs its own F word (1 / minutes to take)")]
+    InverseTimeWithoutF,
     /// G53 in G91.
     #[error("G53 (machine coordinates) cannot be used in incremental mode G91")]
     G53Incremental,

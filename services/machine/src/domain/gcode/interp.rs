@@ -165,7 +165,7 @@ impl Motion {
 /// Modal state. Positions are machine coordinates, mm / degrees.
 #[derive(Debug, Clone)]
 struct State {
-    pos: [f64; 4],
+    pos: [f64; 5],
     inch: bool,
     incremental: bool,
     arc_absolute: bool,
@@ -177,7 +177,7 @@ struct State {
     spindle: SpindleDir,
     motion: Option<Motion>,
     /// Active work offset (machine coordinates of the program origin).
-    offset: [f64; 4],
+    offset: [f64; 5],
     /// Tool length offset, mm (Z).
     tlo: f64,
     selected_tool: u32,
@@ -197,7 +197,7 @@ impl State {
     }
 }
 
-const AXES: [Letter; 4] = [Letter::X, Letter::Y, Letter::Z, Letter::A];
+const AXES: [Letter; 5] = [Letter::X, Letter::Y, Letter::Z, Letter::A, Letter::C];
 
 /// The interpreter: feed it lines in order; it calls `out` with the canonical commands.
 #[derive(Debug, Clone)]
@@ -246,7 +246,7 @@ impl Interpreter {
     /// Current position in the active work coordinates (after the tool length offset), mm.
     pub fn program_position(&self) -> Pos {
         let p = self.st.pos;
-        Pos::from_array([0, 1, 2, 3].map(|k| p[k] - self.st.origin(k)))
+        Pos::from_array([0, 1, 2, 3, 4].map(|k| p[k] - self.st.origin(k)))
     }
 
     /// M2/M30 or the closing `%` has been read: further lines are ignored.
@@ -370,7 +370,7 @@ fn execute_block(
                 Ok(None)
             }
             Some(Motion::Linear) => {
-                check_feed(st).map_err(|k| fail(b.first_column(), k))?;
+                check_feed(st, b).map_err(|k| fail(b.first_column(), k))?;
                 let to = target(b, st, false);
                 out(Canon::Feed { line, to: Pos::from_array(to) });
                 st.pos = to;
@@ -447,7 +447,11 @@ fn execute_general(
     let scale_before = st.scale();
     // Feed mode, F, S, T.
     if let Some(code) = b.g(GGroup::FeedMode) {
-        st.feed_mode = if code == 950 { FeedMode::PerRevolution } else { FeedMode::PerMinute };
+        st.feed_mode = match code {
+            930 => FeedMode::InverseTime,
+            950 => FeedMode::PerRevolution,
+            _ => FeedMode::PerMinute,
+        };
         st.feed = 0.0;
         out(Canon::SetFeedRate { line, rate: 0.0, mode: st.feed_mode });
     }
@@ -456,7 +460,8 @@ fn execute_general(
             let kind = ErrorKind::OutOfRange { what: "F (feed rate)", value: f, allowed: "0 or more" };
             return Err(fail(b.column(Letter::F), kind));
         }
-        st.feed = f * scale_before;
+        // Inverse time is per minute whatever the length unit.
+        st.feed = if st.feed_mode == FeedMode::InverseTime { f } else { f * scale_before };
         out(Canon::SetFeedRate { line, rate: st.feed, mode: st.feed_mode });
     }
     if let Some(v) = b.get(Letter::S) {
@@ -617,13 +622,13 @@ fn execute_general(
                 st.pos = to;
             }
             Motion::Linear => {
-                check_feed(st).map_err(|k| fail(col, k))?;
+                check_feed(st, b).map_err(|k| fail(col, k))?;
                 let to = target(b, st, g53);
                 out(Canon::Feed { line, to: Pos::from_array(to) });
                 st.pos = to;
             }
             Motion::Cw | Motion::Ccw => {
-                check_feed(st).map_err(|k| fail(col, k))?;
+                check_feed(st, b).map_err(|k| fail(col, k))?;
                 arc(cfg, b, st, m, line, out).map_err(|(c, k)| fail(if c == 0 { col } else { c }, k))?;
             }
         }
@@ -648,7 +653,10 @@ fn execute_general(
     })
 }
 
-fn check_feed(st: &State) -> Result<(), ErrorKind> {
+fn check_feed(st: &State, b: &Block) -> Result<(), ErrorKind> {
+    if st.feed_mode == FeedMode::InverseTime && !b.has(Letter::F) {
+        return Err(ErrorKind::InverseTimeWithoutF);
+    }
     if st.feed == 0.0 {
         return Err(ErrorKind::ZeroFeedRate);
     }
@@ -661,7 +669,7 @@ fn check_feed(st: &State) -> Result<(), ErrorKind> {
 /// End point of a move: absolute words are program coordinates (or machine ones with G53),
 /// incremental words add to the current point.
 #[inline]
-fn target(b: &Block, st: &State, g53: bool) -> [f64; 4] {
+fn target(b: &Block, st: &State, g53: bool) -> [f64; 5] {
     let scale = st.scale();
     let mut t = st.pos;
     for (k, l) in AXES.into_iter().enumerate() {
@@ -960,7 +968,7 @@ mod tests {
         canons(text).into_iter().filter(Canon::is_motion).collect()
     }
 
-    fn ends(text: &str) -> Vec<[f64; 4]> {
+    fn ends(text: &str) -> Vec<[f64; 5]> {
         moves(text).iter().filter_map(|c| c.end_point()).map(Pos::to_array).collect()
     }
 
@@ -971,8 +979,8 @@ mod tests {
         }
     }
 
-    fn close(a: [f64; 4], b: [f64; 4]) -> bool {
-        (0..4).all(|k| (a[k] - b[k]).abs() < 1e-9)
+    fn close(a: [f64; 5], b: [f64; 5]) -> bool {
+        (0..5).all(|k| (a[k] - b[k]).abs() < 1e-9)
     }
 
     #[test]
@@ -1002,14 +1010,14 @@ mod tests {
     #[test]
     fn comments_numbers_block_delete_and_percent() {
         let text = "%\nN10.5 (a ; b) G0 X1 ; (c\n/G0 X99\nN20 G1 X2 F5 (x;y)\n%\nG0 X7\n";
-        assert_eq!(ends(text), vec![[1.0, 0.0, 0.0, 0.0], [2.0, 0.0, 0.0, 0.0]]);
+        assert_eq!(ends(text), vec![[1.0, 0.0, 0.0, 0.0, 0.0], [2.0, 0.0, 0.0, 0.0, 0.0]]);
         assert!(matches!(canons(text).last(), Some(Canon::ProgramEnd { line: 5 })));
         let mut off = cfg();
         off.block_delete = false;
         let v = run_with(text, off).expect("block delete off");
         assert_eq!(v.iter().filter(|c| c.is_motion()).count(), 3);
         // Lines after M30 are not read, even invalid ones.
-        assert_eq!(ends("G0 X1\nM30\nG0 X7 X8 #1\n"), vec![[1.0, 0.0, 0.0, 0.0]]);
+        assert_eq!(ends("G0 X1\nM30\nG0 X7 X8 #1\n"), vec![[1.0, 0.0, 0.0, 0.0, 0.0]]);
         assert_eq!(err("%\nG0 X1\n").3, ErrorKind::MissingClosingPercent);
         assert_eq!(err("G0 X1\n").3, ErrorKind::MissingProgramEnd);
         assert_eq!(err("G0 X1\n").0, 2);
@@ -1025,11 +1033,11 @@ mod tests {
     fn incremental_inches_and_a_axis() {
         let p = ends("G91 G0 X1 Y1 A10\nX1 A-5\nG90 G20 G0 X1\nG91 Y0.5\nG21 G90 G0 Z2 A90\nM2\n");
         let want = [
-            [1.0, 1.0, 0.0, 10.0],
-            [2.0, 1.0, 0.0, 5.0],
-            [25.4, 1.0, 0.0, 5.0],
-            [25.4, 13.7, 0.0, 5.0],
-            [25.4, 13.7, 2.0, 90.0],
+            [1.0, 1.0, 0.0, 10.0, 0.0],
+            [2.0, 1.0, 0.0, 5.0, 0.0],
+            [25.4, 1.0, 0.0, 5.0, 0.0],
+            [25.4, 13.7, 0.0, 5.0, 0.0],
+            [25.4, 13.7, 2.0, 90.0, 0.0],
         ];
         assert_eq!(p.len(), want.len());
         for (a, b) in p.iter().zip(want) {
@@ -1077,7 +1085,7 @@ mod tests {
             (center[0] - (-20.0 + 25.0)).abs() < 1e-12 && (center[1] - 101.0).abs() < 1e-12,
             "{center:?}"
         );
-        assert!(close(end.to_array(), [102.0, 50.0, 5.0, 0.0]));
+        assert!(close(end.to_array(), [102.0, 50.0, 5.0, 0.0, 0.0]));
     }
 
     #[test]
@@ -1172,16 +1180,16 @@ mod tests {
         let e =
             ends("G55\nG0 X1 Y1 Z1 A0\nG53 G0 Z0\nG53 G1 X2 F100\nG28\nG28 Z7\nG91 G28 Z0\nG90 G0 X0\nM2\n");
         let want = [
-            [101.0, 51.0, -19.0, 10.0],
-            [101.0, 51.0, 0.0, 10.0],
-            [2.0, 51.0, 0.0, 10.0],
-            [2.0, 51.0, 0.0, 10.0],
-            [1.0, 2.0, 3.0, 0.0],
-            [1.0, 2.0, -13.0, 0.0],
-            [1.0, 2.0, 3.0, 0.0],
-            [1.0, 2.0, 3.0, 0.0],
-            [1.0, 2.0, 3.0, 0.0],
-            [100.0, 2.0, 3.0, 0.0],
+            [101.0, 51.0, -19.0, 10.0, 0.0],
+            [101.0, 51.0, 0.0, 10.0, 0.0],
+            [2.0, 51.0, 0.0, 10.0, 0.0],
+            [2.0, 51.0, 0.0, 10.0, 0.0],
+            [1.0, 2.0, 3.0, 0.0, 0.0],
+            [1.0, 2.0, -13.0, 0.0, 0.0],
+            [1.0, 2.0, 3.0, 0.0, 0.0],
+            [1.0, 2.0, 3.0, 0.0, 0.0],
+            [1.0, 2.0, 3.0, 0.0, 0.0],
+            [100.0, 2.0, 3.0, 0.0, 0.0],
         ];
         assert_eq!(e.len(), want.len(), "{e:?}");
         for (a, b) in e.iter().zip(want) {
@@ -1198,6 +1206,39 @@ mod tests {
             }
         );
         assert_eq!(err("G0 X1 G28\nM2\n").3, ErrorKind::AxisWordsClaimedTwice);
+    }
+
+    #[test]
+    fn the_c_axis_and_inverse_time_feed() {
+        // C words: degrees, absolute and incremental, never scaled by G20.
+        let p = ends("G0 X1 C90\nG91 G0 C-30 A10\nG20 G0 C15\nM2\n");
+        assert!(close(p[0], [1.0, 0.0, 0.0, 0.0, 90.0]), "{:?}", p[0]);
+        assert!(close(p[1], [1.0, 0.0, 0.0, 10.0, 60.0]), "{:?}", p[1]);
+        assert!(close(p[2], [1.0, 0.0, 0.0, 10.0, 75.0]), "{:?}", p[2]);
+        // G93: F is 1/min, given on every feed move, not scaled by G20; G94 goes back.
+        let c = canons("G93 G1 X10 C45 F2\nG20 G1 X1 F4\nG94 G21\nG1 X2 F100\nM2\n");
+        let feeds: Vec<(f64, FeedMode)> = c
+            .iter()
+            .filter_map(|c| {
+                if let Canon::SetFeedRate { rate, mode, .. } = c { Some((*rate, *mode)) } else { None }
+            })
+            .collect();
+        assert_eq!(
+            feeds,
+            vec![
+                (0.0, FeedMode::InverseTime),
+                (2.0, FeedMode::InverseTime),
+                (4.0, FeedMode::InverseTime),
+                (0.0, FeedMode::PerMinute),
+                (100.0, FeedMode::PerMinute)
+            ]
+        );
+        let (line, column, word, kind) = err("G93\nG1 X10 F2\nX20\nM2\n");
+        assert_eq!((line, column, kind), (3, 1, ErrorKind::InverseTimeWithoutF), "{word}");
+        let (line, _, _, kind) = err("G93 G1 X1 F1\nG2 X2 I0.5\nM2\n");
+        assert_eq!((line, kind), (2, ErrorKind::InverseTimeWithoutF));
+        // B is still refused, naming the axes there are.
+        assert!(matches!(err("G0 B5\nM2\n").3, ErrorKind::UnsupportedLetter { .. }));
     }
 
     #[test]
@@ -1327,7 +1368,7 @@ mod tests {
         let mut v = Vec::new();
         interp.execute_line("G55 G0 X1", 1, &mut |c| v.push(c)).expect("line");
         assert_eq!(interp.program_position(), Pos::new(1.0, -50.0, 20.0, -10.0));
-        assert!(close(interp.position().to_array(), [101.0, 0.0, 0.0, 0.0]));
+        assert!(close(interp.position().to_array(), [101.0, 0.0, 0.0, 0.0, 0.0]));
         interp.execute_line("M2", 2, &mut |c| v.push(c)).expect("end");
         assert!(interp.is_ended());
         assert_eq!(interp.finish(2).expect("ended"), EndReason::M2);

@@ -25,6 +25,8 @@ use super::error::{ErrorKind, GcodeError};
 pub enum Letter {
     /// A axis, degrees.
     A = 0,
+    /// C axis, degrees.
+    C,
     /// Feed rate.
     F,
     /// Tool length offset index.
@@ -54,12 +56,13 @@ pub enum Letter {
 }
 
 /// Number of [`Letter`]s.
-pub const LETTER_COUNT: usize = 14;
+pub const LETTER_COUNT: usize = 15;
 
 impl Letter {
     /// All letters, in index order.
     pub const ALL: [Letter; LETTER_COUNT] = [
         Letter::A,
+        Letter::C,
         Letter::F,
         Letter::H,
         Letter::I,
@@ -79,6 +82,7 @@ impl Letter {
     pub const fn as_char(self) -> char {
         match self {
             Letter::A => 'A',
+            Letter::C => 'C',
             Letter::F => 'F',
             Letter::H => 'H',
             Letter::I => 'I',
@@ -100,8 +104,9 @@ impl Letter {
     }
 }
 
-/// Bits of the axis letters X, Y, Z, A.
-const AXIS_BITS: u16 = Letter::X.bit() | Letter::Y.bit() | Letter::Z.bit() | Letter::A.bit();
+/// Bits of the axis letters X, Y, Z, A, C.
+const AXIS_BITS: u16 =
+    Letter::X.bit() | Letter::Y.bit() | Letter::Z.bit() | Letter::A.bit() | Letter::C.bit();
 
 /// Modal groups of G codes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -117,7 +122,7 @@ pub enum GGroup {
     Distance,
     /// LinuxCNC group 4: G90.1, G91.1.
     ArcDistance,
-    /// LinuxCNC group 5: G94, G95.
+    /// LinuxCNC group 5: G93, G94, G95.
     FeedMode,
     /// LinuxCNC group 6: G20, G21.
     Units,
@@ -147,7 +152,7 @@ impl GGroup {
             GGroup::Plane => "plane (G17-G19)",
             GGroup::Distance => "distance (G90/G91)",
             GGroup::ArcDistance => "arc centre distance (G90.1/G91.1)",
-            GGroup::FeedMode => "feed mode (G94/G95)",
+            GGroup::FeedMode => "feed mode (G93/G94/G95)",
             GGroup::Units => "units (G20/G21)",
             GGroup::CutterComp => "cutter compensation (G40)",
             GGroup::ToolLength => "tool length offset (G43/G49)",
@@ -206,7 +211,7 @@ pub fn g_group(code10: u32) -> Result<GGroup, ErrorKind> {
         610 | 611 | 640 => Ok(GGroup::PathControl),
         900 | 910 => Ok(GGroup::Distance),
         901 | 911 => Ok(GGroup::ArcDistance),
-        940 | 950 => Ok(GGroup::FeedMode),
+        930 | 940 | 950 => Ok(GGroup::FeedMode),
         980 | 990 => Ok(GGroup::ReturnMode),
         970 => Ok(GGroup::SpindleMode),
         410 | 411 | 420 | 421 => Err(CutterCompensation),
@@ -228,7 +233,6 @@ pub fn g_group(code10: u32) -> Result<GGroup, ErrorKind> {
             "G70-G72 (lathe cycles, or inch/metric on old Fanuc controls: use G20/G21) are not supported",
         ),
         920..=923 => unsupported("G92 offsets are not supported (use G54-G59)"),
-        930 => unsupported("inverse time feed (G93) is not supported (G94 and G95 are)"),
         960 => unsupported("constant surface speed (G96) is not supported (G97 rpm mode is)"),
         _ => Err(UnknownG),
     }
@@ -375,9 +379,9 @@ impl Block {
         self.first_col
     }
 
-    /// Column of the first axis word present (X, Y, Z, A order of appearance), 0 if none.
+    /// Column of the first axis word present (X, Y, Z, A, C order of appearance), 0 if none.
     pub fn first_axis_column(&self) -> u32 {
-        [Letter::X, Letter::Y, Letter::Z, Letter::A]
+        [Letter::X, Letter::Y, Letter::Z, Letter::A, Letter::C]
             .into_iter()
             .filter(|&l| self.has(l))
             .map(|l| self.cols[l as usize])
@@ -418,7 +422,7 @@ const fn class_table() -> [u8; 256] {
         t[(c | 0x20) as usize] = v;
         k += 1;
     }
-    let bad = *b"BCDELUVW";
+    let bad = *b"BDELUVW";
     let mut k = 0;
     while k < bad.len() {
         t[bad[k] as usize] = C_BAD_LETTER;
@@ -439,8 +443,8 @@ static CLASS: [u8; 256] = class_table();
 
 fn bad_letter_reason(c: u8) -> &'static str {
     match c.to_ascii_uppercase() {
-        b'B' | b'C' => "B and C axes are not on this machine (axes X, Y, Z, A)",
-        b'U' | b'V' | b'W' => "U, V and W axes are not on this machine (axes X, Y, Z, A)",
+        b'B' => "the B axis is not supported (axes X, Y, Z, A, C)",
+        b'U' | b'V' | b'W' => "U, V and W axes are not supported (axes X, Y, Z, A, C)",
         b'D' => "D word (cutter compensation) is not supported",
         b'E' => "E word is not supported",
         _ => "L word (G10, canned-cycle repeats) is not supported",
@@ -835,10 +839,6 @@ mod tests {
         assert_eq!(err("G0 X1 $1").2, ErrorKind::UnexpectedChar { found: '$' });
         assert_eq!(err("% (x)").2, ErrorKind::MisplacedPercent);
         assert_eq!(err("G0 X1 %").2, ErrorKind::MisplacedPercent);
-        assert_eq!(
-            err("G93 G1 X1").2,
-            ErrorKind::UnsupportedG { reason: "inverse time feed (G93) is not supported (G94 and G95 are)" }
-        );
         let (c, w, k) = err("G0 X1 G1 Y1");
         assert_eq!((c, w.as_str()), (7, "G1"));
         assert_eq!(k, ErrorKind::ModalGroupConflict { group: GGroup::Motion.name(), other: "G0".into() });

@@ -226,9 +226,9 @@ struct Frame {
     scale: f64,
     plane: Plane,
     /// G5x + G92 + tool offsets, mm / degrees.
-    g5x: [f64; 4],
-    g92: [f64; 4],
-    tool: [f64; 4],
+    g5x: [f64; 5],
+    g92: [f64; 5],
+    tool: [f64; 5],
     /// Print uncertainty of the offsets, mm.
     offset_slack: f64,
 }
@@ -238,8 +238,10 @@ impl Frame {
         self.g5x[k] + self.g92[k] + self.tool[k]
     }
 
-    fn point(&self, p: [f64; 4]) -> Pos {
-        Pos::from_array([0, 1, 2, 3].map(|k| if k < 3 { p[k] * self.scale } else { p[k] } + self.origin(k)))
+    fn point(&self, p: [f64; 5]) -> Pos {
+        Pos::from_array(
+            [0, 1, 2, 3, 4].map(|k| if k < 3 { p[k] * self.scale } else { p[k] } + self.origin(k)),
+        )
     }
 
     fn slack(&self) -> f64 {
@@ -252,9 +254,9 @@ pub fn parse_output<R: BufRead>(reader: R) -> Result<Vec<Rs274Canon>, Rs274Error
     let mut fr = Frame {
         scale: 1.0,
         plane: Plane::Xy,
-        g5x: [0.0; 4],
-        g92: [0.0; 4],
-        tool: [0.0; 4],
+        g5x: [0.0; 5],
+        g92: [0.0; 5],
+        tool: [0.0; 5],
         offset_slack: 0.0,
     };
     let mut out = Vec::new();
@@ -320,7 +322,9 @@ fn parse_call(
             numbers(inner, args)?;
             let v = if name == "SET_G5X_OFFSET" { args.get(1..) } else { args.get(..) };
             let v = v.filter(|v| v.len() >= 4).ok_or("too few offset values")?;
-            let o = [v[0] * fr.scale, v[1] * fr.scale, v[2] * fr.scale, v[3]];
+            // x y z a b c: B is not on the machine.
+            let o =
+                [v[0] * fr.scale, v[1] * fr.scale, v[2] * fr.scale, v[3], v.get(5).copied().unwrap_or(0.0)];
             if name == "SET_G5X_OFFSET" {
                 fr.g5x = o;
             } else {
@@ -333,7 +337,13 @@ fn parse_call(
             if args.len() < 4 {
                 return Err("too few tool offset values");
             }
-            fr.tool = [args[0] * fr.scale, args[1] * fr.scale, args[2] * fr.scale, args[3]];
+            fr.tool = [
+                args[0] * fr.scale,
+                args[1] * fr.scale,
+                args[2] * fr.scale,
+                args[3],
+                args.get(5).copied().unwrap_or(0.0),
+            ];
             fr.offset_slack = 1.5e-4 * fr.scale;
         }
         "SET_XY_ROTATION" => {
@@ -347,7 +357,8 @@ fn parse_call(
             if args.len() < 4 {
                 return Err("too few coordinates");
             }
-            let to = fr.point([args[0], args[1], args[2], args[3]]);
+            // x y z a b c
+            let to = fr.point([args[0], args[1], args[2], args[3], args.get(5).copied().unwrap_or(0.0)]);
             let call =
                 if name == "STRAIGHT_FEED" { Rs274Call::Feed { to } } else { Rs274Call::Traverse { to } };
             push(call, fr.slack());
@@ -358,11 +369,13 @@ fn parse_call(
                 return Err("too few arc values");
             }
             let [i0, i1, n] = fr.plane.axes();
-            let mut p = [0.0; 4];
+            let mut p = [0.0; 5];
             p[i0] = args[0];
             p[i1] = args[1];
             p[n] = args[5];
+            // a b c after the axis end point
             p[3] = args[6];
+            p[4] = args.get(8).copied().unwrap_or(0.0);
             let rotation = args[4];
             if rotation.fract() != 0.0 || rotation.abs() > 1e6 {
                 return Err("rotation is not an integer");
