@@ -1471,6 +1471,37 @@ mod tests {
     }
 
     #[test]
+    fn on_a_3_axis_program_the_dexel_stock_drives_the_adaptive_loop_as_the_z_map_does() {
+        // The same program and loop on the Z-map and on the one dexel stock (the program's block
+        // as the only face): a full slot, then a half-immersion pass beside it, then a ramp.
+        let program = "%\nG21 G90 G17 G94 G40 G49 G80\nT1 M6\nS1500 M3\nG43 H1\nG0 X-5 Y10\nG0 Z5\nG1 Z8 F100\n\
+                       G1 X35 F200\nG0 Z15\nG0 X-5 Y13\nG1 Z8.5 F100\nG1 X35 F250\nG1 X10 Y3 Z7.5 F150\nG0 Z15\nG53 G0 Z0\nM30\n%\n";
+        let zmap = setup(PolicyKind::Aco);
+        let mut dexel = setup(PolicyKind::Aco);
+        dexel.faces = vec![FaceStock { a_deg: 0.0, stock: dexel.stock }];
+        let (rz, rows_z, _) = run(&zmap, program).expect("z-map");
+        let (rd, rows_d, _) = run(&dexel, program).expect("dexel");
+        let close = |a: f64, b: f64, rel: f64, what: &str| {
+            assert!((a - b).abs() <= rel * a.abs().max(b.abs()), "{what}: Z-map {a} against dexel {b}");
+        };
+        close(rz.removed_mm3, rd.removed_mm3, 0.01, "removed volume");
+        close(rz.cycle_time_s, rd.cycle_time_s, 0.02, "cycle time under the loop");
+        close(rz.max_torque_nm, rd.max_torque_nm, 0.05, "peak torque");
+        let mean = |rows: &[TelemetryRow]| {
+            let cutting: Vec<f64> =
+                rows.iter().filter(|r| r.removal_mm3_s > 0.0).map(|r| r.torque_true_nm).collect();
+            cutting.iter().sum::<f64>() / cutting.len().max(1) as f64
+        };
+        close(mean(&rows_z), mean(&rows_d), 0.03, "mean cutting torque");
+        let mean_feed = |rows: &[TelemetryRow]| {
+            let cutting: Vec<f64> =
+                rows.iter().filter(|r| r.removal_mm3_s > 0.0).map(|r| r.feed_mm_min).collect();
+            cutting.iter().sum::<f64>() / cutting.len().max(1) as f64
+        };
+        close(mean_feed(&rows_z), mean_feed(&rows_d), 0.03, "mean feed the loop chose");
+    }
+
+    #[test]
     fn moves_shorter_than_a_revolution_between_stops_take_their_motion_time() {
         // Step-downs of 0.01 mm (less than one revolution's feed) between passes that reverse:
         // each starts and ends at rest. Without adaptation the cutting run takes the time of the

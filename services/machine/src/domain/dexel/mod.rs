@@ -606,16 +606,32 @@ impl DexelStock {
                         }
                     }
                     let rm = RayMove::new(&o, &d, from, &v, &f);
-                    let mut changed = false;
+                    // The ray's interval in each piece's sweep, merged where they overlap (the
+                    // pieces of a tool stack along its axis, so on most rays they make one
+                    // interval), then subtracted once each.
+                    let mut ext: SmallVec<[(f64, f64); 4]> = SmallVec::new();
+                    let (ray_lo, ray_hi) = (f64::from(first[0]), f64::from(last[1]));
                     for (piece, shadow) in tool.pieces().iter().zip(&shadows) {
-                        let (Some(first), Some(last)) = (ray.first(), ray.last()) else { break };
-                        if f64::from(last[1]) < shadow.range.0
-                            || f64::from(first[0]) > shadow.range.1
-                            || !shadow.near(o[a], o[b])
-                        {
+                        if ray_hi < shadow.range.0 || ray_lo > shadow.range.1 || !shadow.near(o[a], o[b]) {
                             continue;
                         }
-                        let Some((l, h)) = rm.extent(piece) else { continue };
+                        if let Some(e) = rm.extent(piece) {
+                            ext.push(e);
+                        }
+                    }
+                    if ext.len() > 1 {
+                        ext.sort_unstable_by(|x, y| x.0.total_cmp(&y.0));
+                        let mut merged: SmallVec<[(f64, f64); 4]> = SmallVec::new();
+                        for e in ext {
+                            match merged.last_mut() {
+                                Some(m) if e.0 <= m.1 => m.1 = m.1.max(e.1),
+                                _ => merged.push(e),
+                            }
+                        }
+                        ext = merged;
+                    }
+                    let mut changed = false;
+                    for (l, h) in ext {
                         subtract(ray, l as f32, h as f32, |sa, sb| {
                             changed = true;
                             let (sa, sb) = (f64::from(sa), f64::from(sb));
