@@ -549,6 +549,16 @@ impl DexelStock {
                 let tip_low = (sgn * from[g.axis]).min(sgn * to[g.axis]);
                 (sgn, tip_low, [from[a], from[b]], [to[a] - from[a], to[b] - from[b]])
             });
+            // A level move along such rays (no motion along them: a 3-axis cut at one height)
+            // covers, on a ray at distance d from the tip's path, the tool's intervals at d
+            // (see `ToolSolid::intervals_at`): no closed form per piece needed.
+            let level = axial.is_some() && v[g.axis].abs() < 1e-12;
+            // 1 / |e|² of the tip's path across the rays (0 for a move along them: every ray
+            // then measures from the start).
+            let inv_ee = axial.map_or(0.0, |(_, _, _, e)| {
+                let ee = e[0] * e[0] + e[1] * e[1];
+                if ee > 0.0 { 1.0 / ee } else { 0.0 }
+            });
             let d = g.dir();
             let area = g.cell * g.cell;
             let ni = g.n[0];
@@ -575,7 +585,20 @@ impl DexelStock {
             let row = |j: usize, rays: &mut [Ray]| -> Tally {
                 let mut t = Tally::new();
                 let (axis, cell, origin) = geo;
-                for (i, ray) in rays.iter_mut().enumerate().take(i1 + 1).skip(i0) {
+                // Rays along the tool's axis: only the row's chord of the capsule the tip's path
+                // sweeps with the tool's radius can meet the tool.
+                let (mut ri0, mut ri1) = (i0, i1);
+                if let Some((_, _, p0, e)) = axial {
+                    let yb = origin[1] + (j as f64 + 0.5) * cell;
+                    let Some((xl, xh)) = capsule_chord(p0, e, tool.radius_mm(), yb) else { return t };
+                    let Some((l, h)) = g_span(origin[0], cell, ni, xl, xh) else { return t };
+                    ri0 = ri0.max(l);
+                    ri1 = ri1.min(h);
+                    if ri0 > ri1 {
+                        return t;
+                    }
+                }
+                for (i, ray) in rays.iter_mut().enumerate().take(ri1 + 1).skip(ri0) {
                     let (Some(first), Some(last)) = (ray.first(), ray.last()) else { continue };
                     if last[1] < tlo || first[0] > thi {
                         continue;
@@ -584,39 +607,48 @@ impl DexelStock {
                     let mut o = Point3::origin();
                     o[a] = origin[0] + (i as f64 + 0.5) * cell;
                     o[b] = origin[1] + (j as f64 + 0.5) * cell;
+                    let mut ext: SmallVec<[(f64, f64); 4]> = SmallVec::new();
+                    let mut swept = false;
                     if let Some((sgn, tip_low, p0, e)) = axial {
                         let rel = [o[a] - p0[0], o[b] - p0[1]];
-                        let ee = e[0] * e[0] + e[1] * e[1];
-                        let k = if ee > 0.0 {
-                            ((rel[0] * e[0] + rel[1] * e[1]) / ee).clamp(0.0, 1.0)
-                        } else {
-                            0.0
-                        };
+                        let k = ((rel[0] * e[0] + rel[1] * e[1]) * inv_ee).clamp(0.0, 1.0);
                         let (dx, dy) = (rel[0] - k * e[0], rel[1] - k * e[1]);
                         let d2 = dx * dx + dy * dy;
                         if d2 > r2 {
                             continue;
                         }
-                        let Some(h) = tool.lower(d2.sqrt()) else { continue };
-                        // The tool spans sgn·t >= tip_low + h on this ray.
-                        let bound = tip_low + h - 1e-9;
+                        // The tool spans sgn·t >= tip_low + lower(d) on this ray: material that
+                        // ends before a lower bound of that is untouched (most rays under a
+                        // finishing tool, cut by the move before).
+                        let bound = tip_low + tool.lower_bound_d2(d2) - 1e-9;
                         let reach = if sgn > 0.0 { f64::from(last[1]) } else { -f64::from(first[0]) };
                         if reach <= bound {
                             continue;
                         }
-                    }
-                    let rm = RayMove::new(&o, &d, from, &v, &f);
-                    // The ray's interval in each piece's sweep, merged where they overlap (the
-                    // pieces of a tool stack along its axis, so on most rays they make one
-                    // interval), then subtracted once each.
-                    let mut ext: SmallVec<[(f64, f64); 4]> = SmallVec::new();
-                    let (ray_lo, ray_hi) = (f64::from(first[0]), f64::from(last[1]));
-                    for (piece, shadow) in tool.pieces().iter().zip(&shadows) {
-                        if ray_hi < shadow.range.0 || ray_lo > shadow.range.1 || !shadow.near(o[a], o[b]) {
-                            continue;
+                        if level {
+                            let tip = from[g.axis];
+                            ext = tool
+                                .intervals_at(d2.sqrt())
+                                .into_iter()
+                                .map(|(l, h)| if sgn > 0.0 { (tip + l, tip + h) } else { (tip - h, tip - l) })
+                                .collect();
+                            swept = true;
                         }
-                        if let Some(e) = rm.extent(piece) {
-                            ext.push(e);
+                    }
+                    if !swept {
+                        // The ray's interval in each piece's sweep, merged where they overlap
+                        // (the pieces of a tool stack along its axis, so on most rays they make
+                        // one interval), then subtracted once each.
+                        let rm = RayMove::new(&o, &d, from, &v, &f);
+                        let (ray_lo, ray_hi) = (f64::from(first[0]), f64::from(last[1]));
+                        for (piece, shadow) in tool.pieces().iter().zip(&shadows) {
+                            if ray_hi < shadow.range.0 || ray_lo > shadow.range.1 || !shadow.near(o[a], o[b])
+                            {
+                                continue;
+                            }
+                            if let Some(e) = rm.extent(piece) {
+                                ext.push(e);
+                            }
                         }
                     }
                     if ext.len() > 1 {
@@ -869,6 +901,45 @@ impl Shadow {
         let cq = [c[0] + self.q[0], c[1] + self.q[1]];
         seg(c, self.p) || seg(c, self.q) || seg(cp, self.q) || seg(cq, self.p)
     }
+}
+
+/// Index range of the cell centres within `[lo, hi]` on a grid axis from `origin` in cells of
+/// `cell`, `n` of them.
+fn g_span(origin: f64, cell: f64, n: usize, lo: f64, hi: f64) -> Option<(usize, usize)> {
+    let a = ((lo - origin) / cell - 0.5).ceil().max(0.0);
+    let b = ((hi - origin) / cell - 0.5).floor().min(n as f64 - 1.0);
+    (a <= b && b >= 0.0).then_some((a as usize, b as usize))
+}
+
+/// The chord of the row `y = yb` through the capsule of radius `r` around the segment
+/// `p0 → p0 + e` (2-D): `[x_min, x_max]`, or `None` when the row misses it. The capsule is
+/// convex, so the chord's ends are where the row crosses its boundary: the two end circles and
+/// the two sides parallel to the segment.
+fn capsule_chord(p0: [f64; 2], e: [f64; 2], r: f64, yb: f64) -> Option<(f64, f64)> {
+    let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+    for c in [p0, [p0[0] + e[0], p0[1] + e[1]]] {
+        let dy = yb - c[1];
+        if dy.abs() <= r {
+            let w = (r * r - dy * dy).sqrt();
+            lo = lo.min(c[0] - w);
+            hi = hi.max(c[0] + w);
+        }
+    }
+    let len = (e[0] * e[0] + e[1] * e[1]).sqrt();
+    if len > 0.0 && e[1].abs() > 1e-15 {
+        let n = [-e[1] / len, e[0] / len];
+        for side in [-1.0, 1.0] {
+            let (sx, sy) = (p0[0] + side * r * n[0], p0[1] + side * r * n[1]);
+            let k = (yb - sy) / e[1];
+            if (0.0..=1.0).contains(&k) {
+                let x = sx + k * e[0];
+                lo = lo.min(x);
+                hi = hi.max(x);
+            }
+        }
+    }
+    // A whisker of slack for rounding: the exact distance test follows for every ray.
+    (lo <= hi).then_some((lo - 1e-9, hi + 1e-9))
 }
 
 /// Subtracts `[lo, hi]` from a ray, calling `removed(a, b)` for each piece of material taken.

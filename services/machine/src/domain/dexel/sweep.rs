@@ -33,6 +33,7 @@
 //! floating-point rounding, with no sampling along the move.
 
 use nalgebra::{Point3, Unit, Vector3};
+use smallvec::SmallVec;
 
 use depthmill_geometry::{ToolProfile, ToolSpec};
 
@@ -80,7 +81,15 @@ pub struct ToolSolid {
     pieces: Vec<Piece>,
     radius: f64,
     length: f64,
+    /// `lower` at `d² = k·R²/LOWER_STEPS`, `k = 0..=LOWER_STEPS`: a lower bound of the lower
+    /// surface at any `d²` from the entry below it (the surface rises with the distance).
+    lower_by_d2: Vec<f64>,
+    /// `LOWER_STEPS / R²`.
+    steps_per_d2: f64,
 }
+
+/// Entries of [`ToolSolid::lower_bound_d2`]'s table.
+const LOWER_STEPS: usize = 1024;
 
 impl ToolSolid {
     /// The solid of `profile` up to `length_mm` above the tip (the gauge length: flutes, shank
@@ -110,7 +119,18 @@ impl ToolSolid {
             }
             pieces.push(Piece::Frustum { h0: top, h1: length_mm, r0: radius, r1: radius });
         }
-        Ok(ToolSolid { pieces, radius, length: length_mm })
+        let r2 = radius * radius;
+        let mut solid = ToolSolid {
+            pieces,
+            radius,
+            length: length_mm,
+            lower_by_d2: Vec::new(),
+            steps_per_d2: LOWER_STEPS as f64 / r2,
+        };
+        solid.lower_by_d2 = (0..=LOWER_STEPS)
+            .map(|k| solid.lower((k as f64 * r2 / LOWER_STEPS as f64).sqrt()).unwrap_or(f64::INFINITY))
+            .collect();
+        Ok(solid)
     }
 
     /// The pieces, tip first.
@@ -146,6 +166,45 @@ impl ToolSolid {
                 }
             })
             .reduce(f64::min)
+    }
+
+    /// A lower bound of [`lower`](Self::lower) at the squared distance `d2` (`≤ R²`), from a
+    /// table: no square root, no walk over the pieces.
+    #[inline]
+    pub fn lower_bound_d2(&self, d2: f64) -> f64 {
+        // Truncation is the floor here (the argument is not negative; NaN and negatives give 0),
+        // and needs no call to libm's floor on the baseline x86-64 target.
+        let k = ((d2 * self.steps_per_d2).max(0.0) as usize).min(LOWER_STEPS);
+        self.lower_by_d2.get(k).copied().unwrap_or(f64::INFINITY)
+    }
+
+    /// Each piece's axial interval `[w_lo, w_hi]` at radial distance `rho` (pieces that reach
+    /// `rho`), in piece order. A piece's interval only shrinks as `rho` grows (every piece is
+    /// convex and of revolution), so a level move's sweep seen along a ray parallel to the axis is
+    /// these intervals at the ray's nearest distance from the tip's path.
+    pub fn intervals_at(&self, rho: f64) -> SmallVec<[(f64, f64); 4]> {
+        self.pieces
+            .iter()
+            .filter_map(|p| match *p {
+                Piece::Sphere { c, r } => (rho <= r).then(|| {
+                    let half = (r * r - rho * rho).max(0.0).sqrt();
+                    (c - half, c + half)
+                }),
+                Piece::Frustum { h0, h1, r0, r1 } => {
+                    if rho > r0.max(r1) {
+                        None
+                    } else if r1 >= r0 {
+                        // Rising: from where the radius reaches rho up to the top.
+                        let w = if rho <= r0 { h0 } else { h0 + (rho - r0) * (h1 - h0) / (r1 - r0) };
+                        Some((w, h1))
+                    } else {
+                        // Falling: from the bottom up to where the radius drops below rho.
+                        let w = if rho <= r1 { h1 } else { h0 + (r0 - rho) * (h1 - h0) / (r0 - r1) };
+                        Some((h0, w))
+                    }
+                }
+            })
+            .collect()
     }
 
     /// Whether a tool-frame point (radial `rho`, axial `w`) is in the tool, within `tol`.

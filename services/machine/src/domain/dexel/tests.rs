@@ -459,3 +459,55 @@ fn the_surface_mesh_is_closed_wound_outward_and_holds_the_stocks_volume() {
     assert!(matches!(dex.surface_mesh(0.001), Err(DexelError::TooManySamples { .. })));
     assert!(matches!(dex.surface_mesh(f64::NAN), Err(DexelError::Invalid { .. })));
 }
+
+#[test]
+fn the_capsule_chord_of_a_row_holds_every_point_within_the_radius_and_no_more() {
+    let mut rng = StdRng::seed_from_u64(33);
+    for _ in 0..300 {
+        let p0 = [rng.random_range(-5.0..5.0), rng.random_range(-5.0..5.0)];
+        let e = if rng.random_bool(0.2) {
+            [0.0, 0.0]
+        } else {
+            [rng.random_range(-6.0..6.0), rng.random_range(-6.0..6.0)]
+        };
+        let r = rng.random_range(0.1..3.0);
+        let yb = rng.random_range(-12.0..12.0);
+        // Brute force: points of the row every 1e-3 mm, their distance to the segment.
+        let dist = |x: f64| {
+            let rel = [x - p0[0], yb - p0[1]];
+            let ee = e[0] * e[0] + e[1] * e[1];
+            let k = if ee > 0.0 { ((rel[0] * e[0] + rel[1] * e[1]) / ee).clamp(0.0, 1.0) } else { 0.0 };
+            ((rel[0] - k * e[0]).powi(2) + (rel[1] - k * e[1]).powi(2)).sqrt()
+        };
+        let inside: Vec<f64> =
+            (0..30_000).map(|i| -15.0 + i as f64 * 1e-3).filter(|&x| dist(x) <= r).collect();
+        match capsule_chord(p0, e, r, yb) {
+            None => assert!(inside.is_empty(), "{p0:?} {e:?} {r} {yb}: missed {} points", inside.len()),
+            Some((lo, hi)) => {
+                for x in &inside {
+                    assert!(*x >= lo && *x <= hi, "{p0:?} {e:?} {r} {yb}: {x} outside [{lo}, {hi}]");
+                }
+                assert!(
+                    dist(lo + 1e-9) <= r + 1e-6 && dist(hi - 1e-9) <= r + 1e-6,
+                    "chord ends off the capsule"
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn the_lower_surface_table_bounds_it_from_below() {
+    let mut rng = StdRng::seed_from_u64(34);
+    for profile in tools() {
+        let solid = ToolSolid::new(&profile, 30.0).expect("solid");
+        let r = solid.radius_mm();
+        for _ in 0..2000 {
+            let d = rng.random_range(0.0..=r);
+            let exact = solid.lower(d).expect("within the radius");
+            let bound = solid.lower_bound_d2(d * d);
+            assert!(bound <= exact + 1e-12, "{profile:?} at {d}: {bound} above {exact}");
+            assert!(exact - bound < 0.05 * r, "{profile:?} at {d}: {bound} far below {exact}");
+        }
+    }
+}
