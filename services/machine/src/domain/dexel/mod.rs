@@ -18,7 +18,12 @@
 //!   every face's block). Each ray starts with its one interval inside all boxes.
 //! - **Sectors**: a cut visits only the rays whose cell centre lies in the tool's bounding box
 //!   projected on the grid, and skips a ray at once when its material's range along the ray
-//!   does not meet that box; only the remaining rays get the exact test.
+//!   does not meet that box; only the remaining rays get the exact test. On the grid whose rays
+//!   are parallel to the tool's axis (the Z grid of a 3-axis cut) a row visits only its chord of
+//!   the capsule the tip's path sweeps with the tool's radius, a ray whose material ends below a
+//!   table lower bound of the tool's lower surface is skipped, and a level move (no motion along
+//!   the rays) takes the tool's own intervals at the ray's distance from the path instead of the
+//!   closed form per piece.
 //!
 //! # Cutting
 //!
@@ -598,19 +603,22 @@ impl DexelStock {
                         return t;
                     }
                 }
+                let yb = origin[1] + (j as f64 + 0.5) * cell;
                 for (i, ray) in rays.iter_mut().enumerate().take(ri1 + 1).skip(ri0) {
-                    let (Some(first), Some(last)) = (ray.first(), ray.last()) else { continue };
+                    let (first, last) = {
+                        let sl = ray.as_slice();
+                        let (Some(first), Some(last)) = (sl.first(), sl.last()) else { continue };
+                        (*first, *last)
+                    };
                     if last[1] < tlo || first[0] > thi {
                         continue;
                     }
                     t.visited += 1;
-                    let mut o = Point3::origin();
-                    o[a] = origin[0] + (i as f64 + 0.5) * cell;
-                    o[b] = origin[1] + (j as f64 + 0.5) * cell;
+                    let xa = origin[0] + (i as f64 + 0.5) * cell;
                     let mut ext: SmallVec<[(f64, f64); 4]> = SmallVec::new();
                     let mut swept = false;
                     if let Some((sgn, tip_low, p0, e)) = axial {
-                        let rel = [o[a] - p0[0], o[b] - p0[1]];
+                        let rel = [xa - p0[0], yb - p0[1]];
                         let k = ((rel[0] * e[0] + rel[1] * e[1]) * inv_ee).clamp(0.0, 1.0);
                         let (dx, dy) = (rel[0] - k * e[0], rel[1] - k * e[1]);
                         let d2 = dx * dx + dy * dy;
@@ -635,6 +643,9 @@ impl DexelStock {
                             swept = true;
                         }
                     }
+                    let mut o = Point3::origin();
+                    o[a] = xa;
+                    o[b] = yb;
                     if !swept {
                         // The ray's interval in each piece's sweep, merged where they overlap
                         // (the pieces of a tool stack along its axis, so on most rays they make
