@@ -650,14 +650,23 @@ impl DexelStock {
                         // The ray's interval in each piece's sweep, merged where they overlap
                         // (the pieces of a tool stack along its axis, so on most rays they make
                         // one interval), then subtracted once each.
-                        let rm = RayMove::new(&o, &d, from, &v, &f);
+                        let mut rm: Option<RayMove> = None;
                         let (ray_lo, ray_hi) = (f64::from(first[0]), f64::from(last[1]));
                         for (piece, shadow) in tool.pieces().iter().zip(&shadows) {
                             if ray_hi < shadow.range.0 || ray_lo > shadow.range.1 || !shadow.near(o[a], o[b])
                             {
                                 continue;
                             }
-                            if let Some(e) = rm.extent(piece) {
+                            let e = match *piece {
+                                // A ball swept straight is a capsule: its own closed form.
+                                Piece::Sphere { c, r } => {
+                                    sweep::capsule_extent(&o, &d, &(from + f.u * c), &v, r)
+                                }
+                                _ => {
+                                    rm.get_or_insert_with(|| RayMove::new(&o, &d, from, &v, &f)).extent(piece)
+                                }
+                            };
+                            if let Some(e) = e {
                                 ext.push(e);
                             }
                         }
