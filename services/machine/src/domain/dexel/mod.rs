@@ -886,40 +886,54 @@ struct Shadow {
     c: [f64; 2],
     p: [f64; 2],
     q: [f64; 2],
-    r: f64,
-    det: f64,
+    r2: f64,
+    /// 1 / det(p, q) when the parallelogram has an area, else 0 (only its edges count).
+    inv_det: f64,
+    /// 1 / |p|², 1 / |q|² (0 for a zero edge).
+    inv_pp: f64,
+    inv_qq: f64,
     /// The piece's range along the rays.
     range: (f64, f64),
 }
 
 impl Shadow {
     fn new(c: [f64; 2], p: [f64; 2], q: [f64; 2], r: f64, range: (f64, f64)) -> Self {
-        Shadow { c, p, q, r, det: p[0] * q[1] - p[1] * q[0], range }
+        let det = p[0] * q[1] - p[1] * q[0];
+        let scale = (p[0].abs() + p[1].abs()) * (q[0].abs() + q[1].abs());
+        let inv = |x: f64| if x > 0.0 { 1.0 / x } else { 0.0 };
+        Shadow {
+            c,
+            p,
+            q,
+            r2: r * r,
+            inv_det: if det.abs() > 1e-12 * scale && scale > 0.0 { 1.0 / det } else { 0.0 },
+            inv_pp: inv(p[0] * p[0] + p[1] * p[1]),
+            inv_qq: inv(q[0] * q[0] + q[1] * q[1]),
+            range,
+        }
     }
 
-    /// Whether the point is within `r` of the parallelogram.
+    /// Whether the point is within `r` of the parallelogram (no division: the inverses are
+    /// kept).
     fn near(&self, x: f64, y: f64) -> bool {
         let d = [x - self.c[0], y - self.c[1]];
-        let scale = (self.p[0].abs() + self.p[1].abs()) * (self.q[0].abs() + self.q[1].abs());
-        if self.det.abs() > 1e-12 * scale && scale > 0.0 {
-            let u = (d[0] * self.q[1] - d[1] * self.q[0]) / self.det;
-            let w = (self.p[0] * d[1] - self.p[1] * d[0]) / self.det;
+        if self.inv_det != 0.0 {
+            let u = (d[0] * self.q[1] - d[1] * self.q[0]) * self.inv_det;
+            let w = (self.p[0] * d[1] - self.p[1] * d[0]) * self.inv_det;
             if (0.0..=1.0).contains(&u) && (0.0..=1.0).contains(&w) {
                 return true;
             }
         }
-        let r2 = self.r * self.r;
-        let seg = |o: [f64; 2], e: [f64; 2]| {
-            let rel = [x - o[0], y - o[1]];
-            let ee = e[0] * e[0] + e[1] * e[1];
-            let t = if ee > 0.0 { ((rel[0] * e[0] + rel[1] * e[1]) / ee).clamp(0.0, 1.0) } else { 0.0 };
+        let seg = |rel: [f64; 2], e: [f64; 2], inv_ee: f64| {
+            let t = ((rel[0] * e[0] + rel[1] * e[1]) * inv_ee).clamp(0.0, 1.0);
             let (dx, dy) = (rel[0] - t * e[0], rel[1] - t * e[1]);
-            dx * dx + dy * dy <= r2
+            dx * dx + dy * dy <= self.r2
         };
-        let c = self.c;
-        let cp = [c[0] + self.p[0], c[1] + self.p[1]];
-        let cq = [c[0] + self.q[0], c[1] + self.q[1]];
-        seg(c, self.p) || seg(c, self.q) || seg(cp, self.q) || seg(cq, self.p)
+        let (p, q) = (self.p, self.q);
+        seg(d, p, self.inv_pp)
+            || seg(d, q, self.inv_qq)
+            || seg([d[0] - p[0], d[1] - p[1]], q, self.inv_qq)
+            || seg([d[0] - q[0], d[1] - q[1]], p, self.inv_pp)
     }
 }
 
