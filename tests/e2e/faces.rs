@@ -114,6 +114,7 @@ async fn a_two_face_part_is_planned_with_the_a_axis_and_machined_on_both_faces()
     // The one stock measured against the original part (the input mesh, sampled) and against the
     // part opened by the smallest tool (ball-3).
     let m = &done["metrics"];
+    println!("stage timings (s): {}", done["stage_timings_s"]);
     println!(
         "against the part: {}; opened: {}; faces {}",
         report["part"]["against_part"], report["part"]["against_opened"], report["part"]["faces"]
