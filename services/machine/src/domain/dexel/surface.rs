@@ -125,7 +125,15 @@ impl DexelStock {
     /// Distance from `p` to the simulated part's surface (see the module docs), `None` when it
     /// is farther than `max_mm`.
     pub fn surface_distance(&self, p: &Point3<f64>, max_mm: f64) -> Option<f64> {
+        // Every grid's own ray first: on a face across one grid's rays that grid finds the
+        // surface at once, and the others' ring searches stop as soon as they cannot beat it
+        // (a wall seen along the Z rays would otherwise be searched ring by ring out to its top).
         let mut best = f64::INFINITY;
+        for g in &self.grids {
+            if let Some((_, d)) = g.axial(p) {
+                best = best.min(d * d);
+            }
+        }
         for g in &self.grids {
             g.nearest_end(p, &mut best, max_mm);
         }
