@@ -291,7 +291,10 @@ impl RayMove {
                     self.w.scaled(-1.0).shifted(h1),
                     l,
                 ];
-                extent(&[self.m1, self.m2], l, &lins)
+                // A cylinder's radius is a constant: `l >= 0` always holds and only adds
+                // degenerate candidates.
+                let n = if k == 0.0 { 4 } else { 5 };
+                extent(&[self.m1, self.m2], l, &lins[..n])
             }
             Piece::Sphere { c, r } => {
                 let lins = [
