@@ -547,8 +547,7 @@ pub fn execute_faces(
         || {
             other
                 .map(|p| -> Result<SimReport, ExecuteError> {
-                    let s = SimSetup { policy: p, ..setup.clone() };
-                    Ok(simulate(open()?, &s, stop, &mut |_| {})?.0)
+                    Ok(simulate(open()?, &comparison_setup(&setup, p), stop, &mut |_| {})?.0)
                 })
                 .transpose()
         },
@@ -633,6 +632,23 @@ pub fn execute_faces(
     let telemetry_svg = telemetry_chart(&rows, report.run.policy).to_svg();
     let (part_stl, part_view_ply) = meshes.map_or((None, None), |(_, stl, ply)| (Some(stl), Some(ply)));
     Ok(ExecuteOutput { report, final_stock, faces, telemetry_csv, telemetry_svg, part_stl, part_view_ply })
+}
+
+/// The set-up of the comparison policy's run. Its figure is a cycle time, so a multi-axis part's
+/// one stock is cut there on dexel cells twice as coarse (a quarter of the rays per grid: the
+/// forces the loop reacts to come from the same engagement and volume, resolved to 2 cells).
+fn comparison_setup(setup: &SimSetup, policy: PolicyKind) -> SimSetup {
+    let mut s = SimSetup { policy, ..setup.clone() };
+    if !s.faces.is_empty() {
+        let cell = s.faces.iter().map(|f| f.stock.cell_mm).fold(s.stock.cell_mm, f64::min);
+        let c = s.dexel.unwrap_or(DexelCells::tri(cell));
+        s.dexel = Some(DexelCells {
+            x_mm: c.x_mm.map(|v| 2.0 * v),
+            y_mm: c.y_mm.map(|v| 2.0 * v),
+            z_mm: c.z_mm.map(|v| 2.0 * v),
+        });
+    }
+    s
 }
 
 /// The simulated part as STL (on the finest lattice within [`MAX_SURFACE_SAMPLES`]) and as the
@@ -884,6 +900,53 @@ mod tests {
             "{:?}",
             out.report.run.warnings
         );
+    }
+
+    #[test]
+    fn the_comparison_run_on_coarser_dexels_keeps_the_cycle_time() {
+        // Two faces of a 30 x 20 x 20 bar on 0.1 mm dexels: a slot on each, under the loop.
+        let bar = StockSpec {
+            min_x_mm: 0.0,
+            min_y_mm: -10.0,
+            min_z_mm: -10.0,
+            x_mm: 30.0,
+            y_mm: 20.0,
+            z_mm: 20.0,
+            cell_mm: 0.1,
+        };
+        let setup = SimSetup {
+            profile: emco(),
+            material: material("aluminium").expect("al"),
+            stock: bar,
+            faces: vec![
+                super::super::sim::FaceStock { a_deg: 0.0, stock: bar },
+                super::super::sim::FaceStock { a_deg: 90.0, stock: bar },
+            ],
+            dexel: None,
+            tools: tools_for(&emco(), &[]).expect("tools"),
+            policy: PolicyKind::FeedOnly,
+            clamp: false,
+            inclusions: Vec::new(),
+            seed: 1,
+            telemetry_interval_s: 0.0,
+            motion_only: false,
+        };
+        let program = "%\nG21 G90 G17 G94 G40 G49 G80\nT1 M6\nS1500 M3\nG43 H1\nG0 X-5 Y7\nG0 Z15\n\
+                       G1 Z8 F100\nG1 X35 F200\nG0 Z15\nG0 A90\nG0 X-5 Y0\nG1 Z8.5 F100\nG1 X35 F250\nG0 Z15\n\
+                       G0 A0\nG53 G0 Z0\nM30\n%\n";
+        let run = |s: &SimSetup| {
+            simulate(std::io::Cursor::new(program), s, &|| false, &mut |_| {}).expect("runs").0
+        };
+        let (fine, coarse) = (run(&setup), run(&comparison_setup(&setup, PolicyKind::FeedOnly)));
+        let rel = (fine.cycle_time_s - coarse.cycle_time_s).abs() / fine.cycle_time_s;
+        assert!(
+            rel < 0.02,
+            "cycle time {} on 0.1 mm dexels, {} on 0.2 mm",
+            fine.cycle_time_s,
+            coarse.cycle_time_s
+        );
+        let rel = (fine.removed_mm3 - coarse.removed_mm3).abs() / fine.removed_mm3;
+        assert!(rel < 0.03, "removed {} against {}", fine.removed_mm3, coarse.removed_mm3);
     }
 
     #[test]
