@@ -562,3 +562,44 @@ fn the_capsule_closed_form_matches_the_general_sweep_of_a_ball() {
     }
     assert!(hits > 400, "{hits} rays met the capsule");
 }
+
+#[test]
+fn level_moves_along_the_rays_match_the_general_sweep_either_way_up() {
+    // The axial shortcut (a level move with the tool parallel to a grid's rays, pointing either
+    // way along them) against the general closed form, forced by tilting the axis by 1e-7 rad.
+    let mut rng = StdRng::seed_from_u64(36);
+    for profile in tools() {
+        let solid = ToolSolid::new(&profile, 12.0).expect("solid");
+        for sgn in [1.0, -1.0] {
+            let exact_axis = Unit::new_normalize(Vector3::new(0.0, 0.0, sgn));
+            let tilted = Unit::new_normalize(Vector3::new(1e-7, 0.0, sgn));
+            let mut fast = DexelStock::new(&block(10.0, 8.0, 6.0), &DexelCells::tri(0.2)).expect("dexel");
+            let mut general = fast.clone();
+            for _ in 0..6 {
+                // Tip 1 mm into the block from the side the tool comes from.
+                let z = if sgn > 0.0 { rng.random_range(4.5..5.5) } else { rng.random_range(0.5..1.5) };
+                let p0 = Point3::new(rng.random_range(1.0..9.0), rng.random_range(1.0..7.0), z);
+                let p1 = Point3::new(rng.random_range(1.0..9.0), rng.random_range(1.0..7.0), z);
+                let a = fast.cut_line(&solid, &p0, &p1, &exact_axis).expect("cut");
+                let b = general.cut_line(&solid, &p0, &p1, &tilted).expect("cut");
+                assert!(
+                    (a.volume_mm3 - b.volume_mm3).abs() < 1e-3 * b.volume_mm3.max(1.0),
+                    "{profile:?} {sgn}: {} against {}",
+                    a.volume_mm3,
+                    b.volume_mm3
+                );
+            }
+            let g = |s: &DexelStock| s.grids.iter().find(|g| g.axis == 2).cloned().expect("z grid");
+            let (gf, gg) = (g(&fast), g(&general));
+            for (rf, rg) in gf.rays.iter().zip(&gg.rays) {
+                assert_eq!(rf.len(), rg.len(), "{profile:?} {sgn}: {rf:?} against {rg:?}");
+                for (x, y) in rf.iter().zip(rg.iter()) {
+                    assert!(
+                        (x[0] - y[0]).abs() < 1e-4 && (x[1] - y[1]).abs() < 1e-4,
+                        "{profile:?} {sgn}: {rf:?} against {rg:?}"
+                    );
+                }
+            }
+        }
+    }
+}
