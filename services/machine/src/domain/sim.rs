@@ -169,8 +169,10 @@ pub struct SimSetup {
 pub enum SimError {
     #[error(transparent)]
     Gcode(#[from] GcodeError),
-    #[error("line {line}: {message}")]
-    Rejected { line: u64, message: String },
+    /// Refused before anything moved on that line; `word` is the letter of the word at fault
+    /// (an axis, F, S) and `column` its 1-based column in the line, when known.
+    #[error("line {line}{}: {message}", at_column(.column))]
+    Rejected { line: u64, message: String, word: Option<char>, column: Option<u32> },
     #[error("line {line}: crash: {message}")]
     Crash { line: u64, message: String },
     #[error("invalid setup: {0}")]
@@ -181,6 +183,57 @@ pub enum SimError {
     Dexel(#[from] DexelError),
     #[error("stopped at line {line}")]
     Stopped { line: u64 },
+}
+
+fn at_column(column: &Option<u32>) -> String {
+    column.map_or(String::new(), |c| format!(", column {c}"))
+}
+
+impl SimError {
+    /// A refusal of `line` that names no word.
+    pub fn rejected(line: u64, message: impl Into<String>) -> Self {
+        SimError::Rejected { line, message: message.into(), word: None, column: None }
+    }
+
+    /// A refusal of `line` caused by its `word` (the column is found in the line's text by
+    /// [`SimError::located`]).
+    pub fn rejected_word(line: u64, word: char, message: impl Into<String>) -> Self {
+        SimError::Rejected { line, message: message.into(), word: Some(word), column: None }
+    }
+
+    /// Fills in the column of a refusal's word from the text of line `line_no`: the first word
+    /// with that letter outside comments.
+    fn located(self, line_no: u64, text: &str) -> Self {
+        match self {
+            SimError::Rejected { line, message, word: Some(w), column: None } if line == line_no => {
+                let column = word_column(text, w);
+                SimError::Rejected { line, message, word: Some(w), column }
+            }
+            other => other,
+        }
+    }
+}
+
+/// 1-based column of the first `letter` word (a letter followed by a number) outside `( )` and
+/// `;` comments.
+fn word_column(text: &str, letter: char) -> Option<u32> {
+    let bytes = text.as_bytes();
+    let mut depth = 0u32;
+    for (i, &b) in bytes.iter().enumerate() {
+        match b {
+            b'(' => depth += 1,
+            b')' => depth = depth.saturating_sub(1),
+            b';' if depth == 0 => return None,
+            _ if depth == 0 && b.eq_ignore_ascii_case(&(letter as u8)) => {
+                let next = bytes[i + 1..].iter().find(|c| !c.is_ascii_whitespace());
+                if next.is_some_and(|c| c.is_ascii_digit() || matches!(c, b'-' | b'+' | b'.')) {
+                    return u32::try_from(i + 1).ok();
+                }
+            }
+            _ => {}
+        }
+    }
+    None
 }
 
 /// One telemetry row.
@@ -567,10 +620,11 @@ impl<'a> Machine<'a> {
                     None
                 } else {
                     let i = self.setup.tools.iter().position(|t| t.number == tool).ok_or_else(|| {
-                        SimError::Rejected {
+                        SimError::rejected_word(
                             line,
-                            message: format!("T{tool} is not in the machine's tool table"),
-                        }
+                            'T',
+                            format!("T{tool} is not in the machine's tool table"),
+                        )
                     })?;
                     Some(i)
                 };
@@ -623,7 +677,7 @@ impl<'a> Machine<'a> {
             self.report.warnings.push(format!("line {line}: {message}; clamped"));
             Ok(())
         } else {
-            Err(SimError::Rejected { line, message })
+            Err(SimError::rejected_word(line, word.chars().next().unwrap_or('F'), message))
         }
     }
 
@@ -646,34 +700,38 @@ impl<'a> Machine<'a> {
         let a = &prof.axes;
         for (axis, v, r) in [("X", to.x, a.x), ("Y", to.y, a.y), ("Z", nose_z, a.z)] {
             if !r.contains(v, 1e-6) {
-                return Err(SimError::Rejected {
+                return Err(SimError::rejected_word(
                     line,
-                    message: format!(
+                    axis.chars().next().unwrap_or('X'),
+                    format!(
                         "the move leaves the machine's travel: {axis} {v:.3} mm (spindle nose) is outside [{}, {}]",
                         r.min_mm, r.max_mm
                     ),
-                });
+                ));
             }
         }
         if !prof.a_is_continuous() && !a.a.contains(to.a, 1e-6) {
-            return Err(SimError::Rejected {
+            return Err(SimError::rejected_word(
                 line,
-                message: format!("A {:.3}° is outside [{}, {}]", to.a, a.a.min_mm, a.a.max_mm),
-            });
+                'A',
+                format!("A {:.3}° is outside [{}, {}]", to.a, a.a.min_mm, a.a.max_mm),
+            ));
         }
         if !prof.has_c() && to.c.abs() > 1e-9 {
-            return Err(SimError::Rejected {
+            return Err(SimError::rejected_word(
                 line,
-                message: format!("C {:.3}°: the {} has no C axis (axes X, Y, Z, A)", to.c, prof.name),
-            });
+                'C',
+                format!("C {:.3}°: the {} has no C axis (axes X, Y, Z, A)", to.c, prof.name),
+            ));
         }
         if let Some(c) = prof.c_limits()
             && !c.contains(to.c, 1e-6)
         {
-            return Err(SimError::Rejected {
+            return Err(SimError::rejected_word(
                 line,
-                message: format!("C {:.3}° is outside [{}, {}]", to.c, c.min_mm, c.max_mm),
-            });
+                'C',
+                format!("C {:.3}° is outside [{}, {}]", to.c, c.min_mm, c.max_mm),
+            ));
         }
         Ok(())
     }
@@ -801,7 +859,7 @@ impl<'a> Machine<'a> {
             return Ok(());
         }
         if self.feed_now <= 0.0 {
-            return Err(SimError::Rejected { line, message: "feed move with no feed rate".into() });
+            return Err(SimError::rejected(line, "feed move with no feed rate"));
         }
         if self.dexel.is_none()
             && (a_move > 1e-9 || c_move > 1e-9 || to.c.abs() > 1e-9 || self.face_index(to.a).is_none())
@@ -819,7 +877,7 @@ impl<'a> Machine<'a> {
             return Ok(());
         }
         let Some(tool) = self.current_tool().cloned() else {
-            return Err(SimError::Rejected { line, message: "feed move with no tool in the spindle".into() });
+            return Err(SimError::rejected(line, "feed move with no tool in the spindle"));
         };
         let rotary_rate = if c_move > a_move {
             self.setup.profile.c_rate_deg_min()
@@ -1229,7 +1287,7 @@ pub fn simulate_stock<R: BufRead>(
         buf.clear();
         interp.execute_line(line.trim_end_matches(['\n', '\r']), line_no, &mut |c| buf.push(c))?;
         for c in buf.drain(..) {
-            machine.execute(c, observe)?;
+            machine.execute(c, observe).map_err(|e| e.located(line_no, &line))?;
         }
         if interp.is_ended() {
             break;
@@ -1410,7 +1468,10 @@ mod tests {
         let program = format!("{head}G0 X0 Y0 Z15\nG0 A40\nM30\n%\n");
         let e =
             simulate_stock(Cursor::new(program), &s, &|| false, &mut |_| {}).map(|_| ()).expect_err("A 40");
-        assert!(matches!(&e, SimError::Rejected { line: 7, message } if message.contains("A 40")), "{e}");
+        assert!(
+            matches!(&e, SimError::Rejected { line: 7, message, column: Some(4), .. } if message.contains("A 40")),
+            "{e}"
+        );
     }
 
     #[test]
@@ -1453,7 +1514,7 @@ mod tests {
         let e =
             run(&s, "%\nG21 G90\nG0 X5 Y5 Z30\nG0 C10\nM30\n%\n").map(|_| ()).expect_err("no C on the F1");
         assert!(
-            matches!(&e, SimError::Rejected { line: 4, message } if message.contains("no C axis")),
+            matches!(&e, SimError::Rejected { line: 4, message, column: Some(4), .. } if message.contains("no C axis")),
             "{e}"
         );
         // Inverse time: G1 X20 F6 takes 1/6 min = 10 s (120 mm/min over 20 mm), in the air.
@@ -1499,6 +1560,21 @@ mod tests {
             cutting.iter().sum::<f64>() / cutting.len().max(1) as f64
         };
         close(mean_feed(&rows_z), mean_feed(&rows_d), 0.03, "mean feed the loop chose");
+    }
+
+    #[test]
+    fn a_refused_word_is_named_by_its_column() {
+        assert_eq!(word_column("G0 X5 (a C in a comment) C10", 'C'), Some(26));
+        assert_eq!(word_column("g1 x-5 f300", 'F'), Some(8));
+        assert_eq!(word_column("G1 X5 ; C10", 'C'), None);
+        assert_eq!(word_column("(COMMENT) T2 M6", 'T'), Some(11));
+        // Out of the travel in X: the line and the X word's column.
+        let s = setup(PolicyKind::Off);
+        let e = run(&s, "%\nG21 G90\nG53 G0 Z0\nG0 Y5   X900\nM30\n%\n").map(|_| ()).expect_err("X 900");
+        assert!(e.to_string().starts_with("line 4, column 9: "), "{e}");
+        // A feed out of range: the F word.
+        let e = run(&s, "%\nG21 G90\nG1 X1 F9000\nM30\n%\n").map(|_| ()).expect_err("F 9000");
+        assert!(e.to_string().starts_with("line 3, column 7: "), "{e}");
     }
 
     #[test]
@@ -1556,13 +1632,16 @@ mod tests {
         let s = setup(PolicyKind::Off);
         let fast = SLOT.replace("F200", "F900");
         let e = run(&s, &fast).map(|_| ()).expect_err("F900");
-        assert!(e.to_string().starts_with("line 9: F900 is outside the machine's 5-400 mm/min"), "{e}");
+        assert!(
+            e.to_string().starts_with("line 9, column 8: F900 is outside the machine's 5-400 mm/min"),
+            "{e}"
+        );
         let mut clamped = setup(PolicyKind::Off);
         clamped.clamp = true;
         let (report, _, _) = run(&clamped, &fast).expect("clamped");
         assert!(report.warnings.iter().any(|w| w.contains("F900") && w.contains("clamped")));
         let e = run(&s, &SLOT.replace("S1500", "S5000")).map(|_| ()).expect_err("S5000");
-        assert!(e.to_string().contains("line 4: S5000"), "{e}");
+        assert!(e.to_string().contains("line 4, column 1: S5000"), "{e}");
         let e = run(&s, &SLOT.replace("G1 X35", "G1 X400")).map(|_| ()).expect_err("travel");
         assert!(e.to_string().contains("line 9") && e.to_string().contains("travel"), "{e}");
     }
