@@ -655,15 +655,22 @@ fn chromium() -> Option<std::path::PathBuf> {
     None
 }
 
-#[test]
-fn chromium_renders_the_page() {
-    let Some(bin) = chromium() else {
+/// The browser, or `None` (the test is skipped) when there is none and
+/// `DEPTHMILL_REQUIRE_CHROMIUM=1` does not make that a failure.
+fn chromium_or_skip() -> Option<std::path::PathBuf> {
+    let bin = chromium();
+    if bin.is_none() {
         if std::env::var("DEPTHMILL_REQUIRE_CHROMIUM").as_deref() == Ok("1") {
             panic!("DEPTHMILL_REQUIRE_CHROMIUM=1 but no chromium, chromium-browser or google-chrome on PATH");
         }
         eprintln!("skipped: no chromium on PATH (set DEPTHMILL_REQUIRE_CHROMIUM=1 to make this fail)");
-        return;
-    };
+    }
+    bin
+}
+
+#[test]
+fn chromium_renders_the_page() {
+    let Some(bin) = chromium_or_skip() else { return };
     let arts = full_artifacts();
     let out = render_ok(&job("chromium check", "succeeded", &arts), &arts);
     let dir = std::env::temp_dir().join(format!("depthmill-report-{}", std::process::id()));
@@ -741,13 +748,7 @@ fn the_3d_view_shows_the_part_and_the_figures() {
 /// and zoom it.
 #[test]
 fn chromium_turns_the_3d_view() {
-    let Some(bin) = chromium() else {
-        if std::env::var("DEPTHMILL_REQUIRE_CHROMIUM").as_deref() == Ok("1") {
-            panic!("DEPTHMILL_REQUIRE_CHROMIUM=1 but no chromium, chromium-browser or google-chrome on PATH");
-        }
-        eprintln!("skipped: no chromium on PATH (set DEPTHMILL_REQUIRE_CHROMIUM=1 to make this fail)");
-        return;
-    };
+    let Some(bin) = chromium_or_skip() else { return };
     let arts = full_artifacts();
     let out = render_ok(&job("viewer check", "succeeded", &arts), &arts);
     // After the page's own script: count the canvas's drawn pixels, then drag, press a key and

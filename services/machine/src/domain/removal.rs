@@ -898,43 +898,60 @@ impl LineJob {
     /// X range of the capsule (segment ⊕ disc of radius `r`) on the line `y = cy`.
     #[inline]
     fn capsule_x(&self, cy: f64, r: f64, r2: f64) -> Option<(f64, f64)> {
-        let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
-        for (px, py) in [(self.ax, self.ay), (self.bx, self.by)] {
-            let dy = cy - py;
-            let h2 = r2 - dy * dy;
-            if h2 >= 0.0 {
-                let h = h2.sqrt();
-                lo = lo.min(px - h);
-                hi = hi.max(px + h);
-            }
-        }
-        if self.len > 0.0 {
-            // Band: 0 <= along <= len and |across| <= r, as a range of x − ax.
-            let dy = cy - self.ay;
-            let (mut blo, mut bhi) = (f64::NEG_INFINITY, f64::INFINITY);
-            let along0 = dy * self.uy;
-            if self.ux != 0.0 {
-                let (t0, t1) = (-along0 / self.ux, (self.len - along0) / self.ux);
-                blo = blo.max(t0.min(t1));
-                bhi = bhi.min(t0.max(t1));
-            } else if !(0.0..=self.len).contains(&along0) {
-                bhi = f64::NEG_INFINITY;
-            }
-            let across0 = dy * self.ux;
-            if self.uy != 0.0 {
-                let (c0, c1) = ((across0 - r) / self.uy, (across0 + r) / self.uy);
-                blo = blo.max(c0.min(c1));
-                bhi = bhi.min(c0.max(c1));
-            } else if across0.abs() > r {
-                bhi = f64::NEG_INFINITY;
-            }
-            if blo <= bhi {
-                lo = lo.min(self.ax + blo);
-                hi = hi.max(self.ax + bhi);
-            }
-        }
-        (lo <= hi).then_some((lo, hi))
+        capsule_x((self.ax, self.ay), (self.bx, self.by), (self.ux, self.uy), self.len, cy, r, r2)
     }
+}
+
+/// X range on the line `y = cy` of the capsule of radius `r` (`r2 = r²`) around the segment
+/// `a → b` (unit direction `u`, length `len`): the chords of the two end discs and of the band
+/// between them (the capsule is convex, so their hull). Shared by the Z-map's sweeps and the
+/// dexel stock's rows.
+#[inline]
+pub(crate) fn capsule_x(
+    a: (f64, f64),
+    b: (f64, f64),
+    u: (f64, f64),
+    len: f64,
+    cy: f64,
+    r: f64,
+    r2: f64,
+) -> Option<(f64, f64)> {
+    let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+    for (px, py) in [a, b] {
+        let dy = cy - py;
+        let h2 = r2 - dy * dy;
+        if h2 >= 0.0 {
+            let h = h2.sqrt();
+            lo = lo.min(px - h);
+            hi = hi.max(px + h);
+        }
+    }
+    if len > 0.0 {
+        // Band: 0 <= along <= len and |across| <= r, as a range of x − a.x.
+        let dy = cy - a.1;
+        let (mut blo, mut bhi) = (f64::NEG_INFINITY, f64::INFINITY);
+        let along0 = dy * u.1;
+        if u.0 != 0.0 {
+            let (t0, t1) = (-along0 / u.0, (len - along0) / u.0);
+            blo = blo.max(t0.min(t1));
+            bhi = bhi.min(t0.max(t1));
+        } else if !(0.0..=len).contains(&along0) {
+            bhi = f64::NEG_INFINITY;
+        }
+        let across0 = dy * u.0;
+        if u.1 != 0.0 {
+            let (c0, c1) = ((across0 - r) / u.1, (across0 + r) / u.1);
+            blo = blo.max(c0.min(c1));
+            bhi = bhi.min(c0.max(c1));
+        } else if across0.abs() > r {
+            bhi = f64::NEG_INFINITY;
+        }
+        if blo <= bhi {
+            lo = lo.min(a.0 + blo);
+            hi = hi.max(a.0 + bhi);
+        }
+    }
+    (lo <= hi).then_some((lo, hi))
 }
 
 /// A level arc swept exactly.

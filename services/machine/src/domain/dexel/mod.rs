@@ -236,9 +236,7 @@ impl Grid {
 
     /// Index range of the cell centres within `[lo, hi]` on plane axis `k` (0 or 1).
     fn span(&self, k: usize, lo: f64, hi: f64) -> Option<(usize, usize)> {
-        let a = ((lo - self.origin[k]) / self.cell - 0.5).ceil().max(0.0);
-        let b = ((hi - self.origin[k]) / self.cell - 0.5).floor().min(self.n[k] as f64 - 1.0);
-        (a <= b && b >= 0.0).then_some((a as usize, b as usize))
+        g_span(self.origin[k], self.cell, self.n[k], lo, hi)
     }
 
     /// The ray through the cell containing plane coordinates of `p`.
@@ -946,34 +944,15 @@ fn g_span(origin: f64, cell: f64, n: usize, lo: f64, hi: f64) -> Option<(usize, 
 }
 
 /// The chord of the row `y = yb` through the capsule of radius `r` around the segment
-/// `p0 → p0 + e` (2-D): `[x_min, x_max]`, or `None` when the row misses it. The capsule is
-/// convex, so the chord's ends are where the row crosses its boundary: the two end circles and
-/// the two sides parallel to the segment.
+/// `p0 → p0 + e` (2-D): `[x_min, x_max]`, or `None` when the row misses it (the Z-map's
+/// [`capsule_x`](super::removal::capsule_x)), with a whisker of slack for rounding: the exact
+/// distance test follows for every ray.
 fn capsule_chord(p0: [f64; 2], e: [f64; 2], r: f64, yb: f64) -> Option<(f64, f64)> {
-    let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
-    for c in [p0, [p0[0] + e[0], p0[1] + e[1]]] {
-        let dy = yb - c[1];
-        if dy.abs() <= r {
-            let w = (r * r - dy * dy).sqrt();
-            lo = lo.min(c[0] - w);
-            hi = hi.max(c[0] + w);
-        }
-    }
     let len = (e[0] * e[0] + e[1] * e[1]).sqrt();
-    if len > 0.0 && e[1].abs() > 1e-15 {
-        let n = [-e[1] / len, e[0] / len];
-        for side in [-1.0, 1.0] {
-            let (sx, sy) = (p0[0] + side * r * n[0], p0[1] + side * r * n[1]);
-            let k = (yb - sy) / e[1];
-            if (0.0..=1.0).contains(&k) {
-                let x = sx + k * e[0];
-                lo = lo.min(x);
-                hi = hi.max(x);
-            }
-        }
-    }
-    // A whisker of slack for rounding: the exact distance test follows for every ray.
-    (lo <= hi).then_some((lo - 1e-9, hi + 1e-9))
+    let u = if len > 0.0 { (e[0] / len, e[1] / len) } else { (0.0, 0.0) };
+    let (lo, hi) =
+        super::removal::capsule_x((p0[0], p0[1]), (p0[0] + e[0], p0[1] + e[1]), u, len, yb, r, r * r)?;
+    Some((lo - 1e-9, hi + 1e-9))
 }
 
 /// Subtracts `[lo, hi]` from a ray, calling `removed(a, b)` for each piece of material taken.
