@@ -21,6 +21,10 @@ pub enum ErrorCode {
     UnsupportedMediaType,
     /// The service needed for a stage does not provide it.
     StageNotAvailable,
+    /// No credentials, or credentials the server does not accept (unknown, expired, revoked).
+    Unauthenticated,
+    /// The credentials are valid but do not allow this operation.
+    PermissionDenied,
     /// A dependency is down or overloaded; retrying later may work.
     Unavailable,
     /// A deadline passed before the operation finished.
@@ -41,6 +45,8 @@ impl ErrorCode {
             Self::PayloadTooLarge => "payload_too_large",
             Self::UnsupportedMediaType => "unsupported_media_type",
             Self::StageNotAvailable => "stage_not_available",
+            Self::Unauthenticated => "unauthenticated",
+            Self::PermissionDenied => "permission_denied",
             Self::Unavailable => "unavailable",
             Self::DeadlineExceeded => "deadline_exceeded",
             Self::Cancelled => "cancelled",
@@ -57,6 +63,8 @@ impl ErrorCode {
             Self::PayloadTooLarge => tonic::Code::ResourceExhausted,
             Self::UnsupportedMediaType => tonic::Code::InvalidArgument,
             Self::StageNotAvailable => tonic::Code::Unimplemented,
+            Self::Unauthenticated => tonic::Code::Unauthenticated,
+            Self::PermissionDenied => tonic::Code::PermissionDenied,
             Self::Unavailable => tonic::Code::Unavailable,
             Self::DeadlineExceeded => tonic::Code::DeadlineExceeded,
             Self::Cancelled => tonic::Code::Cancelled,
@@ -73,6 +81,8 @@ impl ErrorCode {
             Self::PayloadTooLarge => StatusCode::PAYLOAD_TOO_LARGE,
             Self::UnsupportedMediaType => StatusCode::UNSUPPORTED_MEDIA_TYPE,
             Self::StageNotAvailable => StatusCode::NOT_IMPLEMENTED,
+            Self::Unauthenticated => StatusCode::UNAUTHORIZED,
+            Self::PermissionDenied => StatusCode::FORBIDDEN,
             Self::Unavailable => StatusCode::SERVICE_UNAVAILABLE,
             Self::DeadlineExceeded => StatusCode::GATEWAY_TIMEOUT,
             Self::Cancelled => StatusCode::CONFLICT,
@@ -90,6 +100,8 @@ impl ErrorCode {
             tonic::Code::AlreadyExists | tonic::Code::Aborted => Self::Conflict,
             tonic::Code::ResourceExhausted => Self::PayloadTooLarge,
             tonic::Code::Unimplemented => Self::StageNotAvailable,
+            tonic::Code::Unauthenticated => Self::Unauthenticated,
+            tonic::Code::PermissionDenied => Self::PermissionDenied,
             tonic::Code::Unavailable => Self::Unavailable,
             tonic::Code::DeadlineExceeded => Self::DeadlineExceeded,
             tonic::Code::Cancelled => Self::Cancelled,
@@ -117,13 +129,15 @@ impl std::fmt::Display for ErrorCode {
 impl std::str::FromStr for ErrorCode {
     type Err = String;
     fn from_str(s: &str) -> Result<Self, Self::Err> {
-        const ALL: [ErrorCode; 10] = [
+        const ALL: [ErrorCode; 12] = [
             ErrorCode::InvalidArgument,
             ErrorCode::NotFound,
             ErrorCode::Conflict,
             ErrorCode::PayloadTooLarge,
             ErrorCode::UnsupportedMediaType,
             ErrorCode::StageNotAvailable,
+            ErrorCode::Unauthenticated,
+            ErrorCode::PermissionDenied,
             ErrorCode::Unavailable,
             ErrorCode::DeadlineExceeded,
             ErrorCode::Cancelled,

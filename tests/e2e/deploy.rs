@@ -146,6 +146,8 @@ impl ContainerConfig {
         Ok(match name {
             ORCHESTRATOR => {
                 let c: depthmill_orchestrator::Config = load_with_env(file, prefix, env)?;
+                // It starts where it listens: beyond loopback, an auth mode that allows it.
+                depthmill_orchestrator::auth::tokens_required(c.auth.mode, c.rest_addr, c.grpc_addr)?;
                 Self {
                     grpc_addr: c.grpc_addr,
                     rest_addr: Some(c.rest_addr),

@@ -1,6 +1,7 @@
 //! End-to-end tests: every service in-process on ephemeral ports, driven through REST and gRPC.
 
 mod api;
+mod auth;
 mod deploy;
 mod faces;
 mod jobs;

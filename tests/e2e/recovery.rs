@@ -1,7 +1,9 @@
-//! Restart recovery: the orchestrator stops mid-stage; a new one on the same data finishes the job once.
+//! Restart recovery: the orchestrator stops mid-stage; a new one on the same data finishes the job
+//! once. On both job stores: SQLite in the data folder and a scratch PostgreSQL database.
 
 use std::time::Duration;
 
+use depthmill_orchestrator::store::scratch::ScratchDatabase;
 use depthmill_tests::scripted::Script;
 use depthmill_tests::{MachineBackend, StackOptions, TestStack};
 use serde_json::Value;
@@ -10,10 +12,21 @@ use crate::{gcode_job, program};
 
 #[tokio::test]
 async fn a_job_interrupted_by_a_restart_finishes_once() -> anyhow::Result<()> {
+    restart_mid_stage(None).await
+}
+
+#[tokio::test]
+async fn a_job_interrupted_by_a_restart_finishes_once_on_postgres() -> anyhow::Result<()> {
+    let db = ScratchDatabase::create().await?;
+    restart_mid_stage(Some(db.url())).await
+}
+
+async fn restart_mid_stage(database_url: Option<String>) -> anyhow::Result<()> {
     let script = Script::default();
     script.hold(true);
     let mut stack = TestStack::start_with(StackOptions {
         machine: MachineBackend::Scripted(script.clone()),
+        database_url,
         ..Default::default()
     })
     .await?;

@@ -1,5 +1,6 @@
 //! The in-process test stack: the orchestrator and every stage service on `127.0.0.1:0`, over real
-//! gRPC and HTTP sockets, with SQLite and artifacts in a temporary directory.
+//! gRPC and HTTP sockets, with artifacts in a temporary directory and jobs in SQLite there (or in
+//! the PostgreSQL database [`StackOptions::database_url`] names).
 //!
 //! # Layout
 //! - [`TestStack`]: start, restart the orchestrator, stop; REST helpers.
@@ -44,6 +45,10 @@ pub struct StackOptions {
     pub stage_deadline_s: f64,
     /// Run the scanning service (without it, the orchestrator has no scanning endpoint).
     pub scanning: bool,
+    /// The job database; `None`: SQLite in the stack's data folder.
+    pub database_url: Option<String>,
+    /// API tokens (default: not required, the stack is on loopback).
+    pub auth: depthmill_orchestrator::auth::AuthConfig,
 }
 
 impl Default for StackOptions {
@@ -54,6 +59,8 @@ impl Default for StackOptions {
             max_upload_bytes: 1 << 20,
             max_attempts: 4,
             stage_deadline_s: 30.0,
+            database_url: None,
+            auth: Default::default(),
         }
     }
 }
@@ -166,6 +173,7 @@ impl TestStack {
             rest_addr: "127.0.0.1:0".parse()?,
             grpc_addr: "127.0.0.1:0".parse()?,
             data_dir: data_dir.clone(),
+            database_url: opts.database_url.clone(),
             max_upload_bytes: opts.max_upload_bytes,
             services: endpoints,
             worker: depthmill_orchestrator::WorkerConfig {
@@ -178,6 +186,7 @@ impl TestStack {
                 stage_deadline_s: opts.stage_deadline_s,
                 cancel_grace_s: 2.0,
             },
+            auth: opts.auth.clone(),
         };
         let mut stack = Self {
             rest_url: String::new(),

@@ -13,19 +13,31 @@ pub struct Server {
     /// Orchestrator REST base URL.
     #[arg(long, env = "DEPTHMILL_URL", default_value = "http://127.0.0.1:8080")]
     url: String,
+    /// API token, when the server requires one (see `depthmill token create`).
+    #[arg(long, env = "DEPTHMILL_TOKEN", hide_env_values = true)]
+    token: Option<String>,
 }
 
 impl Server {
     fn url(&self, path: &str) -> String {
         format!("{}{path}", self.url.trim_end_matches('/'))
     }
-}
 
-fn http() -> anyhow::Result<reqwest::Client> {
-    reqwest::Client::builder()
-        .connect_timeout(Duration::from_secs(10))
-        .build()
-        .context("building the HTTP client")
+    /// An HTTP client that sends the token with every request.
+    fn http(&self) -> anyhow::Result<reqwest::Client> {
+        let mut headers = reqwest::header::HeaderMap::new();
+        if let Some(token) = &self.token {
+            let mut value = reqwest::header::HeaderValue::from_str(&format!("Bearer {}", token.trim()))
+                .context("the API token has characters a header cannot carry")?;
+            value.set_sensitive(true);
+            headers.insert(reqwest::header::AUTHORIZATION, value);
+        }
+        reqwest::Client::builder()
+            .connect_timeout(Duration::from_secs(10))
+            .default_headers(headers)
+            .build()
+            .context("building the HTTP client")
+    }
 }
 
 /// Turns an error reply into a readable error: `{"error": {"code", "message", "field"}}`.
@@ -103,7 +115,7 @@ pub async fn submit(server: &Server, s: Submit) -> anyhow::Result<String> {
         tokio::fs::File::open(&s.file).await.with_context(|| format!("opening {}", s.file.display()))?;
     let len = file.metadata().await?.len();
     let body = reqwest::Body::wrap_stream(tokio_util::io::ReaderStream::new(file));
-    let client = http()?;
+    let client = server.http()?;
     let resp = client
         .post(server.url("/v1/artifacts"))
         .header(reqwest::header::CONTENT_TYPE, media_type)
@@ -139,7 +151,7 @@ pub async fn submit(server: &Server, s: Submit) -> anyhow::Result<String> {
 }
 
 async fn get_job(server: &Server, id: &str) -> anyhow::Result<Value> {
-    let resp = http()?.get(server.url(&format!("/v1/jobs/{id}"))).send().await?;
+    let resp = server.http()?.get(server.url(&format!("/v1/jobs/{id}"))).send().await?;
     Ok(check(resp, "status").await?.json().await?)
 }
 
@@ -178,7 +190,7 @@ pub async fn watch(server: &Server, id: &str) -> anyhow::Result<()> {
         indicatif::ProgressStyle::with_template("{spinner} [{elapsed_precise}] {bar:40} {percent:>3}% {msg}")
             .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
     );
-    let resp = http()?.get(server.url(&format!("/v1/jobs/{id}/events"))).send().await?;
+    let resp = server.http()?.get(server.url(&format!("/v1/jobs/{id}/events"))).send().await?;
     let mut stream = check(resp, "watch").await?.bytes_stream();
     let mut buf = String::new();
     let mut last: Option<Value> = None;
@@ -245,7 +257,7 @@ pub async fn fetch(server: &Server, id: &str, output: &Path) -> anyhow::Result<(
     let job = get_job(server, id).await?;
     tokio::fs::create_dir_all(output).await.with_context(|| format!("creating {}", output.display()))?;
     tokio::fs::write(output.join("job.json"), serde_json::to_vec_pretty(&job)?).await?;
-    let client = http()?;
+    let client = server.http()?;
     let artifacts = job.get("artifacts").and_then(Value::as_object).cloned().unwrap_or_default();
     for (name, a) in artifacts {
         let sha = a.get("sha256").and_then(Value::as_str).context("artifact without sha256")?;

@@ -50,11 +50,12 @@ impl Stack {
 /// `depthmill serve`: starts the stack, prints where it listens, runs until a signal.
 pub async fn serve(
     data_dir: PathBuf,
+    database_url: Option<String>,
     rest_addr: SocketAddr,
     grpc_addr: SocketAddr,
     config: Option<PathBuf>,
 ) -> anyhow::Result<()> {
-    let stack = start(data_dir, rest_addr, grpc_addr, config).await?;
+    let stack = start(data_dir, database_url, rest_addr, grpc_addr, config).await?;
     println!("REST listening on http://{}", stack.rest_addr);
     println!("gRPC listening on http://{}", stack.grpc_addr);
     let stop = stack.token.clone();
@@ -66,9 +67,11 @@ pub async fn serve(
 }
 
 /// Starts the orchestrator and the four stage services in this process (stage services on
-/// loopback ports); returns once the REST and gRPC listeners are bound.
+/// loopback ports); returns once the REST and gRPC listeners are bound. `database_url` (when
+/// given) overrides the configuration's job database.
 pub async fn start(
     data_dir: PathBuf,
+    database_url: Option<String>,
     rest_addr: SocketAddr,
     grpc_addr: SocketAddr,
     config: Option<PathBuf>,
@@ -80,6 +83,9 @@ pub async fn start(
         depthmill_common::config::load(config.as_deref(), "DEPTHMILL_ORCHESTRATOR")
             .context("loading configuration")?;
     cfg.data_dir = data_dir;
+    if database_url.is_some() {
+        cfg.database_url = database_url;
+    }
     cfg.rest_addr = rest_addr;
     cfg.grpc_addr = grpc_addr;
     let artifacts_dir = cfg.data_dir.join("artifacts");

@@ -7,6 +7,7 @@ mod embedded;
 mod machine;
 mod raster;
 mod scan;
+mod token;
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -37,9 +38,13 @@ enum Command {
     /// reaches them over gRPC, as it would across machines. Prints `REST listening on
     /// http://HOST:PORT` once it accepts requests.
     Serve {
-        /// Holds jobs.sqlite, artifacts/ and node_id.
+        /// Holds artifacts/, node_id and (without --database-url) jobs.sqlite.
         #[arg(long, default_value = "data")]
         data_dir: PathBuf,
+        /// Job database: sqlite://PATH or postgres://USER@HOST:PORT/DB (several replicas share
+        /// one PostgreSQL database). Default: sqlite://DATA_DIR/jobs.sqlite.
+        #[arg(long, env = "DEPTHMILL_DATABASE_URL")]
+        database_url: Option<String>,
         /// REST address; port 0 picks a free port.
         #[arg(long, default_value = "127.0.0.1:8080")]
         rest_addr: SocketAddr,
@@ -182,6 +187,11 @@ enum Command {
         #[arg(short, long)]
         output: PathBuf,
     },
+    /// Create, list and revoke API tokens (on the job database, not through the API).
+    Token {
+        #[command(subcommand)]
+        command: token::TokenCommand,
+    },
     /// Download a job's artifacts and its JSON into a folder.
     Fetch {
         id: String,
@@ -198,9 +208,9 @@ fn main() -> anyhow::Result<()> {
         tokio::runtime::Builder::new_multi_thread().enable_all().build().context("starting the runtime")?;
     runtime.block_on(async move {
         match cli.command {
-            Command::Serve { data_dir, rest_addr, grpc_addr, config } => {
+            Command::Serve { data_dir, database_url, rest_addr, grpc_addr, config } => {
                 depthmill_common::telemetry::init_tracing(cli.log_json);
-                embedded::serve(data_dir, rest_addr, grpc_addr, config).await
+                embedded::serve(data_dir, database_url, rest_addr, grpc_addr, config).await
             }
             Command::Submit {
                 file,
@@ -232,6 +242,7 @@ fn main() -> anyhow::Result<()> {
             Command::Status { id, json, server } => client::status(&server, &id, json).await,
             Command::Watch { id, server } => client::watch(&server, &id).await,
             Command::Fetch { id, output, server } => client::fetch(&server, &id, &output).await,
+            Command::Token { command } => token::run(command).await,
             Command::Compensate { map, tool, model, floor_mm, map_args, tools_dir, output } => {
                 depthmill_common::telemetry::init_tracing(cli.log_json);
                 tokio::task::block_in_place(|| {

@@ -1,8 +1,15 @@
-//! Job submission load: POST /v1/jobs at a fixed rate against loopback, SQLite in WAL mode.
+//! Job submission load: POST /v1/jobs at a fixed rate against loopback, on SQLite in WAL mode (the
+//! default) or PostgreSQL, through one orchestrator or several replicas sharing the database.
 //!
 //! ```text
-//! cargo bench -p depthmill-orchestrator --bench submit_load -- [--rate 1000] [--duration 30] [--connections 64] [--url URL]
+//! cargo bench -p depthmill-orchestrator --bench submit_load -- [--rate 1000] [--duration 30] [--connections 64]
+//!     [--url URL | [--postgres | --database-url URL] [--replicas N]]
 //! ```
+//!
+//! `--postgres` makes a scratch database on the server at `DEPTHMILL_TEST_POSTGRES_URL` (default
+//! `postgres://postgres@127.0.0.1:5432/postgres`) and drops it afterwards; `--replicas N` starts N
+//! orchestrators on the one database and spreads the requests over them round-robin (as a load
+//! balancer would).
 //!
 //! Open loop: requests are scheduled at `rate` per second whatever the server does, and each
 //! latency is measured from its scheduled time, so a stalled server shows up in the percentiles
@@ -26,10 +33,21 @@ struct Args {
     duration: f64,
     connections: usize,
     url: Option<String>,
+    database_url: Option<String>,
+    postgres: bool,
+    replicas: usize,
 }
 
 fn parse_args() -> anyhow::Result<Args> {
-    let mut a = Args { rate: 1000.0, duration: 30.0, connections: 64, url: None };
+    let mut a = Args {
+        rate: 1000.0,
+        duration: 30.0,
+        connections: 64,
+        url: None,
+        database_url: None,
+        postgres: false,
+        replicas: 1,
+    };
     let mut it = std::env::args().skip(1);
     while let Some(arg) = it.next() {
         let mut value = || it.next().with_context(|| format!("{arg} needs a value"));
@@ -38,12 +56,21 @@ fn parse_args() -> anyhow::Result<Args> {
             "--duration" => a.duration = value()?.parse()?,
             "--connections" => a.connections = value()?.parse()?,
             "--url" => a.url = Some(value()?),
+            "--database-url" => a.database_url = Some(value()?),
+            "--postgres" => a.postgres = true,
+            "--replicas" => a.replicas = value()?.parse()?,
             "--bench" => {}
-            other => bail!("unknown argument {other} (expected --rate, --duration, --connections, --url)"),
+            other => bail!(
+                "unknown argument {other} (expected --rate, --duration, --connections, --url, --database-url, \
+                 --postgres, --replicas)"
+            ),
         }
     }
-    if a.rate <= 0.0 || a.duration <= 0.0 || a.connections == 0 {
-        bail!("rate, duration and connections must be positive");
+    if a.rate <= 0.0 || a.duration <= 0.0 || a.connections == 0 || a.replicas == 0 {
+        bail!("rate, duration, connections and replicas must be positive");
+    }
+    if a.url.is_some() && (a.postgres || a.database_url.is_some() || a.replicas > 1) {
+        bail!("--url measures a running server: --postgres, --database-url and --replicas start one here");
     }
     Ok(a)
 }
@@ -120,7 +147,7 @@ where
     Phase { sent: total, errors: errors.load(Ordering::Relaxed), latencies_us, wall_s }
 }
 
-fn start_server(dir: &std::path::Path) -> anyhow::Result<String> {
+fn start_server(dir: &std::path::Path, database_url: Option<String>) -> anyhow::Result<String> {
     let std_listener = std::net::TcpListener::bind("127.0.0.1:0")?;
     let grpc_listener = std::net::TcpListener::bind("127.0.0.1:0")?;
     std_listener.set_nonblocking(true)?;
@@ -128,6 +155,7 @@ fn start_server(dir: &std::path::Path) -> anyhow::Result<String> {
     let url = format!("http://{}", std_listener.local_addr()?);
     let config = depthmill_orchestrator::Config {
         data_dir: dir.to_path_buf(),
+        database_url,
         services: depthmill_orchestrator::Endpoints::none(),
         ..Default::default()
     };
@@ -159,50 +187,70 @@ fn start_server(dir: &std::path::Path) -> anyhow::Result<String> {
 
 fn main() -> anyhow::Result<()> {
     let args = parse_args()?;
-    let dir = tempfile::tempdir()?;
-    let url = match &args.url {
-        Some(u) => u.trim_end_matches('/').to_string(),
-        None => start_server(dir.path())?,
-    };
     let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
+    let scratch = match args.postgres {
+        true => Some(rt.block_on(depthmill_orchestrator::store::scratch::ScratchDatabase::create())?),
+        false => None,
+    };
+    let database_url = scratch.as_ref().map(|db| db.url()).or(args.database_url.clone());
+    let dirs = (0..args.replicas).map(|_| tempfile::tempdir()).collect::<Result<Vec<_>, _>>()?;
+    let urls: Vec<String> = match &args.url {
+        Some(u) => vec![u.trim_end_matches('/').to_string()],
+        None => {
+            dirs.iter().map(|d| start_server(d.path(), database_url.clone())).collect::<Result<_, _>>()?
+        }
+    };
+    let store = match (&args.url, &database_url) {
+        (Some(_), _) => "the server's",
+        (None, Some(_)) => "PostgreSQL",
+        (None, None) => "SQLite",
+    };
     rt.block_on(async move {
         let client =
             reqwest::Client::builder().pool_max_idle_per_host(args.connections).tcp_nodelay(true).build()?;
-        for _ in 0..200 {
-            if client.get(format!("{url}/readyz")).send().await.is_ok_and(|r| r.status().is_success()) {
-                break;
+        let mut sha = String::new();
+        for url in &urls {
+            for _ in 0..200 {
+                if client.get(format!("{url}/readyz")).send().await.is_ok_and(|r| r.status().is_success()) {
+                    break;
+                }
+                tokio::time::sleep(Duration::from_millis(25)).await;
             }
-            tokio::time::sleep(Duration::from_millis(25)).await;
+            // Each replica keeps its own artifact folder here: the program goes to each.
+            let upload = client
+                .post(format!("{url}/v1/artifacts"))
+                .header("content-type", "text/x-gcode")
+                .body("G21 G90\nG0 X0 Y0 Z5\nG1 Z-1 F100\nG1 X10 F200\nM30\n")
+                .send()
+                .await?;
+            sha = upload.json::<serde_json::Value>().await?["sha256"]
+                .as_str()
+                .context("upload failed")?
+                .to_string();
         }
-        let upload = client
-            .post(format!("{url}/v1/artifacts"))
-            .header("content-type", "text/x-gcode")
-            .body("G21 G90\nG0 X0 Y0 Z5\nG1 Z-1 F100\nG1 X10 F200\nM30\n")
-            .send()
-            .await?;
-        let sha = upload.json::<serde_json::Value>().await?["sha256"]
-            .as_str()
-            .context("upload failed")?
-            .to_string();
         let run_id = std::process::id();
         println!(
-            "target {url}  rate {}/s  duration {} s  max in flight {}",
-            args.rate, args.duration, args.connections
+            "target {}  job store {store}  rate {}/s  duration {} s  max in flight {}",
+            urls.join(", "),
+            args.rate,
+            args.duration,
+            args.connections
         );
+        let urls = Arc::new(urls);
 
         let base_duration = args.duration.min(10.0);
         let c = client.clone();
-        let u = url.clone();
-        let baseline = run_phase(args.rate, base_duration, args.connections, move |_| {
-            let (c, u) = (c.clone(), u.clone());
+        let us = urls.clone();
+        let baseline = run_phase(args.rate, base_duration, args.connections, move |i| {
+            let (c, u) = (c.clone(), us[i as usize % us.len()].clone());
             async move { c.get(format!("{u}/healthz")).send().await.is_ok_and(|r| r.status().is_success()) }
         })
         .await;
 
         let c = client.clone();
-        let u = url.clone();
+        let us = urls.clone();
         let submit = run_phase(args.rate, args.duration, args.connections, move |i| {
-            let (c, u, sha) = (c.clone(), u.clone(), sha.clone());
+            let (c, u, sha) = (c.clone(), us[i as usize % us.len()].clone(), sha.clone());
             async move {
                 let body = json!({"name": format!("load-{i}"), "input": {"kind": "gcode", "artifact": sha}});
                 c.post(format!("{u}/v1/jobs"))
@@ -226,6 +274,9 @@ fn main() -> anyhow::Result<()> {
         );
         anyhow::Ok(())
     })?;
-    drop(dir);
+    // The servers' threads still run: leave without waiting for them (the scratch database is
+    // dropped with FORCE, which closes their connections).
+    drop(scratch);
+    drop(dirs);
     Ok(())
 }

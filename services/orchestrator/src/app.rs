@@ -50,6 +50,13 @@ impl From<StoreError> for ApiError {
             StoreError::IdempotencyConflict { .. } => {
                 ApiError::field(ErrorCode::Conflict, "Idempotency-Key", e.to_string())
             }
+            ref unavailable if unavailable.is_unavailable() => {
+                tracing::warn!(error = %depthmill_common::ErrorChain(unavailable), "job store unavailable");
+                ApiError::new(
+                    ErrorCode::Unavailable,
+                    "the job database cannot be reached or is busy; nothing was changed, retry later",
+                )
+            }
             other => {
                 tracing::error!(error = %depthmill_common::ErrorChain(&other), "job store failed");
                 ApiError::new(ErrorCode::Internal, "the job store failed; see the server log")
@@ -100,6 +107,8 @@ pub struct App {
     pub(crate) running: depthmill_common::stage::StageRegistry,
     /// The stage services, asked to check the sections they own before a job is accepted.
     pub(crate) stages: Arc<dyn crate::stages::StageRunner>,
+    /// Checks the API token of each call (when tokens are required).
+    pub(crate) auth: Arc<crate::auth::Authenticator>,
 }
 
 pub(crate) fn now_ms() -> i64 {

@@ -32,12 +32,33 @@ struct Api {
     app: App,
 }
 
+/// The service, behind the API-token check (health and reflection, added by the server, stay open).
 pub(crate) fn routes(app: App) -> tonic::service::Routes {
-    tonic::service::Routes::new(
+    let auth = app.auth.clone();
+    let router = tonic::service::Routes::new(
         OrchestratorServiceServer::new(Api { app })
             .max_decoding_message_size(8 << 20)
             .max_encoding_message_size(8 << 20),
     )
+    .into_axum_router()
+    .layer(axum::middleware::from_fn_with_state(auth, require_token));
+    tonic::service::Routes::from(router)
+}
+
+/// Answers UNAUTHENTICATED / PERMISSION_DENIED before the call reaches the service when the
+/// `authorization` metadata does not allow it.
+async fn require_token(
+    axum::extract::State(auth): axum::extract::State<std::sync::Arc<crate::auth::Authenticator>>,
+    request: axum::extract::Request,
+    next: axum::middleware::Next,
+) -> axum::response::Response {
+    if let Some(scope) = crate::auth::grpc_scope(request.uri().path()) {
+        let header = request.headers().get("authorization").and_then(|v| v.to_str().ok());
+        if let Err(e) = auth.check(header, scope, crate::app::now_ms()).await {
+            return Status::from(e).into_http();
+        }
+    }
+    next.run(request).await
 }
 
 type Boxed<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send>>;

@@ -2,14 +2,15 @@
 //!
 //! A job starts at the stage its input allows (mesh -> scan, point cloud -> reconstruct, depth map
 //! -> plan, G-code -> execute) and runs `scan -> reconstruct -> plan -> execute -> report`. Jobs
-//! live in SQLite (WAL); a worker advances each job by calling the stage's service over gRPC, with
+//! live in SQLite (WAL) or PostgreSQL; a worker advances each job by calling the stage's service over gRPC, with
 //! deadlines, retries with backoff for transient errors, every attempt recorded, and resumption
 //! after a crash. REST (axum) and gRPC (tonic) expose the same operations over one [`app::App`].
 //!
 //! # Layout
 //! - [`domain`]: the job model and request validation (pure); the `scan` and `reconstruct`
 //!   sections are checked by the services that own them, through [`stages::StageRunner::check_params`].
-//! - [`store`]: the [`store::JobStore`] trait and its SQLite implementation.
+//! - [`store`]: the [`store::JobStore`] trait, its SQLite (embedded default) and PostgreSQL
+//!   (replicas) implementations.
 //! - [`stages`]: the [`stages::StageRunner`] port and its gRPC adapter.
 //! - [`worker`]: claims jobs and runs them stage by stage.
 //! - [`app`]: operations shared by both APIs; [`http`] (REST + OpenAPI) and `grpc` adapt it.
@@ -20,6 +21,7 @@
 //! it knows the stages only by their gRPC contracts (`depthmill-proto`).
 
 pub mod app;
+pub mod auth;
 mod convert;
 pub mod domain;
 pub mod events;
@@ -51,13 +53,18 @@ pub struct Config {
     pub rest_addr: SocketAddr,
     /// gRPC listen address.
     pub grpc_addr: SocketAddr,
-    /// Holds `jobs.sqlite`, `artifacts/` and `node_id`.
+    /// Holds `artifacts/`, `node_id` and, on the embedded default, `jobs.sqlite`.
     pub data_dir: PathBuf,
+    /// The job database: `sqlite://PATH` or `postgres://USER@HOST:PORT/DB`. Unset: the SQLite
+    /// file `<data_dir>/jobs.sqlite`. Replicas sharing one job queue share one PostgreSQL database.
+    pub database_url: Option<String>,
     /// Largest artifact upload, bytes.
     pub max_upload_bytes: u64,
     /// Stage service URLs; an empty one makes its stage fail with `stage_not_available`.
     pub services: Endpoints,
     pub worker: WorkerConfig,
+    /// API tokens: required, not required on loopback, or not at all.
+    pub auth: auth::AuthConfig,
 }
 
 impl Default for Config {
@@ -66,9 +73,11 @@ impl Default for Config {
             rest_addr: SocketAddr::from(([127, 0, 0, 1], 8080)),
             grpc_addr: SocketAddr::from(([127, 0, 0, 1], 50050)),
             data_dir: PathBuf::from("data"),
+            database_url: None,
             max_upload_bytes: 4 << 30,
             services: Endpoints::default(),
             worker: WorkerConfig::default(),
+            auth: auth::AuthConfig::default(),
         }
     }
 }
@@ -92,6 +101,8 @@ pub enum OrchestratorError {
     Rest(#[source] std::io::Error),
     #[error("gRPC server failed")]
     Grpc(#[from] depthmill_common::grpc::ServeError),
+    #[error("refusing to serve without API tokens")]
+    Open(#[from] auth::OpenOnNetwork),
 }
 
 /// The gRPC service names the orchestrator reports in its health service.
@@ -121,15 +132,23 @@ pub async fn serve(
     metrics: Option<PrometheusHandle>,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), OrchestratorError> {
+    let rest_addr = rest.local_addr().map_err(OrchestratorError::Rest)?;
+    let grpc_addr = grpc.local_addr().map_err(OrchestratorError::Rest)?;
+    let tokens_required = auth::tokens_required(config.auth.mode, rest_addr, grpc_addr)?;
     let data_dir = &config.data_dir;
     std::fs::create_dir_all(data_dir)
         .map_err(|source| OrchestratorError::DataDir { path: data_dir.display().to_string(), source })?;
     let owner = node_id(data_dir)?;
-    let store = store::SqliteStore::open(&data_dir.join("jobs.sqlite")).await?;
+    let database_url = match &config.database_url {
+        Some(url) => url.clone(),
+        None => format!("sqlite://{}", data_dir.join("jobs.sqlite").display()),
+    };
+    let store = store::open(&database_url).await?;
+    tracing::info!(database = %store::redact(&database_url), node = %owner, "job store open");
     let artifacts = LocalStore::open(data_dir.join("artifacts")).await?;
     let stages = Arc::new(stages::GrpcStages::new(&config.services)?);
     let app = app::App {
-        store: Arc::new(store),
+        store: store.clone(),
         artifacts: Arc::new(artifacts),
         events: Arc::new(events::EventHub::default()),
         limits: app::ApiLimits {
@@ -139,6 +158,7 @@ pub async fn serve(
         },
         running: Default::default(),
         stages: stages.clone(),
+        auth: Arc::new(auth::Authenticator::new(store.clone(), tokens_required, config.auth.cache_s)),
     };
     let worker = Arc::new(worker::Worker::new(app.clone(), stages, config.worker.clone(), owner));
 
@@ -148,8 +168,7 @@ pub async fn serve(
         shutdown.await;
         stop.cancel();
     });
-    let rest_addr = rest.local_addr().map_err(OrchestratorError::Rest)?;
-    tracing::info!(addr = %rest_addr, "REST listening");
+    tracing::info!(addr = %rest_addr, tokens_required, "REST listening");
     let rest_token = token.clone();
     let rest_server = axum::serve(rest, http::router(app.clone(), metrics))
         .with_graceful_shutdown(async move { rest_token.cancelled().await });

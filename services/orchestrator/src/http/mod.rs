@@ -45,7 +45,12 @@ impl IntoResponse for ApiError {
         let body = ErrorBody {
             error: ErrorDetail { code: self.code.as_str().into(), message: self.message, field: self.field },
         };
-        (status, Json(body)).into_response()
+        let mut response = (status, Json(body)).into_response();
+        if status == StatusCode::SERVICE_UNAVAILABLE {
+            // A dependency is down: tell clients when to try again.
+            response.headers_mut().insert(header::RETRY_AFTER, HeaderValue::from_static("2"));
+        }
+        response
     }
 }
 
@@ -98,8 +103,29 @@ pub fn router(app: App, metrics: Option<PrometheusHandle>) -> axum::Router {
         .fallback(|uri: axum::http::Uri| async move {
             ApiError::new(ErrorCode::NotFound, format!("no route for {}", uri.path()))
         })
+        .layer(axum::middleware::from_fn_with_state(app.clone(), require_token))
         .layer(tower_http::trace::TraceLayer::new_for_http())
         .with_state(app)
+}
+
+/// Refuses a call under `/v1/` whose bearer token does not allow it (401 with
+/// `WWW-Authenticate: Bearer`, or 403), when the server requires tokens.
+async fn require_token(
+    State(app): State<App>,
+    request: axum::extract::Request,
+    next: axum::middleware::Next,
+) -> Response {
+    if let Some(scope) = crate::auth::rest_scope(request.method(), request.uri().path()) {
+        let header = request.headers().get(header::AUTHORIZATION).and_then(|v| v.to_str().ok());
+        if let Err(e) = app.auth.check(header, scope, crate::app::now_ms()).await {
+            let mut response = e.into_response();
+            if response.status() == StatusCode::UNAUTHORIZED {
+                response.headers_mut().insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));
+            }
+            return response;
+        }
+    }
+    next.run(request).await
 }
 
 /// Liveness: the process serves requests.

@@ -1,20 +1,40 @@
-//! Persistence of jobs behind [`JobStore`], with [`SqliteStore`] (sqlx, WAL mode) as the embedded
-//! default. A server database can implement the same trait for deployments that outgrow one machine.
+//! Persistence of jobs behind [`JobStore`]: [`SqliteStore`] (sqlx, WAL mode) is the embedded
+//! default; [`PostgresStore`] serves several orchestrator replicas sharing one database. [`open`]
+//! picks one by the database URL (`sqlite://PATH` or `postgres://...`).
 //!
 //! Concurrency model: a worker *claims* a runnable job by taking a lease (`lease_owner`,
 //! `lease_expires_ms`) and renews it while it works; every write a worker makes is fenced by the
 //! lease, so a worker that lost its lease cannot record anything. A stage result is keyed by
 //! `(job_id, stage)`, so it is recorded at most once whatever happens.
 
+mod postgres;
+mod rows;
+pub mod scratch;
 mod sqlite;
+#[cfg(test)]
+mod tests;
 
+use std::path::Path;
+use std::sync::Arc;
+
+pub use postgres::PostgresStore;
 pub use sqlite::SqliteStore;
+
+/// The columns of `api_tokens` a [`TokenRecord`] is read from.
+macro_rules! token_columns {
+    () => {
+        "id, name, scopes, created_at_ms, expires_at_ms, revoked_at_ms"
+    };
+}
+use token_columns;
 
 use crate::domain::{AttemptOutcome, Job, JobError, JobSpec, JobStatus, Stage, StageResult};
 
 /// Why the store could not do what was asked.
 #[derive(Debug, thiserror::Error)]
 pub enum StoreError {
+    #[error("unsupported database URL '{url}': {reason}")]
+    BadUrl { url: String, reason: &'static str },
     #[error("database error")]
     Db(#[from] sqlx::Error),
     #[error("database migration failed")]
@@ -31,6 +51,60 @@ pub enum StoreError {
         #[source]
         source: serde_json::Error,
     },
+}
+
+impl StoreError {
+    /// The database could not be reached or is too busy: the request may work when retried (HTTP
+    /// 503, gRPC UNAVAILABLE) and nothing was changed.
+    pub fn is_unavailable(&self) -> bool {
+        let StoreError::Db(e) = self else { return false };
+        match e {
+            sqlx::Error::Io(_)
+            | sqlx::Error::Tls(_)
+            | sqlx::Error::PoolTimedOut
+            | sqlx::Error::PoolClosed
+            | sqlx::Error::WorkerCrashed => true,
+            sqlx::Error::Database(db) => db.code().is_some_and(|code| {
+                // PostgreSQL: connection exceptions (08xxx), shutting down or starting (57P01-57P03),
+                // too many connections (53300). SQLite: busy (5) or locked (6) past the busy timeout.
+                code.starts_with("08") || matches!(&*code, "57P01" | "57P02" | "57P03" | "53300" | "5" | "6")
+            }),
+            _ => false,
+        }
+    }
+}
+
+/// Opens the job store a database URL names: `sqlite://PATH` (created if missing) or
+/// `postgres://USER@HOST:PORT/DB` (`postgresql://` too); applies pending migrations either way.
+pub async fn open(url: &str) -> Result<Arc<dyn JobStore>, StoreError> {
+    let bad = |reason| StoreError::BadUrl { url: redact(url), reason };
+    if let Some(path) = url.strip_prefix("sqlite://").or_else(|| url.strip_prefix("sqlite:")) {
+        let path = path.split('?').next().unwrap_or_default();
+        if path.is_empty() {
+            return Err(bad("no file path after sqlite://"));
+        }
+        Ok(Arc::new(SqliteStore::open(Path::new(path)).await?))
+    } else if url.starts_with("postgres://") || url.starts_with("postgresql://") {
+        Ok(Arc::new(PostgresStore::connect(url).await?))
+    } else {
+        Err(bad("expected sqlite://PATH or postgres://USER@HOST:PORT/DB"))
+    }
+}
+
+/// `url` without its password, for logs and errors.
+pub fn redact(url: &str) -> String {
+    let Some((scheme, rest)) = url.split_once("://") else { return url.to_string() };
+    let (authority, tail) = match rest.find('/') {
+        Some(i) => rest.split_at(i),
+        None => (rest, ""),
+    };
+    match authority.rsplit_once('@') {
+        Some((userinfo, host)) => match userinfo.split_once(':') {
+            Some((user, _password)) => format!("{scheme}://{user}:***@{host}{tail}"),
+            None => url.to_string(),
+        },
+        None => url.to_string(),
+    }
 }
 
 /// A job to insert.
@@ -76,7 +150,21 @@ pub struct JobPage {
     pub next_cursor: Option<i64>,
 }
 
-/// Job persistence.
+/// A bearer token as stored: everything but its secret, of which only a hash is kept.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, sqlx::FromRow)]
+pub struct TokenRecord {
+    /// Public handle (`tok_...`), for listing and revoking.
+    pub id: String,
+    /// Who or what holds it.
+    pub name: String,
+    /// Space-separated scopes (`read`, `submit`, `admin`).
+    pub scopes: String,
+    pub created_at_ms: i64,
+    pub expires_at_ms: Option<i64>,
+    pub revoked_at_ms: Option<i64>,
+}
+
+/// Job persistence, and the API tokens that guard it.
 #[async_trait::async_trait]
 pub trait JobStore: Send + Sync + 'static {
     /// Inserts a queued job, or returns the job an earlier request with the same idempotency key made.
@@ -146,4 +234,12 @@ pub trait JobStore: Send + Sync + 'static {
     async fn stage_results(&self, id: &str) -> Result<Vec<StageResult>, StoreError>;
     /// Cheap liveness check for `/readyz`.
     async fn ping(&self) -> Result<(), StoreError>;
+    /// Stores a new token under the SHA-256 of its secret.
+    async fn create_token(&self, token: &TokenRecord, secret_sha256: &str) -> Result<(), StoreError>;
+    /// The token whose secret hashes to `secret_sha256`, revoked or expired ones included.
+    async fn token_by_secret(&self, secret_sha256: &str) -> Result<Option<TokenRecord>, StoreError>;
+    /// Every token, oldest first.
+    async fn list_tokens(&self) -> Result<Vec<TokenRecord>, StoreError>;
+    /// Revokes a token; `false` when there is no such token or it was already revoked.
+    async fn revoke_token(&self, id: &str, now_ms: i64) -> Result<bool, StoreError>;
 }

@@ -1,23 +1,19 @@
 //! [`JobStore`] on SQLite through sqlx: WAL journal, one writer connection (SQLite serialises
-//! writers anyway; one connection avoids lock retries) and a pool of readers.
+//! writers anyway; one connection avoids lock retries) and a pool of readers. Several processes
+//! may open the same file (SQLite's own locking, with a busy timeout); a server database serves
+//! several replicas better ([`super::PostgresStore`]).
 
-use std::collections::BTreeMap;
 use std::path::Path;
-use std::str::FromStr;
 use std::time::Duration;
 
-use sqlx::sqlite::{
-    SqliteConnectOptions, SqliteJournalMode, SqlitePoolOptions, SqliteRow, SqliteSynchronous,
-};
-use sqlx::{Row, SqlitePool};
+use sqlx::SqlitePool;
+use sqlx::sqlite::{SqliteConnectOptions, SqliteJournalMode, SqlitePoolOptions, SqliteSynchronous};
 
-use super::{ClaimedJob, Created, JobPage, JobStore, LeaseState, NewJob, StoreError};
-use crate::domain::{
-    AttemptOutcome, AttemptRecord, Job, JobError, JobMetrics, JobSpec, JobStatus, Stage, StageOutputs,
-    StageResult,
-};
+use super::rows::{self, AttemptRow, ClaimRow, JobRow, ResultRow, encode, job_columns};
+use super::{ClaimedJob, Created, JobPage, JobStore, LeaseState, NewJob, StoreError, TokenRecord};
+use crate::domain::{AttemptOutcome, AttemptRecord, Job, JobError, JobStatus, Stage, StageResult};
 
-static MIGRATOR: sqlx::migrate::Migrator = sqlx::migrate!("../../migrations");
+static MIGRATOR: sqlx::migrate::Migrator = sqlx::migrate!("../../migrations/sqlite");
 
 /// SQLite-backed job store.
 #[derive(Clone)]
@@ -43,106 +39,30 @@ impl SqliteStore {
         Ok(Self { writer, reader })
     }
 
-    async fn job_from_row(&self, row: &SqliteRow) -> Result<Job, StoreError> {
-        let id: String = row.try_get("id")?;
-        let corrupt =
-            |what: &'static str, detail: String| StoreError::Corrupt { id: id.clone(), what, detail };
-        let spec: JobSpec = serde_json::from_str(&row.try_get::<String, _>("spec")?)
-            .map_err(|e| corrupt("spec", e.to_string()))?;
-        let status =
-            JobStatus::from_str(&row.try_get::<String, _>("status")?).map_err(|e| corrupt("status", e))?;
-        let stage = Stage::from_str(&row.try_get::<String, _>("stage")?).map_err(|e| corrupt("stage", e))?;
-        let error = match row.try_get::<Option<String>, _>("error_code")? {
-            Some(code) => Some(JobError {
-                code,
-                message: row.try_get::<Option<String>, _>("error_message")?.unwrap_or_default(),
-                stage: row
-                    .try_get::<Option<String>, _>("error_stage")?
-                    .map(|s| Stage::from_str(&s))
-                    .transpose()
-                    .map_err(|e| corrupt("error stage", e))?
-                    .unwrap_or(stage),
-            }),
-            None => None,
-        };
-        let results = self.stage_results(&id).await?;
-        // The input's reference is added by the application layer, which knows the artifact store.
-        let mut artifacts = BTreeMap::new();
-        let mut stage_timings_s = BTreeMap::new();
-        let mut metrics = JobMetrics::default();
-        for r in &results {
-            stage_timings_s
-                .insert(r.stage.as_str().to_string(), (r.finished_at_ms - r.started_at_ms) as f64 / 1000.0);
-            artifacts.extend(r.outputs.artifacts.clone());
-            metrics.absorb(&r.outputs.metrics);
-        }
-        let attempts = self.attempts(&id).await?;
-        // A stage without a result (failed, cancelled, running) shows the time its finished
-        // attempts took, retries included.
-        for a in &attempts {
-            let Some(end) = a.finished_at_ms else { continue };
-            if results.iter().any(|r| r.stage == a.stage) {
-                continue;
-            }
-            *stage_timings_s.entry(a.stage.as_str().to_string()).or_insert(0.0) +=
-                (end - a.started_at_ms).max(0) as f64 / 1000.0;
-        }
-        Ok(Job {
-            name: row.try_get("name")?,
-            status,
-            stage,
-            progress: row.try_get("progress")?,
-            error,
-            stage_timings_s,
-            artifacts,
-            metrics,
-            spec,
-            cancel_requested: row.try_get::<i64, _>("cancel_requested")? != 0,
-            created_at_ms: row.try_get("created_at_ms")?,
-            updated_at_ms: row.try_get("updated_at_ms")?,
-            attempts,
-            id,
-        })
+    async fn job_from_row(&self, row: JobRow) -> Result<Job, StoreError> {
+        let results = self.stage_results(&row.id).await?;
+        let attempts = self.attempts(&row.id).await?;
+        row.into_job(results, attempts)
     }
 
     async fn attempts(&self, id: &str) -> Result<Vec<AttemptRecord>, StoreError> {
-        let rows = sqlx::query(
+        let rows: Vec<AttemptRow> = sqlx::query_as(
             "SELECT stage, attempt, started_at_ms, finished_at_ms, outcome, error_code, error_message \
              FROM attempts WHERE job_id = ? ORDER BY id",
         )
         .bind(id)
         .fetch_all(&self.reader)
         .await?;
-        rows.iter()
-            .map(|r| {
-                let corrupt = |what, detail| StoreError::Corrupt { id: id.to_string(), what, detail };
-                Ok(AttemptRecord {
-                    stage: Stage::from_str(&r.try_get::<String, _>("stage")?)
-                        .map_err(|e| corrupt("attempt", e))?,
-                    attempt: u32::try_from(r.try_get::<i64, _>("attempt")?).unwrap_or(0),
-                    started_at_ms: r.try_get("started_at_ms")?,
-                    finished_at_ms: r.try_get("finished_at_ms")?,
-                    outcome: AttemptOutcome::from_str(&r.try_get::<String, _>("outcome")?)
-                        .map_err(|e| corrupt("attempt", e))?,
-                    error_code: r.try_get("error_code")?,
-                    error_message: r.try_get("error_message")?,
-                })
-            })
-            .collect()
+        rows.into_iter().map(|r| r.into_record(id)).collect()
     }
 
     async fn get_from(&self, pool: &SqlitePool, id: &str) -> Result<Option<Job>, StoreError> {
-        let sql = "SELECT id, name, spec, first_stage, status, stage, progress, error_code, error_message, \
-                   error_stage, cancel_requested, created_at_ms, updated_at_ms, seq FROM jobs WHERE id = ?";
-        match sqlx::query(sql).bind(id).fetch_optional(pool).await? {
-            Some(row) => Ok(Some(self.job_from_row(&row).await?)),
+        let sql = concat!("SELECT ", job_columns!(), " FROM jobs WHERE id = ?");
+        match sqlx::query_as::<_, JobRow>(sql).bind(id).fetch_optional(pool).await? {
+            Some(row) => Ok(Some(self.job_from_row(row).await?)),
             None => Ok(None),
         }
     }
-}
-
-fn encode<T: serde::Serialize>(what: &'static str, v: &T) -> Result<String, StoreError> {
-    serde_json::to_string(v).map_err(|source| StoreError::Encode { what, source })
 }
 
 #[async_trait::async_trait]
@@ -167,32 +87,15 @@ impl JobStore for SqliteStore {
         .await?
         .rows_affected();
         if inserted == 1 {
-            // Everything about a new job is known: no need to read it back.
-            return Ok(Created::New(Job {
-                id: new.id,
-                name: new.spec.name.clone(),
-                status: JobStatus::Queued,
-                stage: first,
-                progress: 0.0,
-                error: None,
-                stage_timings_s: BTreeMap::new(),
-                artifacts: BTreeMap::new(),
-                metrics: JobMetrics::default(),
-                spec: new.spec,
-                cancel_requested: false,
-                created_at_ms: new.now_ms,
-                updated_at_ms: new.now_ms,
-                attempts: Vec::new(),
-            }));
+            return Ok(Created::New(rows::inserted(new)));
         }
         // The key exists: same request -> same job; different request -> conflict.
         let key = new.idempotency_key.clone().unwrap_or_default();
-        let row = sqlx::query("SELECT id, spec FROM jobs WHERE idempotency_key = ?")
-            .bind(&key)
-            .fetch_one(&self.writer)
-            .await?;
-        let id: String = row.try_get("id")?;
-        let stored: String = row.try_get("spec")?;
+        let (id, stored): (String, String) =
+            sqlx::query_as("SELECT id, spec FROM jobs WHERE idempotency_key = ?")
+                .bind(&key)
+                .fetch_one(&self.writer)
+                .await?;
         if stored != spec_json {
             return Err(StoreError::IdempotencyConflict { key, job_id: id });
         }
@@ -215,21 +118,23 @@ impl JobStore for SqliteStore {
         cursor: Option<i64>,
     ) -> Result<JobPage, StoreError> {
         let limit = i64::from(limit.clamp(1, 1000));
-        let rows = sqlx::query(
-            "SELECT id, name, spec, first_stage, status, stage, progress, error_code, error_message, \
-             error_stage, cancel_requested, created_at_ms, updated_at_ms, seq FROM jobs \
-             WHERE (?1 IS NULL OR status = ?1) AND (?2 IS NULL OR seq < ?2) ORDER BY seq DESC LIMIT ?3",
-        )
-        .bind(status.map(|s| s.as_str()))
-        .bind(cursor)
-        .bind(limit + 1)
-        .fetch_all(&self.reader)
-        .await?;
+        let sql = concat!(
+            "SELECT ",
+            job_columns!(),
+            " FROM jobs WHERE (?1 IS NULL OR status = ?1) AND (?2 IS NULL OR seq < ?2) \
+             ORDER BY seq DESC LIMIT ?3"
+        );
+        let rows: Vec<JobRow> = sqlx::query_as(sql)
+            .bind(status.map(|s| s.as_str()))
+            .bind(cursor)
+            .bind(limit + 1)
+            .fetch_all(&self.reader)
+            .await?;
         let more = rows.len() as i64 > limit;
         let mut jobs = Vec::with_capacity(rows.len());
         let mut last_seq = None;
-        for row in rows.iter().take(limit as usize) {
-            last_seq = Some(row.try_get::<i64, _>("seq")?);
+        for row in rows.into_iter().take(limit as usize) {
+            last_seq = Some(row.seq);
             jobs.push(self.job_from_row(row).await?);
         }
         Ok(JobPage { jobs, next_cursor: if more { last_seq } else { None } })
@@ -260,7 +165,7 @@ impl JobStore for SqliteStore {
     }
 
     async fn claim(&self, owner: &str, now_ms: i64, lease_ms: i64) -> Result<Option<ClaimedJob>, StoreError> {
-        let row = sqlx::query(
+        let row: Option<ClaimRow> = sqlx::query_as(
             "UPDATE jobs SET lease_owner = ?1, lease_expires_ms = ?2 + ?3 WHERE seq = ( \
                  SELECT seq FROM jobs WHERE status IN ('queued', 'running') \
                  AND (lease_owner IS NULL OR lease_expires_ms < ?2) ORDER BY seq LIMIT 1) \
@@ -271,18 +176,7 @@ impl JobStore for SqliteStore {
         .bind(lease_ms)
         .fetch_optional(&self.writer)
         .await?;
-        let Some(row) = row else { return Ok(None) };
-        let id: String = row.try_get("id")?;
-        let spec = serde_json::from_str(&row.try_get::<String, _>("spec")?)
-            .map_err(|e| StoreError::Corrupt { id: id.clone(), what: "spec", detail: e.to_string() })?;
-        let stage = Stage::from_str(&row.try_get::<String, _>("stage")?)
-            .map_err(|e| StoreError::Corrupt { id: id.clone(), what: "stage", detail: e })?;
-        Ok(Some(ClaimedJob {
-            id,
-            spec,
-            stage,
-            cancel_requested: row.try_get::<i64, _>("cancel_requested")? != 0,
-        }))
+        row.map(ClaimRow::into_claimed).transpose()
     }
 
     async fn renew(
@@ -292,7 +186,7 @@ impl JobStore for SqliteStore {
         now_ms: i64,
         lease_ms: i64,
     ) -> Result<LeaseState, StoreError> {
-        let row = sqlx::query(
+        let row: Option<(bool,)> = sqlx::query_as(
             "UPDATE jobs SET lease_expires_ms = ?3 + ?4 WHERE id = ?1 AND lease_owner = ?2 \
              RETURNING cancel_requested",
         )
@@ -303,9 +197,7 @@ impl JobStore for SqliteStore {
         .fetch_optional(&self.writer)
         .await?;
         Ok(match row {
-            Some(r) => {
-                LeaseState { held: true, cancel_requested: r.try_get::<i64, _>("cancel_requested")? != 0 }
-            }
+            Some((cancel_requested,)) => LeaseState { held: true, cancel_requested },
             None => LeaseState { held: false, cancel_requested: false },
         })
     }
@@ -354,7 +246,7 @@ impl JobStore for SqliteStore {
         if updated == 0 {
             return Err(StoreError::LeaseLost { id: id.to_string() });
         }
-        let attempt: i64 = sqlx::query(
+        let (attempt,): (i64,) = sqlx::query_as(
             "INSERT INTO attempts (job_id, stage, attempt, owner, started_at_ms, outcome) \
              VALUES (?1, ?2, (SELECT COALESCE(MAX(attempt), 0) + 1 FROM attempts WHERE job_id = ?1 AND stage = ?2), \
                      ?3, ?4, 'running') RETURNING attempt",
@@ -364,8 +256,7 @@ impl JobStore for SqliteStore {
         .bind(owner)
         .bind(now_ms)
         .fetch_one(&mut *tx)
-        .await?
-        .try_get("attempt")?;
+        .await?;
         tx.commit().await?;
         Ok(u32::try_from(attempt).unwrap_or(u32::MAX))
     }
@@ -487,145 +378,54 @@ impl JobStore for SqliteStore {
     }
 
     async fn stage_results(&self, id: &str) -> Result<Vec<StageResult>, StoreError> {
-        let rows = sqlx::query(
-            "SELECT stage, outputs, started_at_ms, finished_at_ms FROM stage_results WHERE job_id = ? \
-             ORDER BY started_at_ms",
+        let rows: Vec<ResultRow> = sqlx::query_as(
+            "SELECT stage, outputs, started_at_ms, finished_at_ms FROM stage_results WHERE job_id = ?",
         )
         .bind(id)
         .fetch_all(&self.reader)
         .await?;
-        let mut out = Vec::with_capacity(rows.len());
-        for r in rows {
-            let corrupt = |detail| StoreError::Corrupt { id: id.to_string(), what: "stage result", detail };
-            let stage = Stage::from_str(&r.try_get::<String, _>("stage")?).map_err(corrupt)?;
-            let outputs: StageOutputs =
-                serde_json::from_str(&r.try_get::<String, _>("outputs")?).map_err(|e| {
-                    StoreError::Corrupt { id: id.to_string(), what: "stage result", detail: e.to_string() }
-                })?;
-            out.push(StageResult {
-                stage,
-                outputs,
-                started_at_ms: r.try_get("started_at_ms")?,
-                finished_at_ms: r.try_get("finished_at_ms")?,
-            });
-        }
-        out.sort_by_key(|r| r.stage);
-        Ok(out)
+        rows::results(id, rows)
     }
 
     async fn ping(&self) -> Result<(), StoreError> {
         sqlx::query("SELECT 1").execute(&self.reader).await?;
         Ok(())
     }
-}
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::domain::spec::{InputKind, JobInput};
-
-    fn spec(name: &str) -> JobSpec {
-        JobSpec {
-            name: name.into(),
-            input: JobInput {
-                kind: InputKind::Gcode,
-                artifact: "a".repeat(64),
-                pixel_mm: None,
-                z_min_mm: None,
-                z_max_mm: None,
-                units: None,
-            },
-            scan: None,
-            reconstruct: None,
-            plan: None,
-            execute: None,
-        }
+    async fn create_token(&self, token: &TokenRecord, secret_sha256: &str) -> Result<(), StoreError> {
+        sqlx::query(
+            "INSERT INTO api_tokens (id, name, secret_sha256, scopes, created_at_ms, expires_at_ms) \
+             VALUES (?, ?, ?, ?, ?, ?)",
+        )
+        .bind(&token.id)
+        .bind(&token.name)
+        .bind(secret_sha256)
+        .bind(&token.scopes)
+        .bind(token.created_at_ms)
+        .bind(token.expires_at_ms)
+        .execute(&self.writer)
+        .await?;
+        Ok(())
     }
 
-    async fn store() -> (tempfile::TempDir, SqliteStore) {
-        let dir = tempfile::tempdir().expect("tempdir");
-        let store = SqliteStore::open(&dir.path().join("jobs.sqlite")).await.expect("open");
-        (dir, store)
+    async fn token_by_secret(&self, secret_sha256: &str) -> Result<Option<TokenRecord>, StoreError> {
+        let sql = concat!("SELECT ", super::token_columns!(), " FROM api_tokens WHERE secret_sha256 = ?");
+        Ok(sqlx::query_as(sql).bind(secret_sha256).fetch_optional(&self.reader).await?)
     }
 
-    fn new(id: &str, key: Option<&str>) -> NewJob {
-        NewJob { id: id.into(), spec: spec(id), idempotency_key: key.map(Into::into), now_ms: 1 }
+    async fn list_tokens(&self) -> Result<Vec<TokenRecord>, StoreError> {
+        let sql = concat!("SELECT ", super::token_columns!(), " FROM api_tokens ORDER BY created_at_ms, id");
+        Ok(sqlx::query_as(sql).fetch_all(&self.reader).await?)
     }
 
-    #[tokio::test]
-    async fn leases_fence_writers_and_a_stage_is_recorded_once() {
-        let (_dir, s) = store().await;
-        assert!(matches!(s.create(new("j1", None)).await.expect("create"), Created::New(_)));
-        let claimed = s.claim("a", 100, 1000).await.expect("claim").expect("a job");
-        assert_eq!((claimed.id.as_str(), claimed.stage), ("j1", Stage::Execute));
-        // Leased: nobody else gets it until the lease expires.
-        assert!(s.claim("b", 500, 1000).await.expect("claim").is_none());
-        let attempt = s.begin_attempt("j1", "a", Stage::Execute, 200).await.expect("begin");
-        assert_eq!(attempt, 1);
-        // The lease expires; b takes over; a can no longer write.
-        let taken = s.claim("b", 5000, 1000).await.expect("claim").expect("expired lease");
-        assert_eq!(taken.id, "j1");
-        let result = StageResult {
-            stage: Stage::Execute,
-            outputs: StageOutputs::default(),
-            started_at_ms: 1,
-            finished_at_ms: 2,
-        };
-        let lost = s.complete_stage("j1", "a", &result, Some(Stage::Report), 0.5, 5001).await;
-        assert!(matches!(lost, Err(StoreError::LeaseLost { .. })), "{lost:?}");
-        assert!(!s.renew("j1", "a", 5002, 1000).await.expect("renew").held);
-        s.complete_stage("j1", "b", &result, Some(Stage::Report), 0.5, 5003).await.expect("b completes");
-        // A second record of the same stage is refused by the schema.
-        let again = s.complete_stage("j1", "b", &result, Some(Stage::Report), 0.5, 5004).await;
-        assert!(again.is_err(), "recorded twice");
-        let job = s.get("j1").await.expect("get").expect("job");
-        assert_eq!(job.stage, Stage::Report);
-        assert_eq!(job.stage_timings_s.len(), 1);
-        assert_eq!(job.progress, 0.5, "the refused write changed nothing");
-    }
-
-    #[tokio::test]
-    async fn recovery_releases_the_owner_s_jobs_and_marks_attempts_interrupted() {
-        let (_dir, s) = store().await;
-        s.create(new("j1", None)).await.expect("create");
-        s.claim("node-1", 0, 60_000).await.expect("claim").expect("job");
-        s.begin_attempt("j1", "node-1", Stage::Execute, 1).await.expect("begin");
-        assert_eq!(s.recover_owner("node-2", 2).await.expect("recover"), 0, "another node's lease stays");
-        assert_eq!(s.recover_owner("node-1", 2).await.expect("recover"), 1);
-        let job = s.get("j1").await.expect("get").expect("job");
-        assert_eq!(job.attempts[0].outcome, AttemptOutcome::Interrupted);
-        let again = s.claim("node-1", 3, 60_000).await.expect("claim").expect("released");
-        assert_eq!(again.stage, Stage::Execute);
-        assert_eq!(s.begin_attempt("j1", "node-1", Stage::Execute, 4).await.expect("begin"), 2);
-    }
-
-    #[tokio::test]
-    async fn idempotency_keys_and_cancel_and_pages() {
-        let (_dir, s) = store().await;
-        assert!(matches!(s.create(new("j1", Some("k"))).await.expect("create"), Created::New(_)));
-        let mut same = new("j2", Some("k"));
-        same.spec = spec("j1");
-        match s.create(same).await.expect("same request") {
-            Created::Existing(job) => assert_eq!(job.id, "j1"),
-            Created::New(_) => panic!("a second job for the same key"),
-        }
-        assert!(matches!(s.create(new("j3", Some("k"))).await, Err(StoreError::IdempotencyConflict { .. })));
-        for i in 4..9 {
-            s.create(new(&format!("j{i}"), None)).await.expect("create");
-        }
-        let job = s.request_cancel("j4", 10).await.expect("cancel").expect("job");
-        assert_eq!(job.status, JobStatus::Cancelled, "a queued job is cancelled at once");
-        assert!(s.request_cancel("nope", 10).await.expect("cancel").is_none());
-        let mut seen = Vec::new();
-        let mut cursor = None;
-        loop {
-            let page = s.list(Some(JobStatus::Queued), 2, cursor).await.expect("list");
-            seen.extend(page.jobs.into_iter().map(|j| j.id));
-            match page.next_cursor {
-                Some(c) => cursor = Some(c),
-                None => break,
-            }
-        }
-        assert_eq!(seen, ["j8", "j7", "j6", "j5", "j1"]);
+    async fn revoke_token(&self, id: &str, now_ms: i64) -> Result<bool, StoreError> {
+        let revoked =
+            sqlx::query("UPDATE api_tokens SET revoked_at_ms = ?2 WHERE id = ?1 AND revoked_at_ms IS NULL")
+                .bind(id)
+                .bind(now_ms)
+                .execute(&self.writer)
+                .await?
+                .rows_affected();
+        Ok(revoked == 1)
     }
 }

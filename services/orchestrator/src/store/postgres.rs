@@ -1,0 +1,427 @@
+//! [`JobStore`] on PostgreSQL through sqlx, for several orchestrator replicas sharing one database.
+//!
+//! The same model and guarantees as the SQLite store: a job is claimed with `FOR UPDATE SKIP
+//! LOCKED`, so concurrent replicas take different jobs without waiting on each other; every write a
+//! worker makes is fenced by its lease; a stage result is keyed by `(job_id, stage)`. Migrations
+//! (`migrations/postgres`) run at start-up under sqlx's advisory lock, so replicas starting
+//! together apply them once.
+
+use std::str::FromStr;
+use std::time::Duration;
+
+use sqlx::PgPool;
+use sqlx::postgres::{PgConnectOptions, PgPoolOptions};
+
+use super::rows::{self, AttemptRow, ClaimRow, JobRow, ResultRow, encode, job_columns};
+use super::{ClaimedJob, Created, JobPage, JobStore, LeaseState, NewJob, StoreError, TokenRecord};
+use crate::domain::{AttemptOutcome, AttemptRecord, Job, JobError, JobStatus, Stage, StageResult};
+
+static MIGRATOR: sqlx::migrate::Migrator = sqlx::migrate!("../../migrations/postgres");
+
+/// PostgreSQL-backed job store.
+#[derive(Clone)]
+pub struct PostgresStore {
+    pool: PgPool,
+}
+
+impl PostgresStore {
+    /// Connects to `url` (`postgres://user@host:port/db`) and applies pending migrations.
+    pub async fn connect(url: &str) -> Result<Self, StoreError> {
+        let options = PgConnectOptions::from_str(url)?.application_name("depthmill-orchestrator");
+        let pool = PgPoolOptions::new()
+            .max_connections(16)
+            .acquire_timeout(Duration::from_secs(5))
+            .connect_with(options)
+            .await?;
+        MIGRATOR.run(&pool).await?;
+        Ok(Self { pool })
+    }
+
+    async fn job_from_row(&self, row: JobRow) -> Result<Job, StoreError> {
+        let (results, attempts) = tokio::try_join!(self.stage_results(&row.id), self.attempts(&row.id))?;
+        row.into_job(results, attempts)
+    }
+
+    async fn attempts(&self, id: &str) -> Result<Vec<AttemptRecord>, StoreError> {
+        let rows: Vec<AttemptRow> = sqlx::query_as(
+            "SELECT stage, attempt, started_at_ms, finished_at_ms, outcome, error_code, error_message \
+             FROM attempts WHERE job_id = $1 ORDER BY id",
+        )
+        .bind(id)
+        .fetch_all(&self.pool)
+        .await?;
+        rows.into_iter().map(|r| r.into_record(id)).collect()
+    }
+}
+
+#[async_trait::async_trait]
+impl JobStore for PostgresStore {
+    async fn create(&self, new: NewJob) -> Result<Created, StoreError> {
+        let spec_json = encode("job spec", &new.spec)?;
+        let first = new.spec.first_stage();
+        let inserted = sqlx::query(
+            "INSERT INTO jobs (id, name, spec, first_stage, status, stage, progress, idempotency_key, \
+             created_at_ms, updated_at_ms) VALUES ($1, $2, $3, $4, 'queued', $4, 0, $5, $6, $6) \
+             ON CONFLICT (idempotency_key) DO NOTHING",
+        )
+        .bind(&new.id)
+        .bind(&new.spec.name)
+        .bind(&spec_json)
+        .bind(first.as_str())
+        .bind(&new.idempotency_key)
+        .bind(new.now_ms)
+        .execute(&self.pool)
+        .await?
+        .rows_affected();
+        if inserted == 1 {
+            return Ok(Created::New(rows::inserted(new)));
+        }
+        // The key exists: same request -> same job; different request -> conflict.
+        let key = new.idempotency_key.clone().unwrap_or_default();
+        let (id, stored): (String, String) =
+            sqlx::query_as("SELECT id, spec FROM jobs WHERE idempotency_key = $1")
+                .bind(&key)
+                .fetch_one(&self.pool)
+                .await?;
+        if stored != spec_json {
+            return Err(StoreError::IdempotencyConflict { key, job_id: id });
+        }
+        let job = self.get(&id).await?.ok_or_else(|| StoreError::Corrupt {
+            id: id.clone(),
+            what: "row",
+            detail: "job of idempotency key vanished".into(),
+        })?;
+        Ok(Created::Existing(job))
+    }
+
+    async fn get(&self, id: &str) -> Result<Option<Job>, StoreError> {
+        let sql = concat!("SELECT ", job_columns!(), " FROM jobs WHERE id = $1");
+        match sqlx::query_as::<_, JobRow>(sql).bind(id).fetch_optional(&self.pool).await? {
+            Some(row) => Ok(Some(self.job_from_row(row).await?)),
+            None => Ok(None),
+        }
+    }
+
+    async fn list(
+        &self,
+        status: Option<JobStatus>,
+        limit: u32,
+        cursor: Option<i64>,
+    ) -> Result<JobPage, StoreError> {
+        let limit = i64::from(limit.clamp(1, 1000));
+        let sql = concat!(
+            "SELECT ",
+            job_columns!(),
+            " FROM jobs WHERE ($1::text IS NULL OR status = $1) \
+             AND ($2::bigint IS NULL OR seq < $2) ORDER BY seq DESC LIMIT $3"
+        );
+        let rows: Vec<JobRow> = sqlx::query_as(sql)
+            .bind(status.map(|s| s.as_str()))
+            .bind(cursor)
+            .bind(limit + 1)
+            .fetch_all(&self.pool)
+            .await?;
+        let more = rows.len() as i64 > limit;
+        let mut jobs = Vec::with_capacity(rows.len());
+        let mut last_seq = None;
+        for row in rows.into_iter().take(limit as usize) {
+            last_seq = Some(row.seq);
+            jobs.push(self.job_from_row(row).await?);
+        }
+        Ok(JobPage { jobs, next_cursor: if more { last_seq } else { None } })
+    }
+
+    async fn request_cancel(&self, id: &str, now_ms: i64) -> Result<Option<Job>, StoreError> {
+        let mut tx = self.pool.begin().await?;
+        sqlx::query(
+            "UPDATE jobs SET status = 'cancelled', cancel_requested = TRUE, updated_at_ms = $2, \
+             error_code = 'cancelled', error_message = 'cancelled before it started', error_stage = stage, \
+             lease_owner = NULL, lease_expires_ms = NULL WHERE id = $1 AND status = 'queued' \
+             AND lease_owner IS NULL",
+        )
+        .bind(id)
+        .bind(now_ms)
+        .execute(&mut *tx)
+        .await?;
+        sqlx::query(
+            "UPDATE jobs SET cancel_requested = TRUE, updated_at_ms = $2 WHERE id = $1 \
+             AND status IN ('queued', 'running')",
+        )
+        .bind(id)
+        .bind(now_ms)
+        .execute(&mut *tx)
+        .await?;
+        tx.commit().await?;
+        self.get(id).await
+    }
+
+    async fn claim(&self, owner: &str, now_ms: i64, lease_ms: i64) -> Result<Option<ClaimedJob>, StoreError> {
+        // SKIP LOCKED: a replica never waits on a row another replica is claiming; the row lock is
+        // rechecked against the newest version, so a lease taken meanwhile is not taken again.
+        let row: Option<ClaimRow> = sqlx::query_as(
+            "UPDATE jobs SET lease_owner = $1, lease_expires_ms = $2 + $3 WHERE seq = ( \
+                 SELECT seq FROM jobs WHERE status IN ('queued', 'running') \
+                 AND (lease_owner IS NULL OR lease_expires_ms < $2) ORDER BY seq LIMIT 1 \
+                 FOR UPDATE SKIP LOCKED) \
+             RETURNING id, spec, stage, cancel_requested",
+        )
+        .bind(owner)
+        .bind(now_ms)
+        .bind(lease_ms)
+        .fetch_optional(&self.pool)
+        .await?;
+        row.map(ClaimRow::into_claimed).transpose()
+    }
+
+    async fn renew(
+        &self,
+        id: &str,
+        owner: &str,
+        now_ms: i64,
+        lease_ms: i64,
+    ) -> Result<LeaseState, StoreError> {
+        let row: Option<(bool,)> = sqlx::query_as(
+            "UPDATE jobs SET lease_expires_ms = $3 + $4 WHERE id = $1 AND lease_owner = $2 \
+             RETURNING cancel_requested",
+        )
+        .bind(id)
+        .bind(owner)
+        .bind(now_ms)
+        .bind(lease_ms)
+        .fetch_optional(&self.pool)
+        .await?;
+        Ok(match row {
+            Some((cancel_requested,)) => LeaseState { held: true, cancel_requested },
+            None => LeaseState { held: false, cancel_requested: false },
+        })
+    }
+
+    async fn recover_owner(&self, owner: &str, now_ms: i64) -> Result<u64, StoreError> {
+        let mut tx = self.pool.begin().await?;
+        sqlx::query(
+            "UPDATE attempts SET outcome = 'interrupted', finished_at_ms = $2, \
+             error_message = 'the orchestrator stopped while this attempt ran' \
+             WHERE owner = $1 AND outcome = 'running'",
+        )
+        .bind(owner)
+        .bind(now_ms)
+        .execute(&mut *tx)
+        .await?;
+        let released = sqlx::query(
+            "UPDATE jobs SET lease_owner = NULL, lease_expires_ms = NULL WHERE lease_owner = $1 \
+             AND status IN ('queued', 'running')",
+        )
+        .bind(owner)
+        .execute(&mut *tx)
+        .await?
+        .rows_affected();
+        tx.commit().await?;
+        Ok(released)
+    }
+
+    async fn begin_attempt(
+        &self,
+        id: &str,
+        owner: &str,
+        stage: Stage,
+        now_ms: i64,
+    ) -> Result<u32, StoreError> {
+        let mut tx = self.pool.begin().await?;
+        // The fenced update locks the job's row, which serialises the attempt numbering below.
+        let updated = sqlx::query(
+            "UPDATE jobs SET status = 'running', stage = $3, updated_at_ms = $4 WHERE id = $1 AND lease_owner = $2",
+        )
+        .bind(id)
+        .bind(owner)
+        .bind(stage.as_str())
+        .bind(now_ms)
+        .execute(&mut *tx)
+        .await?
+        .rows_affected();
+        if updated == 0 {
+            return Err(StoreError::LeaseLost { id: id.to_string() });
+        }
+        let (attempt,): (i64,) = sqlx::query_as(
+            "INSERT INTO attempts (job_id, stage, attempt, owner, started_at_ms, outcome) \
+             VALUES ($1, $2, (SELECT COALESCE(MAX(attempt), 0) + 1 FROM attempts WHERE job_id = $1 AND stage = $2), \
+                     $3, $4, 'running') RETURNING attempt",
+        )
+        .bind(id)
+        .bind(stage.as_str())
+        .bind(owner)
+        .bind(now_ms)
+        .fetch_one(&mut *tx)
+        .await?;
+        tx.commit().await?;
+        Ok(u32::try_from(attempt).unwrap_or(u32::MAX))
+    }
+
+    async fn finish_attempt(
+        &self,
+        id: &str,
+        stage: Stage,
+        attempt: u32,
+        outcome: AttemptOutcome,
+        error: Option<(&str, &str)>,
+        now_ms: i64,
+    ) -> Result<(), StoreError> {
+        sqlx::query(
+            "UPDATE attempts SET outcome = $4, error_code = $5, error_message = $6, finished_at_ms = $7 \
+             WHERE job_id = $1 AND stage = $2 AND attempt = $3",
+        )
+        .bind(id)
+        .bind(stage.as_str())
+        .bind(i64::from(attempt))
+        .bind(outcome.as_str())
+        .bind(error.map(|e| e.0))
+        .bind(error.map(|e| e.1))
+        .bind(now_ms)
+        .execute(&self.pool)
+        .await?;
+        Ok(())
+    }
+
+    async fn complete_stage(
+        &self,
+        id: &str,
+        owner: &str,
+        result: &StageResult,
+        next: Option<Stage>,
+        progress: f64,
+        now_ms: i64,
+    ) -> Result<(), StoreError> {
+        let outputs = encode("stage outputs", &result.outputs)?;
+        let mut tx = self.pool.begin().await?;
+        let (status, stage) = match next {
+            Some(n) => ("running", n),
+            None => ("succeeded", result.stage),
+        };
+        let updated = sqlx::query(
+            "UPDATE jobs SET status = $3, stage = $4, progress = $5, updated_at_ms = $6, \
+             lease_owner = CASE WHEN $3 = 'succeeded' THEN NULL ELSE lease_owner END \
+             WHERE id = $1 AND lease_owner = $2",
+        )
+        .bind(id)
+        .bind(owner)
+        .bind(status)
+        .bind(stage.as_str())
+        .bind(progress)
+        .bind(now_ms)
+        .execute(&mut *tx)
+        .await?
+        .rows_affected();
+        if updated == 0 {
+            return Err(StoreError::LeaseLost { id: id.to_string() });
+        }
+        sqlx::query(
+            "INSERT INTO stage_results (job_id, stage, outputs, started_at_ms, finished_at_ms) \
+             VALUES ($1, $2, $3, $4, $5)",
+        )
+        .bind(id)
+        .bind(result.stage.as_str())
+        .bind(outputs)
+        .bind(result.started_at_ms)
+        .bind(result.finished_at_ms)
+        .execute(&mut *tx)
+        .await?;
+        tx.commit().await?;
+        Ok(())
+    }
+
+    async fn set_progress(
+        &self,
+        id: &str,
+        owner: &str,
+        progress: f64,
+        now_ms: i64,
+    ) -> Result<(), StoreError> {
+        sqlx::query("UPDATE jobs SET progress = $3, updated_at_ms = $4 WHERE id = $1 AND lease_owner = $2")
+            .bind(id)
+            .bind(owner)
+            .bind(progress)
+            .bind(now_ms)
+            .execute(&self.pool)
+            .await?;
+        Ok(())
+    }
+
+    async fn end(
+        &self,
+        id: &str,
+        owner: &str,
+        status: JobStatus,
+        error: Option<&JobError>,
+        now_ms: i64,
+    ) -> Result<(), StoreError> {
+        let updated = sqlx::query(
+            "UPDATE jobs SET status = $3, error_code = $4, error_message = $5, error_stage = $6, \
+             updated_at_ms = $7, lease_owner = NULL, lease_expires_ms = NULL WHERE id = $1 AND lease_owner = $2",
+        )
+        .bind(id)
+        .bind(owner)
+        .bind(status.as_str())
+        .bind(error.map(|e| e.code.as_str()))
+        .bind(error.map(|e| e.message.as_str()))
+        .bind(error.map(|e| e.stage.as_str()))
+        .bind(now_ms)
+        .execute(&self.pool)
+        .await?
+        .rows_affected();
+        if updated == 0 {
+            return Err(StoreError::LeaseLost { id: id.to_string() });
+        }
+        Ok(())
+    }
+
+    async fn stage_results(&self, id: &str) -> Result<Vec<StageResult>, StoreError> {
+        let rows: Vec<ResultRow> = sqlx::query_as(
+            "SELECT stage, outputs, started_at_ms, finished_at_ms FROM stage_results WHERE job_id = $1",
+        )
+        .bind(id)
+        .fetch_all(&self.pool)
+        .await?;
+        rows::results(id, rows)
+    }
+
+    async fn ping(&self) -> Result<(), StoreError> {
+        sqlx::query("SELECT 1").execute(&self.pool).await?;
+        Ok(())
+    }
+
+    async fn create_token(&self, token: &TokenRecord, secret_sha256: &str) -> Result<(), StoreError> {
+        sqlx::query(
+            "INSERT INTO api_tokens (id, name, secret_sha256, scopes, created_at_ms, expires_at_ms) \
+             VALUES ($1, $2, $3, $4, $5, $6)",
+        )
+        .bind(&token.id)
+        .bind(&token.name)
+        .bind(secret_sha256)
+        .bind(&token.scopes)
+        .bind(token.created_at_ms)
+        .bind(token.expires_at_ms)
+        .execute(&self.pool)
+        .await?;
+        Ok(())
+    }
+
+    async fn token_by_secret(&self, secret_sha256: &str) -> Result<Option<TokenRecord>, StoreError> {
+        let sql = concat!("SELECT ", super::token_columns!(), " FROM api_tokens WHERE secret_sha256 = $1");
+        Ok(sqlx::query_as(sql).bind(secret_sha256).fetch_optional(&self.pool).await?)
+    }
+
+    async fn list_tokens(&self) -> Result<Vec<TokenRecord>, StoreError> {
+        let sql = concat!("SELECT ", super::token_columns!(), " FROM api_tokens ORDER BY created_at_ms, id");
+        Ok(sqlx::query_as(sql).fetch_all(&self.pool).await?)
+    }
+
+    async fn revoke_token(&self, id: &str, now_ms: i64) -> Result<bool, StoreError> {
+        let revoked =
+            sqlx::query("UPDATE api_tokens SET revoked_at_ms = $2 WHERE id = $1 AND revoked_at_ms IS NULL")
+                .bind(id)
+                .bind(now_ms)
+                .execute(&self.pool)
+                .await?
+                .rows_affected();
+        Ok(revoked == 1)
+    }
+}
