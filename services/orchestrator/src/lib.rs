@@ -22,6 +22,7 @@
 
 pub mod app;
 pub mod auth;
+mod balance;
 mod convert;
 pub mod domain;
 pub mod events;

@@ -117,6 +117,9 @@ pub struct Endpoints {
     pub reconstruction: String,
     pub cam: String,
     pub machine: String,
+    /// With several instances of a service (URLs separated by commas): how often each is
+    /// health-checked, in milliseconds; one that fails is not called until it passes again.
+    pub health_interval_ms: u64,
 }
 
 impl Default for Endpoints {
@@ -126,6 +129,7 @@ impl Default for Endpoints {
             reconstruction: "http://127.0.0.1:50052".into(),
             cam: "http://127.0.0.1:50053".into(),
             machine: "http://127.0.0.1:50054".into(),
+            health_interval_ms: 2000,
         }
     }
 }
@@ -138,6 +142,7 @@ impl Endpoints {
             reconstruction: String::new(),
             cam: String::new(),
             machine: String::new(),
+            ..Self::default()
         }
     }
 }
@@ -162,24 +167,37 @@ pub struct EndpointError {
     source: Box<dyn std::error::Error + Send + Sync>,
 }
 
-fn channel(service: &'static str, url: &str) -> Result<Option<Channel>, EndpointError> {
-    if url.trim().is_empty() {
-        return Ok(None);
+/// The channel to a service at `urls`: none when empty, one lazily connected endpoint, or several
+/// instances (comma-separated) balanced with health checks every `health_interval`.
+fn channel(
+    service: &'static str,
+    urls: &str,
+    health_interval: Duration,
+) -> Result<Option<Channel>, EndpointError> {
+    let mut endpoints = Vec::new();
+    for url in urls.split(',').map(str::trim).filter(|u| !u.is_empty()) {
+        let endpoint = Channel::from_shared(url.to_string())
+            .map_err(|e| EndpointError { service, url: url.to_string(), source: Box::new(e) })?
+            .connect_timeout(Duration::from_secs(5))
+            .tcp_nodelay(true);
+        endpoints.push(endpoint);
     }
-    let endpoint = Channel::from_shared(url.to_string())
-        .map_err(|e| EndpointError { service, url: url.to_string(), source: Box::new(e) })?
-        .connect_timeout(Duration::from_secs(5))
-        .tcp_nodelay(true);
-    Ok(Some(endpoint.connect_lazy()))
+    Ok(match endpoints.len() {
+        0 => None,
+        1 => endpoints.pop().map(|e| e.connect_lazy()),
+        _ => Some(crate::balance::balanced(service, endpoints, health_interval)),
+    })
 }
 
 impl GrpcStages {
+    /// Channels to the services; needs a tokio runtime when a service lists several instances.
     pub fn new(endpoints: &Endpoints) -> Result<Self, EndpointError> {
+        let every = Duration::from_millis(endpoints.health_interval_ms.clamp(50, 3_600_000));
         Ok(Self {
-            scanning: channel("scanning", &endpoints.scanning)?,
-            reconstruction: channel("reconstruction", &endpoints.reconstruction)?,
-            cam: channel("cam", &endpoints.cam)?,
-            machine: channel("machine", &endpoints.machine)?,
+            scanning: channel("scanning", &endpoints.scanning, every)?,
+            reconstruction: channel("reconstruction", &endpoints.reconstruction, every)?,
+            cam: channel("cam", &endpoints.cam, every)?,
+            machine: channel("machine", &endpoints.machine, every)?,
         })
     }
 
