@@ -12,6 +12,7 @@ mod parts;
 mod plan;
 mod reconstruct;
 mod recovery;
+mod replicas;
 mod rs274;
 mod scan;
 mod whole;

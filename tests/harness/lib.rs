@@ -173,6 +173,7 @@ impl TestStack {
             rest_addr: "127.0.0.1:0".parse()?,
             grpc_addr: "127.0.0.1:0".parse()?,
             data_dir: data_dir.clone(),
+            artifacts_dir: None,
             database_url: opts.database_url.clone(),
             max_upload_bytes: opts.max_upload_bytes,
             services: endpoints,

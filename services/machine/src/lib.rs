@@ -20,7 +20,7 @@ use std::path::PathBuf;
 pub use depthmill_common::grpc::ServeError;
 
 /// Configuration of the machine service (`deploy/config/machine.toml`, env `DEPTHMILL_MACHINE__KEY`).
-#[derive(Debug, Clone, serde::Deserialize)]
+#[derive(Debug, Clone, serde::Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct Config {
     /// gRPC listen address.

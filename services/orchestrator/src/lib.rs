@@ -54,8 +54,12 @@ pub struct Config {
     pub rest_addr: SocketAddr,
     /// gRPC listen address.
     pub grpc_addr: SocketAddr,
-    /// Holds `artifacts/`, `node_id` and, on the embedded default, `jobs.sqlite`.
+    /// Holds `node_id`, `artifacts/` (unless `artifacts_dir` says otherwise) and, on the embedded
+    /// default, `jobs.sqlite`. Each replica has its own (its `node_id` names its leases).
     pub data_dir: PathBuf,
+    /// The artifact folder, shared with the stage services and the other replicas. Unset:
+    /// `<data_dir>/artifacts`.
+    pub artifacts_dir: Option<PathBuf>,
     /// The job database: `sqlite://PATH` or `postgres://USER@HOST:PORT/DB`. Unset: the SQLite
     /// file `<data_dir>/jobs.sqlite`. Replicas sharing one job queue share one PostgreSQL database.
     pub database_url: Option<String>,
@@ -74,6 +78,7 @@ impl Default for Config {
             rest_addr: SocketAddr::from(([127, 0, 0, 1], 8080)),
             grpc_addr: SocketAddr::from(([127, 0, 0, 1], 50050)),
             data_dir: PathBuf::from("data"),
+            artifacts_dir: None,
             database_url: None,
             max_upload_bytes: 4 << 30,
             services: Endpoints::default(),
@@ -146,7 +151,8 @@ pub async fn serve(
     };
     let store = store::open(&database_url).await?;
     tracing::info!(database = %store::redact(&database_url), node = %owner, "job store open");
-    let artifacts = LocalStore::open(data_dir.join("artifacts")).await?;
+    let artifacts_dir = config.artifacts_dir.clone().unwrap_or_else(|| data_dir.join("artifacts"));
+    let artifacts = LocalStore::open(artifacts_dir).await?;
     let stages = Arc::new(stages::GrpcStages::new(&config.services)?);
     let app = app::App {
         store: store.clone(),

@@ -45,7 +45,14 @@ impl StageError {
     }
 
     fn from_status(stage: Stage, status: &tonic::Status) -> Self {
-        let code = ErrorCode::from_grpc(status.code());
+        let code = match status.code() {
+            // Made here from a transport error (a status the service sent has no source): the
+            // connection broke mid-call, the instance died or restarted. Another attempt may work.
+            tonic::Code::Unknown | tonic::Code::Internal if std::error::Error::source(status).is_some() => {
+                ErrorCode::Unavailable
+            }
+            code => ErrorCode::from_grpc(code),
+        };
         let message = match code {
             ErrorCode::StageNotAvailable if status.message().starts_with("stage not available") => {
                 status.message().to_string()

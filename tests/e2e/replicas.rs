@@ -1,0 +1,384 @@
+//! Scale-out under fire: three orchestrator replicas on one PostgreSQL database and two machine
+//! service instances, each a separate process, killed with SIGKILL at random moments and restarted
+//! while jobs arrive through REST and gRPC. Every job must end once, succeeded, with each stage
+//! recorded once and every artifact's bytes matching its hash.
+//!
+//! The processes are this test binary run again in a child role (`child_process`, an ignored test
+//! that does nothing unless `DEPTHMILL_E2E_CHILD` describes the role), so the suite stays one
+//! binary. Size: `DEPTHMILL_REPLICA_JOBS` (default 24) and `DEPTHMILL_REPLICA_KILLS` (default 8);
+//! the documented full run is 200 jobs and 40 kills (README, "Several replicas").
+
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::process::Stdio;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context as _, bail, ensure};
+use depthmill_orchestrator::store::scratch::ScratchDatabase;
+use depthmill_proto::orchestrator::v1 as pb;
+use depthmill_proto::orchestrator::v1::orchestrator_service_client::OrchestratorServiceClient;
+use rand::Rng as _;
+use serde::{Deserialize, Serialize};
+use serde_json::{Value, json};
+use sha2::{Digest as _, Sha256};
+
+/// What a child process runs.
+#[derive(Serialize, Deserialize)]
+enum Role {
+    Orchestrator(Box<depthmill_orchestrator::Config>),
+    Machine(depthmill_machine::Config),
+}
+
+/// Child-process entry of [`replicas_and_instances_survive_sigkill`].
+#[test]
+#[ignore = "the child processes of replicas_and_instances_survive_sigkill run this; alone it does nothing"]
+fn child_process() -> anyhow::Result<()> {
+    let Ok(spec) = std::env::var("DEPTHMILL_E2E_CHILD") else { return Ok(()) };
+    let role: Role = serde_json::from_str(&spec).context("DEPTHMILL_E2E_CHILD")?;
+    depthmill_common::telemetry::init_tracing(false);
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
+    rt.block_on(async move {
+        match role {
+            Role::Orchestrator(config) => {
+                let rest = tokio::net::TcpListener::bind(config.rest_addr).await?;
+                let grpc = tokio::net::TcpListener::bind(config.grpc_addr).await?;
+                depthmill_orchestrator::serve(rest, grpc, *config, None, std::future::pending()).await?;
+            }
+            Role::Machine(config) => {
+                let listener = tokio::net::TcpListener::bind(config.grpc_addr).await?;
+                depthmill_machine::serve(listener, config, std::future::pending()).await?;
+            }
+        }
+        anyhow::Ok(())
+    })
+}
+
+/// A child process and how to start it again.
+struct Proc {
+    name: String,
+    role: String,
+    /// REST address of an orchestrator (ready when `/readyz` answers), gRPC address of a service.
+    ready: SocketAddr,
+    rest: bool,
+    log: PathBuf,
+    child: Option<std::process::Child>,
+}
+
+impl Proc {
+    async fn start(&mut self) -> anyhow::Result<()> {
+        let exe = std::env::current_exe()?;
+        let log = std::fs::OpenOptions::new().create(true).append(true).open(&self.log)?;
+        let child = std::process::Command::new(exe)
+            .args(["--ignored", "--exact", "replicas::child_process", "--nocapture", "--test-threads=1"])
+            .env("DEPTHMILL_E2E_CHILD", &self.role)
+            .env("RUST_LOG", "info")
+            .stdin(Stdio::null())
+            .stdout(log.try_clone()?)
+            .stderr(log)
+            .spawn()
+            .with_context(|| format!("starting {}", self.name))?;
+        self.child = Some(child);
+        let deadline = Instant::now() + Duration::from_secs(30);
+        let http = reqwest::Client::new();
+        loop {
+            let up = if self.rest {
+                http.get(format!("http://{}/readyz", self.ready))
+                    .send()
+                    .await
+                    .is_ok_and(|r| r.status().is_success())
+            } else {
+                tokio::net::TcpStream::connect(self.ready).await.is_ok()
+            };
+            if up {
+                return Ok(());
+            }
+            if Instant::now() > deadline {
+                bail!("{} did not come up; its log:\n{}", self.name, tail(&self.log));
+            }
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    }
+
+    /// SIGKILL: no shutdown, no flush, no goodbye.
+    fn kill(&mut self) -> anyhow::Result<()> {
+        if let Some(mut child) = self.child.take() {
+            child.kill()?;
+            child.wait()?;
+        }
+        Ok(())
+    }
+}
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        let _ = self.kill();
+    }
+}
+
+fn tail(path: &Path) -> String {
+    let text = std::fs::read_to_string(path).unwrap_or_default();
+    let lines: Vec<&str> = text.lines().collect();
+    lines[lines.len().saturating_sub(40)..].join("\n")
+}
+
+fn free_addr() -> anyhow::Result<SocketAddr> {
+    Ok(std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?)
+}
+
+fn env_usize(name: &str, default: usize) -> usize {
+    std::env::var(name).ok().and_then(|v| v.parse().ok()).unwrap_or(default)
+}
+
+/// A short program: 30 slotting passes.
+fn program() -> Vec<u8> {
+    let mut s = String::from("%\nG21 G90 G17 G94\nT1 M6\nS1500 M3\nG43 H1\nG0 X-5 Y5\nG0 Z12\n");
+    for k in 0..30u32 {
+        let _ = writeln!(s, "G1 Z{:.2} F200", 10.0 - 0.1 * f64::from(k));
+        let _ = writeln!(s, "G1 X{} F300", if k.is_multiple_of(2) { 35 } else { -5 });
+    }
+    s.push_str("G0 Z15\nM30\n%\n");
+    s.into_bytes()
+}
+
+fn job_body(sha: &str, n: usize) -> Value {
+    json!({"name": format!("replica-{n}"), "input": {"kind": "gcode", "artifact": sha},
+           "execute": {"machine": "emco-f1", "adaptive": "off", "compare": false, "cell_mm": 0.5}})
+}
+
+/// [`job_body`] as the gRPC message.
+fn job_pb(sha: &str, n: usize) -> pb::JobSpec {
+    use depthmill_proto::machine::v1 as machine;
+    pb::JobSpec {
+        name: format!("replica-{n}"),
+        input: Some(pb::JobInput {
+            kind: pb::InputKind::Gcode as i32,
+            artifact: sha.to_string(),
+            ..Default::default()
+        }),
+        execute: Some(machine::ExecuteParams {
+            machine: Some("emco-f1".into()),
+            adaptive: machine::AdaptiveMode::Off as i32,
+            compare: Some(false),
+            cell_mm: Some(0.5),
+            ..Default::default()
+        }),
+        ..Default::default()
+    }
+}
+
+/// Submits job `n` through replica `n % replicas`, REST for even `n` and gRPC for odd, retrying on
+/// the next replica while one is down; the idempotency key makes retries return the same job.
+async fn submit(rest: &[SocketAddr], grpc: &[SocketAddr], sha: &str, n: usize) -> anyhow::Result<String> {
+    let key = format!("replica-job-{n}");
+    let http = reqwest::Client::builder().timeout(Duration::from_secs(10)).build()?;
+    for attempt in 0..60 {
+        let r = (n + attempt) % rest.len();
+        let id = if n.is_multiple_of(2) {
+            let resp = http
+                .post(format!("http://{}/v1/jobs", rest[r]))
+                .header("Idempotency-Key", &key)
+                .json(&job_body(sha, n))
+                .send()
+                .await;
+            match resp {
+                Ok(resp) if resp.status().is_success() => {
+                    resp.json::<Value>().await?["id"].as_str().map(String::from)
+                }
+                Ok(resp) if resp.status().is_client_error() => {
+                    bail!("job {n} refused: {}", resp.text().await?)
+                }
+                _ => None,
+            }
+        } else {
+            let spec = job_pb(sha, n);
+            match OrchestratorServiceClient::connect(format!("http://{}", grpc[r])).await {
+                Ok(mut client) => client
+                    .create_job(pb::CreateJobRequest { spec: Some(spec), idempotency_key: key.clone() })
+                    .await
+                    .ok()
+                    .map(|job| job.into_inner().id),
+                Err(_) => None,
+            }
+        };
+        if let Some(id) = id {
+            return Ok(id);
+        }
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    bail!("job {n} could not be submitted to any replica")
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn replicas_and_instances_survive_sigkill() -> anyhow::Result<()> {
+    let jobs = env_usize("DEPTHMILL_REPLICA_JOBS", 24);
+    let kills = env_usize("DEPTHMILL_REPLICA_KILLS", 8);
+    let db = ScratchDatabase::create().await?;
+    let root = tempfile::tempdir()?;
+    let artifacts_dir = root.path().join("artifacts");
+    std::fs::create_dir_all(&artifacts_dir)?;
+
+    let mut procs = Vec::new();
+    let mut machine_urls = Vec::new();
+    for i in 0..2 {
+        let addr = free_addr()?;
+        machine_urls.push(format!("http://{addr}"));
+        let config = depthmill_machine::Config { grpc_addr: addr, artifacts_dir: artifacts_dir.clone() };
+        procs.push(Proc {
+            name: format!("machine-{i}"),
+            role: serde_json::to_string(&Role::Machine(config))?,
+            ready: addr,
+            rest: false,
+            log: root.path().join(format!("machine-{i}.log")),
+            child: None,
+        });
+    }
+    let (mut rest, mut grpc) = (Vec::new(), Vec::new());
+    for i in 0..3 {
+        let (r, g) = (free_addr()?, free_addr()?);
+        let mut services = depthmill_orchestrator::Endpoints::none();
+        services.machine = machine_urls.join(", ");
+        services.health_interval_ms = 250;
+        let config = depthmill_orchestrator::Config {
+            rest_addr: r,
+            grpc_addr: g,
+            data_dir: root.path().join(format!("replica-{i}")),
+            artifacts_dir: Some(artifacts_dir.clone()),
+            database_url: Some(db.url()),
+            services,
+            worker: depthmill_orchestrator::WorkerConfig {
+                concurrency: 2,
+                lease_s: 2.0,
+                poll_ms: 100,
+                max_attempts: 20,
+                backoff_min_ms: 100,
+                backoff_max_ms: 1000,
+                stage_deadline_s: 60.0,
+                cancel_grace_s: 2.0,
+            },
+            ..Default::default()
+        };
+        rest.push(r);
+        grpc.push(g);
+        procs.push(Proc {
+            name: format!("replica-{i}"),
+            role: serde_json::to_string(&Role::Orchestrator(Box::new(config)))?,
+            ready: r,
+            rest: true,
+            log: root.path().join(format!("replica-{i}.log")),
+            child: None,
+        });
+    }
+    for p in &mut procs {
+        p.start().await?;
+    }
+
+    let http = reqwest::Client::new();
+    let upload = http
+        .post(format!("http://{}/v1/artifacts", rest[0]))
+        .header("content-type", "text/x-gcode")
+        .body(program())
+        .send()
+        .await?
+        .json::<Value>()
+        .await?;
+    let sha = upload["sha256"].as_str().context("upload")?.to_string();
+
+    // Submissions and kills at once.
+    let started = Instant::now();
+    let submitter = {
+        let (rest, grpc, sha) = (rest.clone(), grpc.clone(), sha.clone());
+        tokio::spawn(async move {
+            let mut ids = Vec::with_capacity(jobs);
+            for n in 0..jobs {
+                ids.push(submit(&rest, &grpc, &sha, n).await?);
+                tokio::time::sleep(Duration::from_millis(50)).await;
+            }
+            anyhow::Ok(ids)
+        })
+    };
+    let mut killed = BTreeMap::<String, usize>::new();
+    for _ in 0..kills {
+        let (pause, victim) = {
+            let mut rng = rand::rng();
+            (rng.random_range(300..1500), rng.random_range(0..procs.len()))
+        };
+        tokio::time::sleep(Duration::from_millis(pause)).await;
+        let p = &mut procs[victim];
+        p.kill()?;
+        *killed.entry(p.name.clone()).or_default() += 1;
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        p.start().await?;
+    }
+    let ids = submitter.await??;
+
+    // Every job ends, succeeded.
+    let deadline = Instant::now() + Duration::from_secs(300);
+    let mut ended = BTreeMap::new();
+    while ended.len() < ids.len() {
+        for (n, id) in ids.iter().enumerate() {
+            if ended.contains_key(id) {
+                continue;
+            }
+            let r = rest[n % rest.len()];
+            let job: Value = http.get(format!("http://{r}/v1/jobs/{id}")).send().await?.json().await?;
+            if matches!(job["status"].as_str(), Some("succeeded" | "failed" | "cancelled")) {
+                ended.insert(id.clone(), job);
+            }
+        }
+        if Instant::now() > deadline {
+            let logs: Vec<String> =
+                procs.iter().map(|p| format!("== {}\n{}", p.name, tail(&p.log))).collect();
+            bail!("{} of {} jobs ended in time\n{}", ended.len(), ids.len(), logs.join("\n"));
+        }
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    let wall = started.elapsed();
+
+    // None lost, none twice: the replicas list exactly the jobs submitted, once each.
+    let listed: Value =
+        http.get(format!("http://{}/v1/jobs?limit=1000", rest[1])).send().await?.json().await?;
+    let mut listed_ids: Vec<&str> =
+        listed["jobs"].as_array().context("jobs")?.iter().filter_map(|j| j["id"].as_str()).collect();
+    listed_ids.sort_unstable();
+    let mut submitted: Vec<&str> = ids.iter().map(String::as_str).collect();
+    submitted.sort_unstable();
+    ensure!(listed_ids == submitted, "listed {listed_ids:?}, submitted {submitted:?}");
+
+    let store = depthmill_orchestrator::store::open(&db.url()).await?;
+    let (mut interrupted, mut retried) = (0, 0);
+    for (id, job) in &ended {
+        ensure!(job["status"] == "succeeded", "job {id} did not succeed: {job}");
+        let results = store.stage_results(id).await?;
+        let stages: Vec<&str> = results.iter().map(|r| r.stage.as_str()).collect();
+        ensure!(stages == ["execute", "report"], "job {id}: stages recorded {stages:?}");
+        let attempts = job["attempts"].as_array().context("attempts")?;
+        let ok_executes = attempts.iter().filter(|a| a["stage"] == "execute" && a["outcome"] == "ok").count();
+        ensure!(ok_executes == 1, "job {id}: {ok_executes} successful execute attempts: {attempts:?}");
+        interrupted += attempts.iter().filter(|a| a["outcome"] == "interrupted").count();
+        retried += attempts.len().saturating_sub(2);
+        // Every artifact is complete: its bytes hash to its name.
+        for (name, a) in job["artifacts"].as_object().context("artifacts")? {
+            let sha = a["sha256"].as_str().context("sha256")?;
+            let bytes =
+                http.get(format!("http://{}/v1/artifacts/{sha}", rest[2])).send().await?.bytes().await?;
+            ensure!(
+                hex::encode(Sha256::digest(&bytes)) == sha,
+                "job {id}: artifact {name} does not match its hash"
+            );
+        }
+    }
+    println!(
+        "replicas: {} jobs over 3 replicas and 2 machine instances in {:.1} s; {} kills ({killed:?}); \
+         lost 0, duplicated 0, failed 0; {interrupted} attempts interrupted, {retried} extra attempts",
+        ids.len(),
+        wall.as_secs_f64(),
+        kills
+    );
+    for p in &mut procs {
+        p.kill()?;
+    }
+    drop(store);
+    Ok(())
+}
