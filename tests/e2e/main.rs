@@ -8,6 +8,7 @@ mod jobs;
 mod layering;
 mod machine;
 mod metrics;
+mod outage;
 mod parts;
 mod plan;
 mod reconstruct;

@@ -137,6 +137,7 @@ async fn healthz() -> &'static str {
 /// Readiness: the job database answers.
 #[utoipa::path(get, path = "/readyz", tag = "ops", responses(
     (status = 200, description = "ready"),
+    (status = 503, description = "not ready: the job database cannot be reached (Retry-After)", body = ErrorBody),
     (status = 500, description = "not ready", body = ErrorBody)))]
 async fn readyz(State(app): State<App>) -> Result<&'static str, ApiError> {
     app.ready().await?;

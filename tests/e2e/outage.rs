@@ -1,0 +1,122 @@
+//! The job database goes away (a network cut between the orchestrator and PostgreSQL): requests
+//! fail with 503 `unavailable` and a Retry-After, nothing is half-made, and when the database is
+//! reachable again the service carries on by itself and the jobs finish.
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context as _, bail};
+use depthmill_orchestrator::store::scratch::ScratchDatabase;
+use depthmill_tests::{StackOptions, TestStack};
+use serde_json::{Value, json};
+use tokio::net::{TcpListener, TcpStream};
+use tokio_util::sync::CancellationToken;
+
+/// A TCP proxy that can cut every connection through it and refuse new ones, like a network
+/// partition.
+struct Partition {
+    up: Arc<AtomicBool>,
+    cut: std::sync::Mutex<CancellationToken>,
+}
+
+impl Partition {
+    async fn start(target: String) -> anyhow::Result<(Arc<Self>, u16)> {
+        let listener = TcpListener::bind("127.0.0.1:0").await?;
+        let port = listener.local_addr()?.port();
+        let me = Arc::new(Self { up: Arc::new(AtomicBool::new(true)), cut: Default::default() });
+        let proxy = me.clone();
+        tokio::spawn(async move {
+            while let Ok((mut client, _)) = listener.accept().await {
+                if !proxy.up.load(Ordering::SeqCst) {
+                    continue; // dropped: the client sees the connection close at once
+                }
+                let cut = proxy.cut.lock().map(|c| c.clone()).unwrap_or_default();
+                let target = target.clone();
+                tokio::spawn(async move {
+                    let Ok(mut server) = TcpStream::connect(&target).await else { return };
+                    tokio::select! {
+                        _ = tokio::io::copy_bidirectional(&mut client, &mut server) => {}
+                        () = cut.cancelled() => {}
+                    }
+                });
+            }
+        });
+        Ok((me, port))
+    }
+
+    fn down(&self) {
+        self.up.store(false, Ordering::SeqCst);
+        if let Ok(mut cut) = self.cut.lock() {
+            cut.cancel();
+            *cut = CancellationToken::new();
+        }
+    }
+
+    fn restore(&self) {
+        self.up.store(true, Ordering::SeqCst);
+    }
+}
+
+fn program() -> Vec<u8> {
+    b"%\nG21 G90\nT1 M6\nS1500 M3\nG43 H1\nG0 X-5 Y5\nG0 Z12\nG1 Z9.5 F100\nG1 X35 F300\nG0 Z15\nM30\n%\n"
+        .to_vec()
+}
+
+fn job(sha: &str) -> Value {
+    json!({"input": {"kind": "gcode", "artifact": sha},
+           "execute": {"machine": "emco-f1", "adaptive": "off", "compare": false, "cell_mm": 0.5}})
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_database_outage_is_503_and_the_service_recovers_by_itself() -> anyhow::Result<()> {
+    let db = ScratchDatabase::create().await?;
+    let mut url = reqwest::Url::parse(&db.url())?;
+    let target = format!("{}:{}", url.host_str().context("host")?, url.port().unwrap_or(5432));
+    let (partition, port) = Partition::start(target).await?;
+    url.set_port(Some(port)).map_err(|()| anyhow::anyhow!("cannot set the port"))?;
+    let stack =
+        TestStack::start_with(StackOptions { database_url: Some(url.to_string()), ..Default::default() })
+            .await?;
+    let sha = stack.upload("text/x-gcode", program()).await?;
+    let (status, before) = stack.post_job(&job(&sha), Some("before")).await?;
+    assert_eq!(status, 201, "{before}");
+
+    partition.down();
+    for (what, request) in [
+        ("list", stack.http.get(stack.url("/v1/jobs"))),
+        ("ready", stack.http.get(stack.url("/readyz"))),
+        (
+            "submit",
+            stack.http.post(stack.url("/v1/jobs")).header("Idempotency-Key", "during").json(&job(&sha)),
+        ),
+    ] {
+        let resp = request.send().await?;
+        assert_eq!(resp.status().as_u16(), 503, "{what}");
+        assert!(resp.headers().contains_key("retry-after"), "{what}");
+        let body: Value = resp.json().await?;
+        assert_eq!(body["error"]["code"], "unavailable", "{what}: {body}");
+    }
+    // The process keeps serving what does not need the database.
+    assert_eq!(stack.http.get(stack.url("/healthz")).send().await?.status().as_u16(), 200);
+
+    partition.restore();
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while stack.http.get(stack.url("/readyz")).send().await?.status().as_u16() != 200 {
+        if Instant::now() > deadline {
+            bail!("the orchestrator did not recover after the database came back");
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    let (status, after) = stack.post_job(&job(&sha), Some("after")).await?;
+    assert_eq!(status, 201, "{after}");
+    for created in [&before, &after] {
+        let id = created["id"].as_str().context("id")?;
+        let done = stack.wait_for_end(id, Duration::from_secs(60)).await?;
+        assert_eq!(done["status"], "succeeded", "{done}");
+    }
+    // The refused submission made nothing.
+    let listed: Value = stack.http.get(stack.url("/v1/jobs")).send().await?.json().await?;
+    assert_eq!(listed["jobs"].as_array().map(Vec::len), Some(2), "{listed}");
+    stack.shutdown().await
+}
