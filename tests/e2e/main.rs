@@ -16,6 +16,7 @@ mod recovery;
 mod replicas;
 mod rs274;
 mod scan;
+mod tls;
 mod whole;
 
 use serde_json::{Value, json};

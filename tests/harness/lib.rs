@@ -188,6 +188,7 @@ impl TestStack {
                 cancel_grace_s: 2.0,
             },
             auth: opts.auth.clone(),
+            tls: None,
         };
         let mut stack = Self {
             rest_url: String::new(),

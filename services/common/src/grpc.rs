@@ -37,6 +37,17 @@ pub async fn serve_grpc(
     service_names: &[&str],
     shutdown: impl Future<Output = ()> + Send,
 ) -> Result<(), ServeError> {
+    serve_grpc_tls(listener, routes, service_names, None, shutdown).await
+}
+
+/// [`serve_grpc`], over TLS when `tls` is given.
+pub async fn serve_grpc_tls(
+    listener: TcpListener,
+    routes: Routes,
+    service_names: &[&str],
+    tls: Option<tonic::transport::ServerTlsConfig>,
+    shutdown: impl Future<Output = ()> + Send,
+) -> Result<(), ServeError> {
     let addr = listener.local_addr().map_err(ServeError::Io)?;
     let (reporter, health) = tonic_health::server::health_reporter();
     reporter.set_service_status("", tonic_health::ServingStatus::Serving).await;
@@ -55,7 +66,11 @@ pub async fn serve_grpc(
         .route("/metrics", axum::routing::get(crate::metrics::render_metrics));
     let recorded = service_names.iter().copied().chain([HEALTH_SERVICE, REFLECTION_SERVICE]);
     tracing::info!(%addr, services = ?service_names, "gRPC listening (and GET /metrics)");
-    tonic::transport::Server::builder()
+    let mut server = tonic::transport::Server::builder();
+    if let Some(tls) = tls {
+        server = server.tls_config(tls).map_err(ServeError::Transport)?;
+    }
+    server
         .accept_http1(true)
         .layer(crate::metrics::GrpcMetricsLayer::new(recorded))
         .add_routes(Routes::from(router))

@@ -6,6 +6,7 @@
 //! # Layout
 //! - [`config`]: layered configuration (TOML file, then `DEPTHMILL_<SVC>__SECTION__KEY` env overrides).
 //! - [`telemetry`]: the tracing subscriber, installed by binaries only.
+//! - [`tls`]: TLS of the public APIs: certificate files, the REST server over TLS, the gRPC identity.
 //! - [`grpc`]: serving tonic routes on a bound listener, with health, reflection and `/metrics`.
 //! - [`metrics`]: the process-global Prometheus recorder (installed once) and gRPC call metrics.
 //! - [`shutdown`]: SIGINT/SIGTERM as a future.
@@ -20,6 +21,7 @@ pub mod metrics;
 pub mod shutdown;
 pub mod stage;
 pub mod telemetry;
+pub mod tls;
 
 /// Displays an error and its chain of sources as `outer: inner: innermost`, for logs.
 pub struct ErrorChain<'a>(pub &'a (dyn std::error::Error + 'static));

@@ -70,6 +70,8 @@ pub struct Config {
     pub worker: WorkerConfig,
     /// API tokens: required, not required on loopback, or not at all.
     pub auth: auth::AuthConfig,
+    /// TLS for REST (HTTPS) and gRPC: certificate and key files (PEM). Unset: plain TCP.
+    pub tls: Option<depthmill_common::tls::TlsFiles>,
 }
 
 impl Default for Config {
@@ -84,6 +86,7 @@ impl Default for Config {
             services: Endpoints::default(),
             worker: WorkerConfig::default(),
             auth: auth::AuthConfig::default(),
+            tls: None,
         }
     }
 }
@@ -109,6 +112,10 @@ pub enum OrchestratorError {
     Grpc(#[from] depthmill_common::grpc::ServeError),
     #[error("refusing to serve without API tokens")]
     Open(#[from] auth::OpenOnNetwork),
+    #[error("cannot set up TLS")]
+    Tls(#[from] depthmill_common::tls::TlsError),
+    #[error("cannot set up TLS for REST")]
+    RestTls(#[source] rustls::Error),
 }
 
 /// The gRPC service names the orchestrator reports in its health service.
@@ -141,6 +148,10 @@ pub async fn serve(
     let rest_addr = rest.local_addr().map_err(OrchestratorError::Rest)?;
     let grpc_addr = grpc.local_addr().map_err(OrchestratorError::Rest)?;
     let tokens_required = auth::tokens_required(config.auth.mode, rest_addr, grpc_addr)?;
+    // Certificates are checked before anything else is touched.
+    let tls = config.tls.as_ref().map(depthmill_common::tls::Identity::load).transpose()?;
+    let rest_tls =
+        tls.as_ref().map(|t| t.http1_acceptor()).transpose().map_err(OrchestratorError::RestTls)?;
     let data_dir = &config.data_dir;
     std::fs::create_dir_all(data_dir)
         .map_err(|source| OrchestratorError::DataDir { path: data_dir.display().to_string(), source })?;
@@ -175,15 +186,25 @@ pub async fn serve(
         shutdown.await;
         stop.cancel();
     });
-    tracing::info!(addr = %rest_addr, tokens_required, "REST listening");
+    tracing::info!(addr = %rest_addr, tokens_required, tls = rest_tls.is_some(), "REST listening");
     let rest_token = token.clone();
-    let rest_server = axum::serve(rest, http::router(app.clone(), metrics))
-        .with_graceful_shutdown(async move { rest_token.cancelled().await });
+    let router = http::router(app.clone(), metrics);
+    let rest_server = async move {
+        match rest_tls {
+            Some(acceptor) => {
+                depthmill_common::tls::serve_https(rest, router, acceptor, rest_token.cancelled()).await
+            }
+            None => axum::serve(rest, router).with_graceful_shutdown(rest_token.cancelled_owned()).await,
+        }
+    };
     let grpc_token = token.clone();
-    let grpc_server =
-        depthmill_common::grpc::serve_grpc(grpc, grpc::routes(app), SERVICE_NAMES, async move {
-            grpc_token.cancelled().await
-        });
+    let grpc_server = depthmill_common::grpc::serve_grpc_tls(
+        grpc,
+        grpc::routes(app),
+        SERVICE_NAMES,
+        tls.as_ref().map(|t| t.grpc()),
+        async move { grpc_token.cancelled().await },
+    );
     let worker_run = worker.run(token.clone());
     let (rest_result, grpc_result, worker_result) = tokio::join!(
         async {
