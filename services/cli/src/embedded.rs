@@ -14,6 +14,8 @@ async fn loopback() -> anyhow::Result<TcpListener> {
 /// The embedded stack, running.
 pub struct Stack {
     pub rest_addr: SocketAddr,
+    /// `https` when the configuration gives TLS files, else `http`.
+    pub scheme: &'static str,
     pub grpc_addr: SocketAddr,
     token: CancellationToken,
     tasks: tokio::task::JoinSet<anyhow::Result<()>>,
@@ -56,8 +58,8 @@ pub async fn serve(
     config: Option<PathBuf>,
 ) -> anyhow::Result<()> {
     let stack = start(data_dir, database_url, rest_addr, grpc_addr, config).await?;
-    println!("REST listening on http://{}", stack.rest_addr);
-    println!("gRPC listening on http://{}", stack.grpc_addr);
+    println!("REST listening on {}://{}", stack.scheme, stack.rest_addr);
+    println!("gRPC listening on {}://{}", stack.scheme, stack.grpc_addr);
     let stop = stack.token.clone();
     tokio::spawn(async move {
         depthmill_common::shutdown::shutdown_signal().await;
@@ -122,6 +124,7 @@ pub async fn start(
     let grpc =
         TcpListener::bind(cfg.grpc_addr).await.with_context(|| format!("binding gRPC {}", cfg.grpc_addr))?;
     let rest_addr = rest.local_addr()?;
+    let scheme = if cfg.tls.is_some() { "https" } else { "http" };
     let grpc_addr = grpc.local_addr()?;
     let stop = token.clone();
     tasks.spawn(async move {
@@ -129,5 +132,5 @@ pub async fn start(
             .await
             .context("orchestrator")
     });
-    Ok(Stack { rest_addr, grpc_addr, token, tasks })
+    Ok(Stack { rest_addr, scheme, grpc_addr, token, tasks })
 }
