@@ -142,3 +142,34 @@ async fn without_tokens_the_server_refuses_a_network_address() -> anyhow::Result
     assert!(!dir.path().join("jobs.sqlite").exists(), "refused before touching anything");
     Ok(())
 }
+
+#[tokio::test]
+async fn stage_services_take_calls_with_the_service_token_only() -> anyhow::Result<()> {
+    use depthmill_proto::machine::v1 as machine;
+    let stack = TestStack::start().await?;
+    let url = stack
+        .service_urls()
+        .into_iter()
+        .find(|(name, _)| name == "depthmill.machine.v1.MachineService")
+        .map(|(_, url)| url)
+        .ok_or_else(|| anyhow::anyhow!("no machine service"))?;
+    let channel = tonic::transport::Channel::from_shared(url)?.connect().await?;
+    let mut m = machine::machine_service_client::MachineServiceClient::new(channel.clone());
+    let err = m.get_status(machine::GetStatusRequest {}).await.expect_err("no token");
+    assert_eq!(err.code(), tonic::Code::Unauthenticated, "{err:?}");
+    let err =
+        m.get_status(with("not-the-token", machine::GetStatusRequest {})?).await.expect_err("wrong token");
+    assert_eq!(err.code(), tonic::Code::Unauthenticated, "{err:?}");
+    let status =
+        m.get_status(with(depthmill_tests::SERVICE_TOKEN, machine::GetStatusRequest {})?).await?.into_inner();
+    assert_eq!(status.state, "idle");
+    // Health stays open (load balancers and probes carry no secret).
+    let health = tonic_health::pb::health_client::HealthClient::new(channel)
+        .check(tonic_health::pb::HealthCheckRequest { service: String::new() })
+        .await?;
+    assert_eq!(
+        health.into_inner().status,
+        tonic_health::pb::health_check_response::ServingStatus::Serving as i32
+    );
+    stack.shutdown().await
+}

@@ -729,3 +729,71 @@ fn compose_file_and_its_prometheus_match_the_code() -> anyhow::Result<()> {
     ensure!(at(&compose, "volumes.depthmill-data").is_some(), "the depthmill-data volume is declared");
     Ok(())
 }
+
+// The scale-out override: two orchestrator replicas on PostgreSQL, two machine instances.
+
+#[test]
+fn the_scale_out_compose_file_runs_replicas_on_postgres_and_balanced_instances() -> anyhow::Result<()> {
+    use depthmill_common::config::load_with_env;
+    let first = |path: &str| -> anyhow::Result<Value> {
+        yaml_documents(&root().join(path))?.into_iter().next().ok_or_else(|| anyhow!("{path} is empty"))
+    };
+    let (base, over) = (first("docker-compose.yml")?, first("deploy/compose.scale-out.yml")?);
+    let env_map = |v: Option<&Value>| -> BTreeMap<String, String> {
+        v.and_then(Value::as_mapping)
+            .map(|m| {
+                m.iter()
+                    .filter_map(|(k, v)| Some((k.as_str()?.to_string(), v.as_str()?.to_string())))
+                    .collect()
+            })
+            .unwrap_or_default()
+    };
+    // Compose merges an override's environment into the base service's, key by key.
+    let env_of = |name: &str| -> BTreeMap<String, String> {
+        let mut env = env_map(at(&base, &format!("services.{name}.environment")));
+        env.extend(env_map(at(&over, &format!("services.{name}.environment"))));
+        env
+    };
+    let exists = |name: &str| {
+        at(&base, &format!("services.{name}")).is_some() || at(&over, &format!("services.{name}")).is_some()
+    };
+    ensure!(exists("postgres"), "no postgres service");
+    let mut data_dirs = BTreeSet::new();
+    let mut artifact_dirs = BTreeSet::new();
+    for replica in ["orchestrator", "orchestrator-2"] {
+        let mut check = || -> anyhow::Result<()> {
+            let entry = at(&base, &format!("services.{replica}"))
+                .or_else(|| at(&over, &format!("services.{replica}")))
+                .ok_or_else(|| anyhow!("no such service"))?;
+            let binary = seq_at(entry, "command")?.first().and_then(Value::as_str).unwrap_or_default();
+            ensure!(binary == "depthmill-orchestrator", "runs {binary}");
+            let c: depthmill_orchestrator::Config =
+                load_with_env(None, "DEPTHMILL_ORCHESTRATOR", env_of(replica))?;
+            depthmill_orchestrator::auth::tokens_required(c.auth.mode, c.rest_addr, c.grpc_addr)?;
+            let url = c.database_url.clone().unwrap_or_default();
+            ensure!(url.starts_with("postgres://") && url.contains("@postgres:5432/"), "database {url}");
+            ensure!(
+                data_dirs.insert(c.data_dir.clone()),
+                "{} is another replica's data folder",
+                c.data_dir.display()
+            );
+            artifact_dirs.insert(c.artifacts_dir.clone().ok_or_else(|| anyhow!("no shared artifacts_dir"))?);
+            let machines: Vec<&str> = c.services.machine.split(',').map(str::trim).collect();
+            ensure!(machines.len() == 2, "machine instances {machines:?}");
+            for m in machines {
+                let host = m.trim_start_matches("http://").split(':').next().unwrap_or_default();
+                ensure!(exists(host), "{m} names no compose service");
+                ensure!(m.ends_with(":50054"), "{m} is not the machine port");
+            }
+            Ok(())
+        };
+        check().with_context(|| format!("deploy/compose.scale-out.yml: {replica}"))?;
+    }
+    let machine2: depthmill_machine::Config = load_with_env(None, "DEPTHMILL_MACHINE", env_of("machine-2"))?;
+    artifact_dirs.insert(machine2.artifacts_dir);
+    ensure!(
+        artifact_dirs.len() == 1,
+        "the replicas and the machines share one artifact folder: {artifact_dirs:?}"
+    );
+    Ok(())
+}

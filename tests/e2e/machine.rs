@@ -27,18 +27,18 @@ fn job(sha: &str) -> serde_json::Value {
            "execute": {"machine": "emco-f1", "adaptive": "off", "compare": false, "cell_mm": 0.2}})
 }
 
-async fn machine(stack: &TestStack) -> anyhow::Result<MachineServiceClient<tonic::transport::Channel>> {
+async fn machine(stack: &TestStack) -> anyhow::Result<MachineServiceClient<depthmill_tests::ServiceChannel>> {
     let url = stack
         .service_urls()
         .into_iter()
         .find(|(name, _)| name == "depthmill.machine.v1.MachineService")
         .map(|(_, url)| url)
         .ok_or_else(|| anyhow::anyhow!("no machine service"))?;
-    Ok(MachineServiceClient::connect(url).await?)
+    Ok(MachineServiceClient::new(depthmill_tests::service_channel(url).await?))
 }
 
 async fn wait_running(
-    m: &mut MachineServiceClient<tonic::transport::Channel>,
+    m: &mut MachineServiceClient<depthmill_tests::ServiceChannel>,
 ) -> anyhow::Result<pb::MachineStatus> {
     for _ in 0..3000 {
         let s = m.get_status(pb::GetStatusRequest {}).await?.into_inner();

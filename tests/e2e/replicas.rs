@@ -224,7 +224,11 @@ async fn replicas_and_instances_survive_sigkill() -> anyhow::Result<()> {
     for i in 0..2 {
         let addr = free_addr()?;
         machine_urls.push(format!("http://{addr}"));
-        let config = depthmill_machine::Config { grpc_addr: addr, artifacts_dir: artifacts_dir.clone() };
+        let config = depthmill_machine::Config {
+            grpc_addr: addr,
+            artifacts_dir: artifacts_dir.clone(),
+            service_token: Some("replica-test-token".into()),
+        };
         procs.push(Proc {
             name: format!("machine-{i}"),
             role: serde_json::to_string(&Role::Machine(config))?,
@@ -240,6 +244,7 @@ async fn replicas_and_instances_survive_sigkill() -> anyhow::Result<()> {
         let mut services = depthmill_orchestrator::Endpoints::none();
         services.machine = machine_urls.join(", ");
         services.health_interval_ms = 250;
+        services.token = Some("replica-test-token".into());
         let config = depthmill_orchestrator::Config {
             rest_addr: r,
             grpc_addr: g,

@@ -228,7 +228,7 @@ async fn the_cells_devices_answer_over_grpc() -> anyhow::Result<()> {
         .find(|(name, _)| name == "depthmill.scanning.v1.MotionControllerService")
         .map(|(_, u)| u)
         .expect("the scanning service serves the motion controller");
-    let channel = tonic::transport::Channel::from_shared(url)?.connect().await?;
+    let channel = depthmill_tests::service_channel(url).await?;
     let mut motion =
         pb::motion_controller_service_client::MotionControllerServiceClient::new(channel.clone());
     let mut latch = pb::encoder_latch_service_client::EncoderLatchServiceClient::new(channel);

@@ -90,6 +90,32 @@ async fn loopback() -> anyhow::Result<TcpListener> {
     Ok(TcpListener::bind("127.0.0.1:0").await?)
 }
 
+/// The secret the test stacks' orchestrators send to their stage services, which require it.
+pub const SERVICE_TOKEN: &str = "test-service-token";
+
+/// Adds the test stacks' service token to every call, as the orchestrator does.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct ServiceToken;
+
+impl tonic::service::Interceptor for ServiceToken {
+    fn call(&mut self, mut request: tonic::Request<()>) -> Result<tonic::Request<()>, tonic::Status> {
+        let value = format!("Bearer {SERVICE_TOKEN}")
+            .parse()
+            .map_err(|_| tonic::Status::internal("the service token is not a header value"))?;
+        request.metadata_mut().insert("authorization", value);
+        Ok(request)
+    }
+}
+
+/// A channel to a stage service of a test stack, carrying the service token.
+pub type ServiceChannel = tonic::service::interceptor::InterceptedService<Channel, ServiceToken>;
+
+/// Connects to a stage service of a test stack as its orchestrator would.
+pub async fn service_channel(url: String) -> anyhow::Result<ServiceChannel> {
+    let channel = Channel::from_shared(url)?.connect().await?;
+    Ok(tonic::service::interceptor::InterceptedService::new(channel, ServiceToken))
+}
+
 /// Starts the real stage service `kind` on `listener`.
 fn spawn_stage(kind: &str, listener: TcpListener, artifacts_dir: PathBuf) -> anyhow::Result<Running> {
     let addr = listener.local_addr()?;
@@ -99,7 +125,12 @@ fn spawn_stage(kind: &str, listener: TcpListener, artifacts_dir: PathBuf) -> any
         ($krate:ident) => {{
             // Service configs differ beyond these two fields (the cam service has more).
             #[allow(clippy::needless_update)]
-            let cfg = $krate::Config { grpc_addr: addr, artifacts_dir, ..Default::default() };
+            let cfg = $krate::Config {
+                grpc_addr: addr,
+                artifacts_dir,
+                service_token: Some(SERVICE_TOKEN.into()),
+                ..Default::default()
+            };
             tokio::spawn(async move {
                 $krate::serve(listener, cfg, async move { stop.cancelled().await }).await?;
                 Ok(())
@@ -131,6 +162,7 @@ impl TestStack {
         let mut stages = Vec::new();
         let mut service_urls = Vec::new();
         let mut endpoints = depthmill_orchestrator::Endpoints::none();
+        endpoints.token = Some(SERVICE_TOKEN.into());
 
         macro_rules! real {
             ($krate:ident, $field:ident) => {{

@@ -28,6 +28,11 @@ pub struct Config {
     /// Folder of `.tool` files added to (and overriding) the shipped tool library.
     #[serde(default)]
     pub tools_dir: Option<PathBuf>,
+    /// Shared secret the orchestrator sends with every call (`authorization: Bearer <token>`);
+    /// calls without it are refused (UNAUTHENTICATED). Unset: no check (loopback or a private
+    /// network). Health, reflection and `/metrics` stay open.
+    #[serde(default)]
+    pub service_token: Option<String>,
 }
 
 fn default_grpc_addr() -> SocketAddr {
@@ -40,7 +45,12 @@ fn default_artifacts_dir() -> PathBuf {
 
 impl Default for Config {
     fn default() -> Self {
-        Self { grpc_addr: default_grpc_addr(), artifacts_dir: default_artifacts_dir(), tools_dir: None }
+        Self {
+            grpc_addr: default_grpc_addr(),
+            artifacts_dir: default_artifacts_dir(),
+            tools_dir: None,
+            service_token: None,
+        }
     }
 }
 
@@ -64,11 +74,13 @@ pub async fn serve(
     config: Config,
     shutdown: impl Future<Output = ()> + Send,
 ) -> Result<(), CamServeError> {
+    let options =
+        depthmill_common::grpc::GrpcOptions { token: config.service_token.clone(), ..Default::default() };
     let mut library = domain::tool::ToolLibrary::builtin()?;
     if let Some(dir) = &config.tools_dir {
         library = library.merged(domain::tool::ToolLibrary::load_dir(dir)?);
     }
     let store = depthmill_common::artifacts::LocalStore::open(&config.artifacts_dir).await?;
     let routes = grpc::routes(store, library);
-    Ok(depthmill_common::grpc::serve_grpc(listener, routes, SERVICE_NAMES, shutdown).await?)
+    Ok(depthmill_common::grpc::serve_grpc_with(listener, routes, SERVICE_NAMES, options, shutdown).await?)
 }

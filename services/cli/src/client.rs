@@ -16,10 +16,6 @@ pub struct Server {
     /// API token, when the server requires one (see `depthmill token create`).
     #[arg(long, env = "DEPTHMILL_TOKEN", hide_env_values = true)]
     token: Option<String>,
-    /// For an https:// URL: trust only this CA certificate (PEM), e.g. a private CA or the
-    /// server's self-signed certificate. Default: the system's trusted roots.
-    #[arg(long, env = "DEPTHMILL_CA_CERT")]
-    ca_cert: Option<PathBuf>,
 }
 
 impl Server {
@@ -36,15 +32,11 @@ impl Server {
             value.set_sensitive(true);
             headers.insert(reqwest::header::AUTHORIZATION, value);
         }
-        let mut builder =
-            reqwest::Client::builder().connect_timeout(Duration::from_secs(10)).default_headers(headers);
-        if let Some(path) = &self.ca_cert {
-            let pem = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
-            let cert = reqwest::Certificate::from_pem(&pem)
-                .with_context(|| format!("{} holds no PEM certificate", path.display()))?;
-            builder = builder.tls_certs_only([cert]);
-        }
-        builder.build().context("building the HTTP client")
+        reqwest::Client::builder()
+            .connect_timeout(Duration::from_secs(10))
+            .default_headers(headers)
+            .build()
+            .context("building the HTTP client")
     }
 }
 

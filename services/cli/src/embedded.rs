@@ -91,6 +91,10 @@ pub async fn start(
     cfg.rest_addr = rest_addr;
     cfg.grpc_addr = grpc_addr;
     let artifacts_dir = cfg.data_dir.join("artifacts");
+    // The stage services listen on loopback ports other local users could reach: they take calls
+    // carrying this run's secret only.
+    let service_token = depthmill_orchestrator::auth::random_secret().context("making the service token")?;
+    cfg.services.token = Some(service_token.clone());
 
     let token = CancellationToken::new();
     let mut tasks = tokio::task::JoinSet::new();
@@ -104,6 +108,7 @@ pub async fn start(
             let svc_cfg = $krate::Config {
                 grpc_addr: addr,
                 artifacts_dir: artifacts_dir.clone(),
+                service_token: Some(service_token.clone()),
                 ..Default::default()
             };
             let stop = token.clone();

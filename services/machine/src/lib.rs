@@ -29,6 +29,11 @@ pub struct Config {
     /// Folder of the artifact store shared with the orchestrator.
     #[serde(default = "default_artifacts_dir")]
     pub artifacts_dir: PathBuf,
+    /// Shared secret the orchestrator sends with every call (`authorization: Bearer <token>`);
+    /// calls without it are refused (UNAUTHENTICATED). Unset: no check (loopback or a private
+    /// network). Health, reflection and `/metrics` stay open.
+    #[serde(default)]
+    pub service_token: Option<String>,
 }
 
 fn default_grpc_addr() -> SocketAddr {
@@ -41,7 +46,7 @@ fn default_artifacts_dir() -> PathBuf {
 
 impl Default for Config {
     fn default() -> Self {
-        Self { grpc_addr: default_grpc_addr(), artifacts_dir: default_artifacts_dir() }
+        Self { grpc_addr: default_grpc_addr(), artifacts_dir: default_artifacts_dir(), service_token: None }
     }
 }
 
@@ -54,8 +59,17 @@ pub async fn serve(
     config: Config,
     shutdown: impl Future<Output = ()> + Send,
 ) -> Result<(), MachineServeError> {
+    let options =
+        depthmill_common::grpc::GrpcOptions { token: config.service_token.clone(), ..Default::default() };
     let store = depthmill_common::artifacts::LocalStore::open(&config.artifacts_dir).await?;
-    Ok(depthmill_common::grpc::serve_grpc(listener, grpc::routes(store), SERVICE_NAMES, shutdown).await?)
+    Ok(depthmill_common::grpc::serve_grpc_with(
+        listener,
+        grpc::routes(store),
+        SERVICE_NAMES,
+        options,
+        shutdown,
+    )
+    .await?)
 }
 
 /// Why the service could not start or stopped.

@@ -167,6 +167,14 @@ pub enum IssueError {
     Store(#[from] StoreError),
 }
 
+/// 256 random bits from the operating system's generator, as 64 hex digits: API tokens, and the
+/// service token of an embedded stack.
+pub fn random_secret() -> Result<String, rand::rand_core::OsError> {
+    let mut secret = [0u8; 32];
+    rand::rngs::OsRng.try_fill_bytes(&mut secret)?;
+    Ok(hex::encode(secret))
+}
+
 /// Creates and stores a token with `scopes` (a scope list), valid for `lifetime_s` (forever: `None`).
 pub async fn issue(
     store: &dyn JobStore,
@@ -183,9 +191,7 @@ pub async fn issue(
     if let Some(s) = lifetime_s.filter(|s| !(s.is_finite() && *s > 0.0)) {
         return Err(IssueError::Lifetime(s));
     }
-    let mut secret = [0u8; 32];
-    rand::rngs::OsRng.try_fill_bytes(&mut secret).map_err(IssueError::Random)?;
-    let token = format!("dmt_{}", hex::encode(secret));
+    let token = format!("dmt_{}", random_secret().map_err(IssueError::Random)?);
     let record = TokenRecord {
         id: format!("tok_{}", uuid::Uuid::now_v7().simple()),
         name: name.to_string(),

@@ -198,11 +198,11 @@ pub async fn serve(
         }
     };
     let grpc_token = token.clone();
-    let grpc_server = depthmill_common::grpc::serve_grpc_tls(
+    let grpc_server = depthmill_common::grpc::serve_grpc_with(
         grpc,
         grpc::routes(app),
         SERVICE_NAMES,
-        tls.as_ref().map(|t| t.grpc()),
+        depthmill_common::grpc::GrpcOptions { tls: tls.as_ref().map(|t| t.grpc()), token: None },
         async move { grpc_token.cancelled().await },
     );
     let worker_run = worker.run(token.clone());

@@ -127,6 +127,9 @@ pub struct Endpoints {
     /// With several instances of a service (URLs separated by commas): how often each is
     /// health-checked, in milliseconds; one that fails is not called until it passes again.
     pub health_interval_ms: u64,
+    /// Shared secret sent with every call to a stage service (`authorization: Bearer <token>`),
+    /// the `service_token` the services are configured with. Unset: none sent.
+    pub token: Option<String>,
 }
 
 impl Default for Endpoints {
@@ -137,6 +140,7 @@ impl Default for Endpoints {
             cam: "http://127.0.0.1:50053".into(),
             machine: "http://127.0.0.1:50054".into(),
             health_interval_ms: 2000,
+            token: None,
         }
     }
 }
@@ -162,6 +166,8 @@ pub struct GrpcStages {
     reconstruction: Option<Channel>,
     cam: Option<Channel>,
     machine: Option<Channel>,
+    /// `Bearer <service token>`, sent with every call.
+    authorization: Option<tonic::metadata::MetadataValue<tonic::metadata::Ascii>>,
 }
 
 /// An endpoint URL that cannot be used.
@@ -200,7 +206,16 @@ impl GrpcStages {
     /// Channels to the services; needs a tokio runtime when a service lists several instances.
     pub fn new(endpoints: &Endpoints) -> Result<Self, EndpointError> {
         let every = Duration::from_millis(endpoints.health_interval_ms.clamp(50, 3_600_000));
+        let authorization = match endpoints.token.as_deref().filter(|t| !t.is_empty()) {
+            Some(token) => Some(format!("Bearer {token}").parse().map_err(|e| EndpointError {
+                service: "every",
+                url: "(services.token)".into(),
+                source: Box::new(e),
+            })?),
+            None => None,
+        };
         Ok(Self {
+            authorization,
             scanning: channel("scanning", &endpoints.scanning, every)?,
             reconstruction: channel("reconstruction", &endpoints.reconstruction, every)?,
             cam: channel("cam", &endpoints.cam, every)?,
@@ -243,10 +258,16 @@ fn need(call: &StageCall, name: &str) -> Result<types::ArtifactRef, StageError> 
     })
 }
 
-fn request<T>(msg: T, deadline: Duration) -> tonic::Request<T> {
-    let mut req = tonic::Request::new(msg);
-    req.set_timeout(deadline);
-    req
+impl GrpcStages {
+    /// A call to a stage service: its deadline and the service token.
+    fn request<T>(&self, msg: T, deadline: Duration) -> tonic::Request<T> {
+        let mut req = tonic::Request::new(msg);
+        req.set_timeout(deadline);
+        if let Some(auth) = &self.authorization {
+            req.metadata_mut().insert("authorization", auth.clone());
+        }
+        req
+    }
 }
 
 fn put(out: &mut StageOutputs, name: &str, a: Option<types::ArtifactRef>) {
@@ -289,7 +310,7 @@ impl GrpcStages {
             params: Some(convert::execute_params_for_job(spec)),
             part_size_mm: part_size_mm.map(|[x, y, z]| types::Vec3 { x, y, z }),
         };
-        let answer = client.validate_params(request(msg, CHECK_PARAMS_TIMEOUT)).await;
+        let answer = client.validate_params(self.request(msg, CHECK_PARAMS_TIMEOUT)).await;
         first_violation("machine", answer)
     }
 }
@@ -299,19 +320,21 @@ impl StageRunner for GrpcStages {
     async fn check_params(&self, spec: &JobSpec) -> Result<(), SpecError> {
         if let (Some(p), Some(ch)) = (&spec.scan, &self.scanning) {
             let mut client = scan::scanning_service_client::ScanningServiceClient::new(ch.clone());
-            let answer = client.validate_params(request(convert::scan_params(p), CHECK_PARAMS_TIMEOUT)).await;
+            let answer =
+                client.validate_params(self.request(convert::scan_params(p), CHECK_PARAMS_TIMEOUT)).await;
             first_violation("scanning", answer)?;
         }
         if let (Some(p), Some(ch)) = (&spec.reconstruct, &self.reconstruction) {
             let mut client = rec::reconstruction_service_client::ReconstructionServiceClient::new(ch.clone());
-            let answer =
-                client.validate_params(request(convert::reconstruct_params(p), CHECK_PARAMS_TIMEOUT)).await;
+            let answer = client
+                .validate_params(self.request(convert::reconstruct_params(p), CHECK_PARAMS_TIMEOUT))
+                .await;
             first_violation("reconstruction", answer)?;
         }
         if let (Some(_), Some(ch)) = (&spec.plan, &self.cam) {
             let mut client = cam::cam_service_client::CamServiceClient::new(ch.clone());
             let answer = client
-                .validate_params(request(convert::plan_params_for_job(spec), CHECK_PARAMS_TIMEOUT))
+                .validate_params(self.request(convert::plan_params_for_job(spec), CHECK_PARAMS_TIMEOUT))
                 .await;
             first_violation("cam", answer)?;
         }
@@ -345,7 +368,8 @@ impl StageRunner for GrpcStages {
                         units: convert::input_units(call.spec.input.units) as i32,
                     };
                     let mut client = scan::scanning_service_client::ScanningServiceClient::new(channel);
-                    let stream = client.scan_part(request(msg, deadline)).await.map_err(status)?.into_inner();
+                    let stream =
+                        client.scan_part(self.request(msg, deadline)).await.map_err(status)?.into_inner();
                     let r = drain(stage, stream, progress, |u| match u.update? {
                         scan::scan_part_update::Update::Progress(p) => Some(Err(p)),
                         scan::scan_part_update::Update::Result(r) => Some(Ok(r)),
@@ -381,8 +405,11 @@ impl StageRunner for GrpcStages {
                     };
                     let mut client =
                         rec::reconstruction_service_client::ReconstructionServiceClient::new(channel);
-                    let stream =
-                        client.build_depth_maps(request(msg, deadline)).await.map_err(status)?.into_inner();
+                    let stream = client
+                        .build_depth_maps(self.request(msg, deadline))
+                        .await
+                        .map_err(status)?
+                        .into_inner();
                     let r = drain(stage, stream, progress, |u| match u.update? {
                         rec::build_depth_maps_update::Update::Progress(p) => Some(Err(p)),
                         rec::build_depth_maps_update::Update::Result(r) => Some(Ok(r)),
@@ -429,8 +456,11 @@ impl StageRunner for GrpcStages {
                         z_max_mm: call.spec.input.z_max_mm,
                     };
                     let mut client = cam::cam_service_client::CamServiceClient::new(channel);
-                    let stream =
-                        client.plan_toolpaths(request(msg, deadline)).await.map_err(status)?.into_inner();
+                    let stream = client
+                        .plan_toolpaths(self.request(msg, deadline))
+                        .await
+                        .map_err(status)?
+                        .into_inner();
                     let r = drain(stage, stream, progress, |u| match u.update? {
                         cam::plan_toolpaths_update::Update::Progress(p) => Some(Err(p)),
                         cam::plan_toolpaths_update::Update::Result(r) => Some(Ok(r)),
@@ -483,8 +513,11 @@ impl StageRunner for GrpcStages {
                         } as i32,
                     };
                     let mut client = machine::machine_service_client::MachineServiceClient::new(channel);
-                    let stream =
-                        client.execute_program(request(msg, deadline)).await.map_err(status)?.into_inner();
+                    let stream = client
+                        .execute_program(self.request(msg, deadline))
+                        .await
+                        .map_err(status)?
+                        .into_inner();
                     let r = drain(stage, stream, progress, |u| match u.update? {
                         machine::execute_program_update::Update::Progress(p) => Some(Err(p)),
                         machine::execute_program_update::Update::Telemetry(_) => None,
@@ -551,21 +584,21 @@ impl StageRunner for GrpcStages {
         let status = |s: tonic::Status| StageError::from_status(stage, &s);
         let r = match stage {
             Stage::Scan => scan::scanning_service_client::ScanningServiceClient::new(channel)
-                .cancel_stage(request(msg, deadline))
+                .cancel_stage(self.request(msg, deadline))
                 .await
                 .map_err(status)?,
             Stage::Reconstruct => {
                 rec::reconstruction_service_client::ReconstructionServiceClient::new(channel)
-                    .cancel_stage(request(msg, deadline))
+                    .cancel_stage(self.request(msg, deadline))
                     .await
                     .map_err(status)?
             }
             Stage::Plan => cam::cam_service_client::CamServiceClient::new(channel)
-                .cancel_stage(request(msg, deadline))
+                .cancel_stage(self.request(msg, deadline))
                 .await
                 .map_err(status)?,
             Stage::Execute => machine::machine_service_client::MachineServiceClient::new(channel)
-                .cancel_stage(request(msg, deadline))
+                .cancel_stage(self.request(msg, deadline))
                 .await
                 .map_err(status)?,
             Stage::Report => return Ok(false),

@@ -36,6 +36,11 @@ pub struct Config {
     /// Largest mesh accepted, in triangles.
     #[serde(default = "default_max_triangles")]
     pub max_triangles: u64,
+    /// Shared secret the orchestrator sends with every call (`authorization: Bearer <token>`);
+    /// calls without it are refused (UNAUTHENTICATED). Unset: no check (loopback or a private
+    /// network). Health, reflection and `/metrics` stay open.
+    #[serde(default)]
+    pub service_token: Option<String>,
 }
 
 fn default_max_points() -> u64 {
@@ -61,6 +66,7 @@ impl Default for Config {
             artifacts_dir: default_artifacts_dir(),
             max_points: default_max_points(),
             max_triangles: default_max_triangles(),
+            service_token: None,
         }
     }
 }
@@ -74,6 +80,8 @@ pub async fn serve(
     config: Config,
     shutdown: impl Future<Output = ()> + Send,
 ) -> Result<(), ReconServeError> {
+    let options =
+        depthmill_common::grpc::GrpcOptions { token: config.service_token.clone(), ..Default::default() };
     let store = depthmill_common::artifacts::LocalStore::open(&config.artifacts_dir).await?;
     let limits = depthmill_geometry::formats::ReadLimits {
         max_points: config.max_points,
@@ -81,7 +89,7 @@ pub async fn serve(
         ..Default::default()
     };
     let routes = grpc::routes(store, limits);
-    Ok(depthmill_common::grpc::serve_grpc(listener, routes, SERVICE_NAMES, shutdown).await?)
+    Ok(depthmill_common::grpc::serve_grpc_with(listener, routes, SERVICE_NAMES, options, shutdown).await?)
 }
 
 /// Why the service could not start or stopped.

@@ -45,6 +45,11 @@ pub struct Config {
     /// Largest part mesh accepted, in triangles.
     #[serde(default = "default_max_triangles")]
     pub max_triangles: u64,
+    /// Shared secret the orchestrator sends with every call (`authorization: Bearer <token>`);
+    /// calls without it are refused (UNAUTHENTICATED). Unset: no check (loopback or a private
+    /// network). Health, reflection and `/metrics` stay open.
+    #[serde(default)]
+    pub service_token: Option<String>,
 }
 
 fn default_max_triangles() -> u64 {
@@ -66,6 +71,7 @@ impl Default for Config {
             artifacts_dir: default_artifacts_dir(),
             table_addr: None,
             max_triangles: default_max_triangles(),
+            service_token: None,
         }
     }
 }
@@ -91,6 +97,8 @@ pub async fn serve(
     config: Config,
     shutdown: impl Future<Output = ()> + Send,
 ) -> Result<(), ScanServeError> {
+    let options =
+        depthmill_common::grpc::GrpcOptions { token: config.service_token.clone(), ..Default::default() };
     let store = depthmill_common::artifacts::LocalStore::open(&config.artifacts_dir).await?;
     let stop_table = tokio_util::sync::CancellationToken::new();
     let table_addr = match &config.table_addr {
@@ -119,7 +127,7 @@ pub async fn serve(
     });
     let devices = grpc_devices::Devices::new(table_addr).map_err(|e| ScanServeError::Table(e.to_string()))?;
     let routes = grpc_devices::add_routes(grpc::routes(cell), std::sync::Arc::new(devices));
-    let r = depthmill_common::grpc::serve_grpc(listener, routes, SERVICE_NAMES, shutdown).await;
+    let r = depthmill_common::grpc::serve_grpc_with(listener, routes, SERVICE_NAMES, options, shutdown).await;
     stop_table.cancel();
     Ok(r?)
 }
