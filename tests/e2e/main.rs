@@ -2,6 +2,8 @@
 
 mod api;
 mod auth;
+mod children;
+mod crash;
 mod deploy;
 mod faces;
 mod jobs;

@@ -8,7 +8,7 @@ use depthmill_tests::{MachineBackend, StackOptions, TestStack};
 use serde_json::{Value, json};
 
 /// A 24 x 20 mm block at 0.4 mm pixels with a dome of radius 7 mm rising to 9 mm from a 2 mm base.
-fn dome_png() -> anyhow::Result<Vec<u8>> {
+pub(crate) fn dome_png() -> anyhow::Result<Vec<u8>> {
     let mut meta = HeightMapMeta::new(60, 50, 0.4);
     meta.z_min_mm = 0.0;
     meta.z_max_mm = 10.0;

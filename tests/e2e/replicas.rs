@@ -3,129 +3,24 @@
 //! while jobs arrive through REST and gRPC. Every job must end once, succeeded, with each stage
 //! recorded once and every artifact's bytes matching its hash.
 //!
-//! The processes are this test binary run again in a child role (`child_process`, an ignored test
-//! that does nothing unless `DEPTHMILL_E2E_CHILD` describes the role), so the suite stays one
-//! binary. Size: `DEPTHMILL_REPLICA_JOBS` (default 24) and `DEPTHMILL_REPLICA_KILLS` (default 8);
+//! The processes are this test binary run again in a child role ([`crate::children`]), so the
+//! suite stays one binary. Size: `DEPTHMILL_REPLICA_JOBS` (default 24) and `DEPTHMILL_REPLICA_KILLS` (default 8);
 //! the documented full run is 200 jobs and 40 kills (README, "Several replicas").
 
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::net::SocketAddr;
-use std::path::{Path, PathBuf};
-use std::process::Stdio;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context as _, bail, ensure};
 use depthmill_orchestrator::store::scratch::ScratchDatabase;
 use depthmill_proto::orchestrator::v1 as pb;
 use depthmill_proto::orchestrator::v1::orchestrator_service_client::OrchestratorServiceClient;
+
+use crate::children::{Proc, Role, free_addr, tail};
 use rand::Rng as _;
-use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 use sha2::{Digest as _, Sha256};
-
-/// What a child process runs.
-#[derive(Serialize, Deserialize)]
-enum Role {
-    Orchestrator(Box<depthmill_orchestrator::Config>),
-    Machine(depthmill_machine::Config),
-}
-
-/// Child-process entry of [`replicas_and_instances_survive_sigkill`].
-#[test]
-#[ignore = "the child processes of replicas_and_instances_survive_sigkill run this; alone it does nothing"]
-fn child_process() -> anyhow::Result<()> {
-    let Ok(spec) = std::env::var("DEPTHMILL_E2E_CHILD") else { return Ok(()) };
-    let role: Role = serde_json::from_str(&spec).context("DEPTHMILL_E2E_CHILD")?;
-    depthmill_common::telemetry::init_tracing(false);
-    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
-    rt.block_on(async move {
-        match role {
-            Role::Orchestrator(config) => {
-                let rest = tokio::net::TcpListener::bind(config.rest_addr).await?;
-                let grpc = tokio::net::TcpListener::bind(config.grpc_addr).await?;
-                depthmill_orchestrator::serve(rest, grpc, *config, None, std::future::pending()).await?;
-            }
-            Role::Machine(config) => {
-                let listener = tokio::net::TcpListener::bind(config.grpc_addr).await?;
-                depthmill_machine::serve(listener, config, std::future::pending()).await?;
-            }
-        }
-        anyhow::Ok(())
-    })
-}
-
-/// A child process and how to start it again.
-struct Proc {
-    name: String,
-    role: String,
-    /// REST address of an orchestrator (ready when `/readyz` answers), gRPC address of a service.
-    ready: SocketAddr,
-    rest: bool,
-    log: PathBuf,
-    child: Option<std::process::Child>,
-}
-
-impl Proc {
-    async fn start(&mut self) -> anyhow::Result<()> {
-        let exe = std::env::current_exe()?;
-        let log = std::fs::OpenOptions::new().create(true).append(true).open(&self.log)?;
-        let child = std::process::Command::new(exe)
-            .args(["--ignored", "--exact", "replicas::child_process", "--nocapture", "--test-threads=1"])
-            .env("DEPTHMILL_E2E_CHILD", &self.role)
-            .env("RUST_LOG", "info")
-            .stdin(Stdio::null())
-            .stdout(log.try_clone()?)
-            .stderr(log)
-            .spawn()
-            .with_context(|| format!("starting {}", self.name))?;
-        self.child = Some(child);
-        let deadline = Instant::now() + Duration::from_secs(30);
-        let http = reqwest::Client::new();
-        loop {
-            let up = if self.rest {
-                http.get(format!("http://{}/readyz", self.ready))
-                    .send()
-                    .await
-                    .is_ok_and(|r| r.status().is_success())
-            } else {
-                tokio::net::TcpStream::connect(self.ready).await.is_ok()
-            };
-            if up {
-                return Ok(());
-            }
-            if Instant::now() > deadline {
-                bail!("{} did not come up; its log:\n{}", self.name, tail(&self.log));
-            }
-            tokio::time::sleep(Duration::from_millis(50)).await;
-        }
-    }
-
-    /// SIGKILL: no shutdown, no flush, no goodbye.
-    fn kill(&mut self) -> anyhow::Result<()> {
-        if let Some(mut child) = self.child.take() {
-            child.kill()?;
-            child.wait()?;
-        }
-        Ok(())
-    }
-}
-
-impl Drop for Proc {
-    fn drop(&mut self) {
-        let _ = self.kill();
-    }
-}
-
-fn tail(path: &Path) -> String {
-    let text = std::fs::read_to_string(path).unwrap_or_default();
-    let lines: Vec<&str> = text.lines().collect();
-    lines[lines.len().saturating_sub(40)..].join("\n")
-}
-
-fn free_addr() -> anyhow::Result<SocketAddr> {
-    Ok(std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?)
-}
 
 fn env_usize(name: &str, default: usize) -> usize {
     std::env::var(name).ok().and_then(|v| v.parse().ok()).unwrap_or(default)
@@ -229,14 +124,8 @@ async fn replicas_and_instances_survive_sigkill() -> anyhow::Result<()> {
             artifacts_dir: artifacts_dir.clone(),
             service_token: Some("replica-test-token".into()),
         };
-        procs.push(Proc {
-            name: format!("machine-{i}"),
-            role: serde_json::to_string(&Role::Machine(config))?,
-            ready: addr,
-            rest: false,
-            log: root.path().join(format!("machine-{i}.log")),
-            child: None,
-        });
+        let log = root.path().join(format!("machine-{i}.log"));
+        procs.push(Proc::new(&format!("machine-{i}"), &Role::Machine(config), addr, false, log)?);
     }
     let (mut rest, mut grpc) = (Vec::new(), Vec::new());
     for i in 0..3 {
@@ -266,14 +155,8 @@ async fn replicas_and_instances_survive_sigkill() -> anyhow::Result<()> {
         };
         rest.push(r);
         grpc.push(g);
-        procs.push(Proc {
-            name: format!("replica-{i}"),
-            role: serde_json::to_string(&Role::Orchestrator(Box::new(config)))?,
-            ready: r,
-            rest: true,
-            log: root.path().join(format!("replica-{i}.log")),
-            child: None,
-        });
+        let log = root.path().join(format!("replica-{i}.log"));
+        procs.push(Proc::new(&format!("replica-{i}"), &Role::Orchestrator(Box::new(config)), r, true, log)?);
     }
     for p in &mut procs {
         p.start().await?;

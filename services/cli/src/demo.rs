@@ -115,9 +115,14 @@ pub async fn run(args: &DemoArgs) -> anyhow::Result<()> {
     };
 
     // The stack.
-    let stack =
-        crate::embedded::start(data_dir.clone(), None, "127.0.0.1:0".parse()?, "127.0.0.1:0".parse()?, None)
-            .await?;
+    let stack = depthmill_cli::embedded::start(
+        data_dir.clone(),
+        None,
+        "127.0.0.1:0".parse()?,
+        "127.0.0.1:0".parse()?,
+        None,
+    )
+    .await?;
     let base = format!("http://{}", stack.rest_addr);
     println!("stack: REST on {base}, data in {}", data_dir.display());
     let result = drive(&base, part, args, out).await;

@@ -3,7 +3,6 @@
 mod cam;
 mod client;
 mod demo;
-mod embedded;
 mod machine;
 mod raster;
 mod scan;
@@ -210,7 +209,7 @@ fn main() -> anyhow::Result<()> {
         match cli.command {
             Command::Serve { data_dir, database_url, rest_addr, grpc_addr, config } => {
                 depthmill_common::telemetry::init_tracing(cli.log_json);
-                embedded::serve(data_dir, database_url, rest_addr, grpc_addr, config).await
+                depthmill_cli::embedded::serve(data_dir, database_url, rest_addr, grpc_addr, config).await
             }
             Command::Submit {
                 file,

@@ -1,0 +1,134 @@
+//! Child processes for the campaigns that kill them (`replicas`, `crash`): this test binary run
+//! again in a role (`child_process`, an ignored test that does nothing unless
+//! `DEPTHMILL_E2E_CHILD` describes the role), so the suite stays one binary. SIGKILL is the only
+//! way they stop.
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::process::Stdio;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context as _, bail};
+use serde::{Deserialize, Serialize};
+
+/// What a child process runs.
+#[derive(Serialize, Deserialize)]
+pub enum Role {
+    Orchestrator(Box<depthmill_orchestrator::Config>),
+    Machine(depthmill_machine::Config),
+    /// `depthmill serve`: the embedded stack, every service in the process.
+    Serve {
+        data_dir: PathBuf,
+        rest: SocketAddr,
+        grpc: SocketAddr,
+        config: Option<PathBuf>,
+    },
+}
+
+/// Child-process entry.
+#[test]
+#[ignore = "the child processes of the kill campaigns run this; alone it does nothing"]
+fn child_process() -> anyhow::Result<()> {
+    let Ok(spec) = std::env::var("DEPTHMILL_E2E_CHILD") else { return Ok(()) };
+    let role: Role = serde_json::from_str(&spec).context("DEPTHMILL_E2E_CHILD")?;
+    depthmill_common::telemetry::init_tracing(false);
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
+    rt.block_on(async move {
+        match role {
+            Role::Orchestrator(config) => {
+                let rest = tokio::net::TcpListener::bind(config.rest_addr).await?;
+                let grpc = tokio::net::TcpListener::bind(config.grpc_addr).await?;
+                depthmill_orchestrator::serve(rest, grpc, *config, None, std::future::pending()).await?;
+            }
+            Role::Machine(config) => {
+                let listener = tokio::net::TcpListener::bind(config.grpc_addr).await?;
+                depthmill_machine::serve(listener, config, std::future::pending()).await?;
+            }
+            Role::Serve { data_dir, rest, grpc, config } => {
+                depthmill_cli::embedded::serve(data_dir, None, rest, grpc, config).await?;
+            }
+        }
+        anyhow::Ok(())
+    })
+}
+
+/// A child process and how to start it again.
+pub struct Proc {
+    pub name: String,
+    role: String,
+    /// REST address of an orchestrator (ready when `/readyz` answers), gRPC address of a service.
+    ready: SocketAddr,
+    rest: bool,
+    pub log: PathBuf,
+    child: Option<std::process::Child>,
+}
+
+impl Proc {
+    /// `role`, ready when `ready` answers (`/readyz` when `rest`, a TCP connection otherwise);
+    /// output appended to `log`.
+    pub fn new(name: &str, role: &Role, ready: SocketAddr, rest: bool, log: PathBuf) -> anyhow::Result<Self> {
+        Ok(Self { name: name.into(), role: serde_json::to_string(role)?, ready, rest, log, child: None })
+    }
+
+    /// Starts it and waits until it is ready.
+    pub async fn start(&mut self) -> anyhow::Result<()> {
+        let exe = std::env::current_exe()?;
+        let log = std::fs::OpenOptions::new().create(true).append(true).open(&self.log)?;
+        let child = std::process::Command::new(exe)
+            .args(["--ignored", "--exact", "children::child_process", "--nocapture", "--test-threads=1"])
+            .env("DEPTHMILL_E2E_CHILD", &self.role)
+            .env("RUST_LOG", "info")
+            .stdin(Stdio::null())
+            .stdout(log.try_clone()?)
+            .stderr(log)
+            .spawn()
+            .with_context(|| format!("starting {}", self.name))?;
+        self.child = Some(child);
+        let deadline = Instant::now() + Duration::from_secs(30);
+        let http = reqwest::Client::new();
+        loop {
+            let up = if self.rest {
+                http.get(format!("http://{}/readyz", self.ready))
+                    .send()
+                    .await
+                    .is_ok_and(|r| r.status().is_success())
+            } else {
+                tokio::net::TcpStream::connect(self.ready).await.is_ok()
+            };
+            if up {
+                return Ok(());
+            }
+            if Instant::now() > deadline {
+                bail!("{} did not come up; its log:\n{}", self.name, tail(&self.log));
+            }
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    }
+
+    /// SIGKILL: no shutdown, no flush, no goodbye.
+    pub fn kill(&mut self) -> anyhow::Result<()> {
+        if let Some(mut child) = self.child.take() {
+            child.kill()?;
+            child.wait()?;
+        }
+        Ok(())
+    }
+}
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        let _ = self.kill();
+    }
+}
+
+/// The last 40 lines of a log.
+pub fn tail(path: &Path) -> String {
+    let text = std::fs::read_to_string(path).unwrap_or_default();
+    let lines: Vec<&str> = text.lines().collect();
+    lines[lines.len().saturating_sub(40)..].join("\n")
+}
+
+/// A loopback address nothing listens on now.
+pub fn free_addr() -> anyhow::Result<SocketAddr> {
+    Ok(std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?)
+}
