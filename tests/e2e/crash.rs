@@ -19,11 +19,7 @@ use serde_json::{Value, json};
 use sha2::{Digest as _, Sha256};
 use sqlx::Connection as _;
 
-use crate::children::{Proc, Role, free_addr, tail};
-
-fn env_usize(name: &str, default: usize) -> usize {
-    std::env::var(name).ok().and_then(|v| v.parse().ok()).unwrap_or(default)
-}
+use crate::children::{Proc, Role, env_usize, free_addr, tail};
 
 /// An input file and what its job runs.
 struct Input {

@@ -120,3 +120,45 @@ async fn a_database_outage_is_503_and_the_service_recovers_by_itself() -> anyhow
     assert_eq!(listed["jobs"].as_array().map(Vec::len), Some(2), "{listed}");
     stack.shutdown().await
 }
+
+/// Another process holds the SQLite file's write lock: a submission waits out the busy timeout
+/// and fails with 503 and Retry-After (nothing made), reads keep working (WAL), and once the lock
+/// is gone submissions succeed again.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_locked_sqlite_file_is_503_for_writes_and_reads_go_on() -> anyhow::Result<()> {
+    use sqlx::{Connection as _, Executor as _};
+    let stack = TestStack::start().await?;
+    let sha = stack.upload("text/x-gcode", program()).await?;
+    let db = stack.data_dir.join("jobs.sqlite");
+    let mut locker = sqlx::SqliteConnection::connect(&format!("sqlite://{}", db.display())).await?;
+    locker.execute("BEGIN EXCLUSIVE").await?;
+
+    let started = Instant::now();
+    let resp = stack
+        .http
+        .post(stack.url("/v1/jobs"))
+        .header("Idempotency-Key", "locked")
+        .json(&job(&sha))
+        .send()
+        .await?;
+    let waited = started.elapsed();
+    assert_eq!(resp.status().as_u16(), 503, "submission while locked");
+    assert!(resp.headers().contains_key("retry-after"));
+    let body: Value = resp.json().await?;
+    assert_eq!(body["error"]["code"], "unavailable", "{body}");
+    assert!(waited < Duration::from_secs(20), "waited {waited:?}: no longer than the busy timeout");
+    let listed = stack.http.get(stack.url("/v1/jobs")).send().await?;
+    assert_eq!(listed.status().as_u16(), 200, "reads go on under a write lock");
+
+    locker.execute("ROLLBACK").await?;
+    locker.close().await?;
+    let (status, created) = stack.post_job(&job(&sha), Some("locked")).await?;
+    assert_eq!(status, 201, "{created}");
+    let listed: Value = stack.http.get(stack.url("/v1/jobs")).send().await?.json().await?;
+    assert_eq!(
+        listed["jobs"].as_array().map(Vec::len),
+        Some(1),
+        "the refused submission made nothing: {listed}"
+    );
+    stack.shutdown().await
+}

@@ -17,14 +17,10 @@ use depthmill_orchestrator::store::scratch::ScratchDatabase;
 use depthmill_proto::orchestrator::v1 as pb;
 use depthmill_proto::orchestrator::v1::orchestrator_service_client::OrchestratorServiceClient;
 
-use crate::children::{Proc, Role, free_addr, tail};
+use crate::children::{Proc, Role, env_usize, free_addr, tail};
 use rand::Rng as _;
 use serde_json::{Value, json};
 use sha2::{Digest as _, Sha256};
-
-fn env_usize(name: &str, default: usize) -> usize {
-    std::env::var(name).ok().and_then(|v| v.parse().ok()).unwrap_or(default)
-}
 
 /// A short program: 30 slotting passes.
 fn program() -> Vec<u8> {
