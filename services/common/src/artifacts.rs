@@ -245,14 +245,28 @@ struct BlobMeta {
     size: u64,
 }
 
+impl ArtifactError {
+    /// The disk (or the quota) under the store is full: nothing was stored, and the same request
+    /// can work once space is freed.
+    pub fn is_out_of_space(&self) -> bool {
+        matches!(self, ArtifactError::Io { source, .. }
+            if matches!(source.kind(), std::io::ErrorKind::StorageFull | std::io::ErrorKind::QuotaExceeded))
+    }
+}
+
 /// The gRPC status a stage service answers when reading or writing an artifact fails: the
-/// caller's fault (unknown digest, bad digest, too large) as `InvalidArgument` with the reason;
-/// anything else logged with its cause chain and answered as `Internal` without internals.
+/// caller's fault (unknown digest, bad digest, too large) as `InvalidArgument` with the reason; a
+/// full disk as `Unavailable` (the orchestrator retries); anything else logged with its cause
+/// chain and answered as `Internal` without internals.
 pub fn grpc_status(e: ArtifactError) -> tonic::Status {
     use depthmill_proto::ErrorCode;
     match e {
         ArtifactError::NotFound { .. } | ArtifactError::BadDigest { .. } | ArtifactError::TooLarge { .. } => {
             ErrorCode::InvalidArgument.status(e.to_string())
+        }
+        full if full.is_out_of_space() => {
+            tracing::error!(error = %crate::ErrorChain(&full), "artifact store out of space");
+            ErrorCode::Unavailable.status("the artifact store is out of space; nothing was stored")
         }
         other => {
             tracing::error!(error = %crate::ErrorChain(&other), "artifact store failed");
@@ -436,6 +450,19 @@ impl ArtifactStore for LocalStore {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_full_disk_is_unavailable_not_internal() {
+        let full = |kind| ArtifactError::Io { path: "blobs/x".into(), source: std::io::Error::from(kind) };
+        for kind in [std::io::ErrorKind::StorageFull, std::io::ErrorKind::QuotaExceeded] {
+            assert!(full(kind).is_out_of_space());
+            let status = grpc_status(full(kind));
+            assert_eq!(status.code(), tonic::Code::Unavailable, "{status:?}");
+            assert!(status.message().contains("out of space"), "{status:?}");
+        }
+        assert!(!full(std::io::ErrorKind::PermissionDenied).is_out_of_space());
+        assert_eq!(grpc_status(full(std::io::ErrorKind::PermissionDenied)).code(), tonic::Code::Internal);
+    }
 
     async fn store() -> (tempfile::TempDir, LocalStore) {
         let dir = tempfile::tempdir().expect("tempdir");

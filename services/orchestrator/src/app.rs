@@ -76,6 +76,13 @@ impl From<ArtifactError> for ApiError {
             ArtifactError::UnsupportedMediaType { .. } | ArtifactError::ContentMismatch { .. } => {
                 ErrorCode::UnsupportedMediaType
             }
+            full @ ArtifactError::Io { .. } if full.is_out_of_space() => {
+                tracing::error!(error = %depthmill_common::ErrorChain(full), "artifact store out of space");
+                return ApiError::new(
+                    ErrorCode::Unavailable,
+                    "the artifact store is out of space; nothing was stored, retry once space is freed",
+                );
+            }
             ArtifactError::Io { .. } | ArtifactError::Metadata { .. } => {
                 tracing::error!(error = %depthmill_common::ErrorChain(&e), "artifact store failed");
                 return ApiError::new(ErrorCode::Internal, "the artifact store failed; see the server log");
@@ -412,5 +419,34 @@ impl App {
     pub async fn ready(&self) -> Result<(), ApiError> {
         self.store.ping().await?;
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_unreachable_database_or_a_full_disk_is_503_and_says_nothing_was_changed() {
+        let full = ArtifactError::Io {
+            path: "blobs/x".into(),
+            source: std::io::Error::from(std::io::ErrorKind::StorageFull),
+        };
+        let e = ApiError::from(full);
+        assert_eq!(e.code, ErrorCode::Unavailable);
+        assert!(
+            e.message.contains("out of space") && e.message.contains("nothing was stored"),
+            "{}",
+            e.message
+        );
+        let down = StoreError::Db(sqlx::Error::PoolTimedOut);
+        let e = ApiError::from(down);
+        assert_eq!(e.code, ErrorCode::Unavailable);
+        assert!(e.message.contains("nothing was changed"), "{}", e.message);
+        let other = ArtifactError::Io {
+            path: "blobs/x".into(),
+            source: std::io::Error::from(std::io::ErrorKind::PermissionDenied),
+        };
+        assert_eq!(ApiError::from(other).code, ErrorCode::Internal);
     }
 }
