@@ -162,3 +162,93 @@ async fn a_locked_sqlite_file_is_503_for_writes_and_reads_go_on() -> anyhow::Res
     );
     stack.shutdown().await
 }
+
+/// A size-limited tmpfs for one test, unmounted when dropped.
+struct SmallDisk {
+    path: std::path::PathBuf,
+    _dir: tempfile::TempDir,
+}
+
+impl SmallDisk {
+    /// `None` when this machine cannot mount one (not root) and `DEPTHMILL_REQUIRE_TMPFS` is unset.
+    fn mount(size: &str) -> anyhow::Result<Option<Self>> {
+        let dir = tempfile::tempdir()?;
+        let path = dir.path().join("disk");
+        std::fs::create_dir(&path)?;
+        let out = std::process::Command::new("mount")
+            .args(["-t", "tmpfs", "-o", &format!("size={size}"), "tmpfs"])
+            .arg(&path)
+            .output();
+        match out {
+            Ok(o) if o.status.success() => Ok(Some(Self { path, _dir: dir })),
+            other => {
+                let why = match other {
+                    Ok(o) => String::from_utf8_lossy(&o.stderr).into_owned(),
+                    Err(e) => e.to_string(),
+                };
+                if std::env::var_os("DEPTHMILL_REQUIRE_TMPFS").is_some() {
+                    bail!("DEPTHMILL_REQUIRE_TMPFS is set but a tmpfs cannot be mounted: {why}");
+                }
+                eprintln!("cannot mount a tmpfs ({why}): skipping the full-disk test");
+                Ok(None)
+            }
+        }
+    }
+}
+
+impl Drop for SmallDisk {
+    fn drop(&mut self) {
+        let _ = std::process::Command::new("umount").arg("-l").arg(&self.path).status();
+    }
+}
+
+fn bytes_under(dir: &std::path::Path) -> u64 {
+    let Ok(entries) = std::fs::read_dir(dir) else { return 0 };
+    entries
+        .filter_map(Result::ok)
+        .map(|e| match e.file_type() {
+            Ok(t) if t.is_dir() => bytes_under(&e.path()),
+            _ => e.metadata().map(|m| m.len()).unwrap_or(0),
+        })
+        .sum()
+}
+
+/// The artifact store's disk fills up during an upload: 503 naming the full store, no partial
+/// file left behind, and the service goes on with what fits.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_full_artifact_disk_is_503_and_leaves_nothing_half_written() -> anyhow::Result<()> {
+    let Some(disk) = SmallDisk::mount("8m")? else { return Ok(()) };
+    let artifacts = disk.path.join("artifacts");
+    let stack = TestStack::start_with(StackOptions {
+        artifacts_dir: Some(artifacts.clone()),
+        max_upload_bytes: 64 << 20,
+        ..Default::default()
+    })
+    .await?;
+    let before = bytes_under(&artifacts);
+    let big = "G0 X0 Y0\n".repeat(1_500_000).into_bytes(); // 13.5 MB on an 8 MB disk
+    let resp = stack
+        .http
+        .post(stack.url("/v1/artifacts"))
+        .header("content-type", "text/x-gcode")
+        .body(big)
+        .send()
+        .await?;
+    assert_eq!(resp.status().as_u16(), 503);
+    assert!(resp.headers().contains_key("retry-after"));
+    let body: Value = resp.json().await?;
+    assert_eq!(body["error"]["code"], "unavailable", "{body}");
+    assert!(body["error"]["message"].as_str().unwrap_or_default().contains("out of space"), "{body}");
+    let after = bytes_under(&artifacts);
+    assert!(after <= before + 4096, "{after} bytes under the store after a refused upload ({before} before)");
+
+    // What fits still goes in, and a job runs.
+    let sha = stack.upload("text/x-gcode", program()).await?;
+    let (status, created) = stack.post_job(&job(&sha), None).await?;
+    assert_eq!(status, 201, "{created}");
+    let done = stack.wait_for_end(created["id"].as_str().context("id")?, Duration::from_secs(60)).await?;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    stack.shutdown().await?;
+    drop(disk);
+    Ok(())
+}

@@ -49,6 +49,8 @@ pub struct StackOptions {
     pub database_url: Option<String>,
     /// API tokens (default: not required, the stack is on loopback).
     pub auth: depthmill_orchestrator::auth::AuthConfig,
+    /// The artifact folder of every service (default: `artifacts/` in the stack's data folder).
+    pub artifacts_dir: Option<PathBuf>,
 }
 
 impl Default for StackOptions {
@@ -61,6 +63,7 @@ impl Default for StackOptions {
             stage_deadline_s: 30.0,
             database_url: None,
             auth: Default::default(),
+            artifacts_dir: None,
         }
     }
 }
@@ -157,7 +160,7 @@ impl TestStack {
         LazyLock::force(&TRACING);
         let dir = tempfile::tempdir()?;
         let data_dir = dir.path().join("data");
-        let artifacts_dir = data_dir.join("artifacts");
+        let artifacts_dir = opts.artifacts_dir.clone().unwrap_or_else(|| data_dir.join("artifacts"));
         let mut services = Vec::new();
         let mut stages = Vec::new();
         let mut service_urls = Vec::new();
@@ -205,7 +208,7 @@ impl TestStack {
             rest_addr: "127.0.0.1:0".parse()?,
             grpc_addr: "127.0.0.1:0".parse()?,
             data_dir: data_dir.clone(),
-            artifacts_dir: None,
+            artifacts_dir: Some(artifacts_dir.clone()),
             database_url: opts.database_url.clone(),
             max_upload_bytes: opts.max_upload_bytes,
             services: endpoints,
