@@ -170,6 +170,10 @@ pub fn parse(text: &str) -> Program {
                 }
                 seen_face_comment = true;
                 st.op = None;
+                // The part turned: where the tool was is a point of the last face's frame, and a
+                // line from it would cross this face's picture (the move there is a retracted
+                // rapid anyway). The first move of the face starts the drawing afresh.
+                st.pos = [None; 3];
             } else if let Some((n, label, kind)) = tool_header(c) {
                 p.ops.push(Operation {
                     face: st.face,
@@ -400,6 +404,12 @@ N70 (T2 BALL-3: BALL D3.0000 MM, 2 FLUTES - FINISHING-RASTER-X WITH BALL-3)\nN80
         assert!((p.ops[1].feed_mm - std::f64::consts::TAU * 5.0).abs() < 0.1, "{}", p.ops[1].feed_mm);
         let ext = p.feed_extent[1].expect("extent");
         assert!((ext[2] - 10.0).abs() < 0.01 && (ext[1] + 5.0).abs() < 0.01, "{ext:?}");
+        // No line from where face 1 ended (10, 0) across face 2's picture.
+        let face2: Vec<&Seg> =
+            p.segs.iter().filter(|s| p.ops.get(s.op as usize).is_some_and(|o| o.face == 1)).collect();
+        assert!(!face2.is_empty());
+        assert!(face2.iter().all(|s| s.a != [10.0, 0.0] && s.b != [10.0, 0.0]), "{face2:?}");
+        assert_eq!(p.ops[1].rapid_mm, 0.0, "no rapid from the last face's position");
     }
 
     #[test]
