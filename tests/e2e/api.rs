@@ -216,3 +216,28 @@ async fn openapi_document_and_docs_are_served() -> anyhow::Result<()> {
     assert_eq!(ready.status(), 200);
     stack.shutdown().await
 }
+
+#[tokio::test]
+async fn the_tool_library_is_listed_over_rest() -> anyhow::Result<()> {
+    let mut stack = TestStack::start().await?;
+    let resp = stack.http.get(stack.url("/v1/tools")).send().await?;
+    assert_eq!(resp.status().as_u16(), 200);
+    let body: Value = resp.json().await?;
+    let tools = body["tools"].as_array().cloned().unwrap_or_default();
+    let names: Vec<&str> = tools.iter().filter_map(|t| t["name"].as_str()).collect();
+    for expected in ["ball-6", "flat-6"] {
+        assert!(names.contains(&expected), "{expected} missing from {names:?}");
+    }
+    assert!(names.windows(2).all(|w| w[0] <= w[1]), "sorted by name: {names:?}");
+    assert!(tools.iter().all(|t| t["diameter_mm"].as_f64().is_some_and(|d| d > 0.0)), "{body}");
+    // Documented in the API description.
+    let api: Value = stack.http.get(stack.url("/openapi.json")).send().await?.json().await?;
+    assert!(api["paths"]["/v1/tools"]["get"].is_object());
+    // The CAM service down: 503, not an empty list.
+    stack.stop_service("cam").await?;
+    let resp = stack.http.get(stack.url("/v1/tools")).send().await?;
+    assert_eq!(resp.status().as_u16(), 503);
+    let body: Value = resp.json().await?;
+    assert_eq!(body["error"]["code"], "unavailable", "{body}");
+    stack.shutdown().await
+}

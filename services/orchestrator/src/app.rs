@@ -415,6 +415,11 @@ impl App {
         Ok(self.artifacts.open(sha256).await?)
     }
 
+    /// The CAM service's tool library.
+    pub async fn list_tools(&self) -> Result<Vec<crate::stages::ToolSummary>, ApiError> {
+        self.stages.list_tools().await.map_err(|e| ApiError::new(e.code, e.message))
+    }
+
     /// Readiness: the database answers.
     pub async fn ready(&self) -> Result<(), ApiError> {
         self.store.ping().await?;

@@ -90,6 +90,20 @@ pub trait StageRunner: Send + Sync + 'static {
     /// job's machine; `Err` with field `input` and both sizes when it does not. Skipped like
     /// [`StageRunner::check_params`] when the service cannot be asked.
     async fn check_part(&self, spec: &JobSpec, part_size_mm: [f64; 3]) -> Result<(), SpecError>;
+    /// The CAM service's tool library (the built-in tools and its `tools_dir`), by name.
+    async fn list_tools(&self) -> Result<Vec<ToolSummary>, StageError>;
+}
+
+/// A tool of the CAM service's library, as `GET /v1/tools` lists it.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, utoipa::ToSchema)]
+pub struct ToolSummary {
+    /// The name a job's `plan` section uses, e.g. `ball-6`.
+    pub name: String,
+    /// `flat`, `ball`, `bull` or `v`.
+    pub kind: String,
+    pub diameter_mm: f64,
+    /// Length of the flutes.
+    pub cutting_length_mm: f64,
 }
 
 /// The first violation of a `ValidateParams` answer, or `Ok` when the service could not be asked.
@@ -572,6 +586,28 @@ impl StageRunner for GrpcStages {
                 format!("{stage} stage did not finish within its deadline of {} s", deadline.as_secs_f64()),
             )),
         }
+    }
+
+    async fn list_tools(&self) -> Result<Vec<ToolSummary>, StageError> {
+        let ch = self.channel_for(Stage::Plan)?;
+        let mut client = cam::cam_service_client::CamServiceClient::new(ch);
+        let answer = client
+            .list_tools(self.request(cam::ListToolsRequest {}, CHECK_PARAMS_TIMEOUT))
+            .await
+            .map_err(|s| StageError::from_status(Stage::Plan, &s))?;
+        let mut tools: Vec<ToolSummary> = answer
+            .into_inner()
+            .tools
+            .into_iter()
+            .map(|t| ToolSummary {
+                name: t.name,
+                kind: t.kind,
+                diameter_mm: t.diameter_mm,
+                cutting_length_mm: t.cutting_length_mm,
+            })
+            .collect();
+        tools.sort_by(|a, b| a.name.cmp(&b.name));
+        Ok(tools)
     }
 
     async fn cancel(&self, stage: Stage, job_id: &str) -> Result<bool, StageError> {

@@ -57,7 +57,7 @@ impl IntoResponse for ApiError {
 #[derive(OpenApi)]
 #[openapi(
     info(title = "depthmill", description = "Scan-to-part jobs: upload a mesh, point cloud, depth map or G-code, submit a job, watch it, fetch its results."),
-    tags((name = "jobs", description = "Scan-to-part jobs"), (name = "artifacts", description = "Content-addressed files"), (name = "ops", description = "Health and metrics")),
+    tags((name = "jobs", description = "Scan-to-part jobs"), (name = "artifacts", description = "Content-addressed files"), (name = "catalog", description = "What a job can name: tools"), (name = "ops", description = "Health and metrics")),
     components(schemas(ErrorBody, ErrorDetail))
 )]
 struct ApiDoc;
@@ -76,6 +76,7 @@ fn router_parts() -> (axum::Router<App>, utoipa::openapi::OpenApi) {
         .routes(routes!(jobs::job_report))
         .routes(routes!(artifacts::upload_artifact))
         .routes(routes!(artifacts::download_artifact))
+        .routes(routes!(list_tools))
         .routes(routes!(healthz))
         .routes(routes!(readyz))
         .split_for_parts()
@@ -126,6 +127,22 @@ async fn require_token(
         }
     }
     next.run(request).await
+}
+
+/// The tools a job's `plan` section can name: the CAM service's library (built-in tools and its
+/// `tools_dir`), sorted by name.
+#[utoipa::path(get, path = "/v1/tools", tag = "catalog", responses(
+    (status = 200, description = "the tool library", body = ToolList),
+    (status = 501, description = "no CAM service is configured", body = ErrorBody),
+    (status = 503, description = "the CAM service cannot be reached", body = ErrorBody)))]
+async fn list_tools(State(app): State<App>) -> Result<Json<ToolList>, ApiError> {
+    Ok(Json(ToolList { tools: app.list_tools().await? }))
+}
+
+/// `GET /v1/tools`.
+#[derive(Serialize, ToSchema)]
+pub struct ToolList {
+    pub tools: Vec<crate::stages::ToolSummary>,
 }
 
 /// Liveness: the process serves requests.
