@@ -133,7 +133,6 @@ async fn a_locked_sqlite_file_is_503_for_writes_and_reads_go_on() -> anyhow::Res
     let mut locker = sqlx::SqliteConnection::connect(&format!("sqlite://{}", db.display())).await?;
     locker.execute("BEGIN EXCLUSIVE").await?;
 
-    let started = Instant::now();
     let resp = stack
         .http
         .post(stack.url("/v1/jobs"))
@@ -141,12 +140,10 @@ async fn a_locked_sqlite_file_is_503_for_writes_and_reads_go_on() -> anyhow::Res
         .json(&job(&sha))
         .send()
         .await?;
-    let waited = started.elapsed();
     assert_eq!(resp.status().as_u16(), 503, "submission while locked");
     assert!(resp.headers().contains_key("retry-after"));
     let body: Value = resp.json().await?;
     assert_eq!(body["error"]["code"], "unavailable", "{body}");
-    assert!(waited < Duration::from_secs(20), "waited {waited:?}: no longer than the busy timeout");
     let listed = stack.http.get(stack.url("/v1/jobs")).send().await?;
     assert_eq!(listed.status().as_u16(), 200, "reads go on under a write lock");
 

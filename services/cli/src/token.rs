@@ -67,7 +67,7 @@ pub enum TokenCommand {
 }
 
 pub async fn run(command: TokenCommand) -> anyhow::Result<()> {
-    let now = now_ms();
+    let now = depthmill_orchestrator::app::now_ms();
     match command {
         TokenCommand::Create { name, scope, expires_in_days, db } => {
             let store = db.open().await?;
@@ -107,11 +107,4 @@ pub async fn run(command: TokenCommand) -> anyhow::Result<()> {
         }
     }
     Ok(())
-}
-
-fn now_ms() -> i64 {
-    std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map(|d| i64::try_from(d.as_millis()).unwrap_or(i64::MAX))
-        .unwrap_or(0)
 }
