@@ -14,7 +14,7 @@ fn client(token: Option<&str>) -> anyhow::Result<reqwest::Client> {
     if let Some(t) = token {
         headers.insert(reqwest::header::AUTHORIZATION, format!("Bearer {t}").parse()?);
     }
-    Ok(reqwest::Client::builder().default_headers(headers).build()?)
+    Ok(depthmill_common::tls::http_client().default_headers(headers).build()?)
 }
 
 /// A gRPC request carrying `token`.
@@ -71,9 +71,15 @@ async fn tokens_guard_rest_and_grpc_by_scope() -> anyhow::Result<()> {
         assert_eq!((status, code.as_str()), (401, "unauthenticated"), "{message}");
         assert!(message.contains(needle), "{message}");
     }
-    let (status, _, message) =
-        error_of(reqwest::Client::new().get(&jobs).header("authorization", "Basic eDp5").send().await?)
-            .await?;
+    let (status, _, message) = error_of(
+        depthmill_common::tls::http_client()
+            .build()?
+            .get(&jobs)
+            .header("authorization", "Basic eDp5")
+            .send()
+            .await?,
+    )
+    .await?;
     assert_eq!(status, 401, "{message}");
     // Health and the API description stay open.
     for open in ["/healthz", "/readyz", "/openapi.json"] {

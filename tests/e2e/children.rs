@@ -85,7 +85,7 @@ impl Proc {
             .with_context(|| format!("starting {}", self.name))?;
         self.child = Some(child);
         let deadline = Instant::now() + Duration::from_secs(30);
-        let http = reqwest::Client::new();
+        let http = depthmill_common::tls::http_client().build()?;
         loop {
             let up = if self.rest {
                 http.get(format!("http://{}/readyz", self.ready))

@@ -108,7 +108,7 @@ async fn serve_killed_at_random_loses_nothing() -> anyhow::Result<()> {
     let mut serve = Proc::new("serve", &role, rest, true, root.path().join("serve.log"))?;
     serve.start().await?;
 
-    let http = reqwest::Client::builder().timeout(Duration::from_secs(20)).build()?;
+    let http = depthmill_common::tls::http_client().timeout(Duration::from_secs(20)).build()?;
     let inputs = inputs()?;
     let mut shas = Vec::new();
     for input in &inputs {

@@ -10,6 +10,7 @@ mod jobs;
 mod layering;
 mod machine;
 mod metrics;
+mod objects;
 mod outage;
 mod parts;
 mod plan;

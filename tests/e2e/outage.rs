@@ -15,13 +15,13 @@ use tokio_util::sync::CancellationToken;
 
 /// A TCP proxy that can cut every connection through it and refuse new ones, like a network
 /// partition.
-struct Partition {
+pub(crate) struct Partition {
     up: Arc<AtomicBool>,
     cut: std::sync::Mutex<CancellationToken>,
 }
 
 impl Partition {
-    async fn start(target: String) -> anyhow::Result<(Arc<Self>, u16)> {
+    pub(crate) async fn start(target: String) -> anyhow::Result<(Arc<Self>, u16)> {
         let listener = TcpListener::bind("127.0.0.1:0").await?;
         let port = listener.local_addr()?.port();
         let me = Arc::new(Self { up: Arc::new(AtomicBool::new(true)), cut: Default::default() });
@@ -45,7 +45,7 @@ impl Partition {
         Ok((me, port))
     }
 
-    fn down(&self) {
+    pub(crate) fn down(&self) {
         self.up.store(false, Ordering::SeqCst);
         if let Ok(mut cut) = self.cut.lock() {
             cut.cancel();
@@ -53,7 +53,7 @@ impl Partition {
         }
     }
 
-    fn restore(&self) {
+    pub(crate) fn restore(&self) {
         self.up.store(true, Ordering::SeqCst);
     }
 }

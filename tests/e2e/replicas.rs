@@ -1,5 +1,6 @@
 //! Scale-out under fire: three orchestrator replicas on one PostgreSQL database and two machine
-//! service instances, each a separate process, killed with SIGKILL at random moments and restarted
+//! service instances, each a separate process, with every artifact in one S3 bucket (an `s3s-fs`
+//! server this test serves on loopback), killed with SIGKILL at random moments and restarted
 //! while jobs arrive through REST and gRPC. Every job must end once, succeeded, with each stage
 //! recorded once and every artifact's bytes matching its hash.
 //!
@@ -63,7 +64,7 @@ fn job_pb(sha: &str, n: usize) -> pb::JobSpec {
 /// the next replica while one is down; the idempotency key makes retries return the same job.
 async fn submit(rest: &[SocketAddr], grpc: &[SocketAddr], sha: &str, n: usize) -> anyhow::Result<String> {
     let key = format!("replica-job-{n}");
-    let http = reqwest::Client::builder().timeout(Duration::from_secs(10)).build()?;
+    let http = depthmill_common::tls::http_client().timeout(Duration::from_secs(10)).build()?;
     for attempt in 0..60 {
         let r = (n + attempt) % rest.len();
         let id = if n.is_multiple_of(2) {
@@ -107,8 +108,8 @@ async fn replicas_and_instances_survive_sigkill() -> anyhow::Result<()> {
     let kills = env_usize("DEPTHMILL_REPLICA_KILLS", 8);
     let db = ScratchDatabase::create().await?;
     let root = tempfile::tempdir()?;
-    let artifacts_dir = root.path().join("artifacts");
-    std::fs::create_dir_all(&artifacts_dir)?;
+    let s3 = crate::objects::S3Server::start().await?;
+    let bucket = s3.config(&s3.endpoint, "replicas");
 
     let mut procs = Vec::new();
     let mut machine_urls = Vec::new();
@@ -117,7 +118,9 @@ async fn replicas_and_instances_survive_sigkill() -> anyhow::Result<()> {
         machine_urls.push(format!("http://{addr}"));
         let config = depthmill_machine::Config {
             grpc_addr: addr,
-            artifacts_dir: artifacts_dir.clone(),
+            // Its local copies of the blobs it reads.
+            artifacts_dir: root.path().join(format!("machine-{i}-cache")),
+            artifact_store: Some(bucket.clone()),
             service_token: Some("replica-test-token".into()),
         };
         let log = root.path().join(format!("machine-{i}.log"));
@@ -134,7 +137,7 @@ async fn replicas_and_instances_survive_sigkill() -> anyhow::Result<()> {
             rest_addr: r,
             grpc_addr: g,
             data_dir: root.path().join(format!("replica-{i}")),
-            artifacts_dir: Some(artifacts_dir.clone()),
+            artifact_store: Some(bucket.clone()),
             database_url: Some(db.url()),
             services,
             worker: depthmill_orchestrator::WorkerConfig {
@@ -158,7 +161,7 @@ async fn replicas_and_instances_survive_sigkill() -> anyhow::Result<()> {
         p.start().await?;
     }
 
-    let http = reqwest::Client::new();
+    let http = depthmill_common::tls::http_client().build()?;
     let upload = http
         .post(format!("http://{}/v1/artifacts", rest[0]))
         .header("content-type", "text/x-gcode")
@@ -264,5 +267,6 @@ async fn replicas_and_instances_survive_sigkill() -> anyhow::Result<()> {
         p.kill()?;
     }
     drop(store);
+    drop(s3);
     Ok(())
 }

@@ -84,7 +84,7 @@ async fn rest_and_grpc_speak_tls_with_the_configured_certificate() -> anyhow::Re
         https_get(&connector(None)?, rest_addr, "/readyz").await.is_err(),
         "untrusted certificate accepted"
     );
-    let plain = reqwest::Client::builder().timeout(Duration::from_secs(5)).build()?;
+    let plain = depthmill_common::tls::http_client().timeout(Duration::from_secs(5)).build()?;
     let answer = plain.get(format!("http://{rest_addr}/readyz")).send().await;
     assert!(answer.is_err() || answer.is_ok_and(|r| !r.status().is_success()), "plain HTTP served");
 

@@ -9,6 +9,7 @@
 
 pub mod scripted;
 
+use depthmill_common::artifacts::ObjectStoreConfig;
 use std::path::PathBuf;
 use std::sync::LazyLock;
 use std::time::Duration;
@@ -51,6 +52,9 @@ pub struct StackOptions {
     pub auth: depthmill_orchestrator::auth::AuthConfig,
     /// The artifact folder of every service (default: `artifacts/` in the stack's data folder).
     pub artifacts_dir: Option<PathBuf>,
+    /// The artifacts in an object store (every service shares it; `artifacts_dir` then holds the
+    /// services' local copies).
+    pub artifact_store: Option<ObjectStoreConfig>,
 }
 
 impl Default for StackOptions {
@@ -64,6 +68,7 @@ impl Default for StackOptions {
             database_url: None,
             auth: Default::default(),
             artifacts_dir: None,
+            artifact_store: None,
         }
     }
 }
@@ -85,6 +90,7 @@ pub struct TestStack {
     /// (kind, address) of each stage service, in the order of `services`.
     stages: Vec<(String, std::net::SocketAddr)>,
     artifacts_dir: PathBuf,
+    artifact_store: Option<ObjectStoreConfig>,
     service_urls: Vec<(String, String)>,
     _dir: tempfile::TempDir,
 }
@@ -120,7 +126,12 @@ pub async fn service_channel(url: String) -> anyhow::Result<ServiceChannel> {
 }
 
 /// Starts the real stage service `kind` on `listener`.
-fn spawn_stage(kind: &str, listener: TcpListener, artifacts_dir: PathBuf) -> anyhow::Result<Running> {
+fn spawn_stage(
+    kind: &str,
+    listener: TcpListener,
+    artifacts_dir: PathBuf,
+    artifact_store: Option<ObjectStoreConfig>,
+) -> anyhow::Result<Running> {
     let addr = listener.local_addr()?;
     let token = CancellationToken::new();
     let stop = token.clone();
@@ -131,6 +142,7 @@ fn spawn_stage(kind: &str, listener: TcpListener, artifacts_dir: PathBuf) -> any
             let cfg = $krate::Config {
                 grpc_addr: addr,
                 artifacts_dir,
+                artifact_store,
                 service_token: Some(SERVICE_TOKEN.into()),
                 ..Default::default()
             };
@@ -175,7 +187,12 @@ impl TestStack {
                 for name in $krate::SERVICE_NAMES {
                     service_urls.push((name.to_string(), endpoints.$field.clone()));
                 }
-                let running = spawn_stage(stringify!($field), listener, artifacts_dir.clone())?;
+                let running = spawn_stage(
+                    stringify!($field),
+                    listener,
+                    artifacts_dir.clone(),
+                    opts.artifact_store.clone(),
+                )?;
                 stages.push((stringify!($field).to_string(), addr));
                 services.push(running);
             }};
@@ -195,7 +212,9 @@ impl TestStack {
                     .push(("depthmill.machine.v1.MachineService".to_string(), endpoints.machine.clone()));
                 script.set_addr(addr);
                 stages.push(("machine-scripted".to_string(), addr));
-                let store = depthmill_common::artifacts::LocalStore::open(&artifacts_dir).await?;
+                let store =
+                    depthmill_common::artifacts::open_store(&artifacts_dir, opts.artifact_store.as_ref())
+                        .await?;
                 let token = CancellationToken::new();
                 let stop = token.clone();
                 let script = script.clone();
@@ -209,6 +228,7 @@ impl TestStack {
             grpc_addr: "127.0.0.1:0".parse()?,
             data_dir: data_dir.clone(),
             artifacts_dir: Some(artifacts_dir.clone()),
+            artifact_store: opts.artifact_store.clone(),
             database_url: opts.database_url.clone(),
             max_upload_bytes: opts.max_upload_bytes,
             services: endpoints,
@@ -228,13 +248,14 @@ impl TestStack {
         let mut stack = Self {
             rest_url: String::new(),
             grpc_url: String::new(),
-            http: reqwest::Client::new(),
+            http: depthmill_common::tls::http_client().build()?,
             data_dir,
             config,
             orchestrator: None,
             services,
             stages,
             artifacts_dir,
+            artifact_store: opts.artifact_store.clone(),
             service_urls,
             _dir: dir,
         };
@@ -310,7 +331,8 @@ impl TestStack {
         let i = self.stage_index(kind)?;
         let addr = self.stages[i].1;
         let listener = TcpListener::bind(addr).await.with_context(|| format!("rebinding {addr}"))?;
-        self.services[i] = spawn_stage(kind, listener, self.artifacts_dir.clone())?;
+        self.services[i] =
+            spawn_stage(kind, listener, self.artifacts_dir.clone(), self.artifact_store.clone())?;
         Ok(())
     }
 

@@ -7,7 +7,7 @@ use std::net::SocketAddr;
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Duration;
 
-use depthmill_common::artifacts::{ArtifactStore, LocalStore};
+use depthmill_common::artifacts::{ArtifactStore, ObjectArtifactStore};
 use depthmill_common::stage::StageRegistry;
 use depthmill_proto::machine::v1 as pb;
 use depthmill_proto::machine::v1::machine_service_server::{MachineService, MachineServiceServer};
@@ -107,7 +107,7 @@ impl Script {
     pub async fn serve(
         self,
         listener: TcpListener,
-        store: LocalStore,
+        store: ObjectArtifactStore,
         shutdown: CancellationToken,
     ) -> anyhow::Result<()> {
         let svc = Scripted { script: self, store: Arc::new(store), running: StageRegistry::default() };
@@ -125,7 +125,7 @@ impl Script {
 
 struct Scripted {
     script: Script,
-    store: Arc<LocalStore>,
+    store: Arc<ObjectArtifactStore>,
     running: StageRegistry,
 }
 

@@ -5,7 +5,7 @@ use std::io::Cursor;
 use std::pin::Pin;
 use std::sync::Arc;
 
-use depthmill_common::artifacts::{ArtifactError, ArtifactStore, LocalStore};
+use depthmill_common::artifacts::{ArtifactError, ArtifactStore, ObjectArtifactStore};
 use depthmill_common::stage::StageRegistry;
 use depthmill_geometry::{HeightMap, ImageMapping, PngDepth};
 use depthmill_proto::ErrorCode;
@@ -28,11 +28,11 @@ const MAX_MAP_BYTES: u64 = 1 << 30;
 
 struct CamServiceImpl {
     running: StageRegistry,
-    store: Arc<LocalStore>,
+    store: Arc<ObjectArtifactStore>,
     library: Arc<ToolLibrary>,
 }
 
-pub(crate) fn routes(store: LocalStore, library: ToolLibrary) -> tonic::service::Routes {
+pub(crate) fn routes(store: ObjectArtifactStore, library: ToolLibrary) -> tonic::service::Routes {
     let svc = CamServiceImpl {
         running: StageRegistry::default(),
         store: Arc::new(store),

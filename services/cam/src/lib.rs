@@ -25,6 +25,10 @@ pub struct Config {
     /// Folder of the artifact store shared with the orchestrator.
     #[serde(default = "default_artifacts_dir")]
     pub artifacts_dir: PathBuf,
+    /// The artifacts in an object store (`s3://...`) instead of `artifacts_dir`, which then
+    /// holds local copies of the blobs this service reads from files.
+    #[serde(default)]
+    pub artifact_store: Option<depthmill_common::artifacts::ObjectStoreConfig>,
     /// Folder of `.tool` files added to (and overriding) the shipped tool library.
     #[serde(default)]
     pub tools_dir: Option<PathBuf>,
@@ -48,6 +52,7 @@ impl Default for Config {
         Self {
             grpc_addr: default_grpc_addr(),
             artifacts_dir: default_artifacts_dir(),
+            artifact_store: None,
             tools_dir: None,
             service_token: None,
         }
@@ -80,7 +85,9 @@ pub async fn serve(
     if let Some(dir) = &config.tools_dir {
         library = library.merged(domain::tool::ToolLibrary::load_dir(dir)?);
     }
-    let store = depthmill_common::artifacts::LocalStore::open(&config.artifacts_dir).await?;
+    let store =
+        depthmill_common::artifacts::open_store(&config.artifacts_dir, config.artifact_store.as_ref())
+            .await?;
     let routes = grpc::routes(store, library);
     Ok(depthmill_common::grpc::serve_grpc_with(listener, routes, SERVICE_NAMES, options, shutdown).await?)
 }

@@ -32,7 +32,7 @@ impl Server {
             value.set_sensitive(true);
             headers.insert(reqwest::header::AUTHORIZATION, value);
         }
-        reqwest::Client::builder()
+        depthmill_common::tls::http_client()
             .connect_timeout(Duration::from_secs(10))
             .default_headers(headers)
             .build()

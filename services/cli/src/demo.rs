@@ -52,7 +52,10 @@ pub fn demo_job() -> Value {
 }
 
 fn http() -> anyhow::Result<reqwest::Client> {
-    reqwest::Client::builder().timeout(Duration::from_secs(600)).build().context("building the HTTP client")
+    depthmill_common::tls::http_client()
+        .timeout(Duration::from_secs(600))
+        .build()
+        .context("building the HTTP client")
 }
 
 async fn json_of(resp: reqwest::Response, what: &str) -> anyhow::Result<Value> {

@@ -90,7 +90,10 @@ pub async fn start(
     }
     cfg.rest_addr = rest_addr;
     cfg.grpc_addr = grpc_addr;
-    let artifacts_dir = cfg.data_dir.join("artifacts");
+    // Every service shares the orchestrator's artifact store: its folder, or its object store
+    // (`[artifact_store]`), with the folder holding the services' local copies.
+    let artifacts_dir = cfg.artifacts_dir.clone().unwrap_or_else(|| cfg.data_dir.join("artifacts"));
+    let artifact_store = cfg.artifact_store.clone();
     // The stage services listen on loopback ports other local users could reach: they take calls
     // carrying this run's secret only.
     let service_token = depthmill_orchestrator::auth::random_secret().context("making the service token")?;
@@ -108,6 +111,7 @@ pub async fn start(
             let svc_cfg = $krate::Config {
                 grpc_addr: addr,
                 artifacts_dir: artifacts_dir.clone(),
+                artifact_store: artifact_store.clone(),
                 service_token: Some(service_token.clone()),
                 ..Default::default()
             };

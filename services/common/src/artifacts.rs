@@ -2,22 +2,28 @@
 //!
 //! A blob's identity is the lowercase hex sha256 of its bytes. Messages between services carry an
 //! [`ArtifactRef`] (uri, sha256, size, media type), never the bytes. [`ArtifactStore`] is the seam
-//! an object store can implement; [`LocalStore`] keeps blobs in a folder:
+//! every service reads and writes through; [`ObjectArtifactStore`] implements it on the
+//! `object_store` crate: a local folder by default (what the embedded stack shares), an
+//! S3-compatible bucket for scale-out ([`ObjectStoreConfig`], [`open_store`]). The layout is the
+//! same in both:
 //!
 //! ```text
-//! <root>/blobs/<first two hex digits>/<sha256>        the bytes, read-only once written
-//! <root>/blobs/<first two hex digits>/<sha256>.json   {"media_type": "...", "size": N}
-//! <root>/tmp/                                         uploads in progress (emptied at start-up)
+//! blobs/<first two hex digits>/<sha256>        the bytes, never changed once written
+//! blobs/<first two hex digits>/<sha256>.json   {"media_type": "...", "size": N}
+//! tmp/<uuid>                                   large uploads in progress
 //! ```
 //!
-//! Uploads are streamed to a temporary file while hashed, checked against a size limit and the
-//! declared media type ([`MediaCheck`]), then renamed into place: a failed upload leaves nothing
-//! behind and a reader never sees a partial blob.
+//! Uploads are streamed: hashed, checked against a size limit and the declared media type
+//! ([`MediaCheck`]) as the bytes arrive. A blob that ends within the first 8 MiB part goes to its
+//! place in one write; a larger one is a multipart upload to `tmp/`, renamed into place once its
+//! digest is known. A failed upload leaves nothing behind, a reader never sees a partial blob, and
+//! no upload or read holds more than a few parts in memory whatever the blob's size.
 
 use std::path::{Path, PathBuf};
 use std::pin::Pin;
 
 use depthmill_geometry::ArtifactRef;
+use object_store::ObjectStoreExt as _;
 use sha2::{Digest, Sha256};
 use tokio::io::{AsyncRead, AsyncReadExt, AsyncWriteExt};
 
@@ -59,6 +65,20 @@ pub enum ArtifactError {
         #[source]
         source: std::io::Error,
     },
+    #[error("artifact store {location} failed")]
+    Store {
+        location: String,
+        /// The store is reached over the network (a failure there is an outage, not a bug).
+        remote: bool,
+        #[source]
+        source: object_store::Error,
+    },
+    #[error("artifact store '{url}': {reason}")]
+    Config { url: String, reason: String },
+    #[error(
+        "artifact {sha256} read back from the store has sha256 {got} ({size} bytes): the stored copy is damaged"
+    )]
+    Corrupt { sha256: String, got: String, size: u64 },
     #[error("artifact metadata {path} is corrupt")]
     Metadata {
         path: String,
@@ -105,8 +125,9 @@ pub trait ArtifactStore: Send + Sync + 'static {
         Ok(out)
     }
 
-    /// A local file holding the blob, when the store has one (lets kernels memory-map or seek).
-    fn local_path(&self, sha256: &str) -> Option<PathBuf>;
+    /// A local file holding the blob's bytes (lets readers memory-map or seek): the blob itself
+    /// in a local store, a copy checked against the digest for a remote one.
+    async fn local_file(&self, sha256: &str) -> Result<PathBuf, ArtifactError>;
 }
 
 /// Checks that `s` is a sha256 in the store's spelling.
@@ -246,11 +267,34 @@ struct BlobMeta {
 }
 
 impl ArtifactError {
+    fn store(location: &str, remote: bool, source: object_store::Error) -> Self {
+        ArtifactError::Store { location: location.to_string(), remote, source }
+    }
+
     /// The disk (or the quota) under the store is full: nothing was stored, and the same request
     /// can work once space is freed.
     pub fn is_out_of_space(&self) -> bool {
-        matches!(self, ArtifactError::Io { source, .. }
-            if matches!(source.kind(), std::io::ErrorKind::StorageFull | std::io::ErrorKind::QuotaExceeded))
+        let mut cause: Option<&(dyn std::error::Error + 'static)> = Some(self);
+        while let Some(e) = cause {
+            if let Some(io) = e.downcast_ref::<std::io::Error>()
+                && matches!(io.kind(), std::io::ErrorKind::StorageFull | std::io::ErrorKind::QuotaExceeded)
+            {
+                return true;
+            }
+            cause = e.source();
+        }
+        false
+    }
+
+    /// The store cannot be used for now (full, or a remote store that does not answer): nothing
+    /// was stored, and the same request can work later.
+    pub fn is_unavailable(&self) -> bool {
+        self.is_out_of_space()
+            || matches!(self, ArtifactError::Store { remote: true, source, .. }
+                if !matches!(source, object_store::Error::NotFound { .. }
+                    | object_store::Error::InvalidPath { .. }
+                    | object_store::Error::NotSupported { .. }
+                    | object_store::Error::NotImplemented { .. }))
     }
 }
 
@@ -268,6 +312,10 @@ pub fn grpc_status(e: ArtifactError) -> tonic::Status {
             tracing::error!(error = %crate::ErrorChain(&full), "artifact store out of space");
             ErrorCode::Unavailable.status("the artifact store is out of space; nothing was stored")
         }
+        down if down.is_unavailable() => {
+            tracing::error!(error = %crate::ErrorChain(&down), "artifact store unavailable");
+            ErrorCode::Unavailable.status("the artifact store does not answer; nothing was stored")
+        }
         other => {
             tracing::error!(error = %crate::ErrorChain(&other), "artifact store failed");
             ErrorCode::Internal.status("the artifact store failed")
@@ -275,99 +323,328 @@ pub fn grpc_status(e: ArtifactError) -> tonic::Status {
     }
 }
 
-/// Age after which a temporary upload file is a leftover of an interrupted upload.
+/// Age after which a temporary upload is a leftover of an interrupted one.
 const STALE_UPLOAD: std::time::Duration = std::time::Duration::from_secs(3600);
 
-/// Blobs in a local folder (the default store, and the one the embedded stack shares between
-/// services).
+/// Size of the parts an upload is streamed in: a blob that ends within the first part goes to its
+/// place in one request; a larger one is a multipart upload of parts this size, at most
+/// [`UPLOAD_PARTS_IN_FLIGHT`] of them in memory at once (S3 needs parts of at least 5 MiB).
+const UPLOAD_PART: usize = 8 << 20;
+const UPLOAD_PARTS_IN_FLIGHT: usize = 2;
+
+/// `[artifact_store]` of a service's configuration: where the blobs live when they are not in the
+/// local artifact folder.
+#[derive(Debug, Clone, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ObjectStoreConfig {
+    /// `s3://BUCKET[/PREFIX]` (an S3-compatible store: AWS, MinIO, Ceph, ...) or
+    /// `file:///ABSOLUTE/FOLDER`.
+    pub url: String,
+    /// Options of the store by the names `object_store` gives them: for S3 `endpoint`,
+    /// `region`, `access_key_id`, `secret_access_key`, `session_token`, `aws_allow_http`
+    /// (`"true"` for an `http://` endpoint), ... The standard `AWS_*` environment variables fill in
+    /// what is not given here.
+    #[serde(default)]
+    pub options: std::collections::BTreeMap<String, String>,
+}
+
 #[derive(Debug, Clone)]
-pub struct LocalStore {
-    root: PathBuf,
+enum Backend {
+    /// Blobs are files under `root` (the default, and what the embedded stack shares).
+    Local { root: PathBuf },
+    /// Blobs in a remote object store at `url`; readers that need a file get a verified copy in
+    /// the local `cache` folder.
+    Remote { url: String, cache: PathBuf },
 }
 
-fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> ArtifactError + '_ {
-    move |source| ArtifactError::Io { path: path.display().to_string(), source }
+/// The artifact store on an [`ObjectStore`](object_store::ObjectStore): the local file system
+/// by default, an S3-compatible store for scale-out. Keys under the store's root:
+///
+/// ```text
+/// blobs/<first two hex digits>/<sha256>        the bytes, never changed once written
+/// blobs/<first two hex digits>/<sha256>.json   {"media_type": "...", "size": N}
+/// tmp/<uuid>                                   multipart uploads in progress
+/// ```
+#[derive(Debug, Clone)]
+pub struct ObjectArtifactStore {
+    inner: std::sync::Arc<dyn object_store::ObjectStore>,
+    backend: Backend,
 }
 
-impl LocalStore {
-    /// Opens (creating if needed) a store under `root` and removes leftovers of interrupted uploads.
-    pub async fn open(root: impl Into<PathBuf>) -> Result<Self, ArtifactError> {
+fn blob_key(sha256: &str) -> object_store::path::Path {
+    object_store::path::Path::from(format!("blobs/{}/{sha256}", &sha256[..2]))
+}
+
+fn meta_key(sha256: &str) -> object_store::path::Path {
+    object_store::path::Path::from(format!("blobs/{}/{sha256}.json", &sha256[..2]))
+}
+
+/// Opens the store a service is configured with: `store` when given, else the local folder `dir`
+/// (which then also holds the local copies of remote blobs, under `cache/`).
+pub async fn open_store(
+    dir: &Path,
+    store: Option<&ObjectStoreConfig>,
+) -> Result<ObjectArtifactStore, ArtifactError> {
+    match store {
+        None => ObjectArtifactStore::open_local(dir).await,
+        Some(cfg) => ObjectArtifactStore::open_url(&cfg.url, &cfg.options, &dir.join("cache")).await,
+    }
+}
+
+/// Reads from `body` into `buf` until it holds `want` bytes or the body ends (then `true`),
+/// feeding the check, the hash and the size limit.
+async fn fill(
+    body: &mut (dyn AsyncRead + Send + Unpin),
+    buf: &mut Vec<u8>,
+    want: usize,
+    check: &mut MediaCheck,
+    hasher: &mut Sha256,
+    size: &mut u64,
+    limit: u64,
+) -> Result<bool, ArtifactError> {
+    let mut chunk = vec![0u8; 64 * 1024];
+    while buf.len() < want {
+        let room = (want - buf.len()).min(chunk.len());
+        let n = body.read(&mut chunk[..room]).await.map_err(ArtifactError::Upload)?;
+        if n == 0 {
+            return Ok(true);
+        }
+        *size += n as u64;
+        if *size > limit {
+            return Err(ArtifactError::TooLarge { limit });
+        }
+        check.update(&chunk[..n])?;
+        hasher.update(&chunk[..n]);
+        buf.extend_from_slice(&chunk[..n]);
+    }
+    Ok(false)
+}
+
+impl ObjectArtifactStore {
+    /// Opens (creating if needed) a store in the local folder `root` and removes leftovers of
+    /// uploads interrupted more than an hour ago.
+    pub async fn open_local(root: impl Into<PathBuf>) -> Result<Self, ArtifactError> {
         let root: PathBuf = root.into();
         let root = if root.is_absolute() {
             root
         } else {
             std::env::current_dir().map_err(io_err(&root))?.join(&root)
         };
-        let tmp = root.join("tmp");
-        tokio::fs::create_dir_all(&tmp).await.map_err(io_err(&tmp))?;
-        // Several services share one store and open it concurrently, and another process may be
-        // uploading right now: remove only leftovers older than an hour, and let a file that
-        // someone else removed first be.
-        let mut entries = tokio::fs::read_dir(&tmp).await.map_err(io_err(&tmp))?;
-        while let Some(entry) = entries.next_entry().await.map_err(io_err(&tmp))? {
-            let stale = entry
-                .metadata()
-                .await
-                .ok()
-                .and_then(|m| m.modified().ok())
-                .and_then(|t| t.elapsed().ok())
-                .is_some_and(|age| age > STALE_UPLOAD);
-            if stale {
-                match tokio::fs::remove_file(entry.path()).await {
-                    Ok(()) => {}
-                    Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
-                    Err(e) => return Err(io_err(&entry.path())(e)),
+        for dir in [root.join("tmp"), root.join("blobs")] {
+            tokio::fs::create_dir_all(&dir).await.map_err(io_err(&dir))?;
+        }
+        let fs = object_store::local::LocalFileSystem::new_with_prefix(&root)
+            .map_err(|source| ArtifactError::store(&root.display().to_string(), false, source))?
+            .with_fsync(true);
+        let store = Self { inner: std::sync::Arc::new(fs), backend: Backend::Local { root } };
+        store.remove_stale_uploads().await?;
+        Ok(store)
+    }
+
+    /// Opens the store at `url` (`s3://BUCKET[/PREFIX]` or `file:///FOLDER`) with the store's
+    /// `options`; `cache` is the local folder for copies of remote blobs.
+    pub async fn open_url(
+        url: &str,
+        options: &std::collections::BTreeMap<String, String>,
+        cache: &Path,
+    ) -> Result<Self, ArtifactError> {
+        let bad = |reason: String| ArtifactError::Config { url: url.to_string(), reason };
+        if let Some(path) = url.strip_prefix("file://") {
+            if !options.is_empty() {
+                return Err(bad("a file:// store takes no options".into()));
+            }
+            if !path.starts_with('/') {
+                return Err(bad("a file:// URL needs an absolute path (file:///folder)".into()));
+            }
+            return Self::open_local(path).await;
+        }
+        let Some(rest) = url.strip_prefix("s3://") else {
+            return Err(bad("the scheme must be s3:// or file://".into()));
+        };
+        let (bucket, prefix) = rest.split_once('/').unwrap_or((rest, ""));
+        if bucket.is_empty() {
+            return Err(bad("no bucket name after s3://".into()));
+        }
+        crate::tls::install_crypto();
+        let mut builder = object_store::aws::AmazonS3Builder::from_env().with_bucket_name(bucket).with_retry(
+            object_store::RetryConfig {
+                // A store that is down fails the request within seconds (503 with a retry
+                // hint) rather than holding it for minutes.
+                max_retries: 3,
+                retry_timeout: std::time::Duration::from_secs(10),
+                ..Default::default()
+            },
+        );
+        for (key, value) in options {
+            let key: object_store::aws::AmazonS3ConfigKey =
+                key.parse().map_err(|_| bad(format!("unknown S3 option '{key}'")))?;
+            builder = builder.with_config(key, value);
+        }
+        let s3 = builder.build().map_err(|e| bad(e.to_string()))?;
+        let inner: std::sync::Arc<dyn object_store::ObjectStore> = if prefix.trim_matches('/').is_empty() {
+            std::sync::Arc::new(s3)
+        } else {
+            std::sync::Arc::new(object_store::prefix::PrefixStore::new(s3, prefix.trim_matches('/')))
+        };
+        for dir in [cache.join("tmp"), cache.join("blobs")] {
+            tokio::fs::create_dir_all(&dir).await.map_err(io_err(&dir))?;
+        }
+        let store = Self {
+            inner,
+            backend: Backend::Remote {
+                url: url.trim_end_matches('/').to_string(),
+                cache: cache.to_path_buf(),
+            },
+        };
+        store.remove_stale_uploads().await?;
+        Ok(store)
+    }
+
+    /// Where the store is, for messages: its folder or URL.
+    pub fn location(&self) -> String {
+        match &self.backend {
+            Backend::Local { root } => root.display().to_string(),
+            Backend::Remote { url, .. } => url.clone(),
+        }
+    }
+
+    /// The folder of a local store.
+    pub fn local_root(&self) -> Option<&Path> {
+        match &self.backend {
+            Backend::Local { root } => Some(root),
+            Backend::Remote { .. } => None,
+        }
+    }
+
+    fn err(&self, source: object_store::Error) -> ArtifactError {
+        ArtifactError::store(&self.location(), matches!(self.backend, Backend::Remote { .. }), source)
+    }
+
+    /// Removes uploads left by a process that died more than [`STALE_UPLOAD`] ago. Several
+    /// services share one store and another may be uploading right now: younger ones stay, and
+    /// one that someone else removed first is no error.
+    async fn remove_stale_uploads(&self) -> Result<(), ArtifactError> {
+        use futures::TryStreamExt as _;
+        let tmp = object_store::path::Path::from("tmp");
+        let listed: Vec<object_store::ObjectMeta> =
+            self.inner.list(Some(&tmp)).try_collect().await.map_err(|e| self.err(e))?;
+        let now_ms = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| i64::try_from(d.as_millis()).unwrap_or(i64::MAX));
+        let stale_ms = i64::try_from(STALE_UPLOAD.as_millis()).unwrap_or(i64::MAX);
+        for meta in listed {
+            if now_ms.saturating_sub(meta.last_modified.timestamp_millis()) > stale_ms {
+                match self.inner.delete(&meta.location).await {
+                    Ok(()) | Err(object_store::Error::NotFound { .. }) => {}
+                    Err(e) => return Err(self.err(e)),
                 }
             }
         }
-        let blobs = root.join("blobs");
-        tokio::fs::create_dir_all(&blobs).await.map_err(io_err(&blobs))?;
-        Ok(Self { root })
-    }
-
-    /// The folder this store lives in.
-    pub fn root(&self) -> &Path {
-        &self.root
-    }
-
-    fn blob_path(&self, sha256: &str) -> PathBuf {
-        self.root.join("blobs").join(&sha256[..2]).join(sha256)
-    }
-
-    fn meta_path(&self, sha256: &str) -> PathBuf {
-        self.root.join("blobs").join(&sha256[..2]).join(format!("{sha256}.json"))
+        // The local cache of a remote store: copies interrupted half-way.
+        if let Backend::Remote { cache, .. } = &self.backend {
+            let tmp = cache.join("tmp");
+            let mut entries = tokio::fs::read_dir(&tmp).await.map_err(io_err(&tmp))?;
+            while let Some(entry) = entries.next_entry().await.map_err(io_err(&tmp))? {
+                let stale = entry
+                    .metadata()
+                    .await
+                    .ok()
+                    .and_then(|m| m.modified().ok())
+                    .and_then(|t| t.elapsed().ok())
+                    .is_some_and(|age| age > STALE_UPLOAD);
+                if stale {
+                    let _ = tokio::fs::remove_file(entry.path()).await;
+                }
+            }
+        }
+        Ok(())
     }
 
     fn reference(&self, sha256: &str, meta: BlobMeta) -> ArtifactRef {
-        ArtifactRef {
-            uri: format!("file://{}", self.blob_path(sha256).display()),
-            sha256: sha256.to_string(),
-            size: meta.size,
-            media_type: meta.media_type,
-        }
+        let uri = match &self.backend {
+            Backend::Local { root } => {
+                format!("file://{}", root.join("blobs").join(&sha256[..2]).join(sha256).display())
+            }
+            Backend::Remote { url, .. } => format!("{url}/{}", blob_key(sha256)),
+        };
+        ArtifactRef { uri, sha256: sha256.to_string(), size: meta.size, media_type: meta.media_type }
     }
 
-    async fn write_meta(&self, sha256: &str, meta: &BlobMeta) -> Result<(), ArtifactError> {
-        let path = self.meta_path(sha256);
-        let tmp = self.root.join("tmp").join(format!("{sha256}.{}.json", uuid::Uuid::now_v7()));
-        let json = serde_json::to_vec(meta)
-            .map_err(|source| ArtifactError::Metadata { path: path.display().to_string(), source })?;
-        tokio::fs::write(&tmp, json).await.map_err(io_err(&tmp))?;
-        tokio::fs::rename(&tmp, &path).await.map_err(io_err(&path))
-    }
-}
-
-#[async_trait::async_trait]
-impl ArtifactStore for LocalStore {
-    async fn put(
+    /// Puts the metadata, then the blob: a blob without metadata is never visible (stat needs
+    /// both), and a reader that sees the metadata finds the whole blob or none.
+    async fn publish_small(
         &self,
-        media_type: &str,
+        sha256: &str,
+        meta: &BlobMeta,
+        bytes: Vec<u8>,
+    ) -> Result<(), ArtifactError> {
+        self.put_meta(sha256, meta).await?;
+        self.inner
+            .put(&blob_key(sha256), object_store::PutPayload::from(bytes))
+            .await
+            .map_err(|e| self.err(e))?;
+        Ok(())
+    }
+
+    async fn put_meta(&self, sha256: &str, meta: &BlobMeta) -> Result<(), ArtifactError> {
+        let key = meta_key(sha256);
+        let json = serde_json::to_vec(meta)
+            .map_err(|source| ArtifactError::Metadata { path: key.to_string(), source })?;
+        self.inner.put(&key, object_store::PutPayload::from(json)).await.map_err(|e| self.err(e))?;
+        Ok(())
+    }
+
+    /// Streams the rest of a large upload (the first part is in `first`) to a temporary key as a
+    /// multipart upload; returns the key, the digest and the size. Aborts the upload on failure.
+    async fn put_large(
+        &self,
+        first: Vec<u8>,
         body: &mut (dyn AsyncRead + Send + Unpin),
+        check: &mut MediaCheck,
+        mut hasher: Sha256,
+        mut size: u64,
         limit: u64,
-    ) -> Result<ArtifactRef, ArtifactError> {
-        let mut check = MediaCheck::new(media_type)?;
-        let tmp_path = self.root.join("tmp").join(uuid::Uuid::now_v7().to_string());
-        // Removes the temporary file on every early return.
+    ) -> Result<(object_store::path::Path, String, u64), ArtifactError> {
+        let tmp = object_store::path::Path::from(format!("tmp/{}", uuid::Uuid::now_v7()));
+        let upload = self.inner.put_multipart(&tmp).await.map_err(|e| self.err(e))?;
+        let mut writer = object_store::WriteMultipart::new_with_chunk_size(upload, UPLOAD_PART);
+        writer.put(first.into());
+        let streamed: Result<(), ArtifactError> = async {
+            loop {
+                writer.wait_for_capacity(UPLOAD_PARTS_IN_FLIGHT).await.map_err(|e| self.err(e))?;
+                let mut part = Vec::with_capacity(UPLOAD_PART);
+                let ended = fill(body, &mut part, UPLOAD_PART, check, &mut hasher, &mut size, limit).await?;
+                if !part.is_empty() {
+                    writer.put(part.into());
+                }
+                if ended {
+                    return check.finish();
+                }
+            }
+        }
+        .await;
+        match streamed {
+            Ok(()) => {
+                writer.finish().await.map_err(|e| self.err(e))?;
+            }
+            Err(e) => {
+                if let Err(abort) = writer.abort().await {
+                    tracing::warn!(error = %crate::ErrorChain(&abort), key = %tmp, "aborting an upload failed");
+                }
+                return Err(e);
+            }
+        }
+        Ok((tmp, hex::encode(hasher.finalize()), size))
+    }
+
+    /// A verified local copy of a remote blob in the cache folder.
+    async fn cached_copy(&self, cache: &Path, aref: &ArtifactRef) -> Result<PathBuf, ArtifactError> {
+        let sha256 = &aref.sha256;
+        let dest = cache.join("blobs").join(&sha256[..2]).join(sha256);
+        if tokio::fs::try_exists(&dest).await.map_err(io_err(&dest))? {
+            return Ok(dest);
+        }
+        let tmp = cache.join("tmp").join(uuid::Uuid::now_v7().to_string());
         struct TmpGuard(Option<PathBuf>);
         impl Drop for TmpGuard {
             fn drop(&mut self) {
@@ -376,74 +653,122 @@ impl ArtifactStore for LocalStore {
                 }
             }
         }
-        let mut guard = TmpGuard(Some(tmp_path.clone()));
-        let mut file = tokio::fs::File::create(&tmp_path).await.map_err(io_err(&tmp_path))?;
+        let mut guard = TmpGuard(Some(tmp.clone()));
+        let mut file = tokio::fs::File::create(&tmp).await.map_err(io_err(&tmp))?;
+        let mut stream = self.inner.get(&blob_key(sha256)).await.map_err(|e| self.err(e))?.into_stream();
         let mut hasher = Sha256::new();
-        let mut size: u64 = 0;
-        let mut buf = vec![0u8; 64 * 1024];
-        loop {
-            let n = body.read(&mut buf).await.map_err(ArtifactError::Upload)?;
-            if n == 0 {
-                break;
-            }
-            size += n as u64;
-            if size > limit {
-                return Err(ArtifactError::TooLarge { limit });
-            }
-            let chunk = &buf[..n];
-            check.update(chunk)?;
-            hasher.update(chunk);
-            file.write_all(chunk).await.map_err(io_err(&tmp_path))?;
+        let mut size = 0u64;
+        use futures::StreamExt as _;
+        while let Some(chunk) = stream.next().await {
+            let chunk = chunk.map_err(|e| self.err(e))?;
+            hasher.update(&chunk);
+            size += chunk.len() as u64;
+            file.write_all(&chunk).await.map_err(io_err(&tmp))?;
         }
-        check.finish()?;
-        file.sync_all().await.map_err(io_err(&tmp_path))?;
+        file.sync_all().await.map_err(io_err(&tmp))?;
         drop(file);
-        let sha256 = hex::encode(hasher.finalize());
-        let dest = self.blob_path(&sha256);
+        let got = hex::encode(hasher.finalize());
+        if got != *sha256 || size != aref.size {
+            return Err(ArtifactError::Corrupt { sha256: sha256.clone(), got, size });
+        }
         if let Some(dir) = dest.parent() {
             tokio::fs::create_dir_all(dir).await.map_err(io_err(dir))?;
         }
-        let meta = BlobMeta { media_type: check.media_type().to_string(), size };
-        // Metadata first: a blob file without metadata is never visible (stat needs both).
-        self.write_meta(&sha256, &meta).await?;
-        if tokio::fs::try_exists(&dest).await.map_err(io_err(&dest))? {
-            // Same bytes already stored; the temporary copy goes with the guard.
-        } else {
-            tokio::fs::rename(&tmp_path, &dest).await.map_err(io_err(&dest))?;
-            guard.0 = None;
+        tokio::fs::rename(&tmp, &dest).await.map_err(io_err(&dest))?;
+        guard.0 = None;
+        Ok(dest)
+    }
+}
+
+fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> ArtifactError + '_ {
+    move |source| ArtifactError::Io { path: path.display().to_string(), source }
+}
+
+#[async_trait::async_trait]
+impl ArtifactStore for ObjectArtifactStore {
+    async fn put(
+        &self,
+        media_type: &str,
+        body: &mut (dyn AsyncRead + Send + Unpin),
+        limit: u64,
+    ) -> Result<ArtifactRef, ArtifactError> {
+        let mut check = MediaCheck::new(media_type)?;
+        let mut hasher = Sha256::new();
+        let mut size: u64 = 0;
+        let mut first = Vec::with_capacity(64 * 1024);
+        let ended = fill(body, &mut first, UPLOAD_PART, &mut check, &mut hasher, &mut size, limit).await?;
+        let meta_of = |size| BlobMeta { media_type: check.media_type().to_string(), size };
+        if ended {
+            check.finish()?;
+            let sha256 = hex::encode(hasher.finalize());
+            if let Some(existing) = self.stat(&sha256).await? {
+                return Ok(existing);
+            }
+            let meta = meta_of(size);
+            self.publish_small(&sha256, &meta, first).await?;
+            tracing::debug!(%sha256, size, media_type = %meta.media_type, "artifact stored");
+            return Ok(self.reference(&sha256, meta));
         }
+        let (tmp, sha256, size) = self.put_large(first, body, &mut check, hasher, size, limit).await?;
+        let meta = BlobMeta { media_type: check.media_type().to_string(), size };
+        let placed: Result<(), ArtifactError> = async {
+            if self.stat(&sha256).await?.is_none() {
+                self.put_meta(&sha256, &meta).await?;
+                self.inner.rename(&tmp, &blob_key(&sha256)).await.map_err(|e| self.err(e))?;
+            }
+            Ok(())
+        }
+        .await;
+        // Whatever happened, the temporary object goes (gone already when it was renamed).
+        match self.inner.delete(&tmp).await {
+            Ok(()) | Err(object_store::Error::NotFound { .. }) => {}
+            Err(e) => tracing::warn!(error = %crate::ErrorChain(&e), key = %tmp, "removing an upload failed"),
+        }
+        placed?;
         tracing::debug!(%sha256, size, media_type = %meta.media_type, "artifact stored");
         Ok(self.reference(&sha256, meta))
     }
 
     async fn stat(&self, sha256: &str) -> Result<Option<ArtifactRef>, ArtifactError> {
         validate_digest(sha256)?;
-        let meta_path = self.meta_path(sha256);
-        let bytes = match tokio::fs::read(&meta_path).await {
-            Ok(b) => b,
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
-            Err(source) => return Err(ArtifactError::Io { path: meta_path.display().to_string(), source }),
+        let key = meta_key(sha256);
+        let bytes = match self.inner.get(&key).await {
+            Ok(got) => got.bytes().await.map_err(|e| self.err(e))?,
+            Err(object_store::Error::NotFound { .. }) => return Ok(None),
+            Err(e) => return Err(self.err(e)),
         };
-        let blob = self.blob_path(sha256);
-        if !tokio::fs::try_exists(&blob).await.map_err(io_err(&blob))? {
-            return Ok(None);
+        match self.inner.head(&blob_key(sha256)).await {
+            Ok(_) => {}
+            Err(object_store::Error::NotFound { .. }) => return Ok(None),
+            Err(e) => return Err(self.err(e)),
         }
         let meta: BlobMeta = serde_json::from_slice(&bytes)
-            .map_err(|source| ArtifactError::Metadata { path: meta_path.display().to_string(), source })?;
+            .map_err(|source| ArtifactError::Metadata { path: key.to_string(), source })?;
         Ok(Some(self.reference(sha256, meta)))
     }
 
     async fn open(&self, sha256: &str) -> Result<(ArtifactRef, BlobReader), ArtifactError> {
         let aref =
             self.stat(sha256).await?.ok_or_else(|| ArtifactError::NotFound { sha256: sha256.into() })?;
-        let path = self.blob_path(sha256);
-        let file = tokio::fs::File::open(&path).await.map_err(io_err(&path))?;
-        Ok((aref, Box::pin(file)))
+        if let Backend::Local { root } = &self.backend {
+            // The file itself: tokio reads it in the background, no copy through the store.
+            let path = root.join("blobs").join(&sha256[..2]).join(sha256);
+            let file = tokio::fs::File::open(&path).await.map_err(io_err(&path))?;
+            return Ok((aref, Box::pin(file)));
+        }
+        use futures::TryStreamExt as _;
+        let stream = self.inner.get(&blob_key(sha256)).await.map_err(|e| self.err(e))?.into_stream();
+        let reader = tokio_util::io::StreamReader::new(stream.map_err(std::io::Error::other));
+        Ok((aref, Box::pin(reader)))
     }
 
-    fn local_path(&self, sha256: &str) -> Option<PathBuf> {
-        validate_digest(sha256).ok()?;
-        Some(self.blob_path(sha256))
+    async fn local_file(&self, sha256: &str) -> Result<PathBuf, ArtifactError> {
+        let aref =
+            self.stat(sha256).await?.ok_or_else(|| ArtifactError::NotFound { sha256: sha256.into() })?;
+        match &self.backend {
+            Backend::Local { root } => Ok(root.join("blobs").join(&sha256[..2]).join(sha256)),
+            Backend::Remote { cache, .. } => self.cached_copy(cache, &aref).await,
+        }
     }
 }
 
@@ -464,9 +789,9 @@ mod tests {
         assert_eq!(grpc_status(full(std::io::ErrorKind::PermissionDenied)).code(), tonic::Code::Internal);
     }
 
-    async fn store() -> (tempfile::TempDir, LocalStore) {
+    async fn store() -> (tempfile::TempDir, ObjectArtifactStore) {
         let dir = tempfile::tempdir().expect("tempdir");
-        let store = LocalStore::open(dir.path().join("artifacts")).await.expect("open");
+        let store = ObjectArtifactStore::open_local(dir.path().join("artifacts")).await.expect("open");
         (dir, store)
     }
 
@@ -482,7 +807,8 @@ mod tests {
         // Same bytes again: same reference, no second copy.
         let b = store.put_bytes("text/x-gcode", body).await.expect("put again");
         assert_eq!(a, b);
-        let tmp_entries = std::fs::read_dir(store.root().join("tmp")).expect("tmp").count();
+        let tmp_entries =
+            std::fs::read_dir(store.local_root().expect("local").join("tmp")).expect("tmp").count();
         assert_eq!(tmp_entries, 0);
     }
 
@@ -499,8 +825,14 @@ mod tests {
         assert!(err.to_string().contains("NUL"), "{err}");
         let err = store.put_bytes("text/x-gcode", b"").await.expect_err("empty");
         assert!(matches!(err, ArtifactError::Empty));
-        assert_eq!(std::fs::read_dir(store.root().join("tmp")).expect("tmp").count(), 0);
-        assert_eq!(std::fs::read_dir(store.root().join("blobs")).expect("blobs").count(), 0);
+        assert_eq!(
+            std::fs::read_dir(store.local_root().expect("local").join("tmp")).expect("tmp").count(),
+            0
+        );
+        assert_eq!(
+            std::fs::read_dir(store.local_root().expect("local").join("blobs")).expect("blobs").count(),
+            0
+        );
     }
 
     #[tokio::test]
@@ -533,7 +865,7 @@ mod tests {
         assert!(store.stat(&missing).await.expect("stat").is_none());
         assert!(matches!(store.open(&missing).await, Err(ArtifactError::NotFound { .. })));
         assert!(matches!(store.stat("../etc/passwd").await, Err(ArtifactError::BadDigest { .. })));
-        assert!(store.local_path("XYZ").is_none());
+        assert!(matches!(store.local_file("XYZ").await, Err(ArtifactError::BadDigest { .. })));
     }
 
     #[test]

@@ -11,6 +11,21 @@ use serde::{Deserialize, Serialize};
 use tokio::net::TcpListener;
 use tokio_rustls::TlsAcceptor;
 
+/// Installs ring as the process's rustls crypto provider (once; later calls do nothing). Every
+/// TLS user in the process shares it: the HTTP clients ([`http_client`], the object store's S3
+/// client), the REST server and tonic.
+pub fn install_crypto() {
+    // Err means a provider is installed already (this one, by an earlier call): nothing to do.
+    let _ = rustls::crypto::ring::default_provider().install_default();
+}
+
+/// A builder of the HTTP client every depthmill program uses (the CLI, the benches, the tests):
+/// reqwest with rustls on ring, which [`install_crypto`] makes the process's provider first.
+pub fn http_client() -> reqwest::ClientBuilder {
+    install_crypto();
+    reqwest::Client::builder()
+}
+
 /// `[tls]` of a server's configuration: PEM files.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]

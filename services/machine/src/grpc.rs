@@ -14,7 +14,7 @@ use std::pin::Pin;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 
-use depthmill_common::artifacts::{ArtifactError, ArtifactStore, LocalStore};
+use depthmill_common::artifacts::{ArtifactError, ArtifactStore, ObjectArtifactStore};
 use depthmill_common::stage::StageRegistry;
 use depthmill_geometry::{HeightMap, PngDepth};
 use depthmill_proto::ErrorCode;
@@ -67,14 +67,14 @@ struct MachineState {
 
 struct MachineServiceImpl {
     running: StageRegistry,
-    store: Arc<LocalStore>,
+    store: Arc<ObjectArtifactStore>,
     shared: Arc<Shared>,
     /// The machine itself: one program at a time, the others wait their turn in arrival order
     /// (tokio's mutex is fair).
     machine: Arc<tokio::sync::Mutex<()>>,
 }
 
-pub(crate) fn routes(store: LocalStore) -> tonic::service::Routes {
+pub(crate) fn routes(store: ObjectArtifactStore) -> tonic::service::Routes {
     let shared = Arc::new(Shared::default());
     if let Ok(mut s) = shared.state.lock() {
         s.state = "idle";
@@ -217,9 +217,7 @@ impl MachineServiceImpl {
             .await
             .map_err(artifact_status)?
             .ok_or_else(|| ErrorCode::InvalidArgument.status(format!("reference: no artifact {sha}")))?;
-        let path = self.store.local_path(sha).ok_or_else(|| {
-            ErrorCode::Internal.status("the artifact store has no local file for the reference")
-        })?;
+        let path = self.store.local_file(sha).await.map_err(artifact_status)?;
         let name = format!("reference {} ({})", &sha[..12.min(sha.len())], stat.media_type);
         tokio::task::spawn_blocking(move || {
             let file = std::fs::File::open(&path)
@@ -274,9 +272,7 @@ impl pb::machine_service_server::MachineService for MachineServiceImpl {
             return Err(ErrorCode::InvalidArgument
                 .status(format!("gcode: {} bytes exceeds the limit of {MAX_PROGRAM_BYTES}", stat.size)));
         }
-        let path = self.store.local_path(&gcode.sha256).ok_or_else(|| {
-            ErrorCode::Internal.status("the artifact store has no local file for the program")
-        })?;
+        let path = self.store.local_file(&gcode.sha256).await.map_err(artifact_status)?;
         // The target(s): one map, or one per face with the A angle from its face metadata (the
         // CAM service's rule for several faces).
         let mut targets: Vec<(f64, HeightMap)> = Vec::new();

@@ -29,6 +29,10 @@ pub struct Config {
     /// Folder of the artifact store shared with the orchestrator.
     #[serde(default = "default_artifacts_dir")]
     pub artifacts_dir: PathBuf,
+    /// The artifacts in an object store (`s3://...`) instead of `artifacts_dir`, which then
+    /// holds local copies of the blobs this service reads from files.
+    #[serde(default)]
+    pub artifact_store: Option<depthmill_common::artifacts::ObjectStoreConfig>,
     /// Shared secret the orchestrator sends with every call (`authorization: Bearer <token>`);
     /// calls without it are refused (UNAUTHENTICATED). Unset: no check (loopback or a private
     /// network). Health, reflection and `/metrics` stay open.
@@ -46,7 +50,12 @@ fn default_artifacts_dir() -> PathBuf {
 
 impl Default for Config {
     fn default() -> Self {
-        Self { grpc_addr: default_grpc_addr(), artifacts_dir: default_artifacts_dir(), service_token: None }
+        Self {
+            grpc_addr: default_grpc_addr(),
+            artifacts_dir: default_artifacts_dir(),
+            artifact_store: None,
+            service_token: None,
+        }
     }
 }
 
@@ -61,7 +70,9 @@ pub async fn serve(
 ) -> Result<(), MachineServeError> {
     let options =
         depthmill_common::grpc::GrpcOptions { token: config.service_token.clone(), ..Default::default() };
-    let store = depthmill_common::artifacts::LocalStore::open(&config.artifacts_dir).await?;
+    let store =
+        depthmill_common::artifacts::open_store(&config.artifacts_dir, config.artifact_store.as_ref())
+            .await?;
     Ok(depthmill_common::grpc::serve_grpc_with(
         listener,
         grpc::routes(store),

@@ -206,8 +206,10 @@ fn main() -> anyhow::Result<()> {
         (None, None) => "SQLite",
     };
     rt.block_on(async move {
-        let client =
-            reqwest::Client::builder().pool_max_idle_per_host(args.connections).tcp_nodelay(true).build()?;
+        let client = depthmill_common::tls::http_client()
+            .pool_max_idle_per_host(args.connections)
+            .tcp_nodelay(true)
+            .build()?;
         let mut sha = String::new();
         for url in &urls {
             for _ in 0..200 {

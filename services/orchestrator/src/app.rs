@@ -76,14 +76,25 @@ impl From<ArtifactError> for ApiError {
             ArtifactError::UnsupportedMediaType { .. } | ArtifactError::ContentMismatch { .. } => {
                 ErrorCode::UnsupportedMediaType
             }
-            full @ ArtifactError::Io { .. } if full.is_out_of_space() => {
+            full if full.is_out_of_space() => {
                 tracing::error!(error = %depthmill_common::ErrorChain(full), "artifact store out of space");
                 return ApiError::new(
                     ErrorCode::Unavailable,
                     "the artifact store is out of space; nothing was stored, retry once space is freed",
                 );
             }
-            ArtifactError::Io { .. } | ArtifactError::Metadata { .. } => {
+            down if down.is_unavailable() => {
+                tracing::error!(error = %depthmill_common::ErrorChain(down), "artifact store unavailable");
+                return ApiError::new(
+                    ErrorCode::Unavailable,
+                    "the artifact store does not answer; nothing was stored, retry later",
+                );
+            }
+            ArtifactError::Io { .. }
+            | ArtifactError::Metadata { .. }
+            | ArtifactError::Store { .. }
+            | ArtifactError::Config { .. }
+            | ArtifactError::Corrupt { .. } => {
                 tracing::error!(error = %depthmill_common::ErrorChain(&e), "artifact store failed");
                 return ApiError::new(ErrorCode::Internal, "the artifact store failed; see the server log");
             }
@@ -199,7 +210,7 @@ impl App {
         if spec.input.kind != crate::domain::spec::InputKind::Mesh {
             return Ok(None);
         }
-        let Some(path) = self.artifacts.local_path(&spec.input.artifact) else { return Ok(None) };
+        let path = self.artifacts.local_file(&spec.input.artifact).await?;
         let units = match spec.input.units {
             None | Some(InputUnits::Auto) => Units::Auto,
             Some(InputUnits::Mm) => Units::Given(LengthUnit::Millimetre),

@@ -37,7 +37,7 @@ use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use depthmill_common::artifacts::{ArtifactError, LocalStore};
+use depthmill_common::artifacts::{ArtifactError, ObjectStoreConfig};
 use metrics_exporter_prometheus::PrometheusHandle;
 use serde::Deserialize;
 use tokio::net::TcpListener;
@@ -60,6 +60,10 @@ pub struct Config {
     /// The artifact folder, shared with the stage services and the other replicas. Unset:
     /// `<data_dir>/artifacts`.
     pub artifacts_dir: Option<PathBuf>,
+    /// The artifacts in an object store (`[artifact_store] url = "s3://BUCKET/PREFIX"`, shared by
+    /// every replica and stage service) instead of `artifacts_dir`, which then holds local copies
+    /// of the blobs read from files.
+    pub artifact_store: Option<ObjectStoreConfig>,
     /// The job database: `sqlite://PATH` or `postgres://USER@HOST:PORT/DB`. Unset: the SQLite
     /// file `<data_dir>/jobs.sqlite`. Replicas sharing one job queue share one PostgreSQL database.
     pub database_url: Option<String>,
@@ -81,6 +85,7 @@ impl Default for Config {
             grpc_addr: SocketAddr::from(([127, 0, 0, 1], 50050)),
             data_dir: PathBuf::from("data"),
             artifacts_dir: None,
+            artifact_store: None,
             database_url: None,
             max_upload_bytes: 4 << 30,
             services: Endpoints::default(),
@@ -163,7 +168,9 @@ pub async fn serve(
     let store = store::open(&database_url).await?;
     tracing::info!(database = %store::redact(&database_url), node = %owner, "job store open");
     let artifacts_dir = config.artifacts_dir.clone().unwrap_or_else(|| data_dir.join("artifacts"));
-    let artifacts = LocalStore::open(artifacts_dir).await?;
+    let artifacts =
+        depthmill_common::artifacts::open_store(&artifacts_dir, config.artifact_store.as_ref()).await?;
+    tracing::info!(artifacts = %artifacts.location(), "artifact store open");
     let stages = Arc::new(stages::GrpcStages::new(&config.services)?);
     let app = app::App {
         store: store.clone(),

@@ -6,7 +6,7 @@ use std::io::BufReader;
 use std::pin::Pin;
 use std::sync::Arc;
 
-use depthmill_common::artifacts::{ArtifactError, ArtifactStore, LocalStore};
+use depthmill_common::artifacts::{ArtifactError, ArtifactStore, ObjectArtifactStore};
 use depthmill_common::stage::StageRegistry;
 use depthmill_geometry::{HeightMap, PngDepth};
 use depthmill_proto::ErrorCode;
@@ -30,11 +30,11 @@ pub(crate) const SERVICE_NAME: &str = "depthmill.reconstruction.v1.Reconstructio
 
 struct ReconstructionServiceImpl {
     running: StageRegistry,
-    store: Arc<LocalStore>,
+    store: Arc<ObjectArtifactStore>,
     limits: ReadLimits,
 }
 
-pub(crate) fn routes(store: LocalStore, limits: ReadLimits) -> tonic::service::Routes {
+pub(crate) fn routes(store: ObjectArtifactStore, limits: ReadLimits) -> tonic::service::Routes {
     tonic::service::Routes::new(pb::reconstruction_service_server::ReconstructionServiceServer::new(
         ReconstructionServiceImpl { running: StageRegistry::default(), store: Arc::new(store), limits },
     ))
@@ -216,14 +216,15 @@ impl pb::reconstruction_service_server::ReconstructionService for Reconstruction
         let stat = self.store.stat(&input.sha256).await.map_err(artifact_status)?.ok_or_else(|| {
             ErrorCode::InvalidArgument.status(format!("input: no artifact {}", input.sha256))
         })?;
-        let path = self.store.local_path(&input.sha256).ok_or_else(|| {
-            ErrorCode::Internal.status("the artifact store has no local file for the input")
-        })?;
+        let path = self.store.local_file(&input.sha256).await.map_err(artifact_status)?;
         let name = format!("input {} ({})", &input.sha256[..12.min(input.sha256.len())], stat.media_type);
         // The scanner's free-space evidence, when the job's scan gave one.
         let free_path = match &req.free_space {
-            Some(f) => Some(self.store.local_path(&f.sha256).ok_or_else(|| {
-                ErrorCode::InvalidArgument.status(format!("free_space: no artifact {}", f.sha256))
+            Some(f) => Some(self.store.local_file(&f.sha256).await.map_err(|e| match e {
+                ArtifactError::NotFound { .. } => {
+                    ErrorCode::InvalidArgument.status(format!("free_space: no artifact {}", f.sha256))
+                }
+                other => artifact_status(other),
             })?),
             None => None,
         };

@@ -30,6 +30,10 @@ pub struct Config {
     /// Folder of the artifact store shared with the orchestrator.
     #[serde(default = "default_artifacts_dir")]
     pub artifacts_dir: PathBuf,
+    /// The artifacts in an object store (`s3://...`) instead of `artifacts_dir`, which then
+    /// holds local copies of the blobs this service reads from files.
+    #[serde(default)]
+    pub artifact_store: Option<depthmill_common::artifacts::ObjectStoreConfig>,
     /// Largest input accepted, in points (clouds) or vertices.
     #[serde(default = "default_max_points")]
     pub max_points: u64,
@@ -64,6 +68,7 @@ impl Default for Config {
         Self {
             grpc_addr: default_grpc_addr(),
             artifacts_dir: default_artifacts_dir(),
+            artifact_store: None,
             max_points: default_max_points(),
             max_triangles: default_max_triangles(),
             service_token: None,
@@ -82,7 +87,9 @@ pub async fn serve(
 ) -> Result<(), ReconServeError> {
     let options =
         depthmill_common::grpc::GrpcOptions { token: config.service_token.clone(), ..Default::default() };
-    let store = depthmill_common::artifacts::LocalStore::open(&config.artifacts_dir).await?;
+    let store =
+        depthmill_common::artifacts::open_store(&config.artifacts_dir, config.artifact_store.as_ref())
+            .await?;
     let limits = depthmill_geometry::formats::ReadLimits {
         max_points: config.max_points,
         max_triangles: config.max_triangles,

@@ -6,7 +6,7 @@ use std::io::BufReader;
 use std::pin::Pin;
 use std::sync::Arc;
 
-use depthmill_common::artifacts::{ArtifactStore, LocalStore};
+use depthmill_common::artifacts::{ArtifactStore, ObjectArtifactStore};
 use depthmill_common::stage::StageRegistry;
 use depthmill_geometry::Mesh;
 use depthmill_geometry::UnitsDecision;
@@ -27,7 +27,7 @@ pub(crate) const SERVICE_NAME: &str = "depthmill.scanning.v1.ScanningService";
 
 /// What the scanning service needs to run scans.
 pub(crate) struct Cell {
-    pub store: Arc<LocalStore>,
+    pub store: Arc<ObjectArtifactStore>,
     pub limits: ReadLimits,
     /// Where the rotary table's controller listens.
     pub table_addr: String,
@@ -179,10 +179,7 @@ async fn read_mesh(cell: &Cell, sha: &str, units: i32) -> Result<(Mesh, Option<U
         .await
         .map_err(depthmill_common::artifacts::grpc_status)?
         .ok_or_else(|| ErrorCode::InvalidArgument.status(format!("mesh: no artifact {sha}")))?;
-    let path = cell
-        .store
-        .local_path(sha)
-        .ok_or_else(|| ErrorCode::Internal.status("the artifact store has no local file for the mesh"))?;
+    let path = cell.store.local_file(sha).await.map_err(depthmill_common::artifacts::grpc_status)?;
     let name = format!("mesh {} ({})", &sha[..12.min(sha.len())], stat.media_type);
     let limits = cell.limits.clone();
     tokio::task::spawn_blocking(move || {

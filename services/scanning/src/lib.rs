@@ -38,6 +38,10 @@ pub struct Config {
     /// Folder of the artifact store shared with the orchestrator.
     #[serde(default = "default_artifacts_dir")]
     pub artifacts_dir: PathBuf,
+    /// The artifacts in an object store (`s3://...`) instead of `artifacts_dir`, which then
+    /// holds local copies of the blobs this service reads from files.
+    #[serde(default)]
+    pub artifact_store: Option<depthmill_common::artifacts::ObjectStoreConfig>,
     /// Address (`host:port`) of the rotary table's controller. Unset: the service runs a
     /// simulated table on a loopback port of its own and drives it over the same protocol.
     #[serde(default)]
@@ -69,6 +73,7 @@ impl Default for Config {
         Self {
             grpc_addr: default_grpc_addr(),
             artifacts_dir: default_artifacts_dir(),
+            artifact_store: None,
             table_addr: None,
             max_triangles: default_max_triangles(),
             service_token: None,
@@ -99,7 +104,9 @@ pub async fn serve(
 ) -> Result<(), ScanServeError> {
     let options =
         depthmill_common::grpc::GrpcOptions { token: config.service_token.clone(), ..Default::default() };
-    let store = depthmill_common::artifacts::LocalStore::open(&config.artifacts_dir).await?;
+    let store =
+        depthmill_common::artifacts::open_store(&config.artifacts_dir, config.artifact_store.as_ref())
+            .await?;
     let stop_table = tokio_util::sync::CancellationToken::new();
     let table_addr = match &config.table_addr {
         Some(a) => a.clone(),
