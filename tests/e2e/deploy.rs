@@ -759,7 +759,17 @@ fn the_scale_out_compose_file_runs_replicas_on_postgres_and_balanced_instances()
     };
     ensure!(exists("postgres"), "no postgres service");
     let mut data_dirs = BTreeSet::new();
-    let mut artifact_dirs = BTreeSet::new();
+    // Every replica and stage service on one object store, its endpoint a service of the stack.
+    let mut stores = BTreeSet::new();
+    let mut store_of = |who: &str, store: Option<depthmill_common::artifacts::ObjectStoreConfig>| {
+        let store = store.ok_or_else(|| anyhow!("{who} has no artifact_store"))?;
+        ensure!(store.url.starts_with("s3://"), "{who}: artifact store {}", store.url);
+        let endpoint = store.options.get("endpoint").cloned().unwrap_or_default();
+        let host = endpoint.trim_start_matches("http://").split(':').next().unwrap_or_default().to_string();
+        ensure!(exists(&host), "{who}: store endpoint {endpoint} names no compose service");
+        stores.insert(format!("{store:?}"));
+        anyhow::Ok(())
+    };
     for replica in ["orchestrator", "orchestrator-2"] {
         let mut check = || -> anyhow::Result<()> {
             let entry = at(&base, &format!("services.{replica}"))
@@ -777,7 +787,7 @@ fn the_scale_out_compose_file_runs_replicas_on_postgres_and_balanced_instances()
                 "{} is another replica's data folder",
                 c.data_dir.display()
             );
-            artifact_dirs.insert(c.artifacts_dir.clone().ok_or_else(|| anyhow!("no shared artifacts_dir"))?);
+            store_of(replica, c.artifact_store.clone())?;
             let machines: Vec<&str> = c.services.machine.split(',').map(str::trim).collect();
             ensure!(machines.len() == 2, "machine instances {machines:?}");
             for m in machines {
@@ -789,11 +799,31 @@ fn the_scale_out_compose_file_runs_replicas_on_postgres_and_balanced_instances()
         };
         check().with_context(|| format!("deploy/compose.scale-out.yml: {replica}"))?;
     }
-    let machine2: depthmill_machine::Config = load_with_env(None, "DEPTHMILL_MACHINE", env_of("machine-2"))?;
-    artifact_dirs.insert(machine2.artifacts_dir);
-    ensure!(
-        artifact_dirs.len() == 1,
-        "the replicas and the machines share one artifact folder: {artifact_dirs:?}"
-    );
+    store_of(
+        "scanning",
+        load_with_env::<depthmill_scanning::Config>(None, "DEPTHMILL_SCANNING", env_of("scanning"))?
+            .artifact_store,
+    )?;
+    store_of(
+        "reconstruction",
+        load_with_env::<depthmill_reconstruction::Config>(
+            None,
+            "DEPTHMILL_RECONSTRUCTION",
+            env_of("reconstruction"),
+        )?
+        .artifact_store,
+    )?;
+    store_of(
+        "cam",
+        load_with_env::<depthmill_cam::Config>(None, "DEPTHMILL_CAM", env_of("cam"))?.artifact_store,
+    )?;
+    for m in ["machine", "machine-2"] {
+        store_of(
+            m,
+            load_with_env::<depthmill_machine::Config>(None, "DEPTHMILL_MACHINE", env_of(m))?.artifact_store,
+        )?;
+    }
+    ensure!(stores.len() == 1, "every service on one artifact store: {stores:?}");
+    ensure!(exists("minio") && exists("minio-bucket"), "no S3 store in the stack");
     Ok(())
 }

@@ -267,8 +267,12 @@ async fn drive(base: &str, part: Part, args: &DemoArgs, out: &Path) -> anyhow::R
         }
     }
     let report = tokio::task::spawn_blocking(move || {
-        depthmill_report::render(&depthmill_report::ReportInput { job: &done, artifacts: &bytes_of })
-            .map(|r| (r, done))
+        depthmill_report::render(&depthmill_report::ReportInput {
+            job: &done,
+            artifacts: &bytes_of,
+            digests: &depthmill_report::digest::Digests::NONE,
+        })
+        .map(|r| (r, done))
     })
     .await??;
     let (report, done) = report;

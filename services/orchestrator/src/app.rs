@@ -268,30 +268,68 @@ impl App {
         job
     }
 
-    /// The job's HTML report as it stands now (any status): the job and the bytes of each of its
-    /// artifacts (up to [`REPORT_ARTIFACT_LIMIT`] each; larger ones are left out with a note)
-    /// rendered by [`depthmill_report::render`] on a blocking thread.
+    /// The job's HTML report as it stands now (any status), rendered by
+    /// [`depthmill_report::render`] on a blocking thread. The artifacts that grow with the job
+    /// (the scanned cloud, the program) are streamed from the store into bounded digests
+    /// ([`depthmill_report::digest`]), so memory stays flat in their size; the others (maps,
+    /// JSON reports, the mesh) are read whole, up to [`REPORT_ARTIFACT_LIMIT`] each. An artifact
+    /// that cannot be read is left out, and its section says so.
     pub async fn render_report(&self, id: &str) -> Result<depthmill_report::ReportOutput, ApiError> {
+        use depthmill_report::digest::{self, Reading};
         let job = self.get_job(id).await?;
         let mut artifacts = std::collections::BTreeMap::new();
+        let mut digests = digest::Digests::default();
         for (name, aref) in &job.artifacts {
-            // The report and its summary are outputs of this, not inputs.
-            if name == "report" || name == "report_json" {
-                continue;
-            }
-            match self.artifacts.read_all(&aref.sha256, REPORT_ARTIFACT_LIMIT).await {
-                Ok(bytes) => {
-                    artifacts.insert(name.clone(), bytes);
-                }
-                Err(e) => {
-                    tracing::warn!(job = id, artifact = name.as_str(), error = %e, "artifact left out of the report")
-                }
+            let reading = digest::reading(name);
+            let read = match reading {
+                Reading::Unused => continue,
+                Reading::Bytes => self
+                    .artifacts
+                    .read_all(&aref.sha256, REPORT_ARTIFACT_LIMIT)
+                    .await
+                    .map(|bytes| {
+                        artifacts.insert(name.clone(), bytes);
+                    })
+                    .map_err(|e| e.to_string()),
+                Reading::Cloud | Reading::Program => match self.artifacts.open(&aref.sha256).await {
+                    Err(e) => Err(e.to_string()),
+                    Ok((stored, reader)) => {
+                        let name = name.clone();
+                        let streamed = tokio::task::spawn_blocking(move || {
+                            let bridge = tokio_util::io::SyncIoBridge::new(reader);
+                            let r = std::io::BufReader::with_capacity(1 << 20, bridge);
+                            if reading == Reading::Cloud {
+                                digest::cloud(r, &name, Some(stored.size)).map(|c| (name, Some(c), None))
+                            } else {
+                                digest::program(r).map(|p| (name, None, Some(p))).map_err(|e| e.to_string())
+                            }
+                        })
+                        .await
+                        .map_err(|e| format!("reading failed: {e}"))
+                        .and_then(|r| r);
+                        streamed.map(|(name, cloud, program)| {
+                            if let Some(c) = cloud {
+                                digests.clouds.insert(name.clone(), c);
+                            }
+                            if let Some(p) = program {
+                                digests.programs.insert(name, p);
+                            }
+                        })
+                    }
+                },
+            };
+            if let Err(e) = read {
+                tracing::warn!(job = id, artifact = name.as_str(), error = %e, "artifact left out of the report");
             }
         }
         let value = serde_json::to_value(&job)
             .map_err(|e| ApiError::new(ErrorCode::Internal, format!("encoding the job: {e}")))?;
         tokio::task::spawn_blocking(move || {
-            depthmill_report::render(&depthmill_report::ReportInput { job: &value, artifacts: &artifacts })
+            depthmill_report::render(&depthmill_report::ReportInput {
+                job: &value,
+                artifacts: &artifacts,
+                digests: &digests,
+            })
         })
         .await
         .map_err(|e| ApiError::new(ErrorCode::Internal, format!("rendering the report failed: {e}")))?

@@ -9,16 +9,14 @@
 use std::io::{BufReader, Cursor};
 
 use depthmill_geometry::PointCloud;
-use depthmill_geometry::formats::{ReadLimits, read_any_from};
 
 use super::raster::{ColorMap, RgbImage, VIRIDIS};
 
-/// Reads a stored cloud (XYZ, PLY) or mesh (STL, PLY with faces: its vertices) from its bytes.
-pub fn read_cloud(bytes: &[u8], name: &str) -> Result<PointCloud, String> {
+/// Reads a stored cloud (XYZ, PLY) or mesh (STL, PLY with faces: its vertices) from its bytes,
+/// keeping at most [`crate::digest::CLOUD_SAMPLE`] points (see [`crate::digest::cloud`]).
+pub fn read_cloud(bytes: &[u8], name: &str) -> Result<crate::digest::SampledCloud, String> {
     let r = BufReader::with_capacity(1 << 20, Cursor::new(bytes));
-    read_any_from(r, name, Some(bytes.len() as u64), &ReadLimits::default())
-        .map(|(g, _)| g.into_cloud())
-        .map_err(|e| e.to_string())
+    crate::digest::cloud(r, name, Some(bytes.len() as u64))
 }
 
 /// One rendered view and the extent it shows.

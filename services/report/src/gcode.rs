@@ -124,23 +124,139 @@ struct State {
 /// Parses `text` for drawing (see the module documentation). Never fails: what it cannot read it
 /// skips, counting the first few problems in [`Program::warnings`].
 pub fn parse(text: &str) -> Program {
-    let mut p = Program { faces: vec![None], feed_extent: vec![None], ..Program::default() };
-    let mut st = State {
-        pos: [None; 3],
-        motion: 0,
-        inches: false,
-        incremental: false,
-        ij_absolute: false,
-        plane_xy: true,
-        op: None,
-        face: 0,
-    };
-    let mut seen_face_comment = false;
-    for (ln, raw) in text.lines().enumerate() {
+    let mut parser = Parser::new();
+    for line in text.lines() {
+        parser.line(line);
+    }
+    parser.finish()
+}
+
+/// Parses a program read line by line from `r` (see [`parse`]), in memory flat in the program's
+/// length: at most [`MAX_SEGS`] pieces are kept (see [`Parser`]). Invalid UTF-8 is read lossily.
+pub fn parse_reader<R: std::io::BufRead>(mut r: R) -> std::io::Result<Program> {
+    let mut parser = Parser::new();
+    let mut buf = Vec::with_capacity(256);
+    loop {
+        buf.clear();
+        // A line longer than any program's is cut (and its rest read as further lines).
+        let n = std::io::BufRead::read_until(&mut std::io::Read::take(&mut r, 1 << 16), b'\n', &mut buf)?;
+        if n == 0 {
+            break;
+        }
+        let text = String::from_utf8_lossy(&buf);
+        parser.line(text.trim_end_matches(['\n', '\r']));
+    }
+    Ok(parser.finish())
+}
+
+/// Most drawing pieces a [`Parser`] keeps. Past it, neighbouring pieces of one operation that
+/// continue each other are joined where the joint lies within a tolerance of the joined chord
+/// (1/4000 of the drawing's extent, a fraction of a pixel of the report's pictures, doubled each
+/// time the pieces fill up again), so a program of any length is drawn from bounded memory.
+pub const MAX_SEGS: usize = 1 << 20;
+
+/// An incremental [`parse`]: feed lines, then [`finish`](Parser::finish).
+pub struct Parser {
+    p: Program,
+    st: State,
+    seen_face_comment: bool,
+    lines: usize,
+    max_segs: usize,
+    /// Join tolerance, mm (0 until the pieces first fill up).
+    tol: f64,
+    /// Pieces at which the next join pass runs.
+    next_join: usize,
+}
+
+impl Default for Parser {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl Parser {
+    pub fn new() -> Self {
+        Self::with_max_segs(MAX_SEGS)
+    }
+
+    /// A parser keeping at most about `max_segs` pieces (tests use small ones).
+    pub fn with_max_segs(max_segs: usize) -> Self {
+        let max_segs = max_segs.max(16);
+        Parser {
+            p: Program { faces: vec![None], feed_extent: vec![None], ..Program::default() },
+            st: State {
+                pos: [None; 3],
+                motion: 0,
+                inches: false,
+                incremental: false,
+                ij_absolute: false,
+                plane_xy: true,
+                op: None,
+                face: 0,
+            },
+            seen_face_comment: false,
+            lines: 0,
+            max_segs,
+            tol: 0.0,
+            next_join: max_segs,
+        }
+    }
+
+    /// The program read so far.
+    pub fn finish(self) -> Program {
+        self.p
+    }
+
+    /// Joins neighbouring pieces (see [`MAX_SEGS`]) in place.
+    fn join(&mut self) {
+        let segs = &mut self.p.segs;
+        let (mut lo, mut hi) = ([f32::INFINITY; 2], [f32::NEG_INFINITY; 2]);
+        for s in segs.iter() {
+            for q in [s.a, s.b] {
+                for k in 0..2 {
+                    lo[k] = lo[k].min(q[k]);
+                    hi[k] = hi[k].max(q[k]);
+                }
+            }
+        }
+        let diag = f64::from((hi[0] - lo[0]).hypot(hi[1] - lo[1])).max(1e-3);
+        self.tol = if self.tol == 0.0 { diag / 4000.0 } else { self.tol * 2.0 };
+        let tol = self.tol;
+        let before = segs.len();
+        let (mut w, mut r) = (0, 0);
+        while r < segs.len() {
+            let s = segs[r];
+            if let Some(n) = segs.get(r + 1).copied()
+                && n.op == s.op
+                && n.rapid == s.rapid
+                && n.a == s.b
+                && off_chord(s.a, s.b, n.b) <= tol
+            {
+                segs[w] = Seg { b: n.b, ..s };
+                r += 2;
+            } else {
+                segs[w] = s;
+                r += 1;
+            }
+            w += 1;
+        }
+        segs.truncate(w);
+        // A pass that joined little (pieces that do not continue each other) waits for more.
+        self.next_join = if w * 4 > before * 3 { w + self.max_segs / 2 } else { self.max_segs };
+    }
+
+    /// Reads one line (block) of the program.
+    pub fn line(&mut self, raw: &str) {
+        if self.p.segs.len() >= self.next_join {
+            self.join();
+        }
+        let Parser { p, st, seen_face_comment, lines, .. } = self;
+        let ln = *lines;
+        *lines += 1;
         p.blocks += 1;
         let line = raw.trim();
         if line.is_empty() || line.starts_with('%') || line.starts_with('/') {
-            continue;
+            return;
         }
         // Comments.
         let mut code = String::with_capacity(line.len());
@@ -161,14 +277,14 @@ pub fn parse(text: &str) -> Program {
         }
         for c in &comments {
             if let Some(a) = face_header(c) {
-                if seen_face_comment {
+                if *seen_face_comment {
                     p.faces.push(Some(a));
                     p.feed_extent.push(None);
                     st.face = p.faces.len() - 1;
                 } else if let Some(f) = p.faces.first_mut() {
                     *f = Some(a);
                 }
-                seen_face_comment = true;
+                *seen_face_comment = true;
                 st.op = None;
                 // The part turned: where the tool was is a point of the last face's frame, and a
                 // line from it would cross this face's picture (the move there is a retracted
@@ -254,7 +370,7 @@ pub fn parse(text: &str) -> Program {
         }
         let axes = [word('X'), word('Y'), word('Z')];
         if skip_motion || axes.iter().all(Option::is_none) {
-            continue;
+            return;
         }
         if machine_coords {
             // Machine coordinates (G53) or a reference return (G28/G30): the named axes end
@@ -264,7 +380,7 @@ pub fn parse(text: &str) -> Program {
                     st.pos[k] = None;
                 }
             }
-            continue;
+            return;
         }
         let unit = if st.inches { 25.4 } else { 1.0 };
         let mut to = st.pos;
@@ -296,7 +412,7 @@ pub fn parse(text: &str) -> Program {
             let z1 = to[2].unwrap_or(z0);
             pts.push([x0, y0, z0]);
             if (st.motion == 2 || st.motion == 3) && st.plane_xy {
-                arc_points(&mut pts, [x0, y0, z0], [x1, y1, z1], &words, &st, unit);
+                arc_points(&mut pts, [x0, y0, z0], [x1, y1, z1], &words, st, unit);
             }
             pts.push([x1, y1, z1]);
         }
@@ -332,7 +448,15 @@ pub fn parse(text: &str) -> Program {
         }
         st.pos = to;
     }
-    p
+}
+
+/// Distance of `m` from the segment `a`-`b`, mm.
+fn off_chord(a: [f32; 2], m: [f32; 2], b: [f32; 2]) -> f64 {
+    let (a, m, b) = (a.map(f64::from), m.map(f64::from), b.map(f64::from));
+    let (dx, dy) = (b[0] - a[0], b[1] - a[1]);
+    let len2 = dx * dx + dy * dy;
+    let t = if len2 > 0.0 { (((m[0] - a[0]) * dx + (m[1] - a[1]) * dy) / len2).clamp(0.0, 1.0) } else { 0.0 };
+    (m[0] - a[0] - t * dx).hypot(m[1] - a[1] - t * dy)
 }
 
 /// Intermediate points of a G2/G3 arc in XY from `a` to `b` (ends excluded), centre from I/J or R.

@@ -59,6 +59,7 @@
 
 pub mod charts;
 pub mod cloud;
+pub mod digest;
 pub mod gcode;
 mod html;
 pub mod maps;
@@ -87,6 +88,9 @@ pub struct ReportInput<'a> {
     pub job: &'a Value,
     /// Artifact kind (the keys of `job.artifacts`) -> its bytes.
     pub artifacts: &'a BTreeMap<String, Vec<u8>>,
+    /// Artifacts read by streaming instead ([`digest`]; [`digest::Digests::NONE`] when every
+    /// artifact comes as bytes). A kind here is not looked for in `artifacts`.
+    pub digests: &'a digest::Digests,
 }
 
 /// The rendered report.
@@ -170,6 +174,7 @@ pub fn render(input: &ReportInput<'_>) -> Result<ReportOutput, ReportError> {
 struct Ctx<'a> {
     job: &'a Value,
     artifacts: &'a BTreeMap<String, Vec<u8>>,
+    digests: &'a digest::Digests,
     files: Vec<(String, Vec<u8>)>,
     figures: BTreeMap<String, f64>,
     fallback: Option<ImageMapping>,
@@ -191,6 +196,7 @@ impl<'a> Ctx<'a> {
         Ctx {
             job: input.job,
             artifacts: input.artifacts,
+            digests: input.digests,
             files: Vec::new(),
             figures: BTreeMap::new(),
             fallback,

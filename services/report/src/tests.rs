@@ -293,7 +293,7 @@ fn data_uris(html: &str) -> Vec<(String, Vec<u8>)> {
 }
 
 fn render_ok(job: &Value, artifacts: &BTreeMap<String, Vec<u8>>) -> ReportOutput {
-    render(&ReportInput { job, artifacts }).expect("render")
+    render(&ReportInput { job, artifacts, digests: &crate::digest::Digests::NONE }).expect("render")
 }
 
 const SECTIONS: [&str; 10] = [
@@ -592,7 +592,13 @@ fn text_from_the_job_is_escaped() {
 #[test]
 fn a_job_that_is_not_an_object_is_an_error() {
     let arts = BTreeMap::new();
-    let e = render(&ReportInput { job: &json!([1, 2]), artifacts: &arts }).err().expect("error");
+    let e = render(&ReportInput {
+        job: &json!([1, 2]),
+        artifacts: &arts,
+        digests: &crate::digest::Digests::NONE,
+    })
+    .err()
+    .expect("error");
     assert!(matches!(e, ReportError::JobNotAnObject { found: "an array" }), "{e}");
 }
 
@@ -885,7 +891,7 @@ fn timing_realistic_job() {
     let cloud = cloud::read_cloud(&arts["point_cloud"], "point_cloud").expect("cloud");
     let read = t.elapsed();
     let t = std::time::Instant::now();
-    let _ = cloud::views(&cloud);
+    let _ = cloud::views(&cloud.cloud);
     let views = t.elapsed();
     eprintln!(
         "render: {total:?} total (cloud read {read:?}, cloud views {views:?}); html {:.1} MB, {} files, {} G-code bytes",
@@ -921,4 +927,91 @@ fn the_wall_zone_is_the_cells_near_steep_steps_and_the_outline() {
         }
     }
     assert!(!walls[90], "cells off the part are not counted at all");
+}
+
+/// The report from streamed digests (what the orchestrator renders) is the report from bytes,
+/// picture for picture, for artifacts under the digests' bounds.
+#[test]
+fn a_report_from_streamed_artifacts_equals_the_one_from_bytes() {
+    let artifacts = full_artifacts();
+    let job = job("streamed", "succeeded", &artifacts);
+    let from_bytes = render_ok(&job, &artifacts);
+    let mut rest = artifacts.clone();
+    let mut digests = crate::digest::Digests::default();
+    for (kind, bytes) in &artifacts {
+        let r = std::io::BufReader::new(&bytes[..]);
+        match crate::digest::reading(kind) {
+            crate::digest::Reading::Cloud => {
+                let c = crate::digest::cloud(r, kind, Some(bytes.len() as u64)).expect("cloud");
+                digests.clouds.insert(kind.clone(), c);
+                rest.remove(kind);
+            }
+            crate::digest::Reading::Program => {
+                digests.programs.insert(kind.clone(), crate::digest::program(r).expect("program"));
+                rest.remove(kind);
+            }
+            crate::digest::Reading::Unused => {
+                rest.remove(kind);
+            }
+            crate::digest::Reading::Bytes => {}
+        }
+    }
+    assert!(!digests.clouds.is_empty() && !digests.programs.is_empty());
+    let streamed = render(&ReportInput { job: &job, artifacts: &rest, digests: &digests }).expect("render");
+    assert_eq!(streamed.html, from_bytes.html);
+    assert_eq!(streamed.figures, from_bytes.figures);
+}
+
+/// A program past the parser's piece budget is drawn from joined pieces: the same operations,
+/// lengths, extents and warnings, at most about the budget of pieces, and every move's end within
+/// the join tolerance of the joined drawing.
+#[test]
+fn a_long_program_is_drawn_from_bounded_pieces_within_tolerance() {
+    // A finishing raster of short moves over a wavy surface, with arcs, two tools and rapids.
+    let mut text = String::from(
+        "%\nG21 G90 G17\n(T1 flat-6: flat D6 mm - roughing-x with flat-6)\nT1 M6\nG0 X0 Y0 Z5\n",
+    );
+    let mut points = Vec::new();
+    for row in 0..40 {
+        let y = f64::from(row) * 0.5;
+        text.push_str(&format!("G0 X0 Y{y:.3}\nG1 Z0 F500\n"));
+        for k in 1..=200 {
+            let x = f64::from(k) * 0.25;
+            let z = (x * 0.3).sin() * 0.2;
+            text.push_str(&format!("G1 X{x:.4} Y{:.4} Z{z:.4}\n", y + 0.02 * (x * 0.7).sin()));
+            points.push([x, y + 0.02 * (x * 0.7).sin()]);
+        }
+        text.push_str("G0 Z5\n");
+    }
+    text.push_str("(T2 ball-6: ball D6 mm - finishing-x with ball-6)\nT2 M6\nG0 X10 Y10\nG1 Z0\nG2 X20 Y10 I5 J0\nM30\n");
+    let exact = gcode::parse(&text);
+    let mut parser = gcode::Parser::with_max_segs(500);
+    for line in text.lines() {
+        parser.line(line);
+    }
+    let joined = parser.finish();
+    assert_eq!(joined.ops, exact.ops);
+    assert_eq!(joined.blocks, exact.blocks);
+    assert_eq!(joined.feed_extent, exact.feed_extent);
+    assert_eq!(joined.warnings, exact.warnings);
+    assert!(exact.segs.len() > 8000, "{}", exact.segs.len());
+    assert!(joined.segs.len() <= 1000, "{} pieces kept", joined.segs.len());
+    // Each original end point lies near the joined pieces of its operation.
+    let extent = 50f64.hypot(20.0);
+    let bound = extent / 4000.0 * 64.0; // the tolerance after at most 6 doublings, summed
+    let dist = |p: [f64; 2], s: &gcode::Seg| {
+        let (a, b) = (s.a.map(f64::from), s.b.map(f64::from));
+        let (dx, dy) = (b[0] - a[0], b[1] - a[1]);
+        let l2 = dx * dx + dy * dy;
+        let t = if l2 > 0.0 { (((p[0] - a[0]) * dx + (p[1] - a[1]) * dy) / l2).clamp(0.0, 1.0) } else { 0.0 };
+        (p[0] - a[0] - t * dx).hypot(p[1] - a[1] - t * dy)
+    };
+    for p in points.iter().step_by(7) {
+        let d = joined.segs.iter().filter(|s| !s.rapid).map(|s| dist(*p, s)).fold(f64::INFINITY, f64::min);
+        assert!(d <= bound, "({}, {}) is {d} mm off the drawing (bound {bound})", p[0], p[1]);
+    }
+    // Streaming from a reader gives what parsing the text gives.
+    let streamed = gcode::parse_reader(std::io::BufReader::new(text.as_bytes())).expect("read");
+    assert_eq!(streamed.segs, exact.segs);
+    assert_eq!(streamed.ops, exact.ops);
 }

@@ -238,7 +238,7 @@ pub fn read_any_from<R: BufRead>(
     size: Option<u64>,
     limits: &ReadLimits,
 ) -> Result<(Geometry, ReadStats)> {
-    read_with(r, name, size, limits, Want::Any)
+    read_with(r, name, size, limits, Want::Any, None)
 }
 
 /// Reads the point cloud or mesh in the file at `path` (see [`read_any_from`]); errors name the
@@ -267,7 +267,7 @@ fn read_path(path: &Path, limits: &ReadLimits, want: Want) -> Result<(Geometry, 
     let name = path.display().to_string();
     let file = File::open(path).map_err(|source| FormatError::Io { file: name.clone(), source })?;
     let size = file.metadata().map_err(|source| FormatError::Io { file: name.clone(), source })?.len();
-    read_with(BufReader::with_capacity(BUF_LEN, file), &name, Some(size), limits, want)
+    read_with(BufReader::with_capacity(BUF_LEN, file), &name, Some(size), limits, want, None)
 }
 
 pub(crate) fn not_a_mesh(name: &str, why: &str) -> FormatError {
@@ -295,12 +295,38 @@ pub(crate) fn check_size(name: &str, size: Option<u64>, limits: &ReadLimits) -> 
     }
 }
 
+/// Reads a point cloud from `r` (XYZ, PLY: a mesh's vertices, STL: its welded vertices) keeping
+/// a uniform sample of at most `keep` points, for a picture of a cloud of any size: XYZ and PLY
+/// are read in one streaming pass in memory flat in the input's size (every `2^k`-th point, `k`
+/// growing as the points arrive); an STL is read whole, then sampled. [`ReadStats::points`] is
+/// the number of points the input holds.
+pub fn sample_cloud_from<R: BufRead>(
+    r: R,
+    name: &str,
+    size: Option<u64>,
+    limits: &ReadLimits,
+    keep: usize,
+) -> Result<(PointCloud, ReadStats)> {
+    read_with(r, name, size, limits, Want::Cloud, Some(keep)).map(|(g, s)| {
+        let mut cloud = g.into_cloud();
+        if cloud.points.len() > keep {
+            // STL: the mesh's vertices, read whole.
+            let stride = cloud.points.len().div_ceil(keep);
+            cloud.points = cloud.points.into_iter().step_by(stride).collect();
+            cloud.intensity = None;
+            cloud.normals = None;
+        }
+        (cloud, s)
+    })
+}
+
 fn read_with<R: BufRead>(
     r: R,
     name: &str,
     size: Option<u64>,
     limits: &ReadLimits,
     want: Want,
+    keep: Option<usize>,
 ) -> Result<(Geometry, ReadStats)> {
     check_size(name, size, limits)?;
     let (format, r) = sniff(r, name, size)?;
@@ -310,10 +336,10 @@ fn read_with<R: BufRead>(
             if want == Want::Mesh {
                 return Err(not_a_mesh(name, "the input is XYZ text, a point cloud"));
             }
-            xyz::read_xyz_src(&mut src, name, limits).map(|(c, s)| (Geometry::Cloud(c), s))
+            xyz::read_xyz_src(&mut src, name, limits, keep).map(|(c, s)| (Geometry::Cloud(c), s))
         }
         InputFormat::PlyAscii | InputFormat::PlyBinaryLe | InputFormat::PlyBinaryBe => {
-            let opts = ply::Options { want, pass: false, force_var: false };
+            let opts = ply::Options { want, pass: false, force_var: false, keep };
             ply::read_ply_src(&mut src, name, size, limits, opts).map(|o| (o.geometry, o.stats))
         }
         InputFormat::StlAscii | InputFormat::StlBinary => {
@@ -600,6 +626,12 @@ pub(crate) struct CloudSink {
     pub(crate) dropped_at: Option<Vec<u64>>,
     /// Points pushed so far, kept or not.
     pub(crate) seen: u64,
+    /// Finite points pushed so far (what the input holds; more than `points` when sampling).
+    accepted: u64,
+    /// Sampling: at most this many points are kept, every `stride_mask + 1`-th finite point (a
+    /// power of two, so the test in [`CloudSink::push`] is a mask, not a division).
+    keep: Option<usize>,
+    stride_mask: u64,
 }
 
 impl CloudSink {
@@ -619,7 +651,41 @@ impl CloudSink {
             dropped: 0,
             dropped_at: track_dropped.then(Vec::new),
             seen: 0,
+            accepted: 0,
+            keep: None,
+            stride_mask: 0,
         }
+    }
+
+    /// Keeps a uniform sample of at most `keep` points (every k-th finite point, k a power of
+    /// two that doubles each time the sample fills up), so memory stays flat whatever the
+    /// input's size. Not for a mesh: its faces index every vertex. (Reserve at most `keep`.)
+    pub(crate) fn sampled(mut self, keep: Option<usize>) -> Self {
+        self.keep = keep.map(|k| k.max(2));
+        self
+    }
+
+    /// Drops every other kept point: the sample is then every `2 * (stride_mask + 1)`-th finite
+    /// point.
+    fn halve(&mut self) {
+        fn odd_out<T: Copy>(v: &mut Vec<T>) {
+            let mut i = 0;
+            v.retain(|_| {
+                i += 1;
+                i % 2 == 1
+            });
+        }
+        odd_out(&mut self.points);
+        if let Some(v) = &mut self.intensity {
+            odd_out(v);
+        }
+        if let Some(v) = &mut self.normals {
+            odd_out(v);
+        }
+        if let Some(v) = &mut self.pass {
+            odd_out(v);
+        }
+        self.stride_mask = self.stride_mask * 2 + 1;
     }
 
     /// Adds one point; the arrays the sink does not have ignore their argument.
@@ -635,6 +701,11 @@ impl CloudSink {
             }
             return;
         }
+        let k = self.accepted;
+        self.accepted += 1;
+        if k & self.stride_mask != 0 {
+            return;
+        }
         self.points.push(Point3::new(p[0], p[1], p[2]));
         if let Some(v) = &mut self.intensity {
             v.push(intensity);
@@ -646,11 +717,14 @@ impl CloudSink {
         if let Some(v) = &mut self.pass {
             v.push(pass);
         }
+        if self.keep.is_some_and(|keep| self.points.len() >= keep) {
+            self.halve();
+        }
     }
 
-    /// Points kept so far.
+    /// Finite points read so far (all kept, unless sampling).
     pub(crate) fn len(&self) -> u64 {
-        self.points.len() as u64
+        self.accepted
     }
 
     /// The cloud and the pass ids.
@@ -875,6 +949,58 @@ mod tests {
             let limits = ReadLimits { max_bytes: 1 << 20, max_points: 1 << 16, max_triangles: 1 << 16 };
             let _ = read_any_from(Cursor::new(input.clone()), "fuzz", size, &limits);
             let _ = read_stl_from(Cursor::new(input), "fuzz", size, &limits);
+        }
+    }
+
+    proptest::proptest! {
+        /// The streaming sample against the obvious reference: every `s`-th finite point for the
+        /// smallest power of two `s` that keeps fewer than `keep`, in XYZ and in every PLY
+        /// encoding, with the input's point count reported.
+        #[test]
+        fn sampling_keeps_every_power_of_two_th_point(
+            n in 0usize..3000,
+            keep in 2usize..300,
+            holes in proptest::collection::vec(0usize..3000, 0..20),
+            encoding in 0usize..3,
+        ) {
+            let all: Vec<[f64; 3]> = (0..n)
+                .map(|i| {
+                    let t = i as f64;
+                    if holes.contains(&i) { [f64::NAN, t, 0.0] } else { [t, (t * 0.37).sin(), (t * 0.11).cos()] }
+                })
+                .collect();
+            let finite: Vec<[f64; 3]> = all.iter().copied().filter(|p| p[0].is_finite()).collect();
+            let mut stride = 1usize;
+            while finite.len().div_ceil(stride) >= keep {
+                stride *= 2;
+            }
+            let expected: Vec<[f64; 3]> = finite.iter().copied().step_by(stride).collect();
+            let inputs: Vec<Vec<u8>> = {
+                let text: String = all.iter().map(|p| format!("{} {} {}\n", p[0], p[1], p[2])).collect();
+                let cloud = PointCloud::from_points(all.iter().map(|p| Point3::new(p[0], p[1], p[2])).collect());
+                let enc = [PlyEncoding::Ascii, PlyEncoding::BinaryLittleEndian, PlyEncoding::BinaryBigEndian][encoding];
+                let mut ply_bytes = Vec::new();
+                ply::write_ply(&mut ply_bytes, &cloud, None, enc, &[]).expect("write");
+                vec![text.into_bytes(), ply_bytes]
+            };
+            for input in inputs {
+                if n == 0 && !input.starts_with(b"ply") {
+                    continue; // empty XYZ text is not a cloud
+                }
+                let size = Some(input.len() as u64);
+                let (c, stats) = sample_cloud_from(Cursor::new(input), "sample", size, &ReadLimits::default(), keep)
+                    .expect("sample");
+                let got: Vec<[f64; 3]> = c.points.iter().map(|p| [p.x, p.y, p.z]).collect();
+                proptest::prop_assert_eq!(stats.points, finite.len() as u64);
+                proptest::prop_assert!(got.len() < keep.max(2));
+                // PLY stores f32 coordinates when it writes a cloud of f64: compare loosely.
+                proptest::prop_assert_eq!(got.len(), expected.len());
+                for (g, e) in got.iter().zip(&expected) {
+                    for k in 0..3 {
+                        proptest::prop_assert!((g[k] - e[k]).abs() <= 1e-3 * e[k].abs().max(1.0), "{:?} vs {:?}", g, e);
+                    }
+                }
+            }
         }
     }
 

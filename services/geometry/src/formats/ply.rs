@@ -192,7 +192,7 @@ pub fn write_ply<W: Write>(
 /// [`read_ply_cloud_with_pass`].
 pub fn read_ply_from<R: BufRead>(r: R, name: &str, limits: &ReadLimits) -> Result<(Geometry, ReadStats)> {
     let mut src = Src::new(r, limits.max_bytes);
-    let opts = Options { want: Want::Any, pass: false, force_var: false };
+    let opts = Options { want: Want::Any, pass: false, force_var: false, keep: None };
     read_ply_src(&mut src, name, None, limits, opts).map(|o| (o.geometry, o.stats))
 }
 
@@ -206,7 +206,7 @@ pub fn read_ply_cloud_with_pass<R: BufRead>(
     limits: &ReadLimits,
 ) -> Result<(PointCloud, Option<Vec<u16>>, ReadStats)> {
     let mut src = Src::new(r, limits.max_bytes);
-    let opts = Options { want: Want::Cloud, pass: true, force_var: false };
+    let opts = Options { want: Want::Cloud, pass: true, force_var: false, keep: None };
     let out = read_ply_src(&mut src, name, None, limits, opts)?;
     Ok((out.geometry.into_cloud(), out.pass, out.stats))
 }
@@ -480,6 +480,8 @@ pub(crate) struct Options {
     pub(crate) pass: bool,
     /// Decode fixed-layout binary vertices with the field-by-field path (tests compare the two).
     pub(crate) force_var: bool,
+    /// Keep a uniform sample of at most this many points (a cloud only).
+    pub(crate) keep: Option<usize>,
 }
 
 /// Which vertex properties feed which output (property indices).
@@ -686,9 +688,11 @@ pub(crate) fn read_ply_src<R: BufRead>(
         PlyEncoding::Ascii => 2 * vertex.props.len(),
         _ => vertex.min_size(),
     };
-    let reserve = reserve(vertex.count, limits, size, src.pos(), min_record);
+    let keep = if mesh { None } else { opts.keep };
+    let reserve = reserve(vertex.count, limits, size, src.pos(), min_record).min(keep.unwrap_or(usize::MAX));
     let mut sink =
-        CloudSink::new(plan.intensity.is_some(), plan.normal.is_some(), plan.pass.is_some(), mesh, reserve);
+        CloudSink::new(plan.intensity.is_some(), plan.normal.is_some(), plan.pass.is_some(), mesh, reserve)
+            .sampled(keep);
     let mut faces =
         Faces { tris: Vec::new(), short: 0, vertex_count: vertex.count, max_triangles: limits.max_triangles };
     if mesh {
@@ -1892,7 +1896,7 @@ mod tests {
             );
             assert_eq!(s.points as usize, r.points.len());
             // The block decoder and the field-by-field reference agree.
-            let opts = Options { want: Want::Any, pass: false, force_var: true };
+            let opts = Options { want: Want::Any, pass: false, force_var: true, keep: None };
             let mut src = Src::new(Cursor::new(&r.bytes), u64::MAX);
             let slow = read_ply_src(&mut src, "r.ply", None, &ReadLimits::default(), opts).expect("slow");
             assert_eq!(slow.geometry, Geometry::Cloud(c), "seed {seed}");

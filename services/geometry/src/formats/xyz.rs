@@ -23,7 +23,7 @@ use super::{
 
 /// Reads an XYZ text cloud from `r`; `name` names the input in errors.
 pub fn read_xyz_from<R: BufRead>(r: R, name: &str, limits: &ReadLimits) -> Result<(PointCloud, ReadStats)> {
-    read_xyz_src(&mut Src::new(r, limits.max_bytes), name, limits)
+    read_xyz_src(&mut Src::new(r, limits.max_bytes), name, limits, None)
 }
 
 /// Byte classes of XYZ text: part of a token, a column separator (white space or comma), or the
@@ -56,6 +56,7 @@ pub(crate) fn read_xyz_src<R: BufRead>(
     src: &mut Src<R>,
     name: &str,
     limits: &ReadLimits,
+    keep: Option<usize>,
 ) -> Result<(PointCloud, ReadStats)> {
     let mut lines = Lines::new(0);
     // (column count, line that fixed it)
@@ -128,7 +129,7 @@ pub(crate) fn read_xyz_src<R: BufRead>(
                     ));
                 }
                 layout = Some((cols, line));
-                sink = CloudSink::new(cols == 4 || cols == 7, cols >= 6, false, false, 1024);
+                sink = CloudSink::new(cols == 4 || cols == 7, cols >= 6, false, false, 1024).sampled(keep);
                 cols
             }
         };

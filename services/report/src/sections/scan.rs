@@ -4,21 +4,30 @@ use crate::*;
 
 impl Ctx<'_> {
     pub(crate) fn point_cloud(&mut self) -> Result<String, ReportError> {
-        let key = if self.artifacts.contains_key("point_cloud") || !self.artifacts.contains_key("mesh") {
-            "point_cloud"
-        } else {
-            "mesh"
+        let (digests, artifacts) = (self.digests, self.artifacts);
+        let has = |k: &str| artifacts.contains_key(k) || digests.clouds.contains_key(k);
+        let key = if has("point_cloud") || !has("mesh") { "point_cloud" } else { "mesh" };
+        let read = match (digests.clouds.get(key), artifacts.get(key)) {
+            (Some(sampled), _) => Some(Ok(std::borrow::Cow::Borrowed(sampled))),
+            (None, Some(bytes)) => Some(cloud::read_cloud(bytes, key).map(std::borrow::Cow::Owned)),
+            (None, None) => None,
         };
-        let body = match self.artifacts.get(key) {
+        let body = match read {
             None => missing(&self.why_missing(key)),
-            Some(bytes) => match cloud::read_cloud(bytes, key) {
+            Some(read) => match read {
                 Err(e) => missing(&format!("Not shown: the {key} artifact could not be read: {e}.")),
-                Ok(c) if c.is_empty() => missing(&format!("The {key} artifact holds no points.")),
-                Ok(c) => {
-                    let (top, side) = cloud::views(&c);
+                Ok(c) if c.cloud.is_empty() => missing(&format!("The {key} artifact holds no points.")),
+                Ok(sampled) => {
+                    let c = &sampled.cloud;
+                    let (top, side) = cloud::views(c);
+                    let sample = if (c.len() as u64) < sampled.points {
+                        format!(", drawn from a uniform sample of {}", fmt_count(c.len()))
+                    } else {
+                        String::new()
+                    };
                     let mut s = format!(
-                        "<p>{} points{}.</p><div class=\"grid\">",
-                        fmt_count(c.len()),
+                        "<p>{} points{}{sample}.</p><div class=\"grid\">",
+                        fmt_count(usize::try_from(sampled.points).unwrap_or(usize::MAX)),
                         if key == "mesh" { " (the mesh's vertices)" } else { "" }
                     );
                     for (v, name, title, axes, colour) in [

@@ -4,14 +4,22 @@ use crate::*;
 
 impl Ctx<'_> {
     pub(crate) fn toolpaths(&mut self) -> Result<String, ReportError> {
-        let Some(bytes) = self.artifacts.get("gcode") else {
-            return Ok(section("toolpaths", "Toolpaths", &missing(&self.why_missing("gcode"))));
-        };
-        let program = match std::str::from_utf8(bytes) {
-            Ok(t) => gcode::parse(t),
-            Err(e) => {
-                let e = format!("Not shown: the gcode artifact is not UTF-8 text: {e}.");
-                return Ok(section("toolpaths", "Toolpaths", &missing(&e)));
+        let parsed;
+        let (digests, artifacts) = (self.digests, self.artifacts);
+        let program = match (digests.programs.get("gcode"), artifacts.get("gcode")) {
+            (Some(p), _) => p,
+            (None, Some(bytes)) => match std::str::from_utf8(bytes) {
+                Ok(t) => {
+                    parsed = gcode::parse(t);
+                    &parsed
+                }
+                Err(e) => {
+                    let e = format!("Not shown: the gcode artifact is not UTF-8 text: {e}.");
+                    return Ok(section("toolpaths", "Toolpaths", &missing(&e)));
+                }
+            },
+            (None, None) => {
+                return Ok(section("toolpaths", "Toolpaths", &missing(&self.why_missing("gcode"))));
             }
         };
         let mut body = String::new();
@@ -48,7 +56,7 @@ impl Ctx<'_> {
                 }
                 None => (None, "no map (none was available)".into()),
             };
-            let Some(img) = toolpath_image(base, &program, face) else {
+            let Some(img) = toolpath_image(base, program, face) else {
                 body.push_str(&missing(&format!("Face {}: no moves to draw.", face + 1)));
                 continue;
             };
