@@ -23,6 +23,12 @@ pub enum Role {
         grpc: SocketAddr,
         config: Option<PathBuf>,
     },
+    /// The `depthmill` command line with these arguments (the program name first); the process
+    /// exits with its code. With `after_stdin`, it first waits for standard input to close.
+    Cli {
+        args: Vec<String>,
+        after_stdin: bool,
+    },
 }
 
 /// Child-process entry.
@@ -31,6 +37,12 @@ pub enum Role {
 fn child_process() -> anyhow::Result<()> {
     let Ok(spec) = std::env::var("DEPTHMILL_E2E_CHILD") else { return Ok(()) };
     let role: Role = serde_json::from_str(&spec).context("DEPTHMILL_E2E_CHILD")?;
+    if let Role::Cli { args, after_stdin } = role {
+        if after_stdin {
+            let _ = std::io::Read::read_to_end(&mut std::io::stdin(), &mut Vec::new());
+        }
+        std::process::exit(i32::from(depthmill_cli::cli::main_from(args)));
+    }
     depthmill_common::telemetry::init_tracing(false);
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
     rt.block_on(async move {
@@ -47,6 +59,7 @@ fn child_process() -> anyhow::Result<()> {
             Role::Serve { data_dir, rest, grpc, config } => {
                 depthmill_cli::embedded::serve(data_dir, None, rest, grpc, config).await?;
             }
+            Role::Cli { .. } => {}
         }
         anyhow::Ok(())
     })

@@ -3,6 +3,7 @@
 mod api;
 mod auth;
 mod children;
+mod cli;
 mod crash;
 mod deploy;
 mod faces;

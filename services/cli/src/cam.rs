@@ -75,7 +75,7 @@ pub fn run_compensate(
     let tip = compensate(&map, &tool.profile, &CompensateOptions { pixel_model, outside_z_mm: floor })?;
     let elapsed = started.elapsed();
     write_map(&tip, output)?;
-    println!(
+    crate::outln!(
         "{}: {}x{} at {} mm, {} ({model} model), {:.1} ms",
         output.display(),
         map.width(),
@@ -127,7 +127,7 @@ pub fn run_plan(
     std::fs::write(sibling("report.json"), serde_json::to_vec_pretty(&out.report)?)?;
     depthmill_geometry::write_png(&out.preview.final_surface, sibling("preview.png"), PngDepth::Bits16)?;
     depthmill_geometry::write_png(&out.preview.leftover, sibling("leftover.png"), PngDepth::Bits8)?;
-    println!(
+    crate::outln!(
         "{}: {} blocks, estimated {:.1} min; preview max gouge {:.4} mm, max leftover {:.3} mm, mean leftover {:.3} mm",
         output.display(),
         out.report.blocks,
@@ -137,7 +137,7 @@ pub fn run_plan(
         out.preview.mean_leftover_mm
     );
     for s in ["report.json", "preview.png", "leftover.png"] {
-        println!("{}", sibling(s).display());
+        crate::outln!("{}", sibling(s).display());
     }
     Ok(())
 }

@@ -92,7 +92,7 @@ pub async fn run(args: &DemoArgs) -> anyhow::Result<()> {
                 depthmill_geometry::formats::Geometry::Cloud(_) => None,
             }
             .with_context(|| format!("{}: holds no triangles", path.display()))?;
-            println!(
+            crate::outln!(
                 "part: {} ({} triangles, {:.3} x {:.3} x {:.3} in its units)",
                 path.display(),
                 stats.triangles,
@@ -112,27 +112,26 @@ pub async fn run(args: &DemoArgs) -> anyhow::Result<()> {
             )?;
             let part_path = out.join("part.stl");
             std::fs::write(&part_path, &stl).with_context(|| format!("writing {}", part_path.display()))?;
-            println!("part: {} ({} triangles, 80 x 60 mm relief)", part_path.display(), mesh.triangles.len());
+            crate::outln!(
+                "part: {} ({} triangles, 80 x 60 mm relief)",
+                part_path.display(),
+                mesh.triangles.len()
+            );
             Part { bytes: stl, media_type: "model/stl", name: None }
         }
     };
 
     // The stack.
-    let stack = depthmill_cli::embedded::start(
-        data_dir.clone(),
-        None,
-        "127.0.0.1:0".parse()?,
-        "127.0.0.1:0".parse()?,
-        None,
-    )
-    .await?;
+    let stack =
+        crate::embedded::start(data_dir.clone(), None, "127.0.0.1:0".parse()?, "127.0.0.1:0".parse()?, None)
+            .await?;
     let base = format!("http://{}", stack.rest_addr);
-    println!("stack: REST on {base}, data in {}", data_dir.display());
+    crate::outln!("stack: REST on {base}, data in {}", data_dir.display());
     let result = drive(&base, part, args, out).await;
     stack.stop().await.context("stopping the stack")?;
     let summary = result?;
-    println!("{summary}");
-    println!("demo wall time {:.1} s (target: under 60 s in release)", started.elapsed().as_secs_f64());
+    crate::outln!("{summary}");
+    crate::outln!("demo wall time {:.1} s (target: under 60 s in release)", started.elapsed().as_secs_f64());
     Ok(())
 }
 
@@ -203,7 +202,7 @@ async fn drive(base: &str, part: Part, args: &DemoArgs, out: &Path) -> anyhow::R
         json_of(client.post(format!("{base}/v1/jobs")).json(&job).send().await?, "submitting the job")
             .await?;
     let id = created["id"].as_str().context("job reply without id")?.to_string();
-    println!("job {id} submitted");
+    crate::outln!("job {id} submitted");
 
     // Follow it: one line per stage as it ends, progress in between.
     let mut printed: Vec<String> = Vec::new();

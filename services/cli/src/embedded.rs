@@ -58,8 +58,8 @@ pub async fn serve(
     config: Option<PathBuf>,
 ) -> anyhow::Result<()> {
     let stack = start(data_dir, database_url, rest_addr, grpc_addr, config).await?;
-    println!("REST listening on {}://{}", stack.scheme, stack.rest_addr);
-    println!("gRPC listening on {}://{}", stack.scheme, stack.grpc_addr);
+    crate::outln!("REST listening on {}://{}", stack.scheme, stack.rest_addr);
+    crate::outln!("gRPC listening on {}://{}", stack.scheme, stack.grpc_addr);
     let stop = stack.token.clone();
     tokio::spawn(async move {
         depthmill_common::shutdown::shutdown_signal().await;

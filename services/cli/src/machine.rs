@@ -77,28 +77,34 @@ pub fn run_check(program: &Path, args: &MachineArgs) -> anyhow::Result<()> {
     .map_err(|e| anyhow::anyhow!("{}: {e}", program.display()))?;
     let (report, _) = simulate(open()?, &setup, &|| false, &mut |_| {})
         .map_err(|e| anyhow::anyhow!("{}: {e}", program.display()))?;
-    println!("{}: ok on {}", program.display(), setup.profile.name);
-    println!(
+    crate::outln!("{}: ok on {}", program.display(), setup.profile.name);
+    crate::outln!(
         "  lines {}, blocks {}, moves: {rapids} rapid, {feeds} linear, {arcs} arcs",
-        summary.lines, summary.blocks
+        summary.lines,
+        summary.blocks
     );
     if lo[0].is_finite() {
-        println!(
+        crate::outln!(
             "  tip extents (work frame): X {:.3}..{:.3}  Y {:.3}..{:.3}  Z {:.3}..{:.3} mm",
-            lo[0], hi[0], lo[1], hi[1], lo[2], hi[2]
+            lo[0],
+            hi[0],
+            lo[1],
+            hi[1],
+            lo[2],
+            hi[2]
         );
     }
     for t in &setup.tools {
         if header.iter().any(|h| h.0 == t.number) {
-            println!("  T{} {} ({} teeth, gauge length {} mm)", t.number, t.name, t.teeth, t.length_mm);
+            crate::outln!("  T{} {} ({} teeth, gauge length {} mm)", t.number, t.name, t.teeth, t.length_mm);
         }
     }
-    println!(
+    crate::outln!(
         "  estimated cycle time {:.1} s (programmed feeds, acceleration and blending)",
         report.cycle_time_s
     );
     for w in &report.warnings {
-        println!("  warning: {w}");
+        crate::outln!("  warning: {w}");
     }
     Ok(())
 }
@@ -177,27 +183,39 @@ pub fn run_simulate(program: &Path, args: &SimulateArgs, out_dir: &Path) -> anyh
     write("telemetry.svg", out.telemetry_svg.as_bytes())?;
     write("report.json", &serde_json::to_vec_pretty(&out.report)?)?;
     let r = &out.report;
-    println!("{}: simulated on {} ({}) in {wall:.1} s wall time", program.display(), r.machine, r.run.policy);
-    println!(
+    crate::outln!(
+        "{}: simulated on {} ({}) in {wall:.1} s wall time",
+        program.display(),
+        r.machine,
+        r.run.policy
+    );
+    crate::outln!(
         "  cycle time {:.1} s; without adaptation {:.1} s{}",
         r.cycle_time_s,
         r.cycle_time_no_adaptive_s,
         r.cycle_time_other_s
             .map_or(String::new(), |t| format!("; {} {t:.1} s", r.other_policy.unwrap_or("other")))
     );
-    println!(
+    crate::outln!(
         "  removed {:.1} mm³ in {} revolutions; max torque {:.3} N·m, power {:.1} W, current {:.2} A",
-        r.run.removed_mm3, r.run.revolutions, r.run.max_torque_nm, r.run.max_power_w, r.run.max_current_a
+        r.run.removed_mm3,
+        r.run.revolutions,
+        r.run.max_torque_nm,
+        r.run.max_power_w,
+        r.run.max_current_a
     );
     if let Some(d) = &r.deviation {
-        println!(
+        crate::outln!(
             "  deviation from the target: max gouge {:.4} mm, max leftover {:.4} mm, mean leftover {:.4} mm, RMS {:.4} mm",
-            d.max_gouge_mm, d.max_leftover_mm, d.mean_leftover_mm, d.rms_deviation_mm
+            d.max_gouge_mm,
+            d.max_leftover_mm,
+            d.mean_leftover_mm,
+            d.rms_deviation_mm
         );
     }
     for w in r.run.warnings.iter().take(20) {
-        println!("  warning: {w}");
+        crate::outln!("  warning: {w}");
     }
-    println!("  results in {}", out_dir.display());
+    crate::outln!("  results in {}", out_dir.display());
     Ok(())
 }

@@ -100,9 +100,9 @@ pub fn run(input: &Path, args: &RasterArgs, output: &Path) -> anyhow::Result<()>
     let head = depthmill_geometry::units::read_head(input)
         .with_context(|| format!("reading {}", input.display()))?;
     if let Some(d) = depthmill_geometry::units::normalise(&mut geometry, &head, units) {
-        println!("{}: read in {} ({}: {})", input.display(), d.unit, d.source, d.reason);
+        crate::outln!("{}: read in {} ({}: {})", input.display(), d.unit, d.source, d.reason);
         if let Some(w) = &d.warning {
-            println!("{}: {w}", input.display());
+            crate::outln!("{}: {w}", input.display());
         }
     }
     let read_s = started.elapsed().as_secs_f64();
@@ -126,7 +126,7 @@ pub fn run(input: &Path, args: &RasterArgs, output: &Path) -> anyhow::Result<()>
                 format!("{:.2} mm² at ({:.2}, {:.2})", h.area_mm2, h.center_x_mm, h.center_y_mm)
             })
         };
-        println!(
+        crate::outln!(
             "{}: face {}, {}x{} at {} mm, z {:.3}..{:.3} mm, covered {:.2} %, {} cells filled, {} holes (largest {}), {} still empty (largest {})",
             main.display(),
             s.face,
@@ -150,7 +150,7 @@ pub fn run(input: &Path, args: &RasterArgs, output: &Path) -> anyhow::Result<()>
         "reconstruct": out.report });
     std::fs::write(&report_path, serde_json::to_vec_pretty(&json)?)
         .with_context(|| format!("writing {}", report_path.display()))?;
-    println!(
+    crate::outln!(
         "read {} points{} in {read_s:.2} s; kept {} after filters; report {}",
         stats.points,
         if stats.triangles > 0 { format!(" / {} triangles", stats.triangles) } else { String::new() },

@@ -87,7 +87,7 @@ pub async fn run(input: &Path, args: &ScanArgs, output: &Path) -> anyhow::Result
     std::fs::write(&report_path, serde_json::to_vec_pretty(&out.report)?)
         .with_context(|| format!("writing {}", report_path.display()))?;
     let r = &out.report;
-    println!(
+    crate::outln!(
         "{}: {} points from {} frames in {} passes at {} table angles; simulated scan time {:.1} s, wall {:.1} s",
         output.display(),
         r.points,
@@ -97,7 +97,7 @@ pub async fn run(input: &Path, args: &ScanArgs, output: &Path) -> anyhow::Result
         r.scan_time_s,
         started.elapsed().as_secs_f64()
     );
-    println!(
+    crate::outln!(
         "registration error RMS {:.4} mm (max {:.4}); dropped rays: {} out of window, {} incidence, {} occluded, {} missed",
         r.registration_rms_mm,
         r.registration_max_mm,
@@ -107,15 +107,15 @@ pub async fn run(input: &Path, args: &ScanArgs, output: &Path) -> anyhow::Result
         r.dropped.miss
     );
     if let Some(b) = r.coverage_before_rescan {
-        print!("coverage {:.2} % ({} holes)", b.covered_pct, b.holes);
+        crate::out!("coverage {:.2} % ({} holes)", b.covered_pct, b.holes);
         if let Some(a) = r.coverage_after_rescan {
-            print!(" -> after rescan {:.2} % ({} holes)", a.covered_pct, a.holes);
+            crate::out!(" -> after rescan {:.2} % ({} holes)", a.covered_pct, a.holes);
         }
-        println!();
+        crate::outln!();
     }
     for d in &r.diagnostics {
-        println!("note: {d}");
+        crate::outln!("note: {d}");
     }
-    println!("report: {}", report_path.display());
+    crate::outln!("report: {}", report_path.display());
     Ok(())
 }

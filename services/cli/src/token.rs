@@ -73,7 +73,7 @@ pub async fn run(command: TokenCommand) -> anyhow::Result<()> {
             let store = db.open().await?;
             let issued =
                 auth::issue(&*store, &name, &scope, expires_in_days.map(|d| d * 86_400.0), now).await?;
-            println!("{}", issued.token);
+            crate::outln!("{}", issued.token);
             eprintln!(
                 "token {} ({}) with scope '{}'{}; send it as 'Authorization: Bearer <token>' \
                  (the client verbs: --token or DEPTHMILL_TOKEN). It is not shown again.",
@@ -88,14 +88,14 @@ pub async fn run(command: TokenCommand) -> anyhow::Result<()> {
         }
         TokenCommand::List { db } => {
             let store = db.open().await?;
-            println!("{:<40}  {:<16}  {:<8}  name", "id", "scope", "state");
+            crate::outln!("{:<40}  {:<16}  {:<8}  name", "id", "scope", "state");
             for t in store.list_tokens().await? {
                 let state = match (t.revoked_at_ms, t.expires_at_ms) {
                     (Some(_), _) => "revoked",
                     (None, Some(e)) if e <= now => "expired",
                     _ => "active",
                 };
-                println!("{:<40}  {:<16}  {state:<8}  {}", t.id, t.scopes, t.name);
+                crate::outln!("{:<40}  {:<16}  {state:<8}  {}", t.id, t.scopes, t.name);
             }
         }
         TokenCommand::Revoke { id, db } => {
@@ -103,7 +103,7 @@ pub async fn run(command: TokenCommand) -> anyhow::Result<()> {
             if !store.revoke_token(&id, now).await? {
                 bail!("no active token {id} (see `depthmill token list`)");
             }
-            println!("revoked {id}");
+            crate::outln!("revoked {id}");
         }
     }
     Ok(())

@@ -2,6 +2,12 @@
 //! writers anyway; one connection avoids lock retries) and a pool of readers. Several processes
 //! may open the same file (SQLite's own locking, with a busy timeout); a server database serves
 //! several replicas better ([`super::PostgresStore`]).
+//!
+//! Submissions are group-committed: [`JobStore::create`] hands its row to one task that inserts
+//! every row waiting (up to [`MAX_BATCH`]) in one multi-row `INSERT ... RETURNING` statement, so a
+//! burst of submissions costs one statement and one commit instead of one each, and waits behind
+//! the worker's writes once per batch instead of once per job. A batch that fails is retried row
+//! by row, so each caller gets its own row's answer (a conflict, a busy database) as before.
 
 use std::path::Path;
 use std::time::Duration;
@@ -15,11 +21,78 @@ use crate::domain::{AttemptOutcome, AttemptRecord, Job, JobError, JobStatus, Sta
 
 static MIGRATOR: sqlx::migrate::Migrator = sqlx::migrate!("../../migrations/sqlite");
 
+/// Most rows inserted by one statement (SQLite's default limit of 32766 bound parameters holds
+/// 4000 rows of 8).
+const MAX_BATCH: usize = 256;
+
+/// One submission waiting for the batch insert: the row and where its answer goes (`true`:
+/// inserted; `false`: its idempotency key was taken).
+struct PendingInsert {
+    new: NewJob,
+    spec_json: String,
+    reply: tokio::sync::oneshot::Sender<Result<bool, StoreError>>,
+}
+
 /// SQLite-backed job store.
 #[derive(Clone)]
 pub struct SqliteStore {
     writer: SqlitePool,
     reader: SqlitePool,
+    inserts: tokio::sync::mpsc::Sender<PendingInsert>,
+}
+
+/// Inserts `rows` with one statement; the ids it inserted.
+async fn insert_rows(writer: &SqlitePool, rows: &[&PendingInsert]) -> Result<Vec<String>, sqlx::Error> {
+    let mut q = sqlx::QueryBuilder::<sqlx::Sqlite>::new(
+        "INSERT INTO jobs (id, name, spec, first_stage, status, stage, progress, idempotency_key, \
+         created_at_ms, updated_at_ms) ",
+    );
+    q.push_values(rows, |mut b, p| {
+        let first = p.new.spec.first_stage();
+        b.push_bind(p.new.id.clone())
+            .push_bind(p.new.spec.name.clone())
+            .push_bind(p.spec_json.clone())
+            .push_bind(first.as_str())
+            .push_bind("queued")
+            .push_bind(first.as_str())
+            .push_bind(0.0f64)
+            .push_bind(p.new.idempotency_key.clone())
+            .push_bind(p.new.now_ms)
+            .push_bind(p.new.now_ms);
+    });
+    q.push(" ON CONFLICT (idempotency_key) DO NOTHING RETURNING id");
+    q.build_query_scalar::<String>().fetch_all(writer).await
+}
+
+/// The group-commit task: takes every submission waiting, inserts them with one statement and
+/// answers each. Ends when the store (every sender) is dropped.
+async fn insert_batches(writer: SqlitePool, mut queue: tokio::sync::mpsc::Receiver<PendingInsert>) {
+    let mut batch: Vec<PendingInsert> = Vec::with_capacity(MAX_BATCH);
+    while queue.recv_many(&mut batch, MAX_BATCH).await > 0 {
+        let rows: Vec<&PendingInsert> = batch.iter().collect();
+        match insert_rows(&writer, &rows).await {
+            Ok(ids) => {
+                let ids: std::collections::HashSet<String> = ids.into_iter().collect();
+                for p in batch.drain(..) {
+                    let inserted = ids.contains(&p.new.id);
+                    let _ = p.reply.send(Ok(inserted));
+                }
+            }
+            Err(e) if batch.len() == 1 => {
+                if let Some(p) = batch.pop() {
+                    let _ = p.reply.send(Err(StoreError::from(e)));
+                }
+            }
+            // Row by row: each caller gets its own row's answer.
+            Err(_) => {
+                for p in batch.drain(..) {
+                    let answer =
+                        insert_rows(&writer, &[&p]).await.map(|ids| !ids.is_empty()).map_err(Into::into);
+                    let _ = p.reply.send(answer);
+                }
+            }
+        }
+    }
 }
 
 impl SqliteStore {
@@ -36,7 +109,9 @@ impl SqliteStore {
         MIGRATOR.run(&writer).await?;
         let reader =
             SqlitePoolOptions::new().max_connections(4).connect_with(options.read_only(true)).await?;
-        Ok(Self { writer, reader })
+        let (inserts, queue) = tokio::sync::mpsc::channel(4 * MAX_BATCH);
+        tokio::spawn(insert_batches(writer.clone(), queue));
+        Ok(Self { writer, reader, inserts })
     }
 
     async fn job_from_row(&self, row: JobRow) -> Result<Job, StoreError> {
@@ -69,24 +144,11 @@ impl SqliteStore {
 impl JobStore for SqliteStore {
     async fn create(&self, new: NewJob) -> Result<Created, StoreError> {
         let spec_json = encode("job spec", &new.spec)?;
-        let first = new.spec.first_stage();
-        let inserted = sqlx::query(
-            "INSERT INTO jobs (id, name, spec, first_stage, status, stage, progress, idempotency_key, \
-             created_at_ms, updated_at_ms) VALUES (?, ?, ?, ?, 'queued', ?, 0, ?, ?, ?) \
-             ON CONFLICT (idempotency_key) DO NOTHING",
-        )
-        .bind(&new.id)
-        .bind(&new.spec.name)
-        .bind(&spec_json)
-        .bind(first.as_str())
-        .bind(first.as_str())
-        .bind(&new.idempotency_key)
-        .bind(new.now_ms)
-        .bind(new.now_ms)
-        .execute(&self.writer)
-        .await?
-        .rows_affected();
-        if inserted == 1 {
+        let (reply, answer) = tokio::sync::oneshot::channel();
+        let pending = PendingInsert { new: new.clone(), spec_json: spec_json.clone(), reply };
+        let closed = || StoreError::Db(sqlx::Error::PoolClosed);
+        self.inserts.send(pending).await.map_err(|_| closed())?;
+        if answer.await.map_err(|_| closed())?? {
             return Ok(Created::New(rows::inserted(new)));
         }
         // The key exists: same request -> same job; different request -> conflict.
