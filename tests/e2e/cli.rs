@@ -46,17 +46,28 @@ async fn output_into_a_closed_pipe_ends_quietly() -> anyhow::Result<()> {
         ["depthmill", "status", &id, "--json", "--url", &url].iter().map(|s| s.to_string()).collect();
     let role = serde_json::to_string(&Role::Cli { args: argv, after_stdin: true })?;
     let output = tokio::task::spawn_blocking(move || -> anyhow::Result<(i32, String)> {
+        // Terse output (`-q`): the harness prints nothing between "running 1 test" and the end
+        // of the test, which this process never reaches.
         let mut child = Command::new(std::env::current_exe()?)
-            .args(["--ignored", "--exact", "children::child_process", "--nocapture", "--test-threads=1"])
+            .args([
+                "--ignored",
+                "--exact",
+                "children::child_process",
+                "--nocapture",
+                "--test-threads=1",
+                "-q",
+            ])
             .env("DEPTHMILL_E2E_CHILD", role)
             .stdin(Stdio::piped())
             .stdout(Stdio::piped())
             .stderr(Stdio::piped())
             .spawn()?;
-        // The test harness's own first line ("running 1 test"), then the pipe closes.
+        // The test harness's own lines (up to "running 1 test"), then the pipe closes.
         let mut stdout = BufReader::new(child.stdout.take().context("stdout")?);
-        let mut first = String::new();
-        stdout.read_line(&mut first)?;
+        let mut line = String::new();
+        while stdout.read_line(&mut line)? > 0 && line.trim() != "running 1 test" {
+            line.clear();
+        }
         drop(stdout);
         drop(child.stdin.take());
         let mut stderr = String::new();

@@ -827,3 +827,173 @@ fn the_scale_out_compose_file_runs_replicas_on_postgres_and_balanced_instances()
     ensure!(exists("minio") && exists("minio-bucket"), "no S3 store in the stack");
     Ok(())
 }
+
+// ---------------------------------------------------------------------------------------------
+// The Kubernetes scale-out overlay (deploy/k8s/scale-out): what kustomize would make of it, applied
+// here (its patches are RFC 6902 JSON patches of named objects and `$patch: delete` of whole
+// objects), then loaded through the real configuration types.
+
+/// Applies one RFC 6902 operation (`add`, `replace`, `remove`) to `doc`.
+fn json_patch(doc: &mut Value, op: &Value) -> anyhow::Result<()> {
+    let kind = str_at(op, "op")?;
+    let path = str_at(op, "path")?;
+    let mut keys: Vec<&str> = path.split('/').skip(1).collect();
+    let last = keys.pop().ok_or_else(|| anyhow!("empty path"))?;
+    let mut node = &mut *doc;
+    for key in keys {
+        node = match node {
+            Value::Sequence(s) => {
+                s.get_mut(key.parse::<usize>()?).ok_or_else(|| anyhow!("{path}: no {key}"))?
+            }
+            Value::Mapping(m) => m.get_mut(key).ok_or_else(|| anyhow!("{path}: no {key}"))?,
+            _ => bail!("{path}: {key} is not in a list or a mapping"),
+        };
+    }
+    let value = || op.get("value").cloned().ok_or_else(|| anyhow!("{path}: {kind} without a value"));
+    match (node, kind) {
+        (Value::Sequence(s), "add") if last == "-" => s.push(value()?),
+        (Value::Sequence(s), "add") => s.insert(last.parse()?, value()?),
+        (Value::Sequence(s), "replace") => {
+            *s.get_mut(last.parse::<usize>()?).ok_or_else(|| anyhow!("{path}: no {last}"))? = value()?
+        }
+        (Value::Sequence(s), "remove") => {
+            s.remove(last.parse()?);
+        }
+        (Value::Mapping(m), "add") => {
+            m.insert(Value::String(last.into()), value()?);
+        }
+        (Value::Mapping(m), "replace") => {
+            ensure!(m.contains_key(last), "{path}: replace of a missing key");
+            m.insert(Value::String(last.into()), value()?);
+        }
+        (Value::Mapping(m), "remove") => {
+            m.remove(last).ok_or_else(|| anyhow!("{path}: remove of a missing key"))?;
+        }
+        (_, other) => bail!("{path}: cannot {other} there"),
+    }
+    Ok(())
+}
+
+#[test]
+fn the_kubernetes_scale_out_overlay_runs_replicas_on_postgres_and_s3() -> anyhow::Result<()> {
+    let dir = k8s_dir().join("scale-out");
+    let kustomization = yaml_documents(&dir.join("kustomization.yaml"))?
+        .into_iter()
+        .next()
+        .ok_or_else(|| anyhow!("empty kustomization"))?;
+    // The base's objects (the `../` resource) plus the overlay's own.
+    let (mut objects, _) = k8s_objects()?;
+    objects.retain(|o| o.kind != "Kustomization");
+    let mut used_files = BTreeSet::from(["kustomization.yaml".to_string()]);
+    for r in seq_at(&kustomization, "resources")?.iter().filter_map(Value::as_str) {
+        if r == "../" {
+            continue;
+        }
+        used_files.insert(r.to_string());
+        for doc in yaml_documents(&dir.join(r))? {
+            let kind = str_at(&doc, "kind")?.to_string();
+            let name = str_at(&doc, "metadata.name")?.to_string();
+            objects.push(Object { file: r.to_string(), kind, name, doc });
+        }
+    }
+    for p in seq_at(&kustomization, "patches")? {
+        let file = str_at(p, "path")?;
+        used_files.insert(file.to_string());
+        let docs = yaml_documents(&dir.join(file))?;
+        match p.get("target") {
+            Some(target) => {
+                let (kind, name) = (str_at(target, "kind")?, str_at(target, "name")?);
+                let object = objects
+                    .iter_mut()
+                    .find(|o| o.kind == kind && o.name == name)
+                    .ok_or_else(|| anyhow!("{file}: no {kind} {name} to patch"))?;
+                for op in docs.iter().flat_map(|d| d.as_sequence().cloned().unwrap_or_default()) {
+                    json_patch(&mut object.doc, &op).with_context(|| format!("{file}"))?;
+                }
+            }
+            None => {
+                for d in docs {
+                    ensure!(str_at(&d, "$patch")? == "delete", "{file}: only `$patch: delete` patches here");
+                    let (kind, name) = (str_at(&d, "kind")?, str_at(&d, "metadata.name")?);
+                    let before = objects.len();
+                    objects.retain(|o| !(o.kind == kind && o.name == name));
+                    ensure!(objects.len() + 1 == before, "{file}: no {kind} {name} to delete");
+                }
+            }
+        }
+    }
+    let on_disk: BTreeSet<String> = std::fs::read_dir(&dir)?
+        .filter_map(|e| e.ok()?.file_name().to_str().map(str::to_string))
+        .filter(|f| f.ends_with(".yaml"))
+        .collect();
+    assert_eq!(used_files, on_disk, "the kustomization uses every file of deploy/k8s/scale-out");
+
+    // Secrets' values, for env entries that take theirs from one.
+    let secret = |name: &str, key: &str| -> anyhow::Result<String> {
+        let s = find(&objects, "Secret", name)?;
+        Ok(str_at(&s.doc, &format!("stringData.{key}"))?.to_string())
+    };
+    let service_exists = |host: &str| objects.iter().any(|o| o.kind == "Service" && o.name == host);
+    let claims: BTreeSet<&str> =
+        objects.iter().filter(|o| o.kind == "PersistentVolumeClaim").map(|o| o.name.as_str()).collect();
+    let mut stores = BTreeSet::new();
+    let mut orchestrators = 0;
+    for o in objects.iter().filter(|o| o.kind == "Deployment") {
+        let mut check = || -> anyhow::Result<()> {
+            let spec = at(&o.doc, "spec.template.spec").ok_or_else(|| anyhow!("no pod spec"))?;
+            for v in seq_at(spec, "volumes").unwrap_or_default() {
+                if let Some(claim) = at(v, "persistentVolumeClaim.claimName").and_then(Value::as_str) {
+                    ensure!(claims.contains(claim), "mounts the claim {claim}, which the overlay removed");
+                }
+            }
+            let container = seq_at(spec, "containers")?.first().ok_or_else(|| anyhow!("no container"))?;
+            // Only depthmill's own binaries (Prometheus runs its image's entry point).
+            let command = at(container, "command").and_then(Value::as_sequence);
+            let Some(binary) = command.and_then(|c| c.first()).and_then(Value::as_str) else { return Ok(()) };
+            let Some(service) = binary.strip_prefix("depthmill-") else { return Ok(()) };
+            let mut env = BTreeMap::new();
+            for e in seq_at(container, "env")? {
+                let name = str_at(e, "name")?.to_string();
+                let value = match (at(e, "value"), at(e, "valueFrom.secretKeyRef")) {
+                    (Some(v), _) => v.as_str().map(str::to_string).unwrap_or_else(|| format!("{v:?}")),
+                    (None, Some(r)) => secret(str_at(r, "name")?, str_at(r, "key")?)?,
+                    (None, None) => bail!("env {name} has no value"),
+                };
+                ensure!(env.insert(name.clone(), value).is_none(), "env {name} twice");
+            }
+            use depthmill_common::config::load_with_env;
+            let prefix = format!("DEPTHMILL_{}", service.to_ascii_uppercase());
+            let store = match service {
+                "orchestrator" => {
+                    let c: depthmill_orchestrator::Config = load_with_env(None, &prefix, env)?;
+                    let replicas = at(&o.doc, "spec.replicas").and_then(Value::as_u64).unwrap_or(1);
+                    ensure!(replicas >= 2, "{replicas} orchestrator replica(s)");
+                    orchestrators += replicas;
+                    let url = c.database_url.clone().unwrap_or_default();
+                    let host =
+                        url.rsplit_once('@').and_then(|(_, h)| h.split(':').next()).unwrap_or_default();
+                    ensure!(url.starts_with("postgres://") && service_exists(host), "database {url}");
+                    c.artifact_store
+                }
+                "scanning" => load_with_env::<depthmill_scanning::Config>(None, &prefix, env)?.artifact_store,
+                "reconstruction" => {
+                    load_with_env::<depthmill_reconstruction::Config>(None, &prefix, env)?.artifact_store
+                }
+                "cam" => load_with_env::<depthmill_cam::Config>(None, &prefix, env)?.artifact_store,
+                "machine" => load_with_env::<depthmill_machine::Config>(None, &prefix, env)?.artifact_store,
+                other => bail!("unknown binary depthmill-{other}"),
+            };
+            let store = store.ok_or_else(|| anyhow!("no artifact_store"))?;
+            let endpoint = store.options.get("endpoint").cloned().unwrap_or_default();
+            let host = endpoint.trim_start_matches("http://").split(':').next().unwrap_or_default();
+            ensure!(store.url.starts_with("s3://") && service_exists(host), "store {store:?}");
+            ensure!(store.options.contains_key("secret_access_key"), "store without credentials");
+            stores.insert(format!("{store:?}"));
+            Ok(())
+        };
+        check().with_context(|| format!("deploy/k8s/scale-out: Deployment {}", o.name))?;
+    }
+    ensure!(orchestrators >= 2, "{orchestrators} orchestrator pods");
+    ensure!(stores.len() == 1, "every service on one artifact store: {stores:?}");
+    Ok(())
+}
