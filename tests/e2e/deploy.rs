@@ -908,7 +908,7 @@ fn the_kubernetes_scale_out_overlay_runs_replicas_on_postgres_and_s3() -> anyhow
                     .find(|o| o.kind == kind && o.name == name)
                     .ok_or_else(|| anyhow!("{file}: no {kind} {name} to patch"))?;
                 for op in docs.iter().flat_map(|d| d.as_sequence().cloned().unwrap_or_default()) {
-                    json_patch(&mut object.doc, &op).with_context(|| format!("{file}"))?;
+                    json_patch(&mut object.doc, &op).with_context(|| file.to_string())?;
                 }
             }
             None => {
