@@ -15,6 +15,9 @@ use serde::{Deserialize, Serialize};
 #[derive(Serialize, Deserialize)]
 pub enum Role {
     Orchestrator(Box<depthmill_orchestrator::Config>),
+    Scanning(depthmill_scanning::Config),
+    Reconstruction(depthmill_reconstruction::Config),
+    Cam(depthmill_cam::Config),
     Machine(depthmill_machine::Config),
     /// `depthmill serve`: the embedded stack, every service in the process.
     Serve {
@@ -51,6 +54,18 @@ fn child_process() -> anyhow::Result<()> {
                 let rest = tokio::net::TcpListener::bind(config.rest_addr).await?;
                 let grpc = tokio::net::TcpListener::bind(config.grpc_addr).await?;
                 depthmill_orchestrator::serve(rest, grpc, *config, None, std::future::pending()).await?;
+            }
+            Role::Scanning(config) => {
+                let listener = tokio::net::TcpListener::bind(config.grpc_addr).await?;
+                depthmill_scanning::serve(listener, config, std::future::pending()).await?;
+            }
+            Role::Reconstruction(config) => {
+                let listener = tokio::net::TcpListener::bind(config.grpc_addr).await?;
+                depthmill_reconstruction::serve(listener, config, std::future::pending()).await?;
+            }
+            Role::Cam(config) => {
+                let listener = tokio::net::TcpListener::bind(config.grpc_addr).await?;
+                depthmill_cam::serve(listener, config, std::future::pending()).await?;
             }
             Role::Machine(config) => {
                 let listener = tokio::net::TcpListener::bind(config.grpc_addr).await?;

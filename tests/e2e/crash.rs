@@ -22,15 +22,15 @@ use sqlx::Connection as _;
 use crate::children::{Proc, Role, env_usize, free_addr, tail};
 
 /// An input file and what its job runs.
-struct Input {
-    kind: &'static str,
-    media_type: &'static str,
-    bytes: Vec<u8>,
-    stages: Vec<&'static str>,
+pub(crate) struct Input {
+    pub(crate) kind: &'static str,
+    pub(crate) media_type: &'static str,
+    pub(crate) bytes: Vec<u8>,
+    pub(crate) stages: Vec<&'static str>,
 }
 
 /// One input of each kind.
-fn inputs() -> anyhow::Result<Vec<Input>> {
+pub(crate) fn inputs() -> anyhow::Result<Vec<Input>> {
     let mut program = String::from("%\nG21 G90 G17 G94\nT1 M6\nS1500 M3\nG43 H1\nG0 X-5 Y5\nG0 Z12\n");
     for k in 0..20u32 {
         let _ = writeln!(program, "G1 Z{:.2} F200", 10.0 - 0.1 * f64::from(k));
@@ -68,7 +68,7 @@ fn inputs() -> anyhow::Result<Vec<Input>> {
 
 /// A job of `kind` with the sections of the stages it runs (a section for a stage it skips is
 /// refused).
-fn job(kind: &str, sha: &str, n: usize, stages: &[&str]) -> Value {
+pub(crate) fn job(kind: &str, sha: &str, n: usize, stages: &[&str]) -> Value {
     let sections = json!({
         "scan": {"table_angles_deg": [0], "line_spacing_mm": 1.0},
         "reconstruct": {"pixel_mm": 0.5},

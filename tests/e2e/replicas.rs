@@ -1,8 +1,9 @@
-//! Scale-out under fire: three orchestrator replicas on one PostgreSQL database and two machine
-//! service instances, each a separate process, with every artifact in one S3 bucket (an `s3s-fs`
-//! server this test serves on loopback), killed with SIGKILL at random moments and restarted
-//! while jobs arrive through REST and gRPC. Every job must end once, succeeded, with each stage
-//! recorded once and every artifact's bytes matching its hash.
+//! Scale-out under fire: three orchestrator replicas on one PostgreSQL database and two instances
+//! of each stage service (scanning, reconstruction, cam, machine), each a separate process, with
+//! every artifact in one S3 bucket (an `s3s-fs` server this test serves on loopback), killed with SIGKILL at random moments and restarted
+//! while jobs of every kind (G-code, depth map, point cloud, mesh) arrive through REST and gRPC.
+//! Every job must end once, succeeded, with each stage of its chain recorded once and every
+//! artifact's bytes matching its hash.
 //!
 //! The processes are this test binary run again in a child role ([`crate::children`]), so the
 //! suite stays one binary. Size: `DEPTHMILL_REPLICA_JOBS` (default 24) and `DEPTHMILL_REPLICA_KILLS` (default 8);
@@ -60,9 +61,16 @@ fn job_pb(sha: &str, n: usize) -> pb::JobSpec {
     }
 }
 
-/// Submits job `n` through replica `n % replicas`, REST for even `n` and gRPC for odd, retrying on
-/// the next replica while one is down; the idempotency key makes retries return the same job.
-async fn submit(rest: &[SocketAddr], grpc: &[SocketAddr], sha: &str, n: usize) -> anyhow::Result<String> {
+/// Submits job `n` through replica `n % replicas`, REST for even `n` (`body`) and gRPC for odd (a
+/// G-code job of the program `sha`), retrying on the next replica while one is down; the
+/// idempotency key makes retries return the same job.
+async fn submit(
+    rest: &[SocketAddr],
+    grpc: &[SocketAddr],
+    sha: &str,
+    body: &Value,
+    n: usize,
+) -> anyhow::Result<String> {
     let key = format!("replica-job-{n}");
     let http = depthmill_common::tls::http_client().timeout(Duration::from_secs(10)).build()?;
     for attempt in 0..60 {
@@ -71,7 +79,7 @@ async fn submit(rest: &[SocketAddr], grpc: &[SocketAddr], sha: &str, n: usize) -
             let resp = http
                 .post(format!("http://{}/v1/jobs", rest[r]))
                 .header("Idempotency-Key", &key)
-                .json(&job_body(sha, n))
+                .json(body)
                 .send()
                 .await;
             match resp {
@@ -112,25 +120,57 @@ async fn replicas_and_instances_survive_sigkill() -> anyhow::Result<()> {
     let bucket = s3.config(&s3.endpoint, "replicas");
 
     let mut procs = Vec::new();
-    let mut machine_urls = Vec::new();
-    for i in 0..2 {
-        let addr = free_addr()?;
-        machine_urls.push(format!("http://{addr}"));
-        let config = depthmill_machine::Config {
-            grpc_addr: addr,
+    let mut urls: BTreeMap<&str, Vec<String>> = BTreeMap::new();
+    for kind in ["scanning", "reconstruction", "cam", "machine"] {
+        for i in 0..2 {
+            let addr = free_addr()?;
+            urls.entry(kind).or_default().push(format!("http://{addr}"));
             // Its local copies of the blobs it reads.
-            artifacts_dir: root.path().join(format!("machine-{i}-cache")),
-            artifact_store: Some(bucket.clone()),
-            service_token: Some("replica-test-token".into()),
-        };
-        let log = root.path().join(format!("machine-{i}.log"));
-        procs.push(Proc::new(&format!("machine-{i}"), &Role::Machine(config), addr, false, log)?);
+            let cache = root.path().join(format!("{kind}-{i}-cache"));
+            let store = Some(bucket.clone());
+            let token = Some("replica-test-token".to_string());
+            let role = match kind {
+                "scanning" => Role::Scanning(depthmill_scanning::Config {
+                    grpc_addr: addr,
+                    artifacts_dir: cache,
+                    artifact_store: store,
+                    service_token: token,
+                    ..Default::default()
+                }),
+                "reconstruction" => Role::Reconstruction(depthmill_reconstruction::Config {
+                    grpc_addr: addr,
+                    artifacts_dir: cache,
+                    artifact_store: store,
+                    service_token: token,
+                    ..Default::default()
+                }),
+                "cam" => Role::Cam(depthmill_cam::Config {
+                    grpc_addr: addr,
+                    artifacts_dir: cache,
+                    artifact_store: store,
+                    service_token: token,
+                    ..Default::default()
+                }),
+                _ => Role::Machine(depthmill_machine::Config {
+                    grpc_addr: addr,
+                    artifacts_dir: cache,
+                    artifact_store: store,
+                    service_token: token,
+                }),
+            };
+            let log = root.path().join(format!("{kind}-{i}.log"));
+            procs.push(Proc::new(&format!("{kind}-{i}"), &role, addr, false, log)?);
+        }
     }
+    let list = |kind: &str| urls.get(kind).map(|u| u.join(", ")).unwrap_or_default();
     let (mut rest, mut grpc) = (Vec::new(), Vec::new());
     for i in 0..3 {
         let (r, g) = (free_addr()?, free_addr()?);
         let mut services = depthmill_orchestrator::Endpoints::none();
-        services.machine = machine_urls.join(", ");
+        services.scanning = list("scanning");
+        services.reconstruction = list("reconstruction");
+        services.cam = list("cam");
+        services.machine = list("machine");
         services.health_interval_ms = 250;
         services.token = Some("replica-test-token".into());
         let config = depthmill_orchestrator::Config {
@@ -162,24 +202,43 @@ async fn replicas_and_instances_survive_sigkill() -> anyhow::Result<()> {
     }
 
     let http = depthmill_common::tls::http_client().build()?;
-    let upload = http
-        .post(format!("http://{}/v1/artifacts", rest[0]))
-        .header("content-type", "text/x-gcode")
-        .body(program())
-        .send()
-        .await?
-        .json::<Value>()
-        .await?;
-    let sha = upload["sha256"].as_str().context("upload")?.to_string();
+    let upload = |media_type: &'static str, bytes: Vec<u8>| {
+        let http = http.clone();
+        let url = format!("http://{}/v1/artifacts", rest[0]);
+        async move {
+            let reply = http.post(url).header("content-type", media_type).body(bytes).send().await?;
+            let body = reply.json::<Value>().await?;
+            anyhow::Ok(body["sha256"].as_str().context("upload")?.to_string())
+        }
+    };
+    let sha = upload("text/x-gcode", program()).await?;
+    // REST jobs cycle through the kinds: (body maker input, its sha, its stage chain).
+    let mut kinds = Vec::new();
+    for input in crate::crash::inputs()? {
+        let sha = upload(input.media_type, input.bytes.clone()).await?;
+        kinds.push((input.kind, sha, input.stages.clone()));
+    }
+    // Job n: its body (REST) and its stage chain.
+    let plan: Vec<(Value, Vec<&'static str>)> = (0..jobs)
+        .map(|n| {
+            if n.is_multiple_of(2) {
+                let (kind, sha, stages) = &kinds[(n / 2) % kinds.len()];
+                (crate::crash::job(kind, sha, n, stages), stages.clone())
+            } else {
+                (job_body(&sha, n), vec!["execute", "report"])
+            }
+        })
+        .collect();
 
     // Submissions and kills at once.
     let started = Instant::now();
     let submitter = {
         let (rest, grpc, sha) = (rest.clone(), grpc.clone(), sha.clone());
+        let bodies: Vec<Value> = plan.iter().map(|(b, _)| b.clone()).collect();
         tokio::spawn(async move {
             let mut ids = Vec::with_capacity(jobs);
-            for n in 0..jobs {
-                ids.push(submit(&rest, &grpc, &sha, n).await?);
+            for (n, body) in bodies.iter().enumerate() {
+                ids.push(submit(&rest, &grpc, &sha, body, n).await?);
                 tokio::time::sleep(Duration::from_millis(50)).await;
             }
             anyhow::Ok(ids)
@@ -235,16 +294,21 @@ async fn replicas_and_instances_survive_sigkill() -> anyhow::Result<()> {
 
     let store = depthmill_orchestrator::store::open(&db.url()).await?;
     let (mut interrupted, mut retried) = (0, 0);
+    let chains: BTreeMap<&str, &Vec<&str>> =
+        ids.iter().map(String::as_str).zip(plan.iter().map(|(_, c)| c)).collect();
     for (id, job) in &ended {
         ensure!(job["status"] == "succeeded", "job {id} did not succeed: {job}");
         let results = store.stage_results(id).await?;
-        let stages: Vec<&str> = results.iter().map(|r| r.stage.as_str()).collect();
-        ensure!(stages == ["execute", "report"], "job {id}: stages recorded {stages:?}");
+        let mut stages: Vec<&str> = results.iter().map(|r| r.stage.as_str()).collect();
+        let mut chain: Vec<&str> = chains.get(id.as_str()).map(|c| c.to_vec()).unwrap_or_default();
+        stages.sort_unstable();
+        chain.sort_unstable();
+        ensure!(stages == chain, "job {id}: stages recorded {stages:?}, its chain is {chain:?}");
         let attempts = job["attempts"].as_array().context("attempts")?;
         let ok_executes = attempts.iter().filter(|a| a["stage"] == "execute" && a["outcome"] == "ok").count();
         ensure!(ok_executes == 1, "job {id}: {ok_executes} successful execute attempts: {attempts:?}");
         interrupted += attempts.iter().filter(|a| a["outcome"] == "interrupted").count();
-        retried += attempts.len().saturating_sub(2);
+        retried += attempts.len().saturating_sub(chain.len());
         // Every artifact is complete: its bytes hash to its name.
         for (name, a) in job["artifacts"].as_object().context("artifacts")? {
             let sha = a["sha256"].as_str().context("sha256")?;
@@ -257,7 +321,7 @@ async fn replicas_and_instances_survive_sigkill() -> anyhow::Result<()> {
         }
     }
     println!(
-        "replicas: {} jobs over 3 replicas and 2 machine instances in {:.1} s; {} kills ({killed:?}); \
+        "replicas: {} jobs (every kind) over 3 replicas and 2 instances of each stage service in {:.1} s; {} kills ({killed:?}); \
          lost 0, duplicated 0, failed 0; {interrupted} attempts interrupted, {retried} extra attempts",
         ids.len(),
         wall.as_secs_f64(),

@@ -16,7 +16,7 @@ use std::path::PathBuf;
 pub use depthmill_common::grpc::ServeError;
 
 /// Configuration of the cam service (`deploy/config/cam.toml`, env `DEPTHMILL_CAM__KEY`).
-#[derive(Debug, Clone, serde::Deserialize)]
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Config {
     /// gRPC listen address.

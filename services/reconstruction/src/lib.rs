@@ -21,7 +21,7 @@ use std::path::PathBuf;
 pub use depthmill_common::grpc::ServeError;
 
 /// Configuration of the reconstruction service (`deploy/config/reconstruction.toml`, env `DEPTHMILL_RECONSTRUCTION__KEY`).
-#[derive(Debug, Clone, serde::Deserialize)]
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Config {
     /// gRPC listen address.

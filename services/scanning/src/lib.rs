@@ -29,7 +29,7 @@ use std::path::PathBuf;
 pub use depthmill_common::grpc::ServeError;
 
 /// Configuration of the scanning service (`deploy/config/scanning.toml`, env `DEPTHMILL_SCANNING__KEY`).
-#[derive(Debug, Clone, serde::Deserialize)]
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Config {
     /// gRPC listen address.
