@@ -4,6 +4,7 @@ mod api;
 mod auth;
 mod children;
 mod cli;
+mod corpus;
 mod crash;
 mod deploy;
 mod faces;

@@ -138,3 +138,42 @@ async fn a_planned_program_is_machined_and_measured_against_the_depth_map() -> a
     assert!(csv.lines().count() > 10);
     stack.shutdown().await
 }
+
+/// A depth map without depthmill metadata (a plain `.npy` of heights in millimetres, a plain
+/// 16-bit PNG) is scaled by the job's `input.pixel_mm` and Z range, and that scale reaches every
+/// stage that reads the map: the CAM service plans it and the machine service measures the part
+/// against it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_map_without_metadata_is_scaled_by_the_job_through_plan_and_execute() -> anyhow::Result<()> {
+    let stack = TestStack::start().await?;
+    // The dome's heights, 60 x 50 cells, as a bare .npy (f32, C order, mm).
+    let mut payload = Vec::new();
+    for r in 0..50 {
+        for c in 0..60 {
+            let (x, y) = ((f64::from(c) + 0.5) * 0.4 - 12.0, (f64::from(r) + 0.5) * 0.4 - 10.0);
+            let d2 = x * x + y * y;
+            let z = (2.0 + if d2 < 49.0 { (49.0 - d2).sqrt() } else { 0.0 }) as f32;
+            payload.extend_from_slice(&z.to_le_bytes());
+        }
+    }
+    let header = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': (50, 60), }}{:1$}\n", "", 53);
+    let mut npy = b"\x93NUMPY\x01\x00".to_vec();
+    npy.extend_from_slice(&u16::try_from(header.len())?.to_le_bytes());
+    npy.extend_from_slice(header.as_bytes());
+    npy.extend_from_slice(&payload);
+    let sha = stack.upload("application/x-npy", npy).await?;
+    let job = json!({
+        "input": {"kind": "depth_map", "artifact": sha, "pixel_mm": 0.4, "z_min_mm": 0.0, "z_max_mm": 10.0},
+        "plan": {"stock": {"z_mm": 10}, "roughing": {"tool": "flat-6", "step_down_mm": 3.0},
+                 "finishing": {"tool": "ball-6", "step_over_mm": 1.0}},
+        "execute": {"adaptive": "off", "compare": false, "cell_mm": 0.4}
+    });
+    let (status, created) = stack.post_job(&job, None).await?;
+    assert_eq!(status, 201, "{created}");
+    let done = stack.wait_for_end(created["id"].as_str().expect("id"), Duration::from_secs(300)).await?;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    // Measured against the map: the deviation figures exist and are small.
+    let gouge = done["metrics"]["max_gouge_mm"].as_f64().expect("max_gouge_mm");
+    assert!(gouge < 0.2, "{done}");
+    stack.shutdown().await
+}

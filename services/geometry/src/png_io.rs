@@ -203,7 +203,17 @@ pub fn write_png(map: &HeightMap, path: impl AsRef<Path>, depth: PngDepth) -> Re
 }
 
 /// Reads a PNG height map from `r`; `fallback` supplies mapping values the file lacks.
-pub fn read_png_from<R: BufRead + Seek>(r: R, fallback: Option<&ImageMapping>) -> Result<HeightMap> {
+pub fn read_png_from<R: BufRead + Seek>(mut r: R, fallback: Option<&ImageMapping>) -> Result<HeightMap> {
+    // The input's length, to say where a truncated file ends.
+    let start = r.stream_position().map_err(|error| GeometryError::Io { error })?;
+    let total = r.seek(std::io::SeekFrom::End(0)).map_err(|error| GeometryError::Io { error })? - start;
+    r.seek(std::io::SeekFrom::Start(start)).map_err(|error| GeometryError::Io { error })?;
+    let decoding_err = |e: png::DecodingError| match e {
+        png::DecodingError::IoError(error) if error.kind() == std::io::ErrorKind::UnexpectedEof => {
+            png_err(format!("the file ends at byte {total}, inside a chunk its header declares longer"))
+        }
+        e => decoding_err(e),
+    };
     let mut decoder = Decoder::new_with_limits(r, Limits { bytes: usize::MAX });
     decoder.set_transformations(Transformations::EXPAND);
     let mut reader = decoder.read_info().map_err(decoding_err)?;

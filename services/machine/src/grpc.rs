@@ -282,11 +282,21 @@ impl pb::machine_service_server::MachineService for MachineServiceImpl {
         } else {
             req.face_maps.iter().enumerate().map(|(i, t)| (format!("face_maps[{i}]"), t.clone())).collect()
         };
+        // Maps without depthmill metadata take their scale from the job, as in the CAM service.
+        let fallback = req.pixel_mm.map(|p| depthmill_geometry::ImageMapping {
+            pixel_mm: p,
+            z_min_mm: req.z_min_mm,
+            z_max_mm: req.z_max_mm,
+        });
         for (field, t) in refs {
             let bytes = self.store.read_all(&t.sha256, MAX_MAP_BYTES).await.map_err(artifact_status)?;
             let f = field.clone();
-            let map = tokio::task::spawn_blocking(move || {
-                depthmill_geometry::read_png_from(Cursor::new(bytes), None)
+            let media_type = t.media_type.clone();
+            let map = tokio::task::spawn_blocking(move || match media_type.as_str() {
+                "application/x-npy" => {
+                    depthmill_geometry::read_npy_from(Cursor::new(bytes), None, fallback.as_ref())
+                }
+                _ => depthmill_geometry::read_png_from(Cursor::new(bytes), fallback.as_ref()),
             })
             .await
             .map_err(|e| Status::internal(format!("decoding failed: {e}")))?

@@ -222,7 +222,7 @@ impl App {
             use depthmill_geometry::formats::{ReadLimits, read_any_from};
             let file = std::fs::File::open(&path).map_err(|e| format!("{name}: cannot open: {e}"))?;
             let size = file.metadata().ok().map(|m| m.len());
-            let (mut geometry, _) = read_any_from(
+            let (mut geometry, stats) = read_any_from(
                 std::io::BufReader::with_capacity(1 << 20, file),
                 &name,
                 size,
@@ -239,7 +239,12 @@ impl App {
                     ));
                 }
             };
-            bounds.map(|b| b.extent()).ok_or_else(|| format!("{name}: has no triangles"))
+            bounds.map(|b| b.extent()).ok_or_else(|| match stats.dropped_triangles {
+                0 => format!("{name}: has no triangles"),
+                n => format!(
+                    "{name}: has no usable triangles: all {n} are degenerate (zero area) or have a NaN or infinite corner"
+                ),
+            })
         })
         .await
         .map_err(|e| ApiError::new(ErrorCode::Internal, format!("reading the mesh failed: {e}")))?;

@@ -525,6 +525,9 @@ impl StageRunner for GrpcStages {
                         } else {
                             types::LengthUnit::Mm
                         } as i32,
+                        pixel_mm: call.spec.input.pixel_mm,
+                        z_min_mm: call.spec.input.z_min_mm,
+                        z_max_mm: call.spec.input.z_max_mm,
                     };
                     let mut client = machine::machine_service_client::MachineServiceClient::new(channel);
                     let stream = client

@@ -117,7 +117,8 @@ pub struct ReadStats {
     pub format: InputFormat,
     /// Bytes consumed from the input (a PLY reader stops after the last element it needs).
     pub bytes: u64,
-    /// Points (cloud) or vertices (mesh) kept.
+    /// Points (cloud) or vertices (mesh) read and kept ([`sample_cloud_from`]: read, of which a
+    /// sample is kept).
     pub points: u64,
     /// Points dropped for a NaN or infinite coordinate or intensity.
     pub dropped_non_finite: u64,

@@ -40,7 +40,14 @@ pub enum ReconError {
 impl ReconError {
     /// Shorthand for [`ReconError::InvalidParameter`].
     pub fn param(field: impl Into<String>, value: impl fmt::Display, reason: impl Into<String>) -> Self {
-        ReconError::InvalidParameter { field: field.into(), value: value.to_string(), reason: reason.into() }
+        // A number far out of range reads as 1e308, not as its 309 digits.
+        let mut value = value.to_string();
+        if value.len() > 24
+            && let Ok(v) = value.parse::<f64>()
+        {
+            value = format!("{v:e}");
+        }
+        ReconError::InvalidParameter { field: field.into(), value, reason: reason.into() }
     }
 
     /// True when the caller's input is at fault (as opposed to the machine: I/O errors).

@@ -536,7 +536,12 @@ pub fn reconstruct_with_free_space(
             progress(0.02, "cleaning the point cloud");
             let (cloud, reports) = clean(cloud, &r.filters)?;
             if cloud.is_empty() {
-                return Err(ReconError::Empty("no points left after the clean-up filters".into()));
+                return Err(ReconError::Empty(if points_in == 0 {
+                    "the input holds no point with finite coordinates (NaN or infinite ones are dropped)"
+                        .into()
+                } else {
+                    format!("none of the input's {points_in} points is left after the clean-up filters")
+                }));
             }
             check_cancel(cancelled)?;
             if let Some(settings) = r.face_choice {
