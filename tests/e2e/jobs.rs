@@ -271,3 +271,72 @@ async fn cancel_stops_a_queued_job_at_once_and_a_running_one_through_its_service
     assert_eq!(unknown.code(), tonic::Code::NotFound);
     stack.shutdown().await
 }
+
+/// With two instances of the machine service behind the balanced endpoint list, cancelling a
+/// running stage reaches the instance that runs it, whichever one that is: the orchestrator asks
+/// every instance, and the one running the stage stops it. (Each call is started on a chosen
+/// instance here; the cancels go through the two-instance list.)
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn cancel_reaches_the_instance_that_runs_the_stage() -> anyhow::Result<()> {
+    use depthmill_common::artifacts::ArtifactStore as _;
+    use depthmill_orchestrator::stages::{GrpcStages, StageCall, StageRunner as _};
+    let dir = tempfile::tempdir()?;
+    let store = depthmill_common::artifacts::ObjectArtifactStore::open_local(dir.path()).await?;
+    let program = store.put_bytes("text/x-gcode", &crate::program()).await?;
+    let (scripts, mut urls, mut stops) = (vec![Script::default(), Script::default()], Vec::new(), Vec::new());
+    for script in &scripts {
+        script.hold(true);
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
+        urls.push(format!("http://{}", listener.local_addr()?));
+        let stop = tokio_util::sync::CancellationToken::new();
+        stops.push(stop.clone());
+        tokio::spawn(script.clone().serve(listener, store.clone(), stop));
+    }
+    let stages_on = |machine: String| -> anyhow::Result<std::sync::Arc<GrpcStages>> {
+        let mut endpoints = depthmill_orchestrator::Endpoints::none();
+        endpoints.machine = machine;
+        Ok(std::sync::Arc::new(GrpcStages::new(&endpoints)?))
+    };
+    let stages = stages_on(urls.join(", "))?;
+    let single = [stages_on(urls[0].clone())?, stages_on(urls[1].clone())?];
+    let spec: depthmill_orchestrator::domain::JobSpec =
+        serde_json::from_value(json!({"input": {"kind": "gcode", "artifact": program.sha256}}))?;
+    let call = |n: usize| StageCall {
+        job_id: format!("job-{n}"),
+        attempt: 1,
+        stage: depthmill_orchestrator::domain::Stage::Execute,
+        spec: spec.clone(),
+        artifacts: [("gcode".to_string(), program.clone())].into_iter().collect(),
+    };
+    for round in 0..3 {
+        // One call held on each instance.
+        let mut running = Vec::new();
+        for (i, n) in [2 * round, 2 * round + 1].into_iter().enumerate() {
+            let before: u32 = scripts.iter().map(Script::calls).sum();
+            let stages = single[i].clone();
+            let call = call(n);
+            running.push(tokio::spawn(async move {
+                stages.run(&call, Duration::from_secs(30), &|_, _| {}).await
+            }));
+            let deadline = std::time::Instant::now() + Duration::from_secs(10);
+            while scripts.iter().map(Script::calls).sum::<u32>() == before {
+                anyhow::ensure!(std::time::Instant::now() < deadline, "no instance got call {n}");
+                tokio::time::sleep(Duration::from_millis(10)).await;
+            }
+        }
+        let busy: Vec<u32> = scripts.iter().map(Script::calls).collect();
+        anyhow::ensure!(busy[0] == busy[1], "round {round}: calls per instance {busy:?}");
+        for n in [2 * round, 2 * round + 1] {
+            let stage = depthmill_orchestrator::domain::Stage::Execute;
+            assert!(stages.cancel(stage, &format!("job-{n}")).await?, "call {n}: no instance knew the stage");
+            let ended = tokio::time::timeout(Duration::from_secs(10), running.remove(0)).await??;
+            assert!(ended.is_err(), "call {n} ran to the end after its cancel");
+        }
+        let cancels: Vec<u32> = scripts.iter().map(Script::cancels).collect();
+        assert_eq!(cancels, vec![round as u32 + 1; 2], "each instance stopped the call it ran");
+    }
+    for stop in stops {
+        stop.cancel();
+    }
+    Ok(())
+}

@@ -12,7 +12,7 @@ use depthmill_proto::machine::v1 as machine;
 use depthmill_proto::reconstruction::v1 as rec;
 use depthmill_proto::scanning::v1 as scan;
 use depthmill_proto::types::v1 as types;
-use tonic::transport::Channel;
+use tonic::transport::{Channel, Endpoint};
 
 use crate::convert;
 use crate::domain::{JobSpec, SpecError, Stage, StageOutputs};
@@ -47,8 +47,12 @@ impl StageError {
     fn from_status(stage: Stage, status: &tonic::Status) -> Self {
         let code = match status.code() {
             // Made here from a transport error (a status the service sent has no source): the
-            // connection broke mid-call, the instance died or restarted. Another attempt may work.
-            tonic::Code::Unknown | tonic::Code::Internal if std::error::Error::source(status).is_some() => {
+            // connection broke mid-call, the instance died or restarted, or the balancer dropped
+            // an instance that failed its health check (its calls end as CANCELLED, h2's reset,
+            // though no one cancelled the job). Another attempt may work.
+            tonic::Code::Unknown | tonic::Code::Internal | tonic::Code::Cancelled
+                if std::error::Error::source(status).is_some() =>
+            {
                 ErrorCode::Unavailable
             }
             code => ErrorCode::from_grpc(code),
@@ -176,10 +180,10 @@ impl Endpoints {
 /// and a service that comes back after a restart is reached again.
 #[derive(Clone)]
 pub struct GrpcStages {
-    scanning: Option<Channel>,
-    reconstruction: Option<Channel>,
-    cam: Option<Channel>,
-    machine: Option<Channel>,
+    scanning: Option<ServiceChannels>,
+    reconstruction: Option<ServiceChannels>,
+    cam: Option<ServiceChannels>,
+    machine: Option<ServiceChannels>,
     /// `Bearer <service token>`, sent with every call.
     authorization: Option<tonic::metadata::MetadataValue<tonic::metadata::Ascii>>,
 }
@@ -194,13 +198,23 @@ pub struct EndpointError {
     source: Box<dyn std::error::Error + Send + Sync>,
 }
 
-/// The channel to a service at `urls`: none when empty, one lazily connected endpoint, or several
+/// The channels to one stage service.
+#[derive(Clone)]
+struct ServiceChannels {
+    /// Stage calls: the one instance, or the instances balanced with health checks.
+    calls: Channel,
+    /// Each instance alone: `CancelStage` goes to every one, since only the instance running the
+    /// stage knows it.
+    instances: Vec<Channel>,
+}
+
+/// The channels to a service at `urls`: none when empty, one lazily connected endpoint, or several
 /// instances (comma-separated) balanced with health checks every `health_interval`.
 fn channel(
     service: &'static str,
     urls: &str,
     health_interval: Duration,
-) -> Result<Option<Channel>, EndpointError> {
+) -> Result<Option<ServiceChannels>, EndpointError> {
     let mut endpoints = Vec::new();
     for url in urls.split(',').map(str::trim).filter(|u| !u.is_empty()) {
         let endpoint = Channel::from_shared(url.to_string())
@@ -209,10 +223,14 @@ fn channel(
             .tcp_nodelay(true);
         endpoints.push(endpoint);
     }
+    let instances: Vec<Channel> = endpoints.iter().map(Endpoint::connect_lazy).collect();
     Ok(match endpoints.len() {
         0 => None,
-        1 => endpoints.pop().map(|e| e.connect_lazy()),
-        _ => Some(crate::balance::balanced(service, endpoints, health_interval)),
+        1 => Some(ServiceChannels { calls: instances[0].clone(), instances }),
+        _ => Some(ServiceChannels {
+            calls: crate::balance::balanced(service, endpoints, health_interval),
+            instances,
+        }),
     })
 }
 
@@ -250,7 +268,7 @@ impl GrpcStages {
                 ));
             }
         };
-        ch.clone().ok_or_else(|| {
+        ch.as_ref().map(|c| c.calls.clone()).ok_or_else(|| {
             StageError::new(
                 ErrorCode::StageNotAvailable,
                 format!("stage not available: no {service} service is configured for the {stage} stage"),
@@ -319,7 +337,7 @@ impl GrpcStages {
     /// The machine service's `ValidateParams` on the job's execute section and the part's size.
     async fn ask_machine(&self, spec: &JobSpec, part_size_mm: Option<[f64; 3]>) -> Result<(), SpecError> {
         let Some(ch) = &self.machine else { return Ok(()) };
-        let mut client = machine::machine_service_client::MachineServiceClient::new(ch.clone());
+        let mut client = machine::machine_service_client::MachineServiceClient::new(ch.calls.clone());
         let msg = machine::ValidateExecuteRequest {
             params: Some(convert::execute_params_for_job(spec)),
             part_size_mm: part_size_mm.map(|[x, y, z]| types::Vec3 { x, y, z }),
@@ -333,20 +351,21 @@ impl GrpcStages {
 impl StageRunner for GrpcStages {
     async fn check_params(&self, spec: &JobSpec) -> Result<(), SpecError> {
         if let (Some(p), Some(ch)) = (&spec.scan, &self.scanning) {
-            let mut client = scan::scanning_service_client::ScanningServiceClient::new(ch.clone());
+            let mut client = scan::scanning_service_client::ScanningServiceClient::new(ch.calls.clone());
             let answer =
                 client.validate_params(self.request(convert::scan_params(p), CHECK_PARAMS_TIMEOUT)).await;
             first_violation("scanning", answer)?;
         }
         if let (Some(p), Some(ch)) = (&spec.reconstruct, &self.reconstruction) {
-            let mut client = rec::reconstruction_service_client::ReconstructionServiceClient::new(ch.clone());
+            let mut client =
+                rec::reconstruction_service_client::ReconstructionServiceClient::new(ch.calls.clone());
             let answer = client
                 .validate_params(self.request(convert::reconstruct_params(p), CHECK_PARAMS_TIMEOUT))
                 .await;
             first_violation("reconstruction", answer)?;
         }
         if let (Some(_), Some(ch)) = (&spec.plan, &self.cam) {
-            let mut client = cam::cam_service_client::CamServiceClient::new(ch.clone());
+            let mut client = cam::cam_service_client::CamServiceClient::new(ch.calls.clone());
             let answer = client
                 .validate_params(self.request(convert::plan_params_for_job(spec), CHECK_PARAMS_TIMEOUT))
                 .await;
@@ -613,11 +632,43 @@ impl StageRunner for GrpcStages {
         Ok(tools)
     }
 
+    /// Asks every instance of the stage's service (only the one running the stage knows it):
+    /// found when any found it; an error only when none could be asked.
     async fn cancel(&self, stage: Stage, job_id: &str) -> Result<bool, StageError> {
-        let channel = match self.channel_for(stage) {
-            Ok(c) => c,
-            Err(_) => return Ok(false),
+        let service = match stage {
+            Stage::Scan => &self.scanning,
+            Stage::Reconstruct => &self.reconstruction,
+            Stage::Plan => &self.cam,
+            Stage::Execute => &self.machine,
+            Stage::Report => return Ok(false),
         };
+        let Some(service) = service else { return Ok(false) };
+        let answers = futures::future::join_all(
+            service.instances.iter().map(|channel| self.cancel_on(channel.clone(), stage, job_id)),
+        )
+        .await;
+        let (mut error, mut answered, mut found) = (None, 0, false);
+        for answer in answers {
+            match answer {
+                Ok(f) => {
+                    answered += 1;
+                    found |= f;
+                }
+                Err(e) => {
+                    tracing::warn!(%stage, job = job_id, error = %e, "an instance could not be asked to cancel");
+                    error = Some(e);
+                }
+            }
+        }
+        match error {
+            Some(e) if answered == 0 => Err(e),
+            _ => Ok(found),
+        }
+    }
+}
+
+impl GrpcStages {
+    async fn cancel_on(&self, channel: Channel, stage: Stage, job_id: &str) -> Result<bool, StageError> {
         let msg = types::CancelStageRequest { job_id: job_id.to_string() };
         let deadline = Duration::from_secs(5);
         let status = |s: tonic::Status| StageError::from_status(stage, &s);
@@ -648,4 +699,28 @@ impl StageRunner for GrpcStages {
 
 fn unreachable_report() -> Result<(), StageError> {
     Err(StageError::new(ErrorCode::Internal, "the report stage runs in the orchestrator, not in a service"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A CANCELLED the service sent (a CancelStage took effect) ends the job as cancelled; one the
+    /// client transport made (h2 reset: an instance left the balancer or died mid-call, nobody
+    /// cancelled) is retried like any broken connection.
+    #[test]
+    fn a_cancel_made_by_the_transport_is_retried_and_one_sent_by_the_service_is_not() {
+        let sent = tonic::Status::cancelled("the stage was cancelled");
+        assert_eq!(StageError::from_status(Stage::Execute, &sent).code, ErrorCode::Cancelled);
+        let mut local = tonic::Status::cancelled("operation was canceled");
+        local.set_source(std::sync::Arc::new(std::io::Error::other("stream reset")));
+        assert_eq!(StageError::from_status(Stage::Execute, &local).code, ErrorCode::Unavailable);
+        let mut broken = tonic::Status::unknown("transport error");
+        broken.set_source(std::sync::Arc::new(std::io::Error::other("connection reset")));
+        assert_eq!(StageError::from_status(Stage::Reconstruct, &broken).code, ErrorCode::Unavailable);
+        assert_eq!(
+            StageError::from_status(Stage::Plan, &tonic::Status::internal("bug")).code,
+            ErrorCode::Internal
+        );
+    }
 }
