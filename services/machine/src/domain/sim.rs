@@ -694,20 +694,29 @@ impl<'a> Machine<'a> {
         let Some(to) = canon.end_point() else { return Ok(()) };
         let prof = &self.setup.profile;
         let length = self.current_tool().map_or(0.0, |t| t.length_mm);
-        // Nose = tip + length; the tip is the canonical point minus the program's G43 offset.
-        let nose_z = to.z - self.tlo_mm + length;
         let line = canon.line();
         let a = &prof.axes;
-        for (axis, v, r) in [("X", to.x, a.x), ("Y", to.y, a.y), ("Z", nose_z, a.z)] {
-            if !r.contains(v, 1e-6) {
-                return Err(SimError::rejected_word(
-                    line,
-                    axis.chars().next().unwrap_or('X'),
-                    format!(
-                        "the move leaves the machine's travel: {axis} {v:.3} mm (spindle nose) is outside [{}, {}]",
-                        r.min_mm, r.max_mm
-                    ),
-                ));
+        // The end point, and for an arc the points where it is widest along the plane's axes (it
+        // can bulge out of the travel between two ends inside it).
+        let mut points = vec![to];
+        if let Canon::Arc { end, plane, center, rotation, .. } = *canon {
+            let from = self.pending.as_ref().map_or(self.pos, |p| p.canon.end_point().unwrap_or(p.from));
+            points.extend(arc_extremes(from, end, plane, center, rotation));
+        }
+        for p in points {
+            // Nose = tip + length; the tip is the canonical point minus the program's G43 offset.
+            let nose_z = p.z - self.tlo_mm + length;
+            for (axis, v, r) in [("X", p.x, a.x), ("Y", p.y, a.y), ("Z", nose_z, a.z)] {
+                if !r.contains(v, 1e-6) {
+                    return Err(SimError::rejected_word(
+                        line,
+                        axis.chars().next().unwrap_or('X'),
+                        format!(
+                            "the move leaves the machine's travel: {axis} {v:.3} mm (spindle nose) is outside [{}, {}]",
+                            r.min_mm, r.max_mm
+                        ),
+                    ));
+                }
             }
         }
         if !prof.a_is_continuous() && !a.a.contains(to.a, 1e-6) {
@@ -1208,6 +1217,31 @@ fn arc_geometry(
     (len, tangent(r0x, r0y), tangent(r1x, r1y))
 }
 
+/// The points of an arc from `from` where it reaches its extremes along its plane's two axes (the
+/// angles 0, 90, 180 and 270 degrees about the centre that its sweep passes), at the start's
+/// normal-axis coordinate (a helix moves that one linearly between the two ends, both checked).
+fn arc_extremes(from: Pos, end: Pos, plane: Plane, center: [f64; 2], rotation: i32) -> Vec<Pos> {
+    use std::f64::consts::{FRAC_PI_2, TAU};
+    let [i0, i1, _] = plane.axes();
+    let f = from.to_array();
+    let (r0x, r0y) = (f[i0] - center[0], f[i1] - center[1]);
+    let r = r0x.hypot(r0y);
+    let a0 = r0y.atan2(r0x);
+    let sweep = super::gcode::arc_sweep(plane, from, end, center, rotation);
+    let mut out = Vec::new();
+    for k in 0..4 {
+        let target = f64::from(k) * FRAC_PI_2;
+        let ahead = if sweep >= 0.0 { (target - a0).rem_euclid(TAU) } else { (a0 - target).rem_euclid(TAU) };
+        if sweep.abs() >= TAU || ahead <= sweep.abs() {
+            let mut p = f;
+            p[i0] = center[0] + r * target.cos();
+            p[i1] = center[1] + r * target.sin();
+            out.push(Pos::from_array(p));
+        }
+    }
+    out
+}
+
 /// The point at fraction `t` of a pending move (machine coordinates).
 fn point_at(m: &Pending, t: f64) -> Pos {
     let to = m.canon.end_point().unwrap_or(m.from);
@@ -1679,6 +1713,92 @@ mod tests {
         );
         assert_eq!(r_aco.revs_over_power, 0);
         assert!(r_fixed.revs_over_power > 0);
+    }
+
+    #[test]
+    fn an_arc_that_bulges_out_of_the_travel_is_refused_though_its_ends_are_inside() {
+        let s = setup(PolicyKind::Off);
+        // Both ends in the travel; clockwise from (5, 10) to (5, 20) about a centre 150 mm to the
+        // left is the long way round, 300 mm across.
+        let program = SLOT.replace("G1 X35 F200", "G1 X5 Y10 F200\nG2 X5 Y20 I-150 J5");
+        let e = run(&s, &program).map(|_| ()).expect_err("bulge");
+        assert!(e.to_string().contains("line 10") && e.to_string().contains("travel"), "{e}");
+    }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(48))]
+        /// Random programs of rapids, feeds and arcs (clockwise and counter-clockwise, some far
+        /// out of the travel, some with radii that do not agree): the simulated mill either
+        /// refuses a program naming a line, or runs it without its spindle nose ever leaving the
+        /// travel. The reference walks the interpreter's commands itself and samples every move
+        /// densely (arcs at 1° steps).
+        #[test]
+        fn the_mill_never_leaves_its_travel(
+            moves in proptest::collection::vec(
+                (0u8..4, -60.0..260.0f64, -60.0..200.0f64, -40.0..120.0f64, -40.0..40.0f64, -40.0..40.0f64),
+                1..10,
+            ),
+        ) {
+            use std::fmt::Write as _;
+            use crate::domain::gcode::{Interpreter, Plane};
+            let mut s = setup(PolicyKind::Off);
+            s.motion_only = true;
+            let mut program = String::from("%\nG21 G90 G17 G94\nT1 M6\nS1500 M3\nG0 Z60\n");
+            for (kind, x, y, z, i, j) in &moves {
+                let _ = match kind {
+                    0 => writeln!(program, "G0 X{x:.3} Y{y:.3} Z{z:.3}"),
+                    1 => writeln!(program, "G1 X{x:.3} Y{y:.3} Z{z:.3} F300"),
+                    2 => writeln!(program, "G2 X{x:.3} Y{y:.3} I{i:.3} J{j:.3} F300"),
+                    _ => writeln!(program, "G3 X{x:.3} Y{y:.3} I{i:.3} J{j:.3} F300"),
+                };
+            }
+            program.push_str("M30\n%\n");
+            let outcome = run(&s, &program);
+            let Ok(_) = outcome else {
+                let e = outcome.map(|_| ()).expect_err("refused");
+                proptest::prop_assert!(e.to_string().contains("line "), "refused without a line: {}", e);
+                return Ok(());
+            };
+            // It ran: walk the same commands and check every sampled point.
+            let machine = Machine::new(&s).expect("machine");
+            let mut interp = Interpreter::new(machine.interp_config());
+            let mut canons = Vec::new();
+            for (n, text) in program.lines().enumerate() {
+                interp.execute_line(text, n as u64 + 1, &mut |c| canons.push(c)).expect("ran once already");
+            }
+            let axes = &s.profile.axes;
+            let length = s.tools[0].length_mm;
+            let mut pos: Option<Pos> = None;
+            for c in canons {
+                let Some(end) = c.end_point() else { continue };
+                let samples: Vec<Pos> = match (c, pos) {
+                    (Canon::Arc { plane: Plane::Xy, center, rotation, .. }, Some(from)) => {
+                        let sweep = crate::domain::gcode::arc_sweep(Plane::Xy, from, end, center, rotation);
+                        let (rx, ry) = (from.x - center[0], from.y - center[1]);
+                        let (r, a0) = (rx.hypot(ry), ry.atan2(rx));
+                        let steps = (sweep.abs().to_degrees().ceil() as usize).max(1);
+                        (0..=steps)
+                            .map(|k| {
+                                let ang = a0 + sweep * k as f64 / steps as f64;
+                                let mut p = from;
+                                p.x = center[0] + r * ang.cos();
+                                p.y = center[1] + r * ang.sin();
+                                p
+                            })
+                            .collect()
+                    }
+                    _ => vec![end],
+                };
+                for p in samples {
+                    let nose_z = p.z + length;
+                    proptest::prop_assert!(
+                        axes.x.contains(p.x, 1e-3) && axes.y.contains(p.y, 1e-3) && axes.z.contains(nose_z, 1e-3),
+                        "line {}: ({:.3}, {:.3}, nose {:.3}) is outside the travel\n{}", c.line(), p.x, p.y, nose_z, program
+                    );
+                }
+                pos = Some(end);
+            }
+        }
     }
 
     #[test]
