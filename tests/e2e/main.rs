@@ -8,6 +8,7 @@ mod corpus;
 mod crash;
 mod deploy;
 mod faces;
+mod faults;
 mod jobs;
 mod layering;
 mod machine;

@@ -20,6 +20,8 @@ use tonic::{Request, Response, Status};
 #[derive(Default)]
 struct State {
     fail_unavailable: u32,
+    fail_mid: u32,
+    fault_mid: Option<String>,
     reject: Option<String>,
     delay: Duration,
     hold: bool,
@@ -48,6 +50,18 @@ impl Script {
     /// The next `n` calls fail with UNAVAILABLE.
     pub fn fail_next(&self, n: u32) {
         self.lock().fail_unavailable = n;
+    }
+
+    /// The next `n` calls start, report progress, then fail with UNAVAILABLE mid-stage (a drive
+    /// that drops out mid-run).
+    pub fn fail_mid_next(&self, n: u32) {
+        self.lock().fail_mid = n;
+    }
+
+    /// Every call starts, reports progress, then fails with INTERNAL and this message (a fault the
+    /// service cannot recover from); `None` stops it.
+    pub fn fault_mid(&self, message: Option<&str>) {
+        self.lock().fault_mid = message.map(str::to_string);
     }
 
     /// Every call fails with INVALID_ARGUMENT and this message.
@@ -149,14 +163,20 @@ impl MachineService for Scripted {
         request: Request<pb::ExecuteProgramRequest>,
     ) -> Result<Response<Self::ExecuteProgramStream>, Status> {
         let req = request.into_inner();
-        let (fail, reject, delay, hold) = {
+        let (fail, reject, delay, hold, mid) = {
             let mut s = self.script.lock();
             s.calls += 1;
             let fail = s.fail_unavailable > 0;
             if fail {
                 s.fail_unavailable -= 1;
             }
-            (fail, s.reject.clone(), s.delay, s.hold)
+            let mid = if s.fail_mid > 0 {
+                s.fail_mid -= 1;
+                Some(Status::unavailable("scripted: the spindle drive dropped out mid-run"))
+            } else {
+                s.fault_mid.clone().map(Status::internal)
+            };
+            (fail, s.reject.clone(), s.delay, s.hold, mid)
         };
         self.script.changed.notify_waiters();
         if fail {
@@ -180,6 +200,10 @@ impl MachineService for Scripted {
                 })),
             };
             let _ = tx.send(Ok(progress)).await;
+            if let Some(status) = mid {
+                let _ = tx.send(Err(status)).await;
+                return;
+            }
             let released = script.released.notified();
             let wait = async {
                 if hold {

@@ -1,0 +1,103 @@
+//! Fault campaign on a stage service (the machine, scripted): slowed past the stage deadline, and
+//! failing mid-stage after it started and reported progress, transiently and for good. Each job
+//! ends succeeded or failed with a named error, within what the deadlines and the attempt budget
+//! allow (no hang), and the service keeps serving the next job. (A service that is stopped is
+//! `whole::a_job_outlives_a_stage_service_going_down_and_coming_back` and
+//! `jobs::a_stage_without_its_service_fails_the_job_clearly`; errors at the start of a call are
+//! `jobs::transient_errors_are_retried_and_invalid_arguments_are_not`.)
+
+use std::time::{Duration, Instant};
+
+use anyhow::Context as _;
+use depthmill_tests::scripted::Script;
+use depthmill_tests::{MachineBackend, StackOptions, TestStack};
+use serde_json::Value;
+
+use crate::{gcode_job, program};
+
+fn outcomes(job: &Value) -> Vec<String> {
+    job["attempts"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .map(|a| format!("{}:{}", a["stage"].as_str().unwrap_or("?"), a["outcome"].as_str().unwrap_or("?")))
+        .collect()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stage_slowed_past_its_deadline_fails_in_bounded_time_and_the_service_goes_on() -> anyhow::Result<()>
+{
+    let script = Script::default();
+    let (deadline_s, attempts) = (1.0, 3u32);
+    let stack = TestStack::start_with(StackOptions {
+        machine: MachineBackend::Scripted(script.clone()),
+        stage_deadline_s: deadline_s,
+        max_attempts: attempts,
+        ..Default::default()
+    })
+    .await?;
+    let sha = stack.upload("text/x-gcode", program()).await?;
+
+    // Slower than the deadline: every attempt times out; the job fails naming the deadline.
+    script.set_delay(Duration::from_secs(30));
+    let started = Instant::now();
+    let (_, job) = stack.post_job(&gcode_job(&sha), None).await?;
+    let id = job["id"].as_str().context("id")?.to_string();
+    let done = stack.wait_for_end(&id, Duration::from_secs(60)).await?;
+    let took = started.elapsed();
+    assert_eq!(done["status"], "failed", "{done}");
+    assert_eq!(done["error"]["code"], "deadline_exceeded", "{done}");
+    assert_eq!(done["error"]["stage"], "execute", "{done}");
+    let message = done["error"]["message"].as_str().unwrap_or_default();
+    assert!(message.contains("gave up after 3 attempts"), "{message}");
+    assert_eq!(outcomes(&done).len(), attempts as usize, "{done}");
+    // Attempts x deadline, plus backoff and polling: nowhere near the 30 s the service would take.
+    let bound = Duration::from_secs_f64(f64::from(attempts) * deadline_s + 5.0);
+    assert!(took < bound, "the job took {took:?}, more than {bound:?}");
+
+    // Back to normal speed: the next job runs.
+    script.set_delay(Duration::ZERO);
+    let (_, job) = stack.post_job(&gcode_job(&sha), None).await?;
+    let done = stack.wait_for_end(job["id"].as_str().context("id")?, Duration::from_secs(30)).await?;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    stack.shutdown().await
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn errors_in_the_middle_of_a_stage_are_retried_or_named_and_the_service_goes_on() -> anyhow::Result<()>
+{
+    let script = Script::default();
+    let stack = TestStack::start_with(StackOptions {
+        machine: MachineBackend::Scripted(script.clone()),
+        ..Default::default()
+    })
+    .await?;
+    let sha = stack.upload("text/x-gcode", program()).await?;
+
+    // Two runs drop out after they started: retried, the third finishes.
+    script.fail_mid_next(2);
+    let (_, job) = stack.post_job(&gcode_job(&sha), None).await?;
+    let done = stack.wait_for_end(job["id"].as_str().context("id")?, Duration::from_secs(30)).await?;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    assert_eq!(outcomes(&done), ["execute:retry", "execute:retry", "execute:ok", "report:ok"], "{done}");
+    assert_eq!(done["attempts"][0]["error_code"], "unavailable");
+    assert!(
+        done["attempts"][0]["error_message"].as_str().unwrap_or_default().contains("dropped out mid-run"),
+        "{done}"
+    );
+
+    // A fault the service reports as internal mid-run: the job fails at once with it, named.
+    script.fault_mid(Some("scripted: axis amplifier fault"));
+    let (_, job) = stack.post_job(&gcode_job(&sha), None).await?;
+    let done = stack.wait_for_end(job["id"].as_str().context("id")?, Duration::from_secs(30)).await?;
+    assert_eq!(done["status"], "failed", "{done}");
+    assert_eq!(done["error"]["stage"], "execute");
+    assert!(done["error"]["message"].as_str().unwrap_or_default().contains("axis amplifier fault"), "{done}");
+
+    // The fault cleared: the next job runs.
+    script.fault_mid(None);
+    let (_, job) = stack.post_job(&gcode_job(&sha), None).await?;
+    let done = stack.wait_for_end(job["id"].as_str().context("id")?, Duration::from_secs(30)).await?;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    stack.shutdown().await
+}
