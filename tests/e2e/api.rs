@@ -126,6 +126,10 @@ async fn bad_input_is_rejected_with_the_problem_named_and_the_server_keeps_servi
         .send()
         .await?;
     expect_error(resp, 415, "unsupported_media_type", "image/gif").await?;
+    // A job request over the 2 MiB a request may be: the API's error, naming the limit.
+    let huge = format!("{{\"name\": \"{}\"}}", "x".repeat(3 << 20));
+    let resp = post(huge).await?;
+    expect_error(resp, 413, "payload_too_large", "2 MiB").await?;
     // Malformed digest and unknown job.
     let resp = stack.http.get(stack.url("/v1/artifacts/not-a-digest")).send().await?;
     expect_error(resp, 400, "invalid_argument", "sha256").await?;

@@ -52,12 +52,21 @@ pub fn parse_job_spec(body: &[u8]) -> Result<JobSpec, ApiError> {
         (status = 201, description = "job created", body = Job),
         (status = 200, description = "the job an earlier request with this Idempotency-Key created", body = Job),
         (status = 400, description = "malformed or invalid request", body = ErrorBody),
-        (status = 409, description = "Idempotency-Key reused with a different request", body = ErrorBody)))]
+        (status = 409, description = "Idempotency-Key reused with a different request", body = ErrorBody),
+        (status = 413, description = "the request is larger than the 2 MiB a job request may be", body = ErrorBody)))]
 pub(crate) async fn create_job(
     State(app): State<App>,
     headers: HeaderMap,
-    body: Bytes,
+    body: Result<Bytes, axum::extract::rejection::BytesRejection>,
 ) -> Result<Response, ApiError> {
+    // axum's default body limit (2 MiB) for a job request, answered as the API's error.
+    let body = body.map_err(|e| match e.status() {
+        axum::http::StatusCode::PAYLOAD_TOO_LARGE => ApiError::new(
+            ErrorCode::PayloadTooLarge,
+            "the job request is larger than the limit of 2 MiB (2097152 bytes); large inputs go in artifacts",
+        ),
+        _ => ApiError::new(ErrorCode::InvalidArgument, format!("reading the request failed: {e}")),
+    })?;
     if let Some(ct) = headers.get(header::CONTENT_TYPE) {
         let ct = ct.to_str().unwrap_or("");
         if !ct.starts_with("application/json") {
