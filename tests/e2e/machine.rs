@@ -123,3 +123,39 @@ async fn a_program_sent_while_another_runs_waits_for_the_machine_instead_of_fail
     }
     stack.shutdown().await
 }
+
+/// Emergency stop at random moments of a run: each time the job ends cancelled naming the
+/// emergency stop, keeps no half-made result (no final stock), the machine reports the latched
+/// stop, and the next job runs to the end from a clean state.
+#[tokio::test]
+async fn emergency_stops_at_random_moments_leave_a_consistent_machine() -> anyhow::Result<()> {
+    use rand::Rng as _;
+    let stack = TestStack::start().await?;
+    let mut m = machine(&stack).await?;
+    let long = stack.upload("text/x-gcode", long_program()).await?;
+    let short = b"%\nG21 G90\nT1 M6\nS1500 M3\nG43 H1\nG0 X-5 Y5\nG0 Z12\nG1 Z9.5 F100\nG1 X35 F300\nG0 Z15\nM30\n%\n";
+    let short = stack.upload("text/x-gcode", short.to_vec()).await?;
+    for round in 0..4 {
+        let (_, created) = stack.post_job(&job(&long), None).await?;
+        wait_running(&mut m).await?;
+        let pause = rand::rng().random_range(0..400);
+        tokio::time::sleep(Duration::from_millis(pause)).await;
+        let s = m.reset(pb::ResetRequest {}).await?.into_inner();
+        assert_eq!(s.state, "estop", "round {round}");
+        let done = stack.wait_for_end(created["id"].as_str().expect("id"), Duration::from_secs(120)).await?;
+        assert_eq!(done["status"], "cancelled", "round {round} after {pause} ms: {done}");
+        assert!(done["error"]["message"].as_str().unwrap_or_default().contains("emergency stop"), "{done}");
+        assert!(
+            done["artifacts"].get("final_stock").is_none(),
+            "round {round}: a stopped run left a result: {done}"
+        );
+        assert_eq!(m.get_status(pb::GetStatusRequest {}).await?.into_inner().state, "estop");
+
+        let (_, created) = stack.post_job(&job(&short), None).await?;
+        let done = stack.wait_for_end(created["id"].as_str().expect("id"), Duration::from_secs(120)).await?;
+        assert_eq!(done["status"], "succeeded", "round {round}: {done}");
+        assert!(done["artifacts"]["final_stock"]["sha256"].is_string());
+        assert_eq!(m.get_status(pb::GetStatusRequest {}).await?.into_inner().state, "idle");
+    }
+    stack.shutdown().await
+}
