@@ -540,21 +540,24 @@ impl ObjectArtifactStore {
                 }
             }
         }
-        // The local cache of a remote store: copies interrupted half-way.
-        if let Backend::Remote { cache, .. } = &self.backend {
-            let tmp = cache.join("tmp");
-            let mut entries = tokio::fs::read_dir(&tmp).await.map_err(io_err(&tmp))?;
-            while let Some(entry) = entries.next_entry().await.map_err(io_err(&tmp))? {
-                let stale = entry
-                    .metadata()
-                    .await
-                    .ok()
-                    .and_then(|m| m.modified().ok())
-                    .and_then(|t| t.elapsed().ok())
-                    .is_some_and(|age| age > STALE_UPLOAD);
-                if stale {
-                    let _ = tokio::fs::remove_file(entry.path()).await;
-                }
+        // Files the listing above does not show: the staging files (`<key>#<n>`) of multipart
+        // uploads a killed process left in a local store's `tmp/`, and in the local cache of a
+        // remote store, copies interrupted half-way.
+        let tmp = match &self.backend {
+            Backend::Local { root } => root.join("tmp"),
+            Backend::Remote { cache, .. } => cache.join("tmp"),
+        };
+        let mut entries = tokio::fs::read_dir(&tmp).await.map_err(io_err(&tmp))?;
+        while let Some(entry) = entries.next_entry().await.map_err(io_err(&tmp))? {
+            let stale = entry
+                .metadata()
+                .await
+                .ok()
+                .and_then(|m| m.modified().ok())
+                .and_then(|t| t.elapsed().ok())
+                .is_some_and(|age| age > STALE_UPLOAD);
+            if stale {
+                let _ = tokio::fs::remove_file(entry.path()).await;
             }
         }
         Ok(())
@@ -866,6 +869,29 @@ mod tests {
         assert!(matches!(store.open(&missing).await, Err(ArtifactError::NotFound { .. })));
         assert!(matches!(store.stat("../etc/passwd").await, Err(ArtifactError::BadDigest { .. })));
         assert!(matches!(store.local_file("XYZ").await, Err(ArtifactError::BadDigest { .. })));
+    }
+
+    #[tokio::test]
+    async fn uploads_left_by_a_killed_process_go_at_the_next_open_and_young_ones_stay() {
+        let (dir, store) = store().await;
+        let tmp = store.local_root().expect("local").join("tmp");
+        // A multipart upload's staging file an hour and more old, and one just begun.
+        let old = tmp.join("0193a1b2-c3d4-7e5f-8a9b-0c1d2e3f4a5b#1");
+        let young = tmp.join("0193a1b2-c3d4-7e5f-8a9b-0c1d2e3f4a5c#1");
+        for p in [&old, &young] {
+            std::fs::write(p, b"partial").expect("write");
+        }
+        let two_hours_ago = std::time::SystemTime::now() - std::time::Duration::from_secs(7200);
+        std::fs::File::options()
+            .write(true)
+            .open(&old)
+            .expect("open")
+            .set_modified(two_hours_ago)
+            .expect("mtime");
+        drop(store);
+        let _again = ObjectArtifactStore::open_local(dir.path().join("artifacts")).await.expect("reopen");
+        assert!(!old.exists(), "the stale staging file is removed");
+        assert!(young.exists(), "an upload in progress elsewhere is left alone");
     }
 
     #[test]

@@ -22,7 +22,7 @@ use crate::domain::{AttemptOutcome, AttemptRecord, Job, JobError, JobStatus, Sta
 static MIGRATOR: sqlx::migrate::Migrator = sqlx::migrate!("../../migrations/sqlite");
 
 /// Most rows inserted by one statement (SQLite's default limit of 32766 bound parameters holds
-/// 4000 rows of 8).
+/// over 3000 rows of 10).
 const MAX_BATCH: usize = 256;
 
 /// One submission waiting for the batch insert: the row and where its answer goes (`true`:
