@@ -64,8 +64,15 @@ async fn restart_mid_stage(database_url: Option<String>) -> anyhow::Result<()> {
     let executes: Vec<&str> =
         outcomes.iter().filter(|(s, _)| s == "execute").map(|(_, o)| o.as_str()).collect();
     assert!(executes.len() >= 2, "{outcomes:?}");
-    assert_eq!(executes.first().copied(), Some("interrupted"), "{outcomes:?}");
+    // The attempt the restart cut ends `interrupted` (the restarted orchestrator finds its lease)
+    // or `retry` (the stopping one saw the call break first); on a loaded machine an earlier
+    // attempt may also have ended `retry`. Then one attempt ran the stage, once.
+    assert!(
+        executes[..executes.len() - 1].iter().all(|o| *o == "interrupted" || *o == "retry"),
+        "{outcomes:?}"
+    );
     assert_eq!(executes.last().copied(), Some("ok"), "{outcomes:?}");
+    assert_eq!(executes.iter().filter(|o| **o == "ok").count(), 1, "{outcomes:?}");
     assert_eq!(outcomes.iter().filter(|(s, o)| s == "report" && o == "ok").count(), 1);
 
     // Jobs listed once each.
