@@ -296,32 +296,44 @@ impl App {
                         artifacts.insert(name.clone(), bytes);
                     })
                     .map_err(|e| e.to_string()),
-                Reading::Cloud | Reading::Program => match self.artifacts.open(&aref.sha256).await {
-                    Err(e) => Err(e.to_string()),
-                    Ok((stored, reader)) => {
-                        let name = name.clone();
-                        let streamed = tokio::task::spawn_blocking(move || {
-                            let bridge = tokio_util::io::SyncIoBridge::new(reader);
-                            let r = std::io::BufReader::with_capacity(1 << 20, bridge);
-                            if reading == Reading::Cloud {
-                                digest::cloud(r, &name, Some(stored.size)).map(|c| (name, Some(c), None))
-                            } else {
-                                digest::program(r).map(|p| (name, None, Some(p))).map_err(|e| e.to_string())
-                            }
-                        })
-                        .await
-                        .map_err(|e| format!("reading failed: {e}"))
-                        .and_then(|r| r);
-                        streamed.map(|(name, cloud, program)| {
-                            if let Some(c) = cloud {
-                                digests.clouds.insert(name.clone(), c);
-                            }
-                            if let Some(p) = program {
-                                digests.programs.insert(name, p);
-                            }
-                        })
+                Reading::Cloud | Reading::Program | Reading::Telemetry => {
+                    enum Streamed {
+                        Cloud(digest::SampledCloud),
+                        Program(depthmill_report::Program),
+                        Telemetry(Box<depthmill_report::charts::Telemetry>),
                     }
-                },
+                    match self.artifacts.open(&aref.sha256).await {
+                        Err(e) => Err(e.to_string()),
+                        Ok((stored, reader)) => {
+                            let label = name.clone();
+                            let streamed = tokio::task::spawn_blocking(move || {
+                                let bridge = tokio_util::io::SyncIoBridge::new(reader);
+                                let r = std::io::BufReader::with_capacity(1 << 20, bridge);
+                                match reading {
+                                    Reading::Cloud => {
+                                        digest::cloud(r, &label, Some(stored.size)).map(Streamed::Cloud)
+                                    }
+                                    Reading::Program => {
+                                        digest::program(r).map(Streamed::Program).map_err(|e| e.to_string())
+                                    }
+                                    _ => digest::telemetry(r).map(|t| Streamed::Telemetry(Box::new(t))),
+                                }
+                            })
+                            .await
+                            .map_err(|e| format!("reading failed: {e}"))
+                            .and_then(|r| r);
+                            streamed.map(|s| match s {
+                                Streamed::Cloud(c) => {
+                                    digests.clouds.insert(name.clone(), c);
+                                }
+                                Streamed::Program(p) => {
+                                    digests.programs.insert(name.clone(), p);
+                                }
+                                Streamed::Telemetry(t) => digests.telemetry = Some(*t),
+                            })
+                        }
+                    }
+                }
             };
             if let Err(e) = read {
                 tracing::warn!(job = id, artifact = name.as_str(), error = %e, "artifact left out of the report");

@@ -41,7 +41,10 @@ pub fn hbars(rows: &[(String, f64, &str)], unit: &str) -> String {
     s
 }
 
-/// Telemetry columns the report reads (the machine service's CSV header names).
+/// Telemetry columns the report reads (the machine service's CSV header names): a uniform sample
+/// of the rows for drawing (every row up to [`TELEMETRY_SAMPLE`], then every 2^k-th), and the
+/// statistics of every row.
+#[derive(Debug, Clone, Default)]
 pub struct Telemetry {
     pub time_s: Vec<f64>,
     pub feed: Vec<f64>,
@@ -50,17 +53,73 @@ pub struct Telemetry {
     pub torque_current: Vec<f64>,
     pub torque_true: Vec<f64>,
     pub power: Vec<f64>,
+    /// Rows read (all of them, not only the sample).
     pub rows: usize,
     /// Rows per active-limit name (`torque`, `power`, ... from the `active` column).
     pub active: Vec<(String, usize)>,
+    /// Time of the first and the last row read.
+    pub time_span: Option<(f64, f64)>,
+    /// Over every row: feed, spindle speed, torque from current, power.
+    pub feed_stat: ColumnStat,
+    pub rpm_stat: ColumnStat,
+    pub torque_current_stat: ColumnStat,
+    pub power_stat: ColumnStat,
 }
+
+/// Mean and maximum of a column's finite values.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct ColumnStat {
+    sum: f64,
+    n: u64,
+    max: Option<f64>,
+}
+
+impl ColumnStat {
+    fn add(&mut self, v: f64) {
+        if v.is_finite() {
+            self.sum += v;
+            self.n += 1;
+            self.max = Some(self.max.map_or(v, |m| m.max(v)));
+        }
+    }
+
+    /// NaN when the column had no finite value.
+    pub fn mean(&self) -> f64 {
+        if self.n == 0 { f64::NAN } else { self.sum / self.n as f64 }
+    }
+
+    /// NaN when the column had no finite value.
+    pub fn max(&self) -> f64 {
+        self.max.unwrap_or(f64::NAN)
+    }
+}
+
+/// Rows of telemetry drawn at most (the chart has a few hundred pixels across; the statistics
+/// use every row).
+pub const TELEMETRY_SAMPLE: usize = 1 << 18;
 
 /// Parses the machine's telemetry CSV (header line, comma-separated; columns found by name, any
 /// of them may be missing). `Err` when there is no `time_s` column.
 pub fn parse_telemetry(text: &str) -> Result<Telemetry, String> {
-    let mut lines = text.lines();
-    let header: Vec<&str> = lines.next().ok_or("empty file")?.split(',').map(str::trim).collect();
-    let col = |name: &str| header.iter().position(|h| *h == name);
+    read_telemetry(text.as_bytes(), TELEMETRY_SAMPLE)
+}
+
+/// [`parse_telemetry`] reading `r` line by line, keeping at most `keep` rows of the series (a
+/// uniform sample) whatever the file's length; the statistics cover every row.
+pub fn read_telemetry<R: std::io::BufRead>(mut r: R, keep: usize) -> Result<Telemetry, String> {
+    let keep = keep.max(2);
+    let mut line = String::new();
+    let read = |r: &mut R, line: &mut String| -> Result<usize, String> {
+        line.clear();
+        // A line longer than any telemetry row is cut; its rest reads as further lines.
+        std::io::BufRead::read_line(&mut std::io::Read::take(&mut *r, 1 << 16), line)
+            .map_err(|e| format!("reading failed: {e}"))
+    };
+    if read(&mut r, &mut line)? == 0 {
+        return Err("empty file".into());
+    }
+    let header: Vec<String> = line.trim_end().split(',').map(|h| h.trim().to_string()).collect();
+    let col = |name: &str| header.iter().position(|h| h == name);
     let t_col = col("time_s").ok_or("no time_s column in the header")?;
     let cols = [
         col("feed_mm_min"),
@@ -71,27 +130,36 @@ pub fn parse_telemetry(text: &str) -> Result<Telemetry, String> {
         col("power_w"),
     ];
     let active_col = col("active");
-    let mut t = Telemetry {
-        time_s: Vec::new(),
-        feed: Vec::new(),
-        rpm: Vec::new(),
-        torque_adc: Vec::new(),
-        torque_current: Vec::new(),
-        torque_true: Vec::new(),
-        power: Vec::new(),
-        rows: 0,
-        active: Vec::new(),
-    };
-    for line in lines {
-        if line.trim().is_empty() {
+    let mut t = Telemetry::default();
+    let mut stride_mask = 0usize;
+    while read(&mut r, &mut line)? > 0 {
+        let text = line.trim_end();
+        if text.trim().is_empty() {
             continue;
         }
-        let f: Vec<&str> = line.split(',').collect();
+        let f: Vec<&str> = text.split(',').collect();
         let num = |c: Option<usize>| c.and_then(|c| f.get(c)).and_then(|v| v.trim().parse::<f64>().ok());
         let Some(time) = num(Some(t_col)) else { continue };
+        let index = t.rows;
         t.rows += 1;
+        t.time_span = Some(t.time_span.map_or((time, time), |(a, _)| (a, time)));
+        let vals = cols.map(|c| num(c).unwrap_or(f64::NAN));
+        t.feed_stat.add(vals[0]);
+        t.rpm_stat.add(vals[1]);
+        t.torque_current_stat.add(vals[3]);
+        t.power_stat.add(vals[5]);
+        if let Some(a) = active_col.and_then(|c| f.get(c)) {
+            for name in a.split('|').map(str::trim).filter(|s| !s.is_empty()) {
+                match t.active.iter_mut().find(|(n, _)| n == name) {
+                    Some(e) => e.1 += 1,
+                    None => t.active.push((name.to_string(), 1)),
+                }
+            }
+        }
+        if index & stride_mask != 0 {
+            continue;
+        }
         t.time_s.push(time);
-        let vals = cols.map(num);
         for (dst, v) in [
             &mut t.feed,
             &mut t.rpm,
@@ -103,15 +171,26 @@ pub fn parse_telemetry(text: &str) -> Result<Telemetry, String> {
         .into_iter()
         .zip(vals)
         {
-            dst.push(v.unwrap_or(f64::NAN));
+            dst.push(v);
         }
-        if let Some(a) = active_col.and_then(|c| f.get(c)) {
-            for name in a.split('|').map(str::trim).filter(|s| !s.is_empty()) {
-                match t.active.iter_mut().find(|(n, _)| n == name) {
-                    Some(e) => e.1 += 1,
-                    None => t.active.push((name.to_string(), 1)),
-                }
+        if t.time_s.len() >= keep {
+            // Every other kept row goes: the sample is every 2^(k+1)-th row from now on.
+            for v in [
+                &mut t.time_s,
+                &mut t.feed,
+                &mut t.rpm,
+                &mut t.torque_adc,
+                &mut t.torque_current,
+                &mut t.torque_true,
+                &mut t.power,
+            ] {
+                let mut i = 0;
+                v.retain(|_| {
+                    i += 1;
+                    i % 2 == 1
+                });
             }
+            stride_mask = stride_mask * 2 + 1;
         }
     }
     Ok(t)

@@ -7,6 +7,8 @@
 //!   ([`depthmill_geometry::formats::sample_cloud_from`]) and the number of points it holds.
 //! - A program is parsed line by line ([`crate::gcode::parse_reader`]), keeping at most
 //!   [`crate::gcode::MAX_SEGS`] drawing pieces.
+//! - The telemetry CSV is read line by line: statistics of every row, at most
+//!   [`crate::charts::TELEMETRY_SAMPLE`] rows kept for the chart.
 
 use std::collections::BTreeMap;
 use std::io::BufRead;
@@ -34,11 +36,13 @@ pub struct SampledCloud {
 pub struct Digests {
     pub clouds: BTreeMap<String, SampledCloud>,
     pub programs: BTreeMap<String, Program>,
+    /// The `telemetry` CSV: its statistics over every row and a sample of the rows.
+    pub telemetry: Option<crate::charts::Telemetry>,
 }
 
 impl Digests {
     /// No streamed artifacts: everything comes as bytes.
-    pub const NONE: Digests = Digests { clouds: BTreeMap::new(), programs: BTreeMap::new() };
+    pub const NONE: Digests = Digests { clouds: BTreeMap::new(), programs: BTreeMap::new(), telemetry: None };
 }
 
 /// How the report reads an artifact kind.
@@ -48,6 +52,8 @@ pub enum Reading {
     Cloud,
     /// By streaming, as a program ([`program`]).
     Program,
+    /// By streaming, as telemetry ([`telemetry`]).
+    Telemetry,
     /// Its bytes, whole.
     Bytes,
     /// Not at all.
@@ -62,6 +68,7 @@ pub fn reading(kind: &str) -> Reading {
         // there is no scanned cloud.
         "mesh" => Reading::Bytes,
         "gcode" => Reading::Program,
+        "telemetry" => Reading::Telemetry,
         // Outputs of the report itself.
         "report" | "report_json" => Reading::Unused,
         _ => Reading::Bytes,
@@ -73,6 +80,12 @@ pub fn cloud<R: BufRead>(r: R, name: &str, size: Option<u64>) -> Result<SampledC
     let (cloud, stats) =
         sample_cloud_from(r, name, size, &ReadLimits::default(), CLOUD_SAMPLE).map_err(|e| e.to_string())?;
     Ok(SampledCloud { cloud, points: stats.points })
+}
+
+/// Reads the telemetry CSV: statistics of every row, a sample of at most
+/// [`crate::charts::TELEMETRY_SAMPLE`] rows for the chart.
+pub fn telemetry<R: BufRead>(r: R) -> Result<crate::charts::Telemetry, String> {
+    crate::charts::read_telemetry(r, crate::charts::TELEMETRY_SAMPLE)
 }
 
 /// Reads a program for drawing.

@@ -950,13 +950,17 @@ fn a_report_from_streamed_artifacts_equals_the_one_from_bytes() {
                 digests.programs.insert(kind.clone(), crate::digest::program(r).expect("program"));
                 rest.remove(kind);
             }
+            crate::digest::Reading::Telemetry => {
+                digests.telemetry = Some(crate::digest::telemetry(r).expect("telemetry"));
+                rest.remove(kind);
+            }
             crate::digest::Reading::Unused => {
                 rest.remove(kind);
             }
             crate::digest::Reading::Bytes => {}
         }
     }
-    assert!(!digests.clouds.is_empty() && !digests.programs.is_empty());
+    assert!(!digests.clouds.is_empty() && !digests.programs.is_empty() && digests.telemetry.is_some());
     let streamed = render(&ReportInput { job: &job, artifacts: &rest, digests: &digests }).expect("render");
     assert_eq!(streamed.html, from_bytes.html);
     assert_eq!(streamed.figures, from_bytes.figures);
@@ -1014,4 +1018,46 @@ fn a_long_program_is_drawn_from_bounded_pieces_within_tolerance() {
     let streamed = gcode::parse_reader(std::io::BufReader::new(text.as_bytes())).expect("read");
     assert_eq!(streamed.segs, exact.segs);
     assert_eq!(streamed.ops, exact.ops);
+}
+
+/// Telemetry read with a small sample budget: the statistics are those of every row (as the whole
+/// parse gives them), the sample is every 2^k-th row, and no more than the budget.
+#[test]
+fn telemetry_statistics_cover_every_row_and_the_sample_is_bounded() {
+    let mut csv = String::from("time_s,feed_mm_min,spindle_rpm,torque_from_current_nm,power_w,active\n");
+    for i in 0..1000 {
+        let t = f64::from(i) * 0.05;
+        let feed = 100.0 + f64::from(i % 37);
+        let active = if i % 3 == 0 { "torque" } else { "" };
+        csv.push_str(&format!(
+            "{t},{feed},{},{},{},{active}\n",
+            1500 + i % 11,
+            f64::from(i % 7) * 0.1,
+            i % 13
+        ));
+    }
+    let whole = charts::parse_telemetry(&csv).expect("whole");
+    let small = charts::read_telemetry(csv.as_bytes(), 64).expect("sampled");
+    assert_eq!(small.rows, 1000);
+    assert_eq!(whole.rows, 1000);
+    assert!(small.time_s.len() < 64 && small.time_s.len() >= 32, "{}", small.time_s.len());
+    // Every 2^k-th row.
+    let stride = whole.time_s.len().div_ceil(small.time_s.len()).next_power_of_two();
+    let expected: Vec<f64> = whole.time_s.iter().copied().step_by(stride).collect();
+    assert_eq!(small.time_s, expected);
+    for (a, b) in [
+        (small.feed_stat, whole.feed_stat),
+        (small.rpm_stat, whole.rpm_stat),
+        (small.torque_current_stat, whole.torque_current_stat),
+        (small.power_stat, whole.power_stat),
+    ] {
+        assert!((a.mean() - b.mean()).abs() < 1e-9 && a.max() == b.max());
+    }
+    // The exact figures from every row.
+    let feeds: Vec<f64> = (0..1000).map(|i| 100.0 + f64::from(i % 37)).collect();
+    let mean = feeds.iter().sum::<f64>() / 1000.0;
+    assert!((small.feed_stat.mean() - mean).abs() < 1e-9);
+    assert_eq!(small.feed_stat.max(), 136.0);
+    assert_eq!(small.time_span, Some((0.0, 999.0 * 0.05)));
+    assert_eq!(small.active, vec![("torque".to_string(), 334)]);
 }

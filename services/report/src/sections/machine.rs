@@ -9,8 +9,12 @@ impl Ctx<'_> {
             let head = String::from_utf8_lossy(&b[..b.len().min(512)]).to_ascii_lowercase();
             head.contains("<svg")
         });
-        let csv =
-            self.artifacts.get("telemetry").map(|b| charts::parse_telemetry(&String::from_utf8_lossy(b)));
+        let csv = match self.digests.telemetry.as_ref() {
+            Some(t) => Some(Ok(t.clone())),
+            None => {
+                self.artifacts.get("telemetry").map(|b| charts::parse_telemetry(&String::from_utf8_lossy(b)))
+            }
+        };
         let svg: Option<(Vec<u8>, &str)> = match (plot, &csv) {
             (Some(p), _) => Some((p.clone(), "the machine service's telemetry plot")),
             (None, Some(Ok(t))) if t.rows > 0 => {
@@ -40,24 +44,19 @@ impl Ctx<'_> {
         if let Some(Ok(t)) = &csv
             && t.rows > 0
         {
-            let max = |v: &[f64]| v.iter().copied().filter(|x| x.is_finite()).fold(f64::NAN, f64::max);
-            let mean = |v: &[f64]| {
-                let f: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
-                if f.is_empty() { f64::NAN } else { f.iter().sum::<f64>() / f.len() as f64 }
-            };
-            let dur = t.time_s.last().copied().unwrap_or(0.0) - t.time_s.first().copied().unwrap_or(0.0);
+            let dur = t.time_span.map_or(0.0, |(a, b)| b - a);
             let mut rows = vec![
                 ("Samples".to_string(), format!("{} over {}", fmt_count(t.rows), fmt_duration(dur))),
                 (
                     "Feed, mean / max".into(),
-                    format!("{} / {} mm/min", fmt_num(mean(&t.feed)), fmt_num(max(&t.feed))),
+                    format!("{} / {} mm/min", fmt_num(t.feed_stat.mean()), fmt_num(t.feed_stat.max())),
                 ),
                 (
                     "Spindle, mean / max".into(),
-                    format!("{} / {} rpm", fmt_num(mean(&t.rpm)), fmt_num(max(&t.rpm))),
+                    format!("{} / {} rpm", fmt_num(t.rpm_stat.mean()), fmt_num(t.rpm_stat.max())),
                 ),
-                ("Torque from current, max".into(), format!("{} N·m", fmt_num(max(&t.torque_current)))),
-                ("Cutting power, max".into(), format!("{} W", fmt_num(max(&t.power)))),
+                ("Torque from current, max".into(), format!("{} N·m", fmt_num(t.torque_current_stat.max()))),
+                ("Cutting power, max".into(), format!("{} W", fmt_num(t.power_stat.max()))),
             ];
             for (name, n) in &t.active {
                 rows.push((
