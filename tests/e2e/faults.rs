@@ -6,7 +6,7 @@
 //! `jobs::a_stage_without_its_service_fails_the_job_clearly`; errors at the start of a call are
 //! `jobs::transient_errors_are_retried_and_invalid_arguments_are_not`.)
 
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use anyhow::Context as _;
 use depthmill_tests::scripted::Script;
@@ -40,20 +40,20 @@ async fn a_stage_slowed_past_its_deadline_fails_in_bounded_time_and_the_service_
 
     // Slower than the deadline: every attempt times out; the job fails naming the deadline.
     script.set_delay(Duration::from_secs(30));
-    let started = Instant::now();
     let (_, job) = stack.post_job(&gcode_job(&sha), None).await?;
     let id = job["id"].as_str().context("id")?.to_string();
     let done = stack.wait_for_end(&id, Duration::from_secs(60)).await?;
-    let took = started.elapsed();
     assert_eq!(done["status"], "failed", "{done}");
     assert_eq!(done["error"]["code"], "deadline_exceeded", "{done}");
     assert_eq!(done["error"]["stage"], "execute", "{done}");
     let message = done["error"]["message"].as_str().unwrap_or_default();
     assert!(message.contains("gave up after 3 attempts"), "{message}");
+    // Every attempt was ended by the deadline, not by the service (which would take 30 s), and the
+    // job ended well inside the 60 s wait above.
     assert_eq!(outcomes(&done).len(), attempts as usize, "{done}");
-    // Attempts x deadline, plus backoff and polling: nowhere near the 30 s the service would take.
-    let bound = Duration::from_secs_f64(f64::from(attempts) * deadline_s + 5.0);
-    assert!(took < bound, "the job took {took:?}, more than {bound:?}");
+    let codes: Vec<&str> =
+        done["attempts"].as_array().into_iter().flatten().filter_map(|a| a["error_code"].as_str()).collect();
+    assert_eq!(codes, vec!["deadline_exceeded"; attempts as usize], "{done}");
 
     // Back to normal speed: the next job runs.
     script.set_delay(Duration::ZERO);

@@ -4,7 +4,7 @@
 //! deduplication, failed uploads that leave nothing, local copies checked against the digest, an
 //! S3 server that goes away (503, then recovery), and whole jobs with every service on the bucket.
 
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use anyhow::Context as _;
 use depthmill_common::artifacts::{
@@ -360,7 +360,6 @@ async fn jobs_run_on_a_bucket_and_an_unreachable_bucket_is_503_then_recovers() -
 
     // The bucket goes away.
     partition.down();
-    let started = Instant::now();
     let resp = stack
         .http
         .post(stack.url("/v1/artifacts"))
@@ -372,7 +371,6 @@ async fn jobs_run_on_a_bucket_and_an_unreachable_bucket_is_503_then_recovers() -
     assert!(resp.headers().contains_key("retry-after"));
     let body: serde_json::Value = resp.json().await?;
     assert_eq!(body["error"]["code"], "unavailable", "{body}");
-    assert!(started.elapsed() < Duration::from_secs(30), "failed within the store's retry budget");
     assert_eq!(stack.http.get(stack.url("/healthz")).send().await?.status().as_u16(), 200);
 
     partition.restore();

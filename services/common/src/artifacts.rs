@@ -524,28 +524,30 @@ impl ObjectArtifactStore {
     /// services share one store and another may be uploading right now: younger ones stay, and
     /// one that someone else removed first is no error.
     async fn remove_stale_uploads(&self) -> Result<(), ArtifactError> {
-        use futures::TryStreamExt as _;
-        let tmp = object_store::path::Path::from("tmp");
-        let listed: Vec<object_store::ObjectMeta> =
-            self.inner.list(Some(&tmp)).try_collect().await.map_err(|e| self.err(e))?;
-        let now_ms = std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map_or(0, |d| i64::try_from(d.as_millis()).unwrap_or(i64::MAX));
-        let stale_ms = i64::try_from(STALE_UPLOAD.as_millis()).unwrap_or(i64::MAX);
-        for meta in listed {
-            if now_ms.saturating_sub(meta.last_modified.timestamp_millis()) > stale_ms {
-                match self.inner.delete(&meta.location).await {
-                    Ok(()) | Err(object_store::Error::NotFound { .. }) => {}
-                    Err(e) => return Err(self.err(e)),
-                }
-            }
-        }
-        // Files the listing above does not show: the staging files (`<key>#<n>`) of multipart
-        // uploads a killed process left in a local store's `tmp/`, and in the local cache of a
-        // remote store, copies interrupted half-way.
+        // A bucket's `tmp/` through the store; a local folder (a local store's `tmp/` with the
+        // staging files `<key>#<n>` the store's listing hides, or the local cache of a remote
+        // store with its copies interrupted half-way) directly.
         let tmp = match &self.backend {
             Backend::Local { root } => root.join("tmp"),
-            Backend::Remote { cache, .. } => cache.join("tmp"),
+            Backend::Remote { cache, .. } => {
+                use futures::TryStreamExt as _;
+                let prefix = object_store::path::Path::from("tmp");
+                let listed: Vec<object_store::ObjectMeta> =
+                    self.inner.list(Some(&prefix)).try_collect().await.map_err(|e| self.err(e))?;
+                let now_ms = std::time::SystemTime::now()
+                    .duration_since(std::time::UNIX_EPOCH)
+                    .map_or(0, |d| i64::try_from(d.as_millis()).unwrap_or(i64::MAX));
+                let stale_ms = i64::try_from(STALE_UPLOAD.as_millis()).unwrap_or(i64::MAX);
+                for meta in listed {
+                    if now_ms.saturating_sub(meta.last_modified.timestamp_millis()) > stale_ms {
+                        match self.inner.delete(&meta.location).await {
+                            Ok(()) | Err(object_store::Error::NotFound { .. }) => {}
+                            Err(e) => return Err(self.err(e)),
+                        }
+                    }
+                }
+                cache.join("tmp")
+            }
         };
         let mut entries = tokio::fs::read_dir(&tmp).await.map_err(io_err(&tmp))?;
         while let Some(entry) = entries.next_entry().await.map_err(io_err(&tmp))? {
@@ -700,14 +702,13 @@ impl ArtifactStore for ObjectArtifactStore {
         let mut size: u64 = 0;
         let mut first = Vec::with_capacity(64 * 1024);
         let ended = fill(body, &mut first, UPLOAD_PART, &mut check, &mut hasher, &mut size, limit).await?;
-        let meta_of = |size| BlobMeta { media_type: check.media_type().to_string(), size };
         if ended {
             check.finish()?;
             let sha256 = hex::encode(hasher.finalize());
             if let Some(existing) = self.stat(&sha256).await? {
                 return Ok(existing);
             }
-            let meta = meta_of(size);
+            let meta = BlobMeta { media_type: check.media_type().to_string(), size };
             self.publish_small(&sha256, &meta, first).await?;
             tracing::debug!(%sha256, size, media_type = %meta.media_type, "artifact stored");
             return Ok(self.reference(&sha256, meta));

@@ -66,6 +66,21 @@ pub struct Telemetry {
     pub power_stat: ColumnStat,
 }
 
+impl Telemetry {
+    /// The drawn series, time first, in one order for every row.
+    fn series_mut(&mut self) -> [&mut Vec<f64>; 7] {
+        [
+            &mut self.time_s,
+            &mut self.feed,
+            &mut self.rpm,
+            &mut self.torque_adc,
+            &mut self.torque_current,
+            &mut self.torque_true,
+            &mut self.power,
+        ]
+    }
+}
+
 /// Mean and maximum of a column's finite values.
 #[derive(Debug, Clone, Copy, Default)]
 pub struct ColumnStat {
@@ -159,31 +174,12 @@ pub fn read_telemetry<R: std::io::BufRead>(mut r: R, keep: usize) -> Result<Tele
         if index & stride_mask != 0 {
             continue;
         }
-        t.time_s.push(time);
-        for (dst, v) in [
-            &mut t.feed,
-            &mut t.rpm,
-            &mut t.torque_adc,
-            &mut t.torque_current,
-            &mut t.torque_true,
-            &mut t.power,
-        ]
-        .into_iter()
-        .zip(vals)
-        {
+        for (dst, v) in t.series_mut().into_iter().zip(std::iter::once(time).chain(vals)) {
             dst.push(v);
         }
         if t.time_s.len() >= keep {
             // Every other kept row goes: the sample is every 2^(k+1)-th row from now on.
-            for v in [
-                &mut t.time_s,
-                &mut t.feed,
-                &mut t.rpm,
-                &mut t.torque_adc,
-                &mut t.torque_current,
-                &mut t.torque_true,
-                &mut t.power,
-            ] {
+            for v in t.series_mut() {
                 let mut i = 0;
                 v.retain(|_| {
                     i += 1;
