@@ -17,6 +17,8 @@ pub enum ErrorCode {
     Conflict,
     /// The body is larger than the configured limit.
     PayloadTooLarge,
+    /// The client already has as many jobs queued or running as it may; retry when one ends.
+    QuotaExceeded,
     /// The body's media type is not accepted, or its bytes are not of the declared type.
     UnsupportedMediaType,
     /// The service needed for a stage does not provide it.
@@ -43,6 +45,7 @@ impl ErrorCode {
             Self::NotFound => "not_found",
             Self::Conflict => "conflict",
             Self::PayloadTooLarge => "payload_too_large",
+            Self::QuotaExceeded => "quota_exceeded",
             Self::UnsupportedMediaType => "unsupported_media_type",
             Self::StageNotAvailable => "stage_not_available",
             Self::Unauthenticated => "unauthenticated",
@@ -61,6 +64,7 @@ impl ErrorCode {
             Self::NotFound => tonic::Code::NotFound,
             Self::Conflict => tonic::Code::AlreadyExists,
             Self::PayloadTooLarge => tonic::Code::ResourceExhausted,
+            Self::QuotaExceeded => tonic::Code::ResourceExhausted,
             Self::UnsupportedMediaType => tonic::Code::InvalidArgument,
             Self::StageNotAvailable => tonic::Code::Unimplemented,
             Self::Unauthenticated => tonic::Code::Unauthenticated,
@@ -79,6 +83,7 @@ impl ErrorCode {
             Self::NotFound => StatusCode::NOT_FOUND,
             Self::Conflict => StatusCode::CONFLICT,
             Self::PayloadTooLarge => StatusCode::PAYLOAD_TOO_LARGE,
+            Self::QuotaExceeded => StatusCode::TOO_MANY_REQUESTS,
             Self::UnsupportedMediaType => StatusCode::UNSUPPORTED_MEDIA_TYPE,
             Self::StageNotAvailable => StatusCode::NOT_IMPLEMENTED,
             Self::Unauthenticated => StatusCode::UNAUTHORIZED,
@@ -129,11 +134,12 @@ impl std::fmt::Display for ErrorCode {
 impl std::str::FromStr for ErrorCode {
     type Err = String;
     fn from_str(s: &str) -> Result<Self, Self::Err> {
-        const ALL: [ErrorCode; 12] = [
+        const ALL: [ErrorCode; 13] = [
             ErrorCode::InvalidArgument,
             ErrorCode::NotFound,
             ErrorCode::Conflict,
             ErrorCode::PayloadTooLarge,
+            ErrorCode::QuotaExceeded,
             ErrorCode::UnsupportedMediaType,
             ErrorCode::StageNotAvailable,
             ErrorCode::Unauthenticated,
@@ -153,7 +159,12 @@ mod tests {
 
     #[test]
     fn codes_round_trip_through_their_names() {
-        for code in [ErrorCode::InvalidArgument, ErrorCode::StageNotAvailable, ErrorCode::Internal] {
+        for code in [
+            ErrorCode::InvalidArgument,
+            ErrorCode::QuotaExceeded,
+            ErrorCode::StageNotAvailable,
+            ErrorCode::Internal,
+        ] {
             assert_eq!(code.as_str().parse::<ErrorCode>(), Ok(code));
         }
         assert!("nope".parse::<ErrorCode>().is_err());

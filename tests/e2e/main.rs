@@ -11,6 +11,7 @@ mod faces;
 mod faults;
 mod jobs;
 mod layering;
+mod limits;
 mod machine;
 mod metrics;
 mod objects;

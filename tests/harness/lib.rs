@@ -42,6 +42,8 @@ pub enum MachineBackend {
 pub struct StackOptions {
     pub machine: MachineBackend,
     pub max_upload_bytes: u64,
+    /// The orchestrator's `max_active_jobs_per_client` (default: the product's, 1000).
+    pub max_active_jobs_per_client: u32,
     pub max_attempts: u32,
     pub stage_deadline_s: f64,
     /// Run the scanning service (without it, the orchestrator has no scanning endpoint).
@@ -63,6 +65,7 @@ impl Default for StackOptions {
             scanning: true,
             machine: MachineBackend::Real,
             max_upload_bytes: 1 << 20,
+            max_active_jobs_per_client: 1000,
             max_attempts: 4,
             stage_deadline_s: 30.0,
             database_url: None,
@@ -231,6 +234,7 @@ impl TestStack {
             artifact_store: opts.artifact_store.clone(),
             database_url: opts.database_url.clone(),
             max_upload_bytes: opts.max_upload_bytes,
+            max_active_jobs_per_client: opts.max_active_jobs_per_client,
             services: endpoints,
             worker: depthmill_orchestrator::WorkerConfig {
                 concurrency: 2,

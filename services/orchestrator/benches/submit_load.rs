@@ -157,6 +157,8 @@ fn start_server(dir: &std::path::Path, database_url: Option<String>) -> anyhow::
         data_dir: dir.to_path_buf(),
         database_url,
         services: depthmill_orchestrator::Endpoints::none(),
+        // Checked on every submission (the cost is in the figures), never reached.
+        max_active_jobs_per_client: u32::MAX,
         ..Default::default()
     };
     std::thread::spawn(move || {

@@ -108,6 +108,8 @@ impl From<ArtifactError> for ApiError {
 pub struct ApiLimits {
     /// Largest artifact upload, bytes.
     pub max_upload_bytes: u64,
+    /// Most jobs one client may have queued or running; 0: no limit.
+    pub max_active_jobs_per_client: u32,
     /// Page size when the client gives none.
     pub default_page: u32,
     /// Largest page.
@@ -127,6 +129,48 @@ pub struct App {
     pub(crate) stages: Arc<dyn crate::stages::StageRunner>,
     /// Checks the API token of each call (when tokens are required).
     pub(crate) auth: Arc<crate::auth::Authenticator>,
+    /// Submissions being inserted, by client: counted with the client's stored active jobs so
+    /// that concurrent ones cannot all pass the limit together.
+    pub(crate) in_flight: Arc<InFlight>,
+}
+
+/// Submissions of each client between their limit check and their insert (entries of clients
+/// with none are removed, so the map holds at most the submissions in progress).
+#[derive(Default)]
+pub struct InFlight(std::sync::Mutex<std::collections::HashMap<String, u64>>);
+
+/// One submission counted in [`InFlight`] until dropped.
+struct InFlightGuard<'a> {
+    map: &'a InFlight,
+    client: String,
+}
+
+impl InFlight {
+    /// Counts a submission of `client`; the number of its other submissions in flight.
+    fn enter(&self, client: &str) -> (InFlightGuard<'_>, u64) {
+        let before = match self.0.lock() {
+            Ok(mut map) => {
+                let n = map.entry(client.to_string()).or_insert(0);
+                *n += 1;
+                *n - 1
+            }
+            Err(_) => 0,
+        };
+        (InFlightGuard { map: self, client: client.to_string() }, before)
+    }
+}
+
+impl Drop for InFlightGuard<'_> {
+    fn drop(&mut self) {
+        if let Ok(mut map) = self.map.0.lock()
+            && let Some(n) = map.get_mut(&self.client)
+        {
+            *n -= 1;
+            if *n == 0 {
+                map.remove(&self.client);
+            }
+        }
+    }
 }
 
 /// Milliseconds since the Unix epoch: the clock of every stored time.
@@ -138,12 +182,14 @@ pub fn now_ms() -> i64 {
 }
 
 impl App {
-    /// Validates and submits a job. Returns the job and whether it is new (false: the
-    /// idempotency key was used before for the same request).
+    /// Validates and submits a job for `client` (`token:<id>` or `addr:<ip>`, see
+    /// [`crate::auth::Client`]; `None`: not counted). Returns the job and whether it is new
+    /// (false: the idempotency key was used before for the same request).
     pub async fn create_job(
         &self,
         spec: JobSpec,
         idempotency_key: Option<String>,
+        client: Option<&crate::auth::Client>,
     ) -> Result<(Job, bool), ApiError> {
         spec.validate()?;
         // The sections a stage service owns, checked by that service, before anything else about
@@ -187,7 +233,41 @@ impl App {
         if let Some(size) = self.part_size_mm(&spec).await? {
             self.stages.check_part(&spec, size).await?;
         }
-        let new = NewJob { id: uuid::Uuid::now_v7().to_string(), spec, idempotency_key, now_ms: now_ms() };
+        let limit = self.limits.max_active_jobs_per_client;
+        let client = client.map(|c| c.0.as_str());
+        // Held until the job is inserted (or refused). Counted before the stored jobs are, so
+        // that a concurrent submission is seen either in flight or stored (at worst both, which
+        // refuses at the edge rather than passing the limit).
+        let _in_flight = match client {
+            Some(client) if limit > 0 => {
+                let (guard, others) = self.in_flight.enter(client);
+                let active = self.store.active_jobs_of(client).await? + others;
+                // A repeat of an accepted submission (same idempotency key) is answered as before.
+                let repeat = match &idempotency_key {
+                    Some(key) if active >= u64::from(limit) => self.store.key_exists(key).await?,
+                    _ => false,
+                };
+                if active >= u64::from(limit) && !repeat {
+                    metrics::counter!("depthmill_jobs_refused_quota_total").increment(1);
+                    return Err(ApiError::new(
+                        ErrorCode::QuotaExceeded,
+                        format!(
+                            "client {client} has {active} jobs queued or running, the limit is {limit} \
+                             (orchestrator max_active_jobs_per_client); submit again when one ends"
+                        ),
+                    ));
+                }
+                Some(guard)
+            }
+            _ => None,
+        };
+        let new = NewJob {
+            id: uuid::Uuid::now_v7().to_string(),
+            spec,
+            idempotency_key,
+            client: client.map(str::to_string),
+            now_ms: now_ms(),
+        };
         let created = self.store.create(new).await?;
         let (mut job, is_new) = match created {
             Created::New(job) => (job, true),

@@ -204,6 +204,24 @@ pub async fn issue(
     Ok(IssuedToken { token, record })
 }
 
+/// Who makes an API call, as the limits count clients: `token:<id>` when tokens are required,
+/// otherwise `addr:<ip>` (the peer's IP address, without the port). Put in the request's
+/// extensions by the REST and gRPC token checks.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Client(pub String);
+
+impl Client {
+    /// The client of a call allowed by token `token_id` (when tokens are required) or else
+    /// coming from `peer`; `None` when neither is known.
+    pub fn of(token_id: Option<String>, peer: Option<SocketAddr>) -> Option<Client> {
+        match (token_id, peer) {
+            (Some(id), _) => Some(Client(format!("token:{id}"))),
+            (None, Some(peer)) => Some(Client(format!("addr:{}", peer.ip()))),
+            (None, None) => None,
+        }
+    }
+}
+
 /// Checks the bearer tokens of API calls against the store, with a short cache.
 pub struct Authenticator {
     store: Arc<dyn JobStore>,
@@ -226,15 +244,16 @@ impl Authenticator {
         self.required
     }
 
-    /// Checks an `Authorization` header value for an operation that needs `needed`.
+    /// Checks an `Authorization` header value for an operation that needs `needed`; the id of
+    /// the token that allowed it (`None` when tokens are not required).
     pub async fn check(
         &self,
         authorization: Option<&str>,
         needed: Scope,
         now_ms: i64,
-    ) -> Result<(), ApiError> {
+    ) -> Result<Option<String>, ApiError> {
         if !self.required {
-            return Ok(());
+            return Ok(None);
         }
         let unauthenticated = |m: &str| ApiError::new(ErrorCode::Unauthenticated, m);
         let Some(value) = authorization else {
@@ -267,7 +286,7 @@ impl Authenticator {
                 ),
             ));
         }
-        Ok(())
+        Ok(Some(record.id))
     }
 
     async fn lookup(&self, hash: &str) -> Result<Option<TokenRecord>, ApiError> {

@@ -47,15 +47,26 @@ pub(crate) fn routes(app: App) -> tonic::service::Routes {
 
 /// Answers UNAUTHENTICATED / PERMISSION_DENIED before the call reaches the service when the
 /// `authorization` metadata does not allow it.
+/// Names the caller ([`crate::auth::Client`]) in the request's extensions for the methods.
 async fn require_token(
     axum::extract::State(auth): axum::extract::State<std::sync::Arc<crate::auth::Authenticator>>,
-    request: axum::extract::Request,
+    mut request: axum::extract::Request,
     next: axum::middleware::Next,
 ) -> axum::response::Response {
     if let Some(scope) = crate::auth::grpc_scope(request.uri().path()) {
         let header = request.headers().get("authorization").and_then(|v| v.to_str().ok());
-        if let Err(e) = auth.check(header, scope, crate::app::now_ms()).await {
-            return Status::from(e).into_http();
+        match auth.check(header, scope, crate::app::now_ms()).await {
+            Ok(token_id) => {
+                use tonic::transport::server::{TcpConnectInfo, TlsConnectInfo};
+                let ext = request.extensions();
+                let peer = ext.get::<TcpConnectInfo>().and_then(TcpConnectInfo::remote_addr).or_else(|| {
+                    ext.get::<TlsConnectInfo<TcpConnectInfo>>().and_then(|t| t.get_ref().remote_addr())
+                });
+                if let Some(client) = crate::auth::Client::of(token_id, peer) {
+                    request.extensions_mut().insert(client);
+                }
+            }
+            Err(e) => return Status::from(e).into_http(),
         }
     }
     next.run(request).await
@@ -66,12 +77,13 @@ type Boxed<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send>>;
 #[tonic::async_trait]
 impl OrchestratorService for Api {
     async fn create_job(&self, request: Request<pb::CreateJobRequest>) -> Result<Response<pb::Job>, Status> {
+        let client = request.extensions().get::<crate::auth::Client>().cloned();
         let r = request.into_inner();
         let spec =
             r.spec.ok_or_else(|| ApiError::field(ErrorCode::InvalidArgument, "spec", "is required"))?;
         let spec = convert::job_spec_from_pb(spec).map_err(ApiError::from)?;
         let key = (!r.idempotency_key.is_empty()).then_some(r.idempotency_key);
-        let (job, _) = self.app.create_job(spec, key).await?;
+        let (job, _) = self.app.create_job(spec, key, client.as_ref()).await?;
         Ok(Response::new(convert::job(&job)))
     }
 

@@ -7,4 +7,4 @@ pub mod spec;
 pub use job::{
     AttemptOutcome, AttemptRecord, Job, JobError, JobMetrics, JobStatus, Stage, StageOutputs, StageResult,
 };
-pub use spec::{InputKind, JobSpec, SpecError};
+pub use spec::{InputKind, JobSpec, JsonError, SpecError};

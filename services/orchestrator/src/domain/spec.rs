@@ -555,6 +555,16 @@ pub struct SpecError {
     pub message: String,
 }
 
+/// A job request that is not one: malformed JSON, an unknown field or a value of the wrong type.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{message}")]
+pub struct JsonError {
+    /// Dotted path of the offending field, when there is one.
+    pub field: Option<String>,
+    /// What is wrong, starting with `malformed JSON` or `invalid job` and naming the field.
+    pub message: String,
+}
+
 fn err(field: &str, message: impl Into<String>) -> SpecError {
     SpecError { field: field.to_string(), message: message.into() }
 }
@@ -595,6 +605,31 @@ fn tool_name(field: &str, v: Option<&String>) -> Result<(), SpecError> {
 }
 
 impl JobSpec {
+    /// Parses a job request (JSON), naming the offending field of any error. The values are
+    /// checked by [`JobSpec::validate`].
+    pub fn from_json(body: &[u8]) -> Result<JobSpec, JsonError> {
+        let de = &mut serde_json::Deserializer::from_slice(body);
+        serde_path_to_error::deserialize::<_, JobSpec>(de).map_err(|e| {
+            let path = e.path().to_string();
+            let inner = e.inner();
+            let message = inner.to_string();
+            // The path ends at the unknown field itself; at the top level serde names it only in
+            // the message.
+            let field = match message.strip_prefix("unknown field `").and_then(|r| r.split('`').next()) {
+                Some(unknown) if path == "." => unknown.to_string(),
+                _ if path == "." => String::new(),
+                _ => path,
+            };
+            let what = if inner.is_syntax() || inner.is_eof() { "malformed JSON" } else { "invalid job" };
+            let text = if field.is_empty() {
+                format!("{what}: {message}")
+            } else {
+                format!("{what}: {field}: {message}")
+            };
+            JsonError { field: (!field.is_empty()).then_some(field), message: text }
+        })
+    }
+
     /// The stage this job starts at.
     pub fn first_stage(&self) -> Stage {
         self.input.kind.first_stage()

@@ -18,28 +18,10 @@ use crate::domain::{Job, JobSpec, JobStatus};
 
 /// Parses a job request, naming the offending field of any error.
 pub fn parse_job_spec(body: &[u8]) -> Result<JobSpec, ApiError> {
-    let de = &mut serde_json::Deserializer::from_slice(body);
-    serde_path_to_error::deserialize::<_, JobSpec>(de).map_err(|e| {
-        let path = e.path().to_string();
-        let inner = e.inner();
-        let message = inner.to_string();
-        // The path ends at the unknown field itself; at the top level serde names it only in the message.
-        let field = match message.strip_prefix("unknown field `").and_then(|r| r.split('`').next()) {
-            Some(unknown) if path == "." => unknown.to_string(),
-            _ if path == "." => String::new(),
-            _ => path,
-        };
-        let what = if inner.is_syntax() || inner.is_eof() { "malformed JSON" } else { "invalid job" };
-        let text = if field.is_empty() {
-            format!("{what}: {message}")
-        } else {
-            format!("{what}: {field}: {message}")
-        };
-        ApiError {
-            code: ErrorCode::InvalidArgument,
-            message: text,
-            field: (!field.is_empty()).then_some(field),
-        }
+    JobSpec::from_json(body).map_err(|e| ApiError {
+        code: ErrorCode::InvalidArgument,
+        message: e.message,
+        field: e.field,
     })
 }
 
@@ -53,9 +35,11 @@ pub fn parse_job_spec(body: &[u8]) -> Result<JobSpec, ApiError> {
         (status = 200, description = "the job an earlier request with this Idempotency-Key created", body = Job),
         (status = 400, description = "malformed or invalid request", body = ErrorBody),
         (status = 409, description = "Idempotency-Key reused with a different request", body = ErrorBody),
-        (status = 413, description = "the request is larger than the 2 MiB a job request may be", body = ErrorBody)))]
+        (status = 413, description = "the request is larger than the 2 MiB a job request may be", body = ErrorBody),
+        (status = 429, description = "the client has as many jobs queued or running as it may (`max_active_jobs_per_client`)", body = ErrorBody)))]
 pub(crate) async fn create_job(
     State(app): State<App>,
+    client: Option<axum::Extension<crate::auth::Client>>,
     headers: HeaderMap,
     body: Result<Bytes, axum::extract::rejection::BytesRejection>,
 ) -> Result<Response, ApiError> {
@@ -87,7 +71,7 @@ pub(crate) async fn create_job(
         None => None,
     };
     let spec = parse_job_spec(&body)?;
-    let (job, is_new) = app.create_job(spec, key).await?;
+    let (job, is_new) = app.create_job(spec, key, client.as_ref().map(|c| &c.0)).await?;
     if is_new { Ok(super::created(job)) } else { Ok((StatusCode::OK, Json(job)).into_response()) }
 }
 

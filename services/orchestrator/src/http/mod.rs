@@ -111,19 +111,33 @@ pub fn router(app: App, metrics: Option<PrometheusHandle>) -> axum::Router {
 
 /// Refuses a call under `/v1/` whose bearer token does not allow it (401 with
 /// `WWW-Authenticate: Bearer`, or 403), when the server requires tokens.
+/// Names the caller ([`crate::auth::Client`]) in the request's extensions for the handlers.
 async fn require_token(
     State(app): State<App>,
-    request: axum::extract::Request,
+    mut request: axum::extract::Request,
     next: axum::middleware::Next,
 ) -> Response {
     if let Some(scope) = crate::auth::rest_scope(request.method(), request.uri().path()) {
         let header = request.headers().get(header::AUTHORIZATION).and_then(|v| v.to_str().ok());
-        if let Err(e) = app.auth.check(header, scope, crate::app::now_ms()).await {
-            let mut response = e.into_response();
-            if response.status() == StatusCode::UNAUTHORIZED {
-                response.headers_mut().insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));
+        match app.auth.check(header, scope, crate::app::now_ms()).await {
+            Ok(token_id) => {
+                let peer = request
+                    .extensions()
+                    .get::<axum::extract::ConnectInfo<std::net::SocketAddr>>()
+                    .map(|c| c.0);
+                if let Some(client) = crate::auth::Client::of(token_id, peer) {
+                    request.extensions_mut().insert(client);
+                }
             }
-            return response;
+            Err(e) => {
+                let mut response = e.into_response();
+                if response.status() == StatusCode::UNAUTHORIZED {
+                    response
+                        .headers_mut()
+                        .insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));
+                }
+                return response;
+            }
         }
     }
     next.run(request).await

@@ -113,6 +113,8 @@ pub struct NewJob {
     pub id: String,
     pub spec: JobSpec,
     pub idempotency_key: Option<String>,
+    /// Who submits it (`token:<id>` or `addr:<ip>`); counted by [`JobStore::active_jobs_of`].
+    pub client: Option<String>,
     pub now_ms: i64,
 }
 
@@ -170,6 +172,10 @@ pub trait JobStore: Send + Sync + 'static {
     /// Inserts a queued job, or returns the job an earlier request with the same idempotency key made.
     async fn create(&self, new: NewJob) -> Result<Created, StoreError>;
     async fn get(&self, id: &str) -> Result<Option<Job>, StoreError>;
+    /// Jobs of `client` that are queued or running.
+    async fn active_jobs_of(&self, client: &str) -> Result<u64, StoreError>;
+    /// Whether a job was submitted with this idempotency key.
+    async fn key_exists(&self, key: &str) -> Result<bool, StoreError>;
     /// Jobs newest first, optionally only those with `status`, after `cursor`.
     async fn list(
         &self,

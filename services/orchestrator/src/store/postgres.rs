@@ -61,7 +61,7 @@ impl JobStore for PostgresStore {
         let first = new.spec.first_stage();
         let inserted = sqlx::query(
             "INSERT INTO jobs (id, name, spec, first_stage, status, stage, progress, idempotency_key, \
-             created_at_ms, updated_at_ms) VALUES ($1, $2, $3, $4, 'queued', $4, 0, $5, $6, $6) \
+             client, created_at_ms, updated_at_ms) VALUES ($1, $2, $3, $4, 'queued', $4, 0, $5, $7, $6, $6) \
              ON CONFLICT (idempotency_key) DO NOTHING",
         )
         .bind(&new.id)
@@ -70,6 +70,7 @@ impl JobStore for PostgresStore {
         .bind(first.as_str())
         .bind(&new.idempotency_key)
         .bind(new.now_ms)
+        .bind(&new.client)
         .execute(&self.pool)
         .await?
         .rows_affected();
@@ -100,6 +101,24 @@ impl JobStore for PostgresStore {
             Some(row) => Ok(Some(self.job_from_row(row).await?)),
             None => Ok(None),
         }
+    }
+
+    async fn active_jobs_of(&self, client: &str) -> Result<u64, StoreError> {
+        let n: i64 = sqlx::query_scalar(
+            "SELECT count(*) FROM jobs WHERE client = $1 AND status IN ('queued', 'running')",
+        )
+        .bind(client)
+        .fetch_one(&self.pool)
+        .await?;
+        Ok(u64::try_from(n).unwrap_or(0))
+    }
+
+    async fn key_exists(&self, key: &str) -> Result<bool, StoreError> {
+        let found: Option<i32> = sqlx::query_scalar("SELECT 1 FROM jobs WHERE idempotency_key = $1")
+            .bind(key)
+            .fetch_optional(&self.pool)
+            .await?;
+        Ok(found.is_some())
     }
 
     async fn list(

@@ -45,7 +45,7 @@ pub struct SqliteStore {
 async fn insert_rows(writer: &SqlitePool, rows: &[&PendingInsert]) -> Result<Vec<String>, sqlx::Error> {
     let mut q = sqlx::QueryBuilder::<sqlx::Sqlite>::new(
         "INSERT INTO jobs (id, name, spec, first_stage, status, stage, progress, idempotency_key, \
-         created_at_ms, updated_at_ms) ",
+         client, created_at_ms, updated_at_ms) ",
     );
     q.push_values(rows, |mut b, p| {
         let first = p.new.spec.first_stage();
@@ -57,6 +57,7 @@ async fn insert_rows(writer: &SqlitePool, rows: &[&PendingInsert]) -> Result<Vec
             .push_bind(first.as_str())
             .push_bind(0.0f64)
             .push_bind(p.new.idempotency_key.clone())
+            .push_bind(p.new.client.clone())
             .push_bind(p.new.now_ms)
             .push_bind(p.new.now_ms);
     });
@@ -171,6 +172,24 @@ impl JobStore for SqliteStore {
 
     async fn get(&self, id: &str) -> Result<Option<Job>, StoreError> {
         self.get_from(&self.reader, id).await
+    }
+
+    async fn active_jobs_of(&self, client: &str) -> Result<u64, StoreError> {
+        let n: i64 = sqlx::query_scalar(
+            "SELECT count(*) FROM jobs WHERE client = ? AND status IN ('queued', 'running')",
+        )
+        .bind(client)
+        .fetch_one(&self.reader)
+        .await?;
+        Ok(u64::try_from(n).unwrap_or(0))
+    }
+
+    async fn key_exists(&self, key: &str) -> Result<bool, StoreError> {
+        let found: Option<i64> = sqlx::query_scalar("SELECT 1 FROM jobs WHERE idempotency_key = ?")
+            .bind(key)
+            .fetch_optional(&self.reader)
+            .await?;
+        Ok(found.is_some())
     }
 
     async fn list(

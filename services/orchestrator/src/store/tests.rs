@@ -32,7 +32,7 @@ fn spec(name: &str) -> JobSpec {
 }
 
 fn new(id: &str, key: Option<&str>) -> NewJob {
-    NewJob { id: id.into(), spec: spec(id), idempotency_key: key.map(Into::into), now_ms: 1 }
+    NewJob { id: id.into(), spec: spec(id), idempotency_key: key.map(Into::into), client: None, now_ms: 1 }
 }
 
 /// A database of one test; dropped (with its data) when the test ends.
@@ -93,6 +93,7 @@ suite!(
     concurrent_replicas_claim_every_job_exactly_once,
     a_job_reads_back_as_it_was_written,
     tokens_are_found_by_hash_listed_and_revoked_once,
+    active_jobs_are_counted_per_client,
 );
 
 fn result(stage: Stage) -> StageResult {
@@ -185,6 +186,32 @@ async fn idempotency_keys_and_cancel_and_pages(db: Db) {
     let all = s.list(None, 1000, None).await.expect("list");
     assert_eq!(all.jobs.len(), 6);
     assert!(all.next_cursor.is_none());
+}
+
+/// Queued and running jobs count against their client; ended ones and other clients' do not.
+async fn active_jobs_are_counted_per_client(db: Db) {
+    let s = db.store().await;
+    let of = |id: &str, client: Option<&str>| NewJob { client: client.map(Into::into), ..new(id, None) };
+    for i in 0..3 {
+        s.create(of(&format!("a{i}"), Some("token:tok_a"))).await.expect("create");
+    }
+    s.create(of("b0", Some("addr:10.0.0.2"))).await.expect("create");
+    s.create(of("n0", None)).await.expect("create");
+    s.create(NewJob { idempotency_key: Some("key-a".into()), ..of("a3", Some("token:tok_a")) })
+        .await
+        .expect("create");
+    assert_eq!(s.active_jobs_of("token:tok_a").await.expect("count"), 4);
+    assert_eq!(s.active_jobs_of("addr:10.0.0.2").await.expect("count"), 1);
+    assert_eq!(s.active_jobs_of("token:tok_other").await.expect("count"), 0);
+    // Running still counts; cancelled (and any other end) does not.
+    let claimed = s.claim("w", 10, 1000).await.expect("claim").expect("a job");
+    assert_eq!(claimed.id, "a0", "the oldest job first");
+    assert_eq!(s.active_jobs_of("token:tok_a").await.expect("count"), 4);
+    s.request_cancel("a1", 11).await.expect("cancel").expect("job");
+    s.end("a0", "w", JobStatus::Succeeded, None, 12).await.expect("end");
+    assert_eq!(s.active_jobs_of("token:tok_a").await.expect("count"), 2);
+    assert!(s.key_exists("key-a").await.expect("key"));
+    assert!(!s.key_exists("key-b").await.expect("key"));
 }
 
 /// Three replicas (three stores on one database), each with several workers claiming at once: every

@@ -1,0 +1,70 @@
+//! The G-code interpreter and the simulated EMCO F1 running the program (removal on a small
+//! coarse stock, the adaptive loop on): whatever the program, it runs or is refused, without a
+//! panic (the travel itself is checked by the machine's property test).
+#![no_main]
+
+use depthmill_geometry::ToolProfile;
+use depthmill_machine::domain::cutting::material;
+use depthmill_machine::domain::profile::MachineProfile;
+use depthmill_machine::domain::sim::{MachineTool, PolicyKind, SimError, SimSetup, StockSpec, simulate};
+use libfuzzer_sys::fuzz_target;
+
+fn setup() -> Option<SimSetup> {
+    Some(SimSetup {
+        profile: MachineProfile::builtin("emco-f1").ok()?,
+        material: material("aluminium")?,
+        stock: StockSpec {
+            min_x_mm: 0.0,
+            min_y_mm: 0.0,
+            min_z_mm: 0.0,
+            x_mm: 30.0,
+            y_mm: 20.0,
+            z_mm: 10.0,
+            cell_mm: 0.5,
+        },
+        faces: Vec::new(),
+        dexel: None,
+        tools: vec![
+            MachineTool {
+                number: 1,
+                name: "flat-6".into(),
+                profile: ToolProfile::flat(6.0).ok()?,
+                teeth: 2,
+                length_mm: 45.0,
+            },
+            MachineTool {
+                number: 2,
+                name: "ball-3".into(),
+                profile: ToolProfile::ball(3.0).ok()?,
+                teeth: 2,
+                length_mm: 40.0,
+            },
+        ],
+        policy: PolicyKind::Aco,
+        clamp: false,
+        inclusions: Vec::new(),
+        seed: 1,
+        telemetry_interval_s: 0.5,
+        motion_only: false,
+    })
+}
+
+fuzz_target!(|data: &[u8]| {
+    let Some(setup) = setup() else { return };
+    // Some programs would cut for simulated hours; a real run is bounded by the job's deadline.
+    // Here the run stops after about 2 000 lines (the stop flag the service's Stop call sets is
+    // polled every 256 lines).
+    let lines = std::cell::Cell::new(0u32);
+    let stop = || {
+        lines.set(lines.get() + 1);
+        lines.get() > 8
+    };
+    match simulate(std::io::Cursor::new(data), &setup, &stop, &mut |_: &_| {}) {
+        Ok(_) => {}
+        Err(SimError::Setup(e)) => panic!("the fixed setup is valid: {e}"),
+        Err(e) => {
+            let text = e.to_string();
+            assert!(!text.is_empty());
+        }
+    }
+});
