@@ -222,7 +222,7 @@ async fn openapi_document_and_docs_are_served() -> anyhow::Result<()> {
 }
 
 #[tokio::test]
-async fn the_tool_library_is_listed_over_rest() -> anyhow::Result<()> {
+async fn the_catalog_is_listed_over_rest() -> anyhow::Result<()> {
     let mut stack = TestStack::start().await?;
     let resp = stack.http.get(stack.url("/v1/tools")).send().await?;
     assert_eq!(resp.status().as_u16(), 200);
@@ -236,12 +236,44 @@ async fn the_tool_library_is_listed_over_rest() -> anyhow::Result<()> {
     assert!(tools.iter().all(|t| t["diameter_mm"].as_f64().is_some_and(|d| d > 0.0)), "{body}");
     // Documented in the API description.
     let api: Value = stack.http.get(stack.url("/openapi.json")).send().await?.json().await?;
-    assert!(api["paths"]["/v1/tools"]["get"].is_object());
+    for path in ["/v1/tools", "/v1/materials", "/v1/machines", "/v1/strategies"] {
+        assert!(api["paths"][path]["get"].is_object(), "{path} documented");
+    }
+
+    // Materials: the CAM's cutting table, marked with what the machine's model cuts.
+    let body: Value = stack.http.get(stack.url("/v1/materials")).send().await?.json().await?;
+    let materials = body["materials"].as_array().cloned().unwrap_or_default();
+    let al = materials.iter().find(|m| m["name"] == "aluminium").expect("aluminium listed");
+    assert!(al["surface_speed_m_min"].as_f64().is_some_and(|v| v > 0.0), "{al}");
+    assert_eq!(al["simulated"], true, "{al}");
+    assert!(al["aliases"].as_array().is_some_and(|a| a.iter().any(|x| x == "aluminum")), "{al}");
+    // Machines: the shipped profiles with their travel.
+    let body: Value = stack.http.get(stack.url("/v1/machines")).send().await?.json().await?;
+    let machines = body["machines"].as_array().cloned().unwrap_or_default();
+    let names: Vec<&str> = machines.iter().filter_map(|m| m["name"].as_str()).collect();
+    assert_eq!(names, ["emco-f1", "emco-f1-tt"], "{body}");
+    let f1 = &machines[0];
+    assert!(f1["x"]["max"].as_f64() > f1["x"]["min"].as_f64(), "{f1}");
+    assert!(f1.get("c").is_none() && machines[1]["c"].is_object(), "only the table-table has C: {body}");
+    // Strategies: every value a job request takes.
+    let body: Value = stack.http.get(stack.url("/v1/strategies")).send().await?.json().await?;
+    let finishing: Vec<&str> =
+        body["finishing"].as_array().into_iter().flatten().filter_map(|c| c["name"].as_str()).collect();
+    assert_eq!(finishing, ["raster_x", "raster_y", "raster_angle", "iso_level"], "{body}");
+
+    // The machine service down: materials still listed, without the mark; machines 503.
+    stack.stop_service("machine").await?;
+    let body: Value = stack.http.get(stack.url("/v1/materials")).send().await?.json().await?;
+    assert!(body["materials"][0].get("simulated").is_none(), "{body}");
+    let resp = stack.http.get(stack.url("/v1/machines")).send().await?;
+    assert_eq!(resp.status().as_u16(), 503);
     // The CAM service down: 503, not an empty list.
     stack.stop_service("cam").await?;
-    let resp = stack.http.get(stack.url("/v1/tools")).send().await?;
-    assert_eq!(resp.status().as_u16(), 503);
-    let body: Value = resp.json().await?;
-    assert_eq!(body["error"]["code"], "unavailable", "{body}");
+    for path in ["/v1/tools", "/v1/materials"] {
+        let resp = stack.http.get(stack.url(path)).send().await?;
+        assert_eq!(resp.status().as_u16(), 503, "{path}");
+        let body: Value = resp.json().await?;
+        assert_eq!(body["error"]["code"], "unavailable", "{body}");
+    }
     stack.shutdown().await
 }

@@ -158,6 +158,13 @@ impl MachineService for Scripted {
         Err(Status::unimplemented("scripted machine: no parameter check"))
     }
 
+    async fn list_machines(
+        &self,
+        _request: Request<pb::ListMachinesRequest>,
+    ) -> Result<Response<pb::ListMachinesResponse>, Status> {
+        Err(Status::unimplemented("scripted machine: no profiles"))
+    }
+
     async fn execute_program(
         &self,
         request: Request<pb::ExecuteProgramRequest>,

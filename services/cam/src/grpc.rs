@@ -423,4 +423,20 @@ impl pb::cam_service_server::CamService for CamServiceImpl {
             .collect();
         Ok(Response::new(pb::ListToolsResponse { tools }))
     }
+
+    async fn list_materials(
+        &self,
+        _request: Request<pb::ListMaterialsRequest>,
+    ) -> Result<Response<pb::ListMaterialsResponse>, Status> {
+        let materials = crate::domain::feeds::materials()
+            .into_iter()
+            .map(|m| pb::Material {
+                name: m.name.to_string(),
+                surface_speed_m_min: m.surface_speed_m_min,
+                coolant: m.coolant,
+                aliases: m.aliases.into_iter().map(str::to_string).collect(),
+            })
+            .collect();
+        Ok(Response::new(pb::ListMaterialsResponse { materials }))
+    }
 }

@@ -544,6 +544,36 @@ impl pb::machine_service_server::MachineService for MachineServiceImpl {
         Ok(Response::new(pb_types::ValidateParamsResponse { violations: check_params(request.into_inner()) }))
     }
 
+    async fn list_machines(
+        &self,
+        _request: Request<pb::ListMachinesRequest>,
+    ) -> Result<Response<pb::ListMachinesResponse>, Status> {
+        use crate::domain::profile::{AxisRange, BUILTIN_PROFILES, MachineProfile};
+        let travel = |r: &AxisRange| pb::AxisTravel { min: r.min_mm, max: r.max_mm };
+        let mut machines = Vec::new();
+        for name in BUILTIN_PROFILES {
+            let p = MachineProfile::builtin(name)
+                .map_err(|e| ErrorCode::Internal.status(format!("shipped profile {name}: {e}")))?;
+            machines.push(pb::MachineProfileInfo {
+                name: p.name.clone(),
+                description: p.description.clone(),
+                x: Some(travel(&p.axes.x)),
+                y: Some(travel(&p.axes.y)),
+                z: Some(travel(&p.axes.z)),
+                a: Some(travel(&p.axes.a)),
+                c: p.axes.c.as_ref().map(travel),
+                feed_min_mm_min: p.motion.feed_min_mm_min,
+                feed_max_mm_min: p.motion.feed_max_mm_min,
+                rapid_mm_min: p.motion.rapid_mm_min,
+                rpm_min: p.spindle.rpm_min,
+                rpm_max: p.spindle.rpm_max,
+                spindle_power_w: p.spindle.power_w,
+            });
+        }
+        let materials = crate::domain::cutting::materials().into_iter().map(|m| m.name).collect();
+        Ok(Response::new(pb::ListMachinesResponse { machines, materials }))
+    }
+
     async fn get_status(
         &self,
         _request: Request<pb::GetStatusRequest>,

@@ -567,6 +567,29 @@ impl App {
         self.stages.list_tools().await.map_err(|e| ApiError::new(e.code, e.message))
     }
 
+    /// The CAM service's cutting table, each material marked with whether the machine's
+    /// cutting model knows it (when the machine service answers).
+    pub async fn list_materials(&self) -> Result<Vec<crate::stages::MaterialSummary>, ApiError> {
+        let mut materials =
+            self.stages.list_materials().await.map_err(|e| ApiError::new(e.code, e.message))?;
+        match self.stages.list_machines().await {
+            Ok((_, simulated)) => {
+                for m in &mut materials {
+                    m.simulated = Some(simulated.contains(&m.name));
+                }
+            }
+            Err(e) => tracing::debug!(error = %e.message, "materials listed without the machine's model"),
+        }
+        Ok(materials)
+    }
+
+    /// The machine service's profiles.
+    pub async fn list_machines(&self) -> Result<Vec<crate::stages::MachineSummary>, ApiError> {
+        let (machines, _) =
+            self.stages.list_machines().await.map_err(|e| ApiError::new(e.code, e.message))?;
+        Ok(machines)
+    }
+
     /// Readiness: the database answers.
     pub async fn ready(&self) -> Result<(), ApiError> {
         self.store.ping().await?;

@@ -96,6 +96,55 @@ pub trait StageRunner: Send + Sync + 'static {
     async fn check_part(&self, spec: &JobSpec, part_size_mm: [f64; 3]) -> Result<(), SpecError>;
     /// The CAM service's tool library (the built-in tools and its `tools_dir`), by name.
     async fn list_tools(&self) -> Result<Vec<ToolSummary>, StageError>;
+    /// The CAM service's cutting table.
+    async fn list_materials(&self) -> Result<Vec<MaterialSummary>, StageError>;
+    /// The machine service's profiles and the materials of its cutting model.
+    async fn list_machines(&self) -> Result<(Vec<MachineSummary>, Vec<String>), StageError>;
+}
+
+/// A work material, as `GET /v1/materials` lists it.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, utoipa::ToSchema)]
+pub struct MaterialSummary {
+    /// The name a job's `plan.stock.material` and `execute.material` use, e.g. `aluminium`.
+    pub name: String,
+    /// Surface speed the CAM's feeds and speeds start from, m/min.
+    pub surface_speed_m_min: f64,
+    /// Flood coolant (M8) when cutting it.
+    pub coolant: bool,
+    /// Other spellings accepted for it.
+    pub aliases: Vec<String>,
+    /// Whether the machine's cutting-force model knows it (an `execute` stage can cut it);
+    /// absent when the machine service could not be asked.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub simulated: Option<bool>,
+}
+
+/// Travel of one axis: mm for X, Y, Z; degrees for A and C (`min = max = 0`: continuous).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, utoipa::ToSchema)]
+pub struct Travel {
+    pub min: f64,
+    pub max: f64,
+}
+
+/// A machine profile, as `GET /v1/machines` lists it.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, utoipa::ToSchema)]
+pub struct MachineSummary {
+    /// The name a job's `execute.machine` uses, e.g. `emco-f1`.
+    pub name: String,
+    pub description: String,
+    pub x: Travel,
+    pub y: Travel,
+    pub z: Travel,
+    pub a: Travel,
+    /// The C table of a table-table machine; absent on a 4-axis one.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub c: Option<Travel>,
+    pub feed_min_mm_min: f64,
+    pub feed_max_mm_min: f64,
+    pub rapid_mm_min: f64,
+    pub rpm_min: f64,
+    pub rpm_max: f64,
+    pub spindle_power_w: f64,
 }
 
 /// A tool of the CAM service's library, as `GET /v1/tools` lists it.
@@ -630,6 +679,61 @@ impl StageRunner for GrpcStages {
             .collect();
         tools.sort_by(|a, b| a.name.cmp(&b.name));
         Ok(tools)
+    }
+
+    async fn list_materials(&self) -> Result<Vec<MaterialSummary>, StageError> {
+        let ch = self.channel_for(Stage::Plan)?;
+        let mut client = cam::cam_service_client::CamServiceClient::new(ch);
+        let answer = client
+            .list_materials(self.request(cam::ListMaterialsRequest {}, CHECK_PARAMS_TIMEOUT))
+            .await
+            .map_err(|s| StageError::from_status(Stage::Plan, &s))?;
+        Ok(answer
+            .into_inner()
+            .materials
+            .into_iter()
+            .map(|m| MaterialSummary {
+                name: m.name,
+                surface_speed_m_min: m.surface_speed_m_min,
+                coolant: m.coolant,
+                aliases: m.aliases,
+                simulated: None,
+            })
+            .collect())
+    }
+
+    async fn list_machines(&self) -> Result<(Vec<MachineSummary>, Vec<String>), StageError> {
+        let ch = self.channel_for(Stage::Execute)?;
+        let mut client = machine::machine_service_client::MachineServiceClient::new(ch);
+        let answer = client
+            .list_machines(self.request(machine::ListMachinesRequest {}, CHECK_PARAMS_TIMEOUT))
+            .await
+            .map_err(|s| StageError::from_status(Stage::Execute, &s))?
+            .into_inner();
+        let travel = |t: Option<machine::AxisTravel>| {
+            let t = t.unwrap_or_default();
+            Travel { min: t.min, max: t.max }
+        };
+        let machines = answer
+            .machines
+            .into_iter()
+            .map(|m| MachineSummary {
+                name: m.name,
+                description: m.description,
+                x: travel(m.x),
+                y: travel(m.y),
+                z: travel(m.z),
+                a: travel(m.a),
+                c: m.c.map(|c| Travel { min: c.min, max: c.max }),
+                feed_min_mm_min: m.feed_min_mm_min,
+                feed_max_mm_min: m.feed_max_mm_min,
+                rapid_mm_min: m.rapid_mm_min,
+                rpm_min: m.rpm_min,
+                rpm_max: m.rpm_max,
+                spindle_power_w: m.spindle_power_w,
+            })
+            .collect();
+        Ok((machines, answer.materials))
     }
 
     /// Asks every instance of the stage's service (only the one running the stage knows it):

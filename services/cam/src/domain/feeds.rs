@@ -135,6 +135,30 @@ const ALIASES: &[(&str, &str)] = &[
     ("mdf", "wood"),
 ];
 
+/// A material of the cutting table, as the service lists it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MaterialInfo {
+    pub name: &'static str,
+    /// Surface speed, m/min.
+    pub surface_speed_m_min: f64,
+    pub coolant: bool,
+    /// Other spellings accepted for it.
+    pub aliases: Vec<&'static str>,
+}
+
+/// Every material of the cutting table, in table order.
+pub fn materials() -> Vec<MaterialInfo> {
+    MATERIALS
+        .iter()
+        .map(|m| MaterialInfo {
+            name: m.name,
+            surface_speed_m_min: m.vc_m_min,
+            coolant: m.coolant,
+            aliases: ALIASES.iter().filter(|(_, to)| *to == m.name).map(|(a, _)| *a).collect(),
+        })
+        .collect()
+}
+
 fn interpolate(xs: &[f64; 5], ys: &[f64; 5], x: f64) -> f64 {
     if x <= xs[0] {
         return ys[0];

@@ -166,6 +166,9 @@ pub struct MachineProfile {
     pub tools: Vec<ToolEntry>,
 }
 
+/// Names of the profiles shipped with the service ([`MachineProfile::builtin`]).
+pub const BUILTIN_PROFILES: [&str; 2] = ["emco-f1", "emco-f1-tt"];
+
 impl MachineProfile {
     /// The profiles shipped with the service, by name.
     pub fn builtin(name: &str) -> Result<Self, ProfileError> {

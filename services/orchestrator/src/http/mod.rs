@@ -57,7 +57,7 @@ impl IntoResponse for ApiError {
 #[derive(OpenApi)]
 #[openapi(
     info(title = "depthmill", description = "Scan-to-part jobs: upload a mesh, point cloud, depth map or G-code, submit a job, watch it, fetch its results."),
-    tags((name = "jobs", description = "Scan-to-part jobs"), (name = "artifacts", description = "Content-addressed files"), (name = "catalog", description = "What a job can name: tools"), (name = "ops", description = "Health and metrics")),
+    tags((name = "jobs", description = "Scan-to-part jobs"), (name = "artifacts", description = "Content-addressed files"), (name = "catalog", description = "What a job can name: tools, materials, machines, strategies"), (name = "ops", description = "Health and metrics")),
     components(schemas(ErrorBody, ErrorDetail))
 )]
 struct ApiDoc;
@@ -77,6 +77,9 @@ fn router_parts() -> (axum::Router<App>, utoipa::openapi::OpenApi) {
         .routes(routes!(artifacts::upload_artifact))
         .routes(routes!(artifacts::download_artifact))
         .routes(routes!(list_tools))
+        .routes(routes!(list_materials))
+        .routes(routes!(list_machines))
+        .routes(routes!(list_strategies))
         .routes(routes!(healthz))
         .routes(routes!(readyz))
         .split_for_parts()
@@ -159,6 +162,91 @@ pub struct ToolList {
     pub tools: Vec<crate::stages::ToolSummary>,
 }
 
+/// The work materials a job can name: the CAM service's cutting table, each marked with whether
+/// the machine's cutting model knows it.
+#[utoipa::path(get, path = "/v1/materials", tag = "catalog", responses(
+    (status = 200, description = "the cutting table", body = MaterialList),
+    (status = 501, description = "no CAM service is configured", body = ErrorBody),
+    (status = 503, description = "the CAM service cannot be reached", body = ErrorBody)))]
+async fn list_materials(State(app): State<App>) -> Result<Json<MaterialList>, ApiError> {
+    Ok(Json(MaterialList { materials: app.list_materials().await? }))
+}
+
+/// `GET /v1/materials`.
+#[derive(Serialize, ToSchema)]
+pub struct MaterialList {
+    pub materials: Vec<crate::stages::MaterialSummary>,
+}
+
+/// The machine profiles a job's `execute.machine` can name, with their travel and ranges.
+#[utoipa::path(get, path = "/v1/machines", tag = "catalog", responses(
+    (status = 200, description = "the machine profiles", body = MachineList),
+    (status = 501, description = "no machine service is configured", body = ErrorBody),
+    (status = 503, description = "the machine service cannot be reached", body = ErrorBody)))]
+async fn list_machines(State(app): State<App>) -> Result<Json<MachineList>, ApiError> {
+    Ok(Json(MachineList { machines: app.list_machines().await? }))
+}
+
+/// `GET /v1/machines`.
+#[derive(Serialize, ToSchema)]
+pub struct MachineList {
+    pub machines: Vec<crate::stages::MachineSummary>,
+}
+
+/// One choice of a job section's strategy field.
+#[derive(Serialize, ToSchema)]
+pub struct Choice {
+    /// The value the job request uses.
+    pub name: &'static str,
+    pub description: &'static str,
+}
+
+/// `GET /v1/strategies`.
+#[derive(Serialize, ToSchema)]
+pub struct StrategyList {
+    /// `plan.roughing.direction`.
+    pub roughing: Vec<Choice>,
+    /// `plan.finishing.strategy`.
+    pub finishing: Vec<Choice>,
+    /// `execute.adaptive`.
+    pub adaptive: Vec<Choice>,
+    /// `plan.dialect`.
+    pub dialects: Vec<Choice>,
+}
+
+fn strategies() -> StrategyList {
+    let c = |name, description| Choice { name, description };
+    StrategyList {
+        roughing: vec![
+            c("x", "raster clearing along X, level by level (default)"),
+            c("y", "raster clearing along Y, level by level"),
+            c("contour", "offset rings following each level's outline"),
+        ],
+        finishing: vec![
+            c("raster_x", "ball-nose raster along X (default)"),
+            c("raster_y", "ball-nose raster along Y"),
+            c("raster_angle", "raster at plan.finishing.angle_deg"),
+            c("iso_level", "constant-Z contours (waterline), for steep walls"),
+        ],
+        adaptive: vec![
+            c("aco", "feed and spindle speed both adapt to the measured load (default)"),
+            c("feed_only", "the feed adapts, the spindle speed stays as programmed"),
+            c("off", "the program's feeds and speeds as written"),
+        ],
+        dialects: vec![
+            c("linuxcnc", "LinuxCNC / RS-274NGC (default)"),
+            c("fanuc", "Fanuc / EMCO WinNC style: O number, N words, G28 retracts"),
+        ],
+    }
+}
+
+/// The strategies and modes a job's `plan` and `execute` sections can choose, with what each does.
+#[utoipa::path(get, path = "/v1/strategies", tag = "catalog", responses(
+    (status = 200, description = "the choices", body = StrategyList)))]
+async fn list_strategies() -> Json<StrategyList> {
+    Json(strategies())
+}
+
 /// Liveness: the process serves requests.
 #[utoipa::path(get, path = "/healthz", tag = "ops", responses((status = 200, description = "alive")))]
 async fn healthz() -> &'static str {
@@ -177,4 +265,42 @@ async fn readyz(State(app): State<App>) -> Result<&'static str, ApiError> {
 
 pub(crate) fn created<T: Serialize>(body: T) -> Response {
     (StatusCode::CREATED, Json(body)).into_response()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::domain::spec::{AdaptiveMode, Dialect, FinishingStrategy, RoughingDirection};
+
+    /// Every listed choice is a value the job request takes, and every value is listed.
+    #[test]
+    fn the_strategies_listed_are_the_job_request_s() {
+        fn names<T: serde::de::DeserializeOwned>(choices: &[Choice]) -> Vec<T> {
+            choices
+                .iter()
+                .map(|c| serde_json::from_value(serde_json::Value::from(c.name)).expect(c.name))
+                .collect()
+        }
+        let s = strategies();
+        assert_eq!(names::<RoughingDirection>(&s.roughing).len(), 3);
+        assert_eq!(
+            names::<FinishingStrategy>(&s.finishing),
+            [
+                FinishingStrategy::RasterX,
+                FinishingStrategy::RasterY,
+                FinishingStrategy::RasterAngle,
+                FinishingStrategy::IsoLevel
+            ]
+        );
+        assert_eq!(
+            names::<AdaptiveMode>(&s.adaptive),
+            [AdaptiveMode::Aco, AdaptiveMode::FeedOnly, AdaptiveMode::Off]
+        );
+        assert_eq!(names::<Dialect>(&s.dialects), [Dialect::Linuxcnc, Dialect::Fanuc]);
+        // An exhaustive match: a new roughing direction fails to compile here until it is listed.
+        let listed = |d: RoughingDirection| match d {
+            RoughingDirection::X | RoughingDirection::Y | RoughingDirection::Contour => true,
+        };
+        assert!(names::<RoughingDirection>(&s.roughing).into_iter().all(listed));
+    }
 }
