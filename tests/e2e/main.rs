@@ -4,6 +4,7 @@ mod api;
 mod auth;
 mod children;
 mod cli;
+mod console;
 mod corpus;
 mod crash;
 mod deploy;

@@ -406,6 +406,10 @@ impl Parser {
             }
         };
         let rapid = st.motion == 0;
+        // A rapid whose start height is unknown begins at the top of the machine (after a G53 or
+        // G28 retract, a tool change): it passes over everything, and drawn in the top view it
+        // would be a line straight across the part. It moves the tool, it is not drawn.
+        let over_all = rapid && st.pos[2].is_none();
         let mut pts: Vec<[f64; 3]> = Vec::new();
         if let (Some(x0), Some(y0), Some(x1), Some(y1)) = (st.pos[0], st.pos[1], to[0], to[1]) {
             let z0 = st.pos[2].unwrap_or(0.0);
@@ -420,7 +424,7 @@ impl Parser {
         for w in pts.windows(2) {
             let (a, b) = (w[0], w[1]);
             len += ((b[0] - a[0]).powi(2) + (b[1] - a[1]).powi(2) + (b[2] - a[2]).powi(2)).sqrt();
-            if (a[0], a[1]) != (b[0], b[1]) {
+            if (a[0], a[1]) != (b[0], b[1]) && !over_all {
                 p.segs.push(Seg {
                     op: op as u32,
                     rapid,
@@ -534,6 +538,22 @@ N70 (T2 BALL-3: BALL D3.0000 MM, 2 FLUTES - FINISHING-RASTER-X WITH BALL-3)\nN80
         assert!(!face2.is_empty());
         assert!(face2.iter().all(|s| s.a != [10.0, 0.0] && s.b != [10.0, 0.0]), "{face2:?}");
         assert_eq!(p.ops[1].rapid_mm, 0.0, "no rapid from the last face's position");
+    }
+
+    /// The repositioning rapid after a tool change's retract to the machine's top is not drawn
+    /// across the part; the moves at known heights are.
+    #[test]
+    fn a_rapid_from_the_retract_height_is_not_drawn() {
+        let text = "(T1 flat-6: flat D6 mm - roughing-x with flat-6)\nG53 G0 Z0\nT1 M6\nG0 X0 Y0\nZ5\nG1 Z-1 F100\nX40 Y30\n\
+G0 Z19\n(T2 ball-3: ball D3 mm - finishing-raster-x with ball-3)\nG53 G0 Z0\nT2 M6\nG0 X-6 Y-6\nZ19\nG1 Z-1 F60\nX40\nG0 Z19\nX0 Y30\nM30\n";
+        let p = parse(text);
+        let from_corner = |s: &&Seg| s.a == [40.0, 30.0] && s.b == [-6.0, -6.0];
+        assert!(!p.segs.iter().any(|s| from_corner(&s)), "no line across the part: {:?}", p.segs);
+        // The rapid at Z19 from (40, -6) to (0, 30), at a known height, is drawn as a rapid.
+        assert!(p.segs.iter().any(|s| s.rapid && s.a == [40.0, -6.0] && s.b == [0.0, 30.0]), "{:?}", p.segs);
+        assert_eq!(p.segs.iter().filter(|s| !s.rapid).count(), 2, "the two cuts: {:?}", p.segs);
+        // Its length still counts.
+        assert!(p.ops[1].rapid_mm > 60.0, "{}", p.ops[1].rapid_mm);
     }
 
     #[test]

@@ -2,6 +2,7 @@
 //! from the handlers (utoipa) at `/openapi.json` and Swagger UI at `/docs`.
 
 mod artifacts;
+mod console;
 mod jobs;
 
 use axum::Json;
@@ -102,6 +103,8 @@ pub fn router(app: App, metrics: Option<PrometheusHandle>) -> axum::Router {
         }
     });
     router
+        .route("/", get(console::index))
+        .route("/console/{*path}", get(console::asset))
         .route("/metrics", metrics_route)
         .merge(SwaggerUi::new("/docs").url("/openapi.json", api))
         .fallback(|uri: axum::http::Uri| async move {
