@@ -225,7 +225,7 @@ async fn the_console_submits_watches_and_shows_a_job() -> anyhow::Result<()> {
     let notes = notes.as_str().unwrap_or_default().to_string();
     assert!(notes.contains("points") && notes.contains("passes"), "{notes}");
     let layers = c.find(Locator::Css("#viewer")).await?.attr("data-layers").await?.unwrap_or_default();
-    assert_eq!(layers, "cloud map paths", "layers offered");
+    assert_eq!(layers, "cloud map paths machined", "layers offered");
     let viewer = c.find(Locator::Css("#viewer")).await?;
     let shot = viewer.screenshot().await?;
     let (colours, drawn) = picture_stats(&shot)?;

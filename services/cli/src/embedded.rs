@@ -60,6 +60,7 @@ pub async fn serve(
     let stack = start(data_dir, database_url, rest_addr, grpc_addr, config).await?;
     crate::outln!("REST listening on {}://{}", stack.scheme, stack.rest_addr);
     crate::outln!("gRPC listening on {}://{}", stack.scheme, stack.grpc_addr);
+    crate::outln!("Console: {}://{}/ (open it in a browser)", stack.scheme, stack.rest_addr);
     let stop = stack.token.clone();
     tokio::spawn(async move {
         depthmill_common::shutdown::shutdown_signal().await;

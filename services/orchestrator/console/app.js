@@ -513,30 +513,39 @@ function parseGcode(text) {
   return passes.filter((p) => p.cut.length || p.rapid.length);
 }
 
-async function depthMapSurface(THREE, art) {
-  const blob = new Blob([await artifactBytes(art)], { type: 'image/png' });
-  const bytes = new Uint8Array(await blob.arrayBuffer());
+// A depth-map PNG as heights (mm, NaN without data) on a grid of at most ~400 cells a side.
+async function decodeMap(art, maxSide = 400) {
+  const bytes = new Uint8Array(await artifactBytes(art));
   const meta = pngMeta(bytes);
-  const img = await createImageBitmap(blob, { colorSpaceConversion: 'none', premultiplyAlpha: 'none' });
-  const step = Math.max(1, Math.ceil(Math.max(img.width, img.height) / 400));
+  const img = await createImageBitmap(new Blob([bytes], { type: 'image/png' }), { colorSpaceConversion: 'none', premultiplyAlpha: 'none' });
+  const step = Math.max(1, Math.ceil(Math.max(img.width, img.height) / maxSide));
   const w = Math.ceil(img.width / step), hgt = Math.ceil(img.height / step);
   const canvas = new OffscreenCanvas(w, hgt);
   const ctx = canvas.getContext('2d');
   ctx.drawImage(img, 0, 0, w, hgt);
   const px = ctx.getImageData(0, 0, w, hgt).data;
-  const p = (meta.pixel_mm || 0.1) * step;
   const z0 = meta.z_min_mm ?? 0, z1 = meta.z_max_mm ?? 1;
+  const z = new Float32Array(w * hgt);
+  for (let i = 0; i < w * hgt; i++) z[i] = px[i * 4 + 3] > 0 ? z0 + (px[i * 4] / 255) * (z1 - z0) : NaN;
+  return { w, hgt, z, meta, p: (meta.pixel_mm || 0.1) * (img.width / w) };
+}
+
+// A surface over a decoded map (`lift` added to its heights where given), coloured per vertex
+// by `colour(i)` or plain.
+function mapSurface(THREE, m, lift, colour) {
+  const { w, hgt, z, meta, p } = m;
   const ox = meta.origin_x_mm ?? 0, oy = meta.origin_y_mm ?? 0;
   const pos = new Float32Array(w * hgt * 3);
   const valid = new Uint8Array(w * hgt);
+  const colours = colour ? new Float32Array(w * hgt * 3) : null;
   for (let r = 0; r < hgt; r++) {
     for (let c = 0; c < w; c++) {
       const i = r * w + c;
-      const v = px[i * 4] / 255;
-      // Alpha 0 marks a cell without data.
-      valid[i] = px[i * 4 + 3] > 0 ? 1 : 0;
+      const zz = z[i] + (lift ? lift[i] : 0);
+      valid[i] = Number.isFinite(zz) ? 1 : 0;
       // Images show +Y up: row 0 of the picture is the map's last row.
-      pos.set([ox + (c + 0.5) * p, oy + (hgt - r - 0.5) * p, z0 + v * (z1 - z0)], i * 3);
+      pos.set([ox + (c + 0.5) * p, oy + (hgt - r - 0.5) * p, valid[i] ? zz : 0], i * 3);
+      if (colours) colours.set(colour(i), i * 3);
     }
   }
   const index = [];
@@ -546,9 +555,13 @@ async function depthMapSurface(THREE, art) {
   }
   const g = new THREE.BufferGeometry();
   g.setAttribute('position', new THREE.BufferAttribute(pos, 3));
+  if (colours) g.setAttribute('color', new THREE.BufferAttribute(colours, 3));
   g.setIndex(index);
   g.computeVertexNormals();
-  return new THREE.Mesh(g, new THREE.MeshStandardMaterial({ color: 0xb8c4d0, side: THREE.DoubleSide, roughness: 0.8 }));
+  const material = colours
+    ? new THREE.MeshStandardMaterial({ vertexColors: true, side: THREE.DoubleSide, roughness: 0.75 })
+    : new THREE.MeshStandardMaterial({ color: 0xb8c4d0, side: THREE.DoubleSide, roughness: 0.8 });
+  return new THREE.Mesh(g, material);
 }
 
 // depthmill's metadata in a PNG: `tEXt` chunks keyed `depthmill:pixel_mm`, `depthmill:z_min_mm`, ...
@@ -589,6 +602,8 @@ async function viewerPanel(job) {
     ['map', 'Depth map', arts.depth_map],
     ['paths', 'Toolpaths', arts.gcode],
     ['part', 'Machined part (deviation)', arts.machined_part_view],
+    // A 3-axis job: the machined surface on the depth map's grid (target + deviation).
+    ['machined', 'Machined surface (deviation)', !arts.machined_part_view && arts.depth_map && arts.deviation_map],
   ].filter((l) => l[2]);
   if (!layers.length) return [h('p', { class: 'muted', text: 'Nothing to show in 3-D yet.' })];
   const THREE = await import('three');
@@ -636,7 +651,8 @@ async function viewerPanel(job) {
     const group = new THREE.Group();
     groups[key] = group;
     scene.add(group);
-    const input = h('input', { type: 'checkbox', id: `layer-${key}`, checked: key !== 'map' || !arts.machined_part_view });
+    // The depth map and the machined surface overlap: the machined one is shown first.
+    const input = h('input', { type: 'checkbox', id: `layer-${key}`, checked: key !== 'map' || !(arts.machined_part_view || arts.deviation_map) });
     input.addEventListener('change', () => { group.visible = input.checked; draw(); });
     group.visible = input.checked;
     toggles.append(h('label', { for: `layer-${key}` }, input, ` ${label}`));
@@ -649,8 +665,18 @@ async function viewerPanel(job) {
           return `${n} points`;
         }
         if (key === 'map') {
-          group.add(await depthMapSurface(THREE, art));
+          group.add(mapSurface(THREE, await decodeMap(art)));
           return 'depth map';
+        }
+        if (key === 'machined') {
+          const [target, dev] = await Promise.all([decodeMap(arts.depth_map), decodeMap(arts.deviation_map)]);
+          if (dev.w !== target.w || dev.hgt !== target.hgt) return 'deviation map on another grid';
+          const range = Math.max(Math.abs(dev.meta.z_min_mm ?? 0), Math.abs(dev.meta.z_max_mm ?? 0), 0.01);
+          group.add(mapSurface(THREE, target, dev.z, (i) => deviationColour(dev.z[i], range)));
+          legend.append(h('span', {}, h('i', { style: 'background:#ff4040' }), `gouge (−${fmtNum(range, 2)} mm)`),
+            h('span', {}, h('i', { style: 'background:#fff' }), 'on size'),
+            h('span', {}, h('i', { style: 'background:#4040ff' }), `material left (+${fmtNum(range, 2)} mm)`));
+          return 'machined surface';
         }
         if (key === 'paths') {
           const passes = parseGcode(new TextDecoder().decode(await artifactBytes(art)));
