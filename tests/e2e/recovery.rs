@@ -35,9 +35,11 @@ async fn restart_mid_stage(database_url: Option<String>) -> anyhow::Result<()> {
     let id = job["id"].as_str().expect("id").to_string();
     let (_, queued) = stack.post_job(&gcode_job(&sha), Some("second")).await?;
     let queued_id = queued["id"].as_str().expect("id").to_string();
-    script.wait_for_calls(1, Duration::from_secs(20)).await?;
+    // Both jobs in their stage (the stack's worker runs two at once; which call comes first is
+    // a race, so wait for both).
+    script.wait_for_calls(2, Duration::from_secs(20)).await?;
 
-    // The orchestrator dies while the machine runs the first job's stage.
+    // The orchestrator dies while the machine runs both jobs' stage.
     stack.stop_orchestrator().await?;
     script.hold(false);
     script.release();

@@ -473,6 +473,7 @@ function parseGcode(text) {
   let pos = [NaN, NaN, NaN];
   let motion = 0;
   let absolute = true;
+  let plane = 17;
   let scale = 1;
   let label = 'program';
   const newPass = (name) => { cur = { name, rapid: [], cut: [] }; passes.push(cur); };
@@ -494,6 +495,7 @@ function parseGcode(text) {
         if (v === 20) scale = 25.4;
         if (v === 21) scale = 1;
         if (v === 53 || v === 28 || v === 30) machineCoords = true;
+        if (v === 17 || v === 18 || v === 19) plane = v;
       } else if (l === 'T') { newPass(`${label} T${v}`); }
       const axis = 'XYZ'.indexOf(l);
       if (axis >= 0) { next[axis] = absolute ? v * scale : pos[axis] + v * scale; hasAxis = true; }
@@ -507,10 +509,49 @@ function parseGcode(text) {
       continue;
     }
     // A rapid from an unknown height passes over everything: it moves the tool, it is not drawn.
-    if (next.every(Number.isFinite) && pos.every(Number.isFinite)) (motion === 0 ? cur.rapid : cur.cut).push(...pos, ...next);
+    if (next.every(Number.isFinite) && pos.every(Number.isFinite)) {
+      const out = motion === 0 ? cur.rapid : cur.cut;
+      const word = (l) => { const w = words.find((x) => x[0] === l); return w ? w[1] * scale : undefined; };
+      if ((motion === 2 || motion === 3) && plane === 17) {
+        for (const p of arcPoints(pos, next, word('I'), word('J'), word('R'), motion === 2)) { out.push(...p); }
+      } else {
+        out.push(...pos, ...next);
+      }
+    }
     pos = next;
   }
   return passes.filter((p) => p.cut.length || p.rapid.length);
+}
+
+// An XY arc from `a` to `b` (centre offset I, J from `a`, or radius R: negative the long way) as
+// line segments (pairs of points), about 5° each; a helix when Z changes.
+function arcPoints(a, b, i, j, r, clockwise) {
+  let cx, cy;
+  if (i !== undefined || j !== undefined) {
+    cx = a[0] + (i || 0); cy = a[1] + (j || 0);
+  } else if (r !== undefined) {
+    const dx = b[0] - a[0], dy = b[1] - a[1], d = Math.hypot(dx, dy);
+    if (d === 0 || Math.abs(r) < d / 2) return [a, b];
+    const hgt = Math.sqrt(r * r - d * d / 4) * ((r > 0) === clockwise ? -1 : 1);
+    cx = a[0] + dx / 2 - hgt * dy / d; cy = a[1] + dy / 2 + hgt * dx / d;
+  } else {
+    return [a, b];
+  }
+  const a0 = Math.atan2(a[1] - cy, a[0] - cx), a1 = Math.atan2(b[1] - cy, b[0] - cx);
+  let sweep = a1 - a0;
+  if (clockwise && sweep >= 0) sweep -= 2 * Math.PI;
+  if (!clockwise && sweep <= 0) sweep += 2 * Math.PI;
+  const rad = Math.hypot(a[0] - cx, a[1] - cy);
+  const n = Math.max(2, Math.ceil(Math.abs(sweep) / (Math.PI / 36)));
+  const pts = [];
+  let prev = a;
+  for (let k = 1; k <= n; k++) {
+    const t = k / n, ang = a0 + sweep * t;
+    const p = k === n ? b : [cx + rad * Math.cos(ang), cy + rad * Math.sin(ang), a[2] + (b[2] - a[2]) * t];
+    pts.push(prev, p);
+    prev = p;
+  }
+  return pts;
 }
 
 // A depth-map PNG as heights (mm, NaN without data) on a grid of at most ~400 cells a side.
