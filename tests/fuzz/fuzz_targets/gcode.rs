@@ -1,6 +1,7 @@
 //! The G-code interpreter and the simulated EMCO F1 running the program (removal on a small
 //! coarse stock, the adaptive loop on): whatever the program, it runs or is refused, without a
-//! panic (the travel itself is checked by the machine's property test).
+//! panic; the motion-only timing is finite (the travel itself is checked by the machine's
+//! property test).
 #![no_main]
 
 use depthmill_geometry::ToolProfile;
@@ -51,20 +52,27 @@ fn setup() -> Option<SimSetup> {
 
 fuzz_target!(|data: &[u8]| {
     let Some(setup) = setup() else { return };
-    // Some programs would cut for simulated hours; a real run is bounded by the job's deadline.
-    // Here the run stops after about 2 000 lines (the stop flag the service's Stop call sets is
-    // polled every 256 lines).
-    let lines = std::cell::Cell::new(0u32);
-    let stop = || {
-        lines.set(lines.get() + 1);
-        lines.get() > 8
-    };
-    match simulate(std::io::Cursor::new(data), &setup, &stop, &mut |_: &_| {}) {
-        Ok(_) => {}
+    // As the service does: motion only first (travel, feeds, speeds, tools checked; the cycle
+    // time, cheaply), then the run that cuts. The service refuses programs over 24 h of
+    // machining (`MAX_CYCLE_TIME_S`); here cutting is skipped past 10 simulated minutes so that
+    // an input takes well under libFuzzer's timeout.
+    let never = || false;
+    let plain = SimSetup { policy: PolicyKind::Off, motion_only: true, ..setup.clone() };
+    let timed = match simulate(std::io::Cursor::new(data), &plain, &never, &mut |_: &_| {}) {
+        Ok((report, _)) => report.cycle_time_s,
         Err(SimError::Setup(e)) => panic!("the fixed setup is valid: {e}"),
         Err(e) => {
-            let text = e.to_string();
-            assert!(!text.is_empty());
+            assert!(!e.to_string().is_empty());
+            return;
         }
+    };
+    assert!(timed.is_finite() && timed >= 0.0, "cycle time {timed}");
+    if timed > 600.0 {
+        return;
+    }
+    match simulate(std::io::Cursor::new(data), &setup, &never, &mut |_: &_| {}) {
+        Ok(_) => {}
+        Err(SimError::Setup(e)) => panic!("the fixed setup is valid: {e}"),
+        Err(e) => assert!(!e.to_string().is_empty()),
     }
 });

@@ -183,6 +183,12 @@ pub enum ExecuteError {
     Io(#[from] std::io::Error),
 }
 
+/// Longest program the simulator cuts, in machining time. Cutting is simulated per spindle
+/// revolution (about 15 µs each), so a program's cost grows with its cycle time: 24 h at
+/// 4000 rpm is about 85 s of computing. A longer one (a helix of a million turns, a crawl at the
+/// slowest feed across the table) is refused after the motion-only pass, before anything is cut.
+pub const MAX_CYCLE_TIME_S: f64 = 24.0 * 3600.0;
+
 fn invalid(field: &str, value: impl std::fmt::Display, reason: &str) -> ExecuteError {
     ExecuteError::Invalid { field: field.into(), value: value.to_string(), reason: reason.into() }
 }
@@ -516,6 +522,16 @@ pub fn execute_faces(
         let s = SimSetup { policy: PolicyKind::Off, motion_only: true, ..setup.clone() };
         simulate(open()?, &s, stop, &mut |_| {})?.0
     };
+    if plain.cycle_time_s > MAX_CYCLE_TIME_S {
+        return Err(invalid(
+            "program",
+            format!("{:.1} h of machining", plain.cycle_time_s / 3600.0),
+            &format!(
+                "longer than the {} h the simulated mill runs one program for; split it",
+                MAX_CYCLE_TIME_S / 3600.0
+            ),
+        ));
+    }
     // A multi-axis part is cut on one dexel stock: several faces, a turned face, or a program
     // that feeds at A != 0.
     let indexed = targets.len() > 1 || targets.iter().any(|t| t.a_deg.abs() > 1e-9) || plain.turned_moves > 0;
@@ -865,6 +881,21 @@ mod tests {
                 && p.axes.z.contains(zhi + RETRACT_ALLOWANCE_MM + z + lmax, 1e-9)
         );
         assert_eq!(p.quantise(z), z);
+    }
+
+    /// A program whose machining would take days is refused from its motion-only timing, at
+    /// once, with nothing cut.
+    #[test]
+    fn a_program_longer_than_the_simulator_runs_is_refused_before_cutting() {
+        let program = "(T1 flat-6: flat D6.0000 mm, 2 flutes - roughing-x with flat-6)\nG21 G90 G17 G94\nT1 M6\nS1500 M3\nG43 H1\n\
+                       G0 X15 Y10 Z20\nG1 Z9 F100\nG2 X15 Y10 I1 J0 P1000000 F400\nG0 Z20\nM30\n";
+        let open = || -> std::io::Result<Box<dyn BufRead + Send>> {
+            Ok(Box::new(std::io::Cursor::new(program.as_bytes().to_vec())))
+        };
+        let opts = ExecuteOptions { stock_z_mm: Some(10.0), compare: false, ..Default::default() };
+        // Refused from the motion-only pass (cutting it would take hours of computing).
+        let e = execute(&open, &opts, None, &|| false, &mut |_| {}).map(|_| ()).expect_err("too long");
+        assert!(e.to_string().contains("h of machining") && e.to_string().contains("24 h"), "{e}");
     }
 
     #[test]

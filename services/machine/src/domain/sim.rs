@@ -900,9 +900,10 @@ impl<'a> Machine<'a> {
         while s < plen - 1e-12 {
             guard += 1;
             if guard > 50_000_000 {
-                return Err(SimError::Setup(format!(
-                    "line {line}: move too long to simulate per revolution"
-                )));
+                return Err(SimError::rejected(
+                    line,
+                    "move too long to simulate per revolution (more than 50 000 000 revolutions)",
+                ));
             }
             let rpm = if self.spindle == SpindleDir::Off { 0.0 } else { self.rpm_now };
             let w = self.feed_now;
