@@ -102,6 +102,41 @@ async fn a_client_past_its_active_jobs_is_refused_until_one_ends() -> anyhow::Re
     stack.shutdown().await
 }
 
+/// Twenty submissions at once against a limit of five: never more than five accepted; what is
+/// stored is what was accepted; the client can then fill up to exactly five.
+#[tokio::test]
+async fn a_burst_of_concurrent_submissions_does_not_pass_the_limit() -> anyhow::Result<()> {
+    let script = Script::default();
+    script.hold(true);
+    let stack = TestStack::start_with(StackOptions {
+        machine: MachineBackend::Scripted(script.clone()),
+        max_active_jobs_per_client: 5,
+        ..Default::default()
+    })
+    .await?;
+    let sha = stack.upload("text/x-gcode", program()).await?;
+    let body = gcode_job(&sha);
+    let burst = (0..20).map(|_| {
+        let req = stack.http.post(stack.url("/v1/jobs")).json(&body);
+        async move { anyhow::Ok(req.send().await?.status().as_u16()) }
+    });
+    let codes = futures::future::try_join_all(burst).await?;
+    let accepted = codes.iter().filter(|c| **c == 201).count();
+    assert!(codes.iter().all(|c| *c == 201 || *c == 429), "{codes:?}");
+    assert!((1..=5).contains(&accepted), "{accepted} accepted: {codes:?}");
+    assert_eq!(job_count(&stack).await?, accepted, "stored = accepted");
+    // One at a time, up to the limit exactly.
+    let mut more = 0;
+    while stack.post_job(&body, None).await?.0 == 201 {
+        more += 1;
+        assert!(more <= 5, "past the limit");
+    }
+    assert_eq!(accepted + more, 5);
+    script.hold(false);
+    script.release();
+    stack.shutdown().await
+}
+
 #[tokio::test]
 async fn each_api_token_is_a_client_of_its_own() -> anyhow::Result<()> {
     let script = Script::default();
