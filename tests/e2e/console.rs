@@ -234,7 +234,7 @@ async fn the_console_submits_watches_and_shows_a_job() -> anyhow::Result<()> {
         "the view is drawn: {colours} colours, {:.1} % drawn",
         drawn * 100.0
     );
-    // Orbit with the keyboard: the picture changes.
+    // Pan with the arrow keys: the picture changes.
     let canvas = c.find(Locator::Css("#viewer canvas")).await?;
     canvas.click().await?;
     canvas.send_keys("\u{E012}\u{E012}\u{E012}").await?; // arrow left: pan
