@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
-use depthmill_orchestrator::auth::{self, AuthConfig, AuthMode};
+use depthmill_orchestrator::auth::{AuthConfig, AuthMode};
 use depthmill_tests::{StackOptions, TestStack};
 use fantoccini::{Client, ClientBuilder, Locator};
 use serde_json::{Value, json};
@@ -289,13 +289,7 @@ async fn the_console_shows_the_server_s_error_for_a_bad_file_and_asks_for_a_toke
         ..Default::default()
     })
     .await?;
-    let store = depthmill_orchestrator::store::open(&format!(
-        "sqlite://{}",
-        stack.data_dir.join("jobs.sqlite").display()
-    ))
-    .await?;
-    let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH)?.as_millis() as i64;
-    let token = auth::issue(&*store, "console test", "submit", None, now).await?.token;
+    let token = stack.issue_token("console test", "submit").await?.token;
     let driver = start_driver(&chromedriver).await?;
     // A tablet's width.
     let c = browser(&driver, &chromium, 820, 1180).await?;

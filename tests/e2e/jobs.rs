@@ -140,20 +140,7 @@ async fn the_same_idempotency_key_gives_the_same_job() -> anyhow::Result<()> {
     assert_eq!(list["jobs"].as_array().map(Vec::len), Some(1));
     // gRPC shares the keys.
     let mut client = stack.grpc().await?;
-    let spec = pb::JobSpec {
-        name: "e2e".into(),
-        input: Some(pb::JobInput {
-            kind: pb::InputKind::Gcode as i32,
-            artifact: sha.clone(),
-            ..Default::default()
-        }),
-        execute: Some(depthmill_proto::machine::v1::ExecuteParams {
-            machine: Some("emco-f1".into()),
-            adaptive: depthmill_proto::machine::v1::AdaptiveMode::Off as i32,
-            ..Default::default()
-        }),
-        ..Default::default()
-    };
+    let spec = crate::gcode_spec_pb(&sha);
     let job = client
         .create_job(pb::CreateJobRequest { spec: Some(spec), idempotency_key: "order-17".into() })
         .await?

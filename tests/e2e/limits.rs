@@ -5,32 +5,15 @@
 
 use std::time::Duration;
 
-use depthmill_orchestrator::auth::{self, AuthConfig, AuthMode};
+use depthmill_orchestrator::auth::{AuthConfig, AuthMode};
 use depthmill_proto::orchestrator::v1 as pb;
 use depthmill_tests::scripted::Script;
 use depthmill_tests::{MachineBackend, StackOptions, TestStack};
 use serde_json::Value;
 
-use crate::{gcode_job, program};
+use crate::{gcode_job, gcode_spec_pb, program};
 
 const WAIT: Duration = Duration::from_secs(20);
-
-fn grpc_spec(sha: &str) -> pb::JobSpec {
-    pb::JobSpec {
-        name: "limits".into(),
-        input: Some(pb::JobInput {
-            kind: pb::InputKind::Gcode as i32,
-            artifact: sha.into(),
-            ..Default::default()
-        }),
-        execute: Some(depthmill_proto::machine::v1::ExecuteParams {
-            machine: Some("emco-f1".into()),
-            adaptive: depthmill_proto::machine::v1::AdaptiveMode::Off as i32,
-            ..Default::default()
-        }),
-        ..Default::default()
-    }
-}
 
 async fn job_count(stack: &TestStack) -> anyhow::Result<usize> {
     let list: Value = stack.http.get(stack.url("/v1/jobs?limit=1000")).send().await?.json().await?;
@@ -69,7 +52,7 @@ async fn a_client_past_its_active_jobs_is_refused_until_one_ends() -> anyhow::Re
     // The same client over gRPC (by its address).
     let mut grpc = stack.grpc().await?;
     let refused = grpc
-        .create_job(pb::CreateJobRequest { spec: Some(grpc_spec(&sha)), idempotency_key: String::new() })
+        .create_job(pb::CreateJobRequest { spec: Some(gcode_spec_pb(&sha)), idempotency_key: String::new() })
         .await
         .expect_err("past the limit");
     assert_eq!(refused.code(), tonic::Code::ResourceExhausted, "{refused:?}");
@@ -95,7 +78,7 @@ async fn a_client_past_its_active_jobs_is_refused_until_one_ends() -> anyhow::Re
         assert_eq!(job["status"], "succeeded", "{job}");
     }
     let job = grpc
-        .create_job(pb::CreateJobRequest { spec: Some(grpc_spec(&sha)), idempotency_key: String::new() })
+        .create_job(pb::CreateJobRequest { spec: Some(gcode_spec_pb(&sha)), idempotency_key: String::new() })
         .await?
         .into_inner();
     assert_eq!(stack.wait_for_end(&job.id, WAIT).await?["status"], "succeeded");
@@ -148,14 +131,8 @@ async fn each_api_token_is_a_client_of_its_own() -> anyhow::Result<()> {
         ..Default::default()
     })
     .await?;
-    let store = depthmill_orchestrator::store::open(&format!(
-        "sqlite://{}",
-        stack.data_dir.join("jobs.sqlite").display()
-    ))
-    .await?;
-    let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH)?.as_millis() as i64;
-    let cell_a = auth::issue(&*store, "cell A", "submit", None, now).await?;
-    let cell_b = auth::issue(&*store, "cell B", "submit", None, now).await?;
+    let cell_a = stack.issue_token("cell A", "submit").await?;
+    let cell_b = stack.issue_token("cell B", "submit").await?;
     let http = depthmill_common::tls::http_client().build()?;
     let bearer = |t: &str| format!("Bearer {t}");
     let upload = http

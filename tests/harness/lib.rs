@@ -363,6 +363,22 @@ impl TestStack {
         Ok(OrchestratorServiceClient::connect(self.grpc_url.clone()).await?)
     }
 
+    /// Issues an API token with `scopes` (e.g. `submit`) on the stack's job database, as
+    /// `depthmill token create` does.
+    pub async fn issue_token(
+        &self,
+        name: &str,
+        scopes: &str,
+    ) -> anyhow::Result<depthmill_orchestrator::auth::IssuedToken> {
+        let url = match &self.config.database_url {
+            Some(url) => url.clone(),
+            None => format!("sqlite://{}", self.data_dir.join("jobs.sqlite").display()),
+        };
+        let store = depthmill_orchestrator::store::open(&url).await?;
+        let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH)?.as_millis() as i64;
+        Ok(depthmill_orchestrator::auth::issue(&*store, name, scopes, None, now).await?)
+    }
+
     /// Uploads bytes; returns the sha256.
     pub async fn upload(&self, media_type: &str, bytes: Vec<u8>) -> anyhow::Result<String> {
         let resp = self
