@@ -241,7 +241,7 @@ impl App {
         let _in_flight = match client {
             Some(client) if limit > 0 => {
                 let (guard, others) = self.in_flight.enter(client);
-                let active = self.store.active_jobs_of(client).await? + others;
+                let active = self.store.active_jobs_of(client, u64::from(limit)).await? + others;
                 // A repeat of an accepted submission (same idempotency key) is answered as before.
                 let repeat = match &idempotency_key {
                     Some(key) if active >= u64::from(limit) => self.store.key_exists(key).await?,

@@ -172,8 +172,9 @@ pub trait JobStore: Send + Sync + 'static {
     /// Inserts a queued job, or returns the job an earlier request with the same idempotency key made.
     async fn create(&self, new: NewJob) -> Result<Created, StoreError>;
     async fn get(&self, id: &str) -> Result<Option<Job>, StoreError>;
-    /// Jobs of `client` that are queued or running.
-    async fn active_jobs_of(&self, client: &str) -> Result<u64, StoreError>;
+    /// Jobs of `client` that are queued or running, counted up to `at_most` (the limit being
+    /// checked: the count costs at most that many index entries, whatever the queue holds).
+    async fn active_jobs_of(&self, client: &str, at_most: u64) -> Result<u64, StoreError>;
     /// Whether a job was submitted with this idempotency key.
     async fn key_exists(&self, key: &str) -> Result<bool, StoreError>;
     /// Jobs newest first, optionally only those with `status`, after `cursor`.

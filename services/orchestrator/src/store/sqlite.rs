@@ -174,11 +174,12 @@ impl JobStore for SqliteStore {
         self.get_from(&self.reader, id).await
     }
 
-    async fn active_jobs_of(&self, client: &str) -> Result<u64, StoreError> {
+    async fn active_jobs_of(&self, client: &str, at_most: u64) -> Result<u64, StoreError> {
         let n: i64 = sqlx::query_scalar(
-            "SELECT count(*) FROM jobs WHERE client = ? AND status IN ('queued', 'running')",
+            "SELECT count(*) FROM (SELECT 1 FROM jobs WHERE client = ? AND status IN ('queued', 'running') LIMIT ?)",
         )
         .bind(client)
+        .bind(i64::try_from(at_most).unwrap_or(i64::MAX))
         .fetch_one(&self.reader)
         .await?;
         Ok(u64::try_from(n).unwrap_or(0))

@@ -200,16 +200,18 @@ async fn active_jobs_are_counted_per_client(db: Db) {
     s.create(NewJob { idempotency_key: Some("key-a".into()), ..of("a3", Some("token:tok_a")) })
         .await
         .expect("create");
-    assert_eq!(s.active_jobs_of("token:tok_a").await.expect("count"), 4);
-    assert_eq!(s.active_jobs_of("addr:10.0.0.2").await.expect("count"), 1);
-    assert_eq!(s.active_jobs_of("token:tok_other").await.expect("count"), 0);
+    assert_eq!(s.active_jobs_of("token:tok_a", 100).await.expect("count"), 4);
+    assert_eq!(s.active_jobs_of("addr:10.0.0.2", 100).await.expect("count"), 1);
+    assert_eq!(s.active_jobs_of("token:tok_other", 100).await.expect("count"), 0);
     // Running still counts; cancelled (and any other end) does not.
     let claimed = s.claim("w", 10, 1000).await.expect("claim").expect("a job");
     assert_eq!(claimed.id, "a0", "the oldest job first");
-    assert_eq!(s.active_jobs_of("token:tok_a").await.expect("count"), 4);
+    assert_eq!(s.active_jobs_of("token:tok_a", 100).await.expect("count"), 4);
     s.request_cancel("a1", 11).await.expect("cancel").expect("job");
     s.end("a0", "w", JobStatus::Succeeded, None, 12).await.expect("end");
-    assert_eq!(s.active_jobs_of("token:tok_a").await.expect("count"), 2);
+    assert_eq!(s.active_jobs_of("token:tok_a", 100).await.expect("count"), 2);
+    // Counted up to the limit asked about.
+    assert_eq!(s.active_jobs_of("token:tok_a", 1).await.expect("count"), 1);
     assert!(s.key_exists("key-a").await.expect("key"));
     assert!(!s.key_exists("key-b").await.expect("key"));
 }
