@@ -5,7 +5,11 @@
 //! move counts (rapids too: a rapid through material shows up as a gouge). A straight move at
 //! constant Z is applied exactly: each cell whose centre is within the tool radius of the segment
 //! drops to `z + height_at(distance to the segment)` (the tool's height grows with distance, so the
-//! nearest point of the segment is the deepest). Other moves are sampled at no more than half a
+//! nearest point of the segment is the deepest). A ball end mill's straight moves are exact too: one
+//! on its own as a capsule (closed form), consecutive ones whose XY lie on one line (a raster pass)
+//! as a [`Run`], cut in each cell's plane parallel to the pass where the swept solid's section is a
+//! 2-D offset of the centre polyline, so a cell evaluates the one or two pieces of that offset over
+//! it instead of every short move within the tool's reach. Other moves are sampled at no more than half a
 //! pixel, and each sample lowers the cells within its radius to `tip_z + height_at(distance)`;
 //! between samples the surface can be higher than the true envelope by at most the tool's height
 //! change over a quarter pixel, so leftover is slightly over-reported there. Rows are split into bands processed in parallel,
@@ -120,26 +124,236 @@ enum Sweep {
     /// A ball end mill on a straight sloped move from tip `a` to tip `b`: the swept solid is a
     /// capsule, and each cell takes the lowest point of the capsule above it (closed form).
     BallLine { a: Point3<f64>, b: Point3<f64>, r: f64 },
+    /// A ball end mill on consecutive straight moves whose XY lie on one line (a raster pass):
+    /// `runs[i]`, exact through its section in each cell's plane.
+    Run(usize),
 }
 
-/// The moves of `op` as sweeps: straight moves at constant Z whole, the rest sampled `step` apart.
-fn sweeps(op: &SweptOp<'_>, step: f64) -> Vec<Sweep> {
+/// Consecutive straight moves of a ball end mill whose XY lie on one line (a raster pass, the
+/// moves in it sloped or level, forwards or back).
+///
+/// Exact by sections: the plane parallel to the pass at distance `v` from it cuts the ball of radius
+/// `r` around each centre point in a disc of radius `r' = sqrt(r² - v²)`, so the swept solid's
+/// section is the union of 2-D stadiums of radius `r'` around the centre polyline (tip + r) in
+/// (u, z), `u` the coordinate along the pass. The lowest point of such a union above `u` lies on its
+/// boundary, and every boundary point of a polyline grown by a disc is on its raw offset: a
+/// segment's lower offset line where the foot falls inside the segment, or a vertex's circle in the
+/// directions of its normal cone (those that make an obtuse angle with both neighbouring edges).
+/// The pieces are kept with their `u` ranges for any `r' <= r` in buckets of one cell along `u`, so
+/// a cell evaluates the few pieces over it instead of every move within the tool's reach.
+struct Run {
+    /// A point of the line and its unit direction (XY).
+    o: [f64; 2],
+    d: [f64; 2],
+    r: f64,
+    /// XY bounds of the tip positions, and their lowest Z.
+    bbox: [f64; 4],
+    z_min: f64,
+    /// Buckets along `u`: bucket `k` covers `[u0 + k·bw, u0 + (k+1)·bw)`; its pieces are
+    /// `items[starts[k]..starts[k+1]]`.
+    u0: f64,
+    bw: f64,
+    starts: Vec<u32>,
+    items: Vec<u32>,
+    pieces: Vec<Piece>,
+}
+
+/// One piece of a [`Run`]'s raw lower offset, for a section radius `r'` (`zc`: centre heights).
+#[derive(Debug, Clone, Copy)]
+enum Piece {
+    /// The lower offset of the centre segment from `(ua, za)` to `(ub, zb)` (`ua < ub`): over `u`
+    /// in `[ua + r'·sin, ub + r'·sin]` at `za - r'·cos + slope·(u - ua - r'·sin)`.
+    Line { ua: f64, ub: f64, za: f64, sin: f64, cos: f64, slope: f64 },
+    /// The lower circle about the centre vertex `(uk, zk)` in the directions whose `u` component
+    /// (sine of the angle from straight down) lies in `[slo, shi]`.
+    Arc { uk: f64, zk: f64, slo: f64, shi: f64 },
+}
+
+/// Slack on a piece's range (mm, or sine): a cell on the boundary between two pieces takes both.
+const PIECE_EPS: f64 = 1e-9;
+
+impl Run {
+    /// The run through the tip positions `tips` (at least two, all on the XY line `o + t·d`).
+    fn new(tips: &[Point3<f64>], o: [f64; 2], d: [f64; 2], r: f64, bw: f64) -> Run {
+        let v: Vec<(f64, f64)> =
+            tips.iter().map(|t| ((t.x - o[0]) * d[0] + (t.y - o[1]) * d[1], t.z + r)).collect();
+        let mut pieces = Vec::with_capacity(2 * v.len());
+        for w in v.windows(2) {
+            let (a, b) = if w[0].0 <= w[1].0 { (w[0], w[1]) } else { (w[1], w[0]) };
+            let (du, dz) = (b.0 - a.0, b.1 - a.1);
+            if du <= 0.0 {
+                continue; // vertical: its lower end's circle covers it
+            }
+            let len = du.hypot(dz);
+            pieces.push(Piece::Line {
+                ua: a.0,
+                ub: b.0,
+                za: a.1,
+                sin: dz / len,
+                cos: du / len,
+                slope: dz / du,
+            });
+        }
+        for (k, &(uk, zk)) in v.iter().enumerate() {
+            // Normal cone of the vertex, as the sine range of directions (sin φ, -cos φ).
+            let (mut slo, mut shi) = (-1.0f64, 1.0f64);
+            for n in [k.checked_sub(1), Some(k + 1)].into_iter().flatten() {
+                let Some(&(un, zn)) = v.get(n) else { continue };
+                let (eu, ez) = (un - uk, zn - zk);
+                let len = eu.hypot(ez);
+                if len == 0.0 {
+                    continue;
+                }
+                if eu >= 0.0 {
+                    shi = shi.min(ez / len);
+                } else {
+                    slo = slo.max(-ez / len);
+                }
+            }
+            if slo <= shi {
+                pieces.push(Piece::Arc { uk, zk, slo, shi });
+            }
+        }
+        // Each piece's u range over every r' in [0, r].
+        let range = |p: &Piece| match *p {
+            Piece::Line { ua, ub, sin, .. } => (ua + (r * sin).min(0.0), ub + (r * sin).max(0.0)),
+            Piece::Arc { uk, slo, shi, .. } => (uk + (r * slo).min(0.0), uk + (r * shi).max(0.0)),
+        };
+        let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+        for p in &pieces {
+            let (a, b) = range(p);
+            lo = lo.min(a);
+            hi = hi.max(b);
+        }
+        let u0 = lo - 2.0 * PIECE_EPS;
+        let nb = if hi >= lo { ((hi + 2.0 * PIECE_EPS - u0) / bw).floor() as usize + 1 } else { 0 };
+        let bucket = |u: f64| (((u - u0) / bw).floor().max(0.0) as usize).min(nb.saturating_sub(1));
+        let mut counts = vec![0u32; nb + 1];
+        for p in &pieces {
+            let (a, b) = range(p);
+            for k in bucket(a - PIECE_EPS)..=bucket(b + PIECE_EPS) {
+                counts[k + 1] += 1;
+            }
+        }
+        for k in 0..nb {
+            counts[k + 1] += counts[k];
+        }
+        let mut fill = counts.clone();
+        let mut items = vec![0u32; counts[nb] as usize];
+        for (i, p) in pieces.iter().enumerate() {
+            let (a, b) = range(p);
+            for k in bucket(a - PIECE_EPS)..=bucket(b + PIECE_EPS) {
+                items[fill[k] as usize] = i as u32;
+                fill[k] += 1;
+            }
+        }
+        let mut bbox = [f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY];
+        for t in tips {
+            bbox = [bbox[0].min(t.x), bbox[1].max(t.x), bbox[2].min(t.y), bbox[3].max(t.y)];
+        }
+        let z_min = tips.iter().map(|t| t.z).fold(f64::INFINITY, f64::min);
+        Run { o, d, r, bbox, z_min, u0, bw, starts: counts, items, pieces }
+    }
+
+    /// The columns of the row at `cy` the swept solid can be above (`|v| <= r` and `u` within the
+    /// pieces' range), with a column of margin; `None` when there are none.
+    fn columns(&self, cy: f64, g: &Grid) -> Option<(usize, usize)> {
+        // Along the row, x = o.x + t: u = t·d.x + ry·d.y, v = ry·d.x - t·d.y.
+        let ry = cy - self.o[1];
+        let (mut lo, mut hi) = (f64::NEG_INFINITY, f64::INFINITY);
+        let u_hi = self.u0 + self.bw * (self.starts.len() - 1) as f64;
+        let mut clip = |k: f64, c: f64, a: f64, b: f64| -> bool {
+            // a <= k·t + c <= b
+            if k.abs() < 1e-12 {
+                return c >= a && c <= b;
+            }
+            let (t0, t1) = ((a - c) / k, (b - c) / k);
+            lo = lo.max(t0.min(t1));
+            hi = hi.min(t0.max(t1));
+            true
+        };
+        if !clip(-self.d[1], ry * self.d[0], -self.r, self.r)
+            || !clip(self.d[0], ry * self.d[1], self.u0, u_hi)
+            || lo > hi
+        {
+            return None;
+        }
+        let col = |x: f64| ((x - g.x0) / g.p - 0.5).floor();
+        let c_lo = col(self.o[0] + lo) - 1.0;
+        let c_hi = col(self.o[0] + hi) + 2.0;
+        if c_hi < 0.0 || c_lo > g.w as f64 - 1.0 {
+            return None;
+        }
+        Some((c_lo.max(0.0) as usize, c_hi.min(g.w as f64 - 1.0) as usize))
+    }
+
+    /// Lowest point of the swept solid above `c` (XY), if the solid is above it.
+    #[inline]
+    fn bottom(&self, c: [f64; 2]) -> Option<f64> {
+        let (rx, ry) = (c[0] - self.o[0], c[1] - self.o[1]);
+        let u = rx * self.d[0] + ry * self.d[1];
+        let v = ry * self.d[0] - rx * self.d[1];
+        let rp2 = self.r * self.r - v * v;
+        if rp2 < 0.0 {
+            return None;
+        }
+        let rp = rp2.sqrt();
+        let k = ((u - self.u0) / self.bw).floor();
+        if !(k >= 0.0 && (k as usize) + 1 < self.starts.len()) {
+            return None;
+        }
+        let k = k as usize;
+        let mut best = f64::INFINITY;
+        for &i in &self.items[self.starts[k] as usize..self.starts[k + 1] as usize] {
+            match self.pieces[i as usize] {
+                Piece::Line { ua, ub, za, sin, cos, slope } => {
+                    let s = rp * sin;
+                    if u >= ua + s - PIECE_EPS && u <= ub + s + PIECE_EPS {
+                        let z = za - rp * cos + slope * (u - ua - s);
+                        best = best.min(z);
+                    }
+                }
+                Piece::Arc { uk, zk, slo, shi } => {
+                    let du = u - uk;
+                    if du >= rp * slo - PIECE_EPS && du <= rp * shi + PIECE_EPS {
+                        best = best.min(zk - (rp2 - du * du).max(0.0).sqrt());
+                    }
+                }
+            }
+        }
+        best.is_finite().then_some(best)
+    }
+}
+
+/// The moves of `op` as sweeps: straight moves at constant Z whole, a ball's straight moves along
+/// one XY line as [`Run`]s (added to `runs`, `bucket_mm` apart along the pass), the rest sampled
+/// `step` apart.
+fn sweeps(op: &SweptOp<'_>, step: f64, bucket_mm: f64, runs: &mut Vec<Run>) -> Vec<Sweep> {
     let ball = match op.tool.profile.spec() {
         Some(depthmill_geometry::ToolSpec::Ball { diameter_mm }) => Some(diameter_mm / 2.0),
         _ => None,
     };
     let mut out = vec![Sweep::Point(op.start)];
     let mut samples = Vec::new();
+    let mut run = RunBuilder::default();
     let mut at = op.start;
     for seg in op.segments {
-        match *seg {
-            Segment::Rapid(to) | Segment::Linear(to) | Segment::Plunge(to) if (to.z - at.z).abs() < 1e-12 => {
+        match (*seg, ball) {
+            (Segment::Rapid(to) | Segment::Linear(to) | Segment::Plunge(to), Some(r)) => {
+                if !run.extend(at, to) {
+                    run.flush(r, bucket_mm, &mut out, runs);
+                    run.extend(at, to);
+                }
+            }
+            (Segment::Rapid(to) | Segment::Linear(to) | Segment::Plunge(to), None)
+                if (to.z - at.z).abs() < 1e-12 =>
+            {
                 out.push(Sweep::Level { a: [at.x, at.y], b: [to.x, to.y], z: at.z });
             }
-            Segment::Rapid(to) | Segment::Linear(to) | Segment::Plunge(to) if ball.is_some() => {
-                out.push(Sweep::BallLine { a: at, b: to, r: ball.unwrap_or_default() });
-            }
             _ => {
+                if let Some(r) = ball {
+                    run.flush(r, bucket_mm, &mut out, runs);
+                }
                 samples.clear();
                 sample_segment(at, seg, step, &mut samples);
                 out.extend(samples.iter().map(|s| Sweep::Point(*s)));
@@ -147,7 +361,72 @@ fn sweeps(op: &SweptOp<'_>, step: f64) -> Vec<Sweep> {
         }
         at = seg.end();
     }
+    if let Some(r) = ball {
+        run.flush(r, bucket_mm, &mut out, runs);
+    }
     out
+}
+
+/// Largest distance (mm) of a tip position from the XY line of the [`Run`] it joins.
+const RUN_LINE_EPS: f64 = 1e-9;
+
+/// Consecutive straight moves of a ball collected while their XY stay on one line.
+#[derive(Default)]
+struct RunBuilder {
+    tips: Vec<Point3<f64>>,
+    /// The line (point, unit direction) once two tips differ in XY.
+    line: Option<([f64; 2], [f64; 2])>,
+}
+
+impl RunBuilder {
+    /// Appends the move `from -> to` when it continues the run on its line; false otherwise.
+    fn extend(&mut self, from: Point3<f64>, to: Point3<f64>) -> bool {
+        if self.tips.is_empty() {
+            self.tips.push(from);
+        } else if self.tips.last() != Some(&from) {
+            return false;
+        }
+        match self.line {
+            Some((o, d)) => {
+                if ((to.y - o[1]) * d[0] - (to.x - o[0]) * d[1]).abs() > RUN_LINE_EPS {
+                    return false;
+                }
+            }
+            None => {
+                let o = [self.tips[0].x, self.tips[0].y];
+                let (dx, dy) = (to.x - o[0], to.y - o[1]);
+                let len = dx.hypot(dy);
+                if len > RUN_LINE_EPS {
+                    self.line = Some((o, [dx / len, dy / len]));
+                }
+            }
+        }
+        self.tips.push(to);
+        true
+    }
+
+    /// Emits what was collected: a [`Run`] when there are at least two moves along a line, else
+    /// each move on its own.
+    fn flush(&mut self, r: f64, bucket_mm: f64, out: &mut Vec<Sweep>, runs: &mut Vec<Run>) {
+        match self.line {
+            Some((o, d)) if self.tips.len() > 2 => {
+                runs.push(Run::new(&self.tips, o, d, r, bucket_mm));
+                out.push(Sweep::Run(runs.len() - 1));
+            }
+            _ => {
+                for w in self.tips.windows(2) {
+                    let (a, b) = (w[0], w[1]);
+                    out.push(if (b.z - a.z).abs() < 1e-12 {
+                        Sweep::Level { a: [a.x, a.y], b: [b.x, b.y], z: a.z }
+                    } else {
+                        Sweep::BallLine { a, b, r }
+                    });
+                }
+            }
+        }
+        self.tips.clear();
+        self.line = None;
+    }
 }
 
 struct Grid {
@@ -207,12 +486,26 @@ fn dist2_to_segment(c: [f64; 2], a: [f64; 2], b: [f64; 2]) -> f64 {
 }
 
 /// Lowers the cells of one band (rows `row0 .. row0 + rows`) under one sweep.
-fn apply(sw: &Sweep, shape: &Shape<'_>, r2: f64, g: &Grid, band: &mut [f32], row0: usize, rows: usize) {
+#[allow(clippy::too_many_arguments)]
+fn apply(
+    sw: &Sweep,
+    runs: &[Run],
+    shape: &Shape<'_>,
+    r2: f64,
+    g: &Grid,
+    band: &mut [f32],
+    row0: usize,
+    rows: usize,
+) {
     let radius = r2.sqrt();
     let (xlo, xhi, ylo, yhi) = match *sw {
         Sweep::Point(s) => (s.x, s.x, s.y, s.y),
         Sweep::Level { a, b, .. } => (a[0].min(b[0]), a[0].max(b[0]), a[1].min(b[1]), a[1].max(b[1])),
         Sweep::BallLine { a, b, .. } => (a.x.min(b.x), a.x.max(b.x), a.y.min(b.y), a.y.max(b.y)),
+        Sweep::Run(i) => {
+            let b = runs[i].bbox;
+            (b[0], b[1], b[2], b[3])
+        }
     };
     let row_lo = (((ylo - radius - g.y0) / g.p - 0.5).floor() as i64).max(row0 as i64);
     let row_hi = (((yhi + radius - g.y0) / g.p - 0.5).ceil() as i64).min((row0 + rows) as i64 - 1);
@@ -248,6 +541,19 @@ fn apply(sw: &Sweep, shape: &Shape<'_>, r2: f64, g: &Grid, band: &mut [f32], row
                     if let Some(zz) = capsule_bottom([cx, cy], a, b, r) {
                         let zz = zz as f32;
                         let cell = &mut line[col as usize];
+                        if zz < *cell {
+                            *cell = zz;
+                        }
+                    }
+                }
+            }
+            Sweep::Run(i) => {
+                let run = &runs[i];
+                let Some((col_lo, col_hi)) = run.columns(cy, g) else { continue };
+                for (col, cell) in line[col_lo..=col_hi].iter_mut().enumerate() {
+                    let cx = g.x0 + ((col + col_lo) as f64 + 0.5) * g.p;
+                    if let Some(zz) = run.bottom([cx, cy]) {
+                        let zz = zz as f32;
                         if zz < *cell {
                             *cell = zz;
                         }
@@ -290,7 +596,8 @@ pub fn simulate(
     for op in ops {
         let radius = op.tool.radius_mm();
         let r2 = radius * radius;
-        let sweeps = sweeps(op, p * SAMPLE_STEP_PX);
+        let mut runs = Vec::new();
+        let sweeps = sweeps(op, p * SAMPLE_STEP_PX, p, &mut runs);
         samples_total += sweeps.len() as u64;
         // Bucket sweeps by the row bands their footprint reaches.
         let bands = h.div_ceil(BAND_ROWS);
@@ -300,6 +607,7 @@ pub fn simulate(
                 Sweep::Point(s) => (s.y, s.y, s.z),
                 Sweep::Level { a, b, z } => (a[1].min(b[1]), a[1].max(b[1]), z),
                 Sweep::BallLine { a, b, .. } => (a.y.min(b.y), a.y.max(b.y), a.z.min(b.z)),
+                Sweep::Run(i) => (runs[i].bbox[2], runs[i].bbox[3], runs[i].z_min),
             };
             // The tool's lowest point is its tip: a sweep at or above the stock top cuts nothing.
             if z >= stock_top_mm {
@@ -321,7 +629,7 @@ pub fn simulate(
                 let band_row0 = b * BAND_ROWS;
                 let band_rows = band.len() / w;
                 for sw in items {
-                    apply(sw, &shape, r2, &grid, band, band_row0, band_rows);
+                    apply(sw, &runs, &shape, r2, &grid, band, band_row0, band_rows);
                 }
             },
         );
@@ -382,8 +690,9 @@ mod tests {
         HeightMap::filled(meta, z).expect("map")
     }
 
-    /// Brute force, every sweep against every cell: level moves by the exact distance to the
-    /// segment, the others by samples.
+    /// Brute force, every move against every cell, without the sweeps: a ball's straight moves by
+    /// the closed-form capsule of each move on its own, other tools' level moves by the exact
+    /// distance to the segment, everything else by samples half a pixel apart.
     fn reference(
         target: &HeightMap,
         stock: f64,
@@ -391,35 +700,71 @@ mod tests {
         start: Point3<f64>,
         segs: &[Segment],
     ) -> Vec<f32> {
-        let op = SweptOp { tool, start, segments: segs };
-        let all = sweeps(&op, target.pixel_mm() * SAMPLE_STEP_PX);
+        let ball = match tool.profile.spec() {
+            Some(ToolSpec::Ball { diameter_mm }) => Some(diameter_mm / 2.0),
+            _ => None,
+        };
         let mut out = vec![stock as f32; target.data().len()];
+        let mut lower = |i: usize, z: f64| out[i] = out[i].min(z as f32);
+        let cells: Vec<(usize, f64, f64)> = (0..target.height())
+            .flat_map(|r| (0..target.width()).map(move |c| (r, c)))
+            .map(|(r, c)| {
+                let (x, y) = target.cell_center(c, r);
+                ((r * target.width() + c) as usize, x, y)
+            })
+            .collect();
+        let point = |q: Point3<f64>, lower: &mut dyn FnMut(usize, f64)| {
+            for &(i, x, y) in &cells {
+                if let Some(hh) = tool.profile.height_at(((x - q.x).powi(2) + (y - q.y).powi(2)).sqrt()) {
+                    lower(i, q.z + hh);
+                }
+            }
+        };
+        point(start, &mut lower);
+        let mut at = start;
+        for seg in segs {
+            match (*seg, ball) {
+                (Segment::Rapid(to) | Segment::Linear(to) | Segment::Plunge(to), Some(r)) => {
+                    for &(i, x, y) in &cells {
+                        if let Some(z) = capsule_bottom([x, y], at, to, r) {
+                            lower(i, z);
+                        }
+                    }
+                }
+                (Segment::Rapid(to) | Segment::Linear(to) | Segment::Plunge(to), None)
+                    if (to.z - at.z).abs() < 1e-12 =>
+                {
+                    for &(i, x, y) in &cells {
+                        let d = dist2_to_segment([x, y], [at.x, at.y], [to.x, to.y]).sqrt();
+                        if let Some(hh) = tool.profile.height_at(d) {
+                            lower(i, at.z + hh);
+                        }
+                    }
+                }
+                _ => {
+                    let mut samples = Vec::new();
+                    sample_segment(at, seg, target.pixel_mm() * SAMPLE_STEP_PX, &mut samples);
+                    for q in samples {
+                        point(q, &mut lower);
+                    }
+                }
+            }
+            at = seg.end();
+        }
+        out
+    }
+
+    /// Dense samples of a ball's straight move: the lowest tool point above each cell.
+    fn dense_ball_line(target: &HeightMap, tool: &Tool, a: Point3<f64>, b: Point3<f64>) -> Vec<f64> {
+        let mut out = vec![f64::INFINITY; target.data().len()];
         for r in 0..target.height() {
             for c in 0..target.width() {
                 let (x, y) = target.cell_center(c, r);
-                for sw in &all {
-                    let (d, z) = match *sw {
-                        Sweep::Point(p) => (((x - p.x).powi(2) + (y - p.y).powi(2)).sqrt(), p.z),
-                        Sweep::Level { a, b, z } => (dist2_to_segment([x, y], a, b).sqrt(), z),
-                        Sweep::BallLine { a, b, .. } => {
-                            // Dense samples: the exact capsule must be at least as low, and close.
-                            let mut lowest = f64::INFINITY;
-                            for k in 0..=400 {
-                                let q = a + (b - a) * (f64::from(k) / 400.0);
-                                if let Some(hh) =
-                                    tool.profile.height_at(((x - q.x).powi(2) + (y - q.y).powi(2)).sqrt())
-                                {
-                                    lowest = lowest.min(q.z + hh);
-                                }
-                            }
-                            let i = (r * target.width() + c) as usize;
-                            out[i] = out[i].min(lowest as f32);
-                            continue;
-                        }
-                    };
-                    if let Some(hh) = tool.profile.height_at(d) {
+                for k in 0..=400 {
+                    let q = a + (b - a) * (f64::from(k) / 400.0);
+                    if let Some(hh) = tool.profile.height_at(((x - q.x).powi(2) + (y - q.y).powi(2)).sqrt()) {
                         let i = (r * target.width() + c) as usize;
-                        out[i] = out[i].min((z + hh) as f32);
+                        out[i] = out[i].min(q.z + hh);
                     }
                 }
             }
@@ -464,11 +809,84 @@ mod tests {
             Segment::Linear(Point3::new(1.0, 3.5, 1.0)),
         ];
         let rep = simulate(&target, 3.0, &[SweptOp { tool: &tool, start, segments: &segs }]).expect("sim");
-        let dense = reference(&target, 3.0, &tool, start, &segs);
+        let mut dense = vec![f64::INFINITY; target.data().len()];
+        let mut at = start;
+        for s in &segs {
+            for (d, x) in dense.iter_mut().zip(dense_ball_line(&target, &tool, at, s.end())) {
+                *d = d.min(x);
+            }
+            at = s.end();
+        }
         for (exact, sampled) in rep.final_surface.data().iter().zip(&dense) {
+            let sampled = sampled.min(3.0) as f32;
             // The exact envelope is never above dense samples of it, and barely below them.
             assert!(*exact <= sampled + 1e-5 && sampled - exact <= 0.01, "{exact} vs {sampled}");
         }
+        // The closed-form capsule of one move against the same samples.
+        let (a, b) = (start, segs[0].end());
+        let dense = dense_ball_line(&target, &tool, a, b);
+        for r in 0..target.height() {
+            for c in 0..target.width() {
+                let (x, y) = target.cell_center(c, r);
+                let i = (r * target.width() + c) as usize;
+                match capsule_bottom([x, y], a, b, 1.0) {
+                    Some(z) => assert!(z <= dense[i] + 1e-9 && dense[i] - z <= 0.01, "{z} vs {}", dense[i]),
+                    None => assert!(dense[i].is_infinite()),
+                }
+            }
+        }
+    }
+
+    /// Random raster passes of a ball (a line at any angle, moves up, down, level, backwards and
+    /// straight down along it, several passes side by side) against every move's own capsule.
+    #[test]
+    fn raster_runs_match_each_moves_capsule() {
+        use proptest::prelude::*;
+        use proptest::test_runner::{Config, TestRunner};
+        let mut runner = TestRunner::new(Config { cases: 64, ..Config::default() });
+        let strategy = (
+            0.0f64..std::f64::consts::TAU,
+            prop::sample::select(vec!["ball-1", "ball-2", "ball-3", "ball-6"]),
+            prop::collection::vec((-0.8f64..1.6, -1.5f64..1.5, 0u8..10), 2..40),
+            1usize..4,
+            0.1f64..1.5,
+        );
+        runner
+            .run(&strategy, |(angle, name, moves, passes, gap)| {
+                let target = flat_target(70, 60, 0.0);
+                let tool = Tool::from_spec(&name.parse::<ToolSpec>().expect("spec")).expect("tool");
+                let (d, n) = ([angle.cos(), angle.sin()], [-angle.sin(), angle.cos()]);
+                let mut segs = Vec::new();
+                let start = Point3::new(3.5, 3.0, 4.0);
+                for k in 0..passes {
+                    let o = [3.5 + n[0] * gap * k as f64, 3.0 + n[1] * gap * k as f64];
+                    let (mut t, mut z) = (0.0, 1.0);
+                    segs.push(Segment::Rapid(Point3::new(o[0], o[1], 4.0)));
+                    segs.push(Segment::Plunge(Point3::new(o[0], o[1], z)));
+                    for &(dt, dz, kind) in &moves {
+                        match kind {
+                            0 => z += dz.abs(), // straight down or up only
+                            1 | 2 => t += dt,   // level
+                            _ => {
+                                t += dt;
+                                z += dz * 0.5;
+                            }
+                        }
+                        z = z.clamp(-1.0, 3.5);
+                        let p = Point3::new(o[0] + d[0] * t, o[1] + d[1] * t, z);
+                        segs.push(if kind == 0 { Segment::Plunge(p) } else { Segment::Linear(p) });
+                    }
+                    segs.push(Segment::Rapid(Point3::new(o[0] + d[0] * t, o[1] + d[1] * t, 4.0)));
+                }
+                let rep =
+                    simulate(&target, 3.0, &[SweptOp { tool: &tool, start, segments: &segs }]).expect("sim");
+                let expect = reference(&target, 3.0, &tool, start, &segs);
+                for (i, (a, b)) in rep.final_surface.data().iter().zip(&expect).enumerate() {
+                    prop_assert!((a - b).abs() <= 2e-5, "cell {i}: {a} vs {b}");
+                }
+                Ok(())
+            })
+            .expect("runs equal the capsules");
     }
 
     #[test]
