@@ -298,7 +298,8 @@ impl Run {
             return None;
         }
         let rp = rp2.sqrt();
-        let k = ((u - self.u0) / self.bw).floor();
+        // Truncation is the floor here (k >= 0), without a libm call per cell.
+        let k = (u - self.u0) / self.bw;
         if !(k >= 0.0 && (k as usize) + 1 < self.starts.len()) {
             return None;
         }
@@ -349,6 +350,12 @@ fn sweeps(op: &SweptOp<'_>, step: f64, bucket_mm: f64, runs: &mut Vec<Run>) -> V
                 if (to.z - at.z).abs() < 1e-12 =>
             {
                 out.push(Sweep::Level { a: [at.x, at.y], b: [to.x, to.y], z: at.z });
+            }
+            // Straight up or down: the tool at the lower end is below every other position.
+            (Segment::Rapid(to) | Segment::Linear(to) | Segment::Plunge(to), None)
+                if to.x == at.x && to.y == at.y =>
+            {
+                out.push(Sweep::Point(if to.z < at.z { to } else { at }));
             }
             _ => {
                 if let Some(r) = ball {
@@ -561,21 +568,79 @@ fn apply(
                 }
             }
             Sweep::Level { a, b, z } => {
-                let col_lo = (((xlo - radius - g.x0) / g.p - 0.5).floor() as i64).max(0);
-                let col_hi = (((xhi + radius - g.x0) / g.p - 0.5).ceil() as i64).min(g.w as i64 - 1);
-                for col in col_lo..=col_hi {
+                // Only the row's chord of the stadium; a flat end's cells strictly inside it all
+                // drop to `z`, the chord's end cells (and other shapes' cells) are computed.
+                let Some((xa, xb)) = stadium_chord(cy, a, b, radius) else { continue };
+                let last = g.w as i64 - 1;
+                let c0 = (((xa - g.x0) / g.p - 0.5).ceil() as i64 - 1).max(0);
+                let c1 = (((xb - g.x0) / g.p - 0.5).floor() as i64 + 1).min(last);
+                if c0 > c1 {
+                    continue;
+                }
+                let (c0, c1) = (c0 as usize, c1 as usize);
+                let exact = |col: usize, cell: &mut f32| {
                     let cx = g.x0 + (col as f64 + 0.5) * g.p;
                     if let Some(hgt) = shape.height_at_d2(dist2_to_segment([cx, cy], a, b)) {
                         let zz = (z + hgt) as f32;
-                        let cell = &mut line[col as usize];
                         if zz < *cell {
                             *cell = zz;
                         }
+                    }
+                };
+                if matches!(shape, Shape::Flat { .. }) && c1 >= c0 + 4 {
+                    let zz = z as f32;
+                    for col in [c0, c0 + 1, c1 - 1, c1] {
+                        exact(col, &mut line[col]);
+                    }
+                    for cell in &mut line[c0 + 2..c1 - 1] {
+                        *cell = cell.min(zz);
+                    }
+                } else {
+                    for (col, cell) in line[c0..=c1].iter_mut().enumerate() {
+                        exact(col + c0, cell);
                     }
                 }
             }
         }
     }
+}
+
+/// The x range of the row at `cy` within `r` of the segment `a`-`b` (XY): the union of the end
+/// discs' chords and the band along the segment (the stadium is convex, so one interval).
+fn stadium_chord(cy: f64, a: [f64; 2], b: [f64; 2], r: f64) -> Option<(f64, f64)> {
+    let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+    for q in [a, b] {
+        let h2 = r * r - (cy - q[1]) * (cy - q[1]);
+        if h2 >= 0.0 {
+            let h = h2.sqrt();
+            lo = lo.min(q[0] - h);
+            hi = hi.max(q[0] + h);
+        }
+    }
+    let (vx, vy) = (b[0] - a[0], b[1] - a[1]);
+    let len = vx.hypot(vy);
+    if len > 0.0 {
+        let (dx, dy) = (vx / len, vy / len);
+        let ry = cy - a[1];
+        // With s = x - a.x: along the segment 0 <= s·dx + ry·dy <= len, across it
+        // -r <= s·dy - ry·dx <= r.
+        let (mut s0, mut s1) = (f64::NEG_INFINITY, f64::INFINITY);
+        let mut ok = true;
+        for (k, c, from, to) in [(dx, ry * dy, 0.0, len), (dy, -ry * dx, -r, r)] {
+            if k.abs() < 1e-15 {
+                ok &= c >= from && c <= to;
+            } else {
+                let (t0, t1) = ((from - c) / k, (to - c) / k);
+                s0 = s0.max(t0.min(t1));
+                s1 = s1.min(t0.max(t1));
+            }
+        }
+        if ok && s0 <= s1 {
+            lo = lo.min(a[0] + s0);
+            hi = hi.max(a[0] + s1);
+        }
+    }
+    (lo <= hi).then_some((lo, hi))
 }
 
 /// Sweeps `ops` over a stock flat at `stock_top_mm` on `target`'s grid and compares with `target`.
@@ -837,8 +902,10 @@ mod tests {
         }
     }
 
-    /// Random raster passes of a ball (a line at any angle, moves up, down, level, backwards and
-    /// straight down along it, several passes side by side) against every move's own capsule.
+    /// Random raster passes (a line at any angle, moves up, down, level, backwards and straight
+    /// down along it, several passes side by side) against the reference: a ball's runs against
+    /// every move's own capsule, other tools' level chords and vertical moves against the exact
+    /// distance and samples.
     #[test]
     fn raster_runs_match_each_moves_capsule() {
         use proptest::prelude::*;
@@ -846,7 +913,9 @@ mod tests {
         let mut runner = TestRunner::new(Config { cases: 64, ..Config::default() });
         let strategy = (
             0.0f64..std::f64::consts::TAU,
-            prop::sample::select(vec!["ball-1", "ball-2", "ball-3", "ball-6"]),
+            prop::sample::select(vec![
+                "ball-1", "ball-2", "ball-3", "ball-6", "flat-2", "flat-6", "bull-4-1", "v-6-90",
+            ]),
             prop::collection::vec((-0.8f64..1.6, -1.5f64..1.5, 0u8..10), 2..40),
             1usize..4,
             0.1f64..1.5,
