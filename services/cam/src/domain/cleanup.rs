@@ -10,6 +10,7 @@
 //! path (the brief's order, simplify then fit, found almost no arcs: see [`link`]).
 
 use nalgebra::{Point3, Vector2, Vector3};
+use rayon::prelude::*;
 
 use super::path::{Link, Segment, Toolpath};
 
@@ -279,15 +280,50 @@ pub fn fit_arcs(points: &[Point3<f64>], tol_mm: f64) -> Vec<Segment> {
 pub fn link(toolpath: &Toolpath, tol_mm: f64, arcs: bool) -> Vec<Segment> {
     let safe = toolpath.safe_z_mm;
     let half = sane_tol(tol_mm) / 2.0;
-    let mut out: Vec<Segment> = Vec::new();
-    let mut pos: Option<Point3<f64>> = None;
     let push = |out: &mut Vec<Segment>, pos: &mut Option<Point3<f64>>, seg: Segment| {
         if *pos != Some(seg.end()) || matches!(seg, Segment::Arc { .. }) {
             out.push(seg);
             *pos = Some(seg.end());
         }
     };
-    for pass in &toolpath.passes {
+    // Every link into a pass ends at its first point, so each pass's own moves (arcs fitted, the
+    // rest simplified) depend on that pass alone: made in parallel, joined in order.
+    let bodies: Vec<Vec<Segment>> = toolpath
+        .passes
+        .par_iter()
+        .map(|pass| {
+            let mut out = Vec::new();
+            let Some(&first) = pass.points.first() else { return out };
+            let mut pos = Some(first);
+            let linear_run = |out: &mut Vec<Segment>, pos: &mut Option<Point3<f64>>, run: &[Point3<f64>]| {
+                for p in simplify_3d(run, half).iter().skip(1) {
+                    push(out, pos, Segment::Linear(*p));
+                }
+            };
+            if arcs {
+                // Stretches of Linear segments (with the point they start from) are simplified.
+                let mut run: Vec<Point3<f64>> = vec![first];
+                for seg in fit_arcs(&pass.points, half) {
+                    match seg {
+                        Segment::Linear(p) => run.push(p),
+                        _ => {
+                            linear_run(&mut out, &mut pos, &run);
+                            push(&mut out, &mut pos, seg);
+                            run.clear();
+                            run.push(seg.end());
+                        }
+                    }
+                }
+                linear_run(&mut out, &mut pos, &run);
+            } else {
+                linear_run(&mut out, &mut pos, &pass.points);
+            }
+            out
+        })
+        .collect();
+    let mut out: Vec<Segment> = Vec::new();
+    let mut pos: Option<Point3<f64>> = None;
+    for (pass, body) in toolpath.passes.iter().zip(bodies) {
         let (Some(&first), Some(&last)) = (pass.points.first(), pass.points.last()) else {
             continue;
         };
@@ -305,29 +341,7 @@ pub fn link(toolpath: &Toolpath, tol_mm: f64, arcs: bool) -> Vec<Segment> {
                 push(&mut out, &mut pos, Segment::Plunge(first));
             }
         }
-        let linear_run = |out: &mut Vec<Segment>, pos: &mut Option<Point3<f64>>, run: &[Point3<f64>]| {
-            for p in simplify_3d(run, half).iter().skip(1) {
-                push(out, pos, Segment::Linear(*p));
-            }
-        };
-        if arcs {
-            // Stretches of Linear segments (with the point they start from) are simplified.
-            let mut run: Vec<Point3<f64>> = vec![first];
-            for seg in fit_arcs(&pass.points, half) {
-                match seg {
-                    Segment::Linear(p) => run.push(p),
-                    _ => {
-                        linear_run(&mut out, &mut pos, &run);
-                        push(&mut out, &mut pos, seg);
-                        run.clear();
-                        run.push(seg.end());
-                    }
-                }
-            }
-            linear_run(&mut out, &mut pos, &run);
-        } else {
-            linear_run(&mut out, &mut pos, &pass.points);
-        }
+        out.extend(body);
         pos = Some(last);
     }
     if let Some(p) = pos {

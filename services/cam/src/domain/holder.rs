@@ -87,27 +87,28 @@ pub fn check_holder(
     // Points up to the larger radius (and a cell) off the map still see it.
     let reach = (tool.shank_diameter_mm / 2.0).max(tool.holder_diameter_mm / 2.0);
     let pad = (reach / map.pixel_mm()).ceil() as i64 + 1;
-    let blocks = Blocks::new(map, pad, floor)?;
-    let shank = DiskMax::new(map, &blocks, tool.shank_diameter_mm / 2.0, floor);
-    let holder = DiskMax::new(map, &blocks, tool.holder_diameter_mm / 2.0, floor);
+    let shank = DiskMax::new(map, tool.shank_diameter_mm / 2.0, pad, floor)?;
+    let holder = DiskMax::new(map, tool.holder_diameter_mm / 2.0, pad, floor)?;
 
     // The tip's height at each visited point, and its cell when the padded map holds it.
-    let mut at: Vec<(f64, Option<(i64, i64)>)> = Vec::with_capacity(visited.len());
+    let at: Vec<(f64, Option<(i64, i64)>)> = visited
+        .par_iter()
+        .map(|v| {
+            let z = match tip.cell_of(v.x, v.y) {
+                Some((c, r)) => tip.get(c, r).map(f64::from).unwrap_or(v.z),
+                None => v.z,
+            };
+            let z = if z.is_finite() { z } else { v.z };
+            let c = ((v.x - map.origin_x_mm()) / map.pixel_mm()).floor();
+            let r = ((v.y - map.origin_y_mm()) / map.pixel_mm()).floor();
+            let inside = |k: f64, n: u32| k >= -(pad as f64) && k < f64::from(n) + pad as f64;
+            (z, (inside(c, map.width()) && inside(r, map.height())).then_some((c as i64, r as i64)))
+        })
+        .collect();
     // Off the padded map only the floor is under the tool: the shank needs `floor - z`.
     let mut off = Best::default();
-    for (i, v) in visited.iter().enumerate() {
-        let z = match tip.cell_of(v.x, v.y) {
-            Some((c, r)) => tip.get(c, r).map(f64::from).unwrap_or(v.z),
-            None => v.z,
-        };
-        let z = if z.is_finite() { z } else { v.z };
-        let c = ((v.x - map.origin_x_mm()) / map.pixel_mm()).floor();
-        let r = ((v.y - map.origin_y_mm()) / map.pixel_mm()).floor();
-        let inside = |k: f64, n: u32| k >= -(pad as f64) && k < f64::from(n) + pad as f64;
-        if inside(c, map.width()) && inside(r, map.height()) {
-            at.push((z, Some((c as i64, r as i64))));
-        } else {
-            at.push((z, None));
+    for (i, &(z, cell)) in at.iter().enumerate() {
+        if cell.is_none() {
             off.offer(f64::from(floor) - z, i);
         }
     }
@@ -167,8 +168,8 @@ pub fn check_holder(
     Ok(HolderCheck { min_stickout_mm, clearance_mm: clearance, worst_xy_mm: worst })
 }
 
-/// Cells of a block of the coarse grid [`DiskMax`] bounds on (per side).
-const BLOCK: i64 = 8;
+/// Most cells of a block of the coarse grid [`DiskMax`] bounds on (per side).
+const MAX_BLOCK: i64 = 8;
 
 /// The largest of the candidates offered, and the first (lowest index) visited point where it
 /// occurs.
@@ -208,7 +209,8 @@ impl Best {
 /// demand, and bounded from above and below on a coarse grid of block maxima so that only the
 /// visited points that can hold the largest value are evaluated exactly.
 ///
-/// Bounds: a block of `BLOCK` x `BLOCK` cells has its centre within `hd` (half its diagonal of cell
+/// Bounds: a block of `s` x `s` cells (`s` up to [`MAX_BLOCK`], small enough that the bounds'
+/// slack `2·hd` stays within a quarter of the radius) has its centre within `hd` (half its diagonal of cell
 /// centres) of each of its cells. A cell within `r` of the tip's cell lies in a block whose centre
 /// is within `r + 2·hd` of the centre of the tip's block, so the coarse disk maximum of that radius
 /// is an upper bound; every cell of a block whose centre is within `r - 2·hd` of the tip's block
@@ -220,7 +222,7 @@ struct DiskMax<'a> {
     floor: f32,
     /// The disk's rows (point reading): `(dy, dx0, len)`.
     rows: Vec<(i64, i64, i64)>,
-    blocks: &'a Blocks,
+    blocks: Blocks,
     upper: Vec<f32>,
     lower: Vec<f32>,
 }
@@ -230,29 +232,31 @@ struct DiskMax<'a> {
 struct Blocks {
     map: HeightMap,
     off: i64,
+    /// Cells per block side.
+    s: i64,
 }
 
 impl Blocks {
-    /// Blocks covering the map grown by `pad` cells on every side.
-    fn new(map: &HeightMap, pad: i64, floor: f32) -> Result<Self, CamError> {
-        let ceil_blocks = |n: i64| (n.max(0) + BLOCK - 1) / BLOCK;
-        let off = ceil_blocks(pad) * BLOCK;
+    /// Blocks of `s` x `s` cells covering the map grown by `pad` cells on every side.
+    fn new(map: &HeightMap, s: i64, pad: i64, floor: f32) -> Result<Self, CamError> {
+        let ceil_blocks = |n: i64| (n.max(0) + s - 1) / s;
+        let off = ceil_blocks(pad) * s;
         let (w, h) = (i64::from(map.width()), i64::from(map.height()));
         let (bw, bh) = (ceil_blocks(w + 2 * off), ceil_blocks(h + 2 * off));
         let data = map.data();
         let mut out = vec![f32::NEG_INFINITY; (bw * bh) as usize];
         out.par_chunks_mut(bw as usize).enumerate().for_each(|(br, acc)| {
-            for y in (br as i64 * BLOCK - off)..((br as i64 + 1) * BLOCK - off) {
+            for y in (br as i64 * s - off)..((br as i64 + 1) * s - off) {
                 if y < 0 || y >= h {
                     acc.iter_mut().for_each(|a| *a = a.max(floor));
                     continue;
                 }
                 let row = &data[(y * w) as usize..((y + 1) * w) as usize];
                 for (b, a) in acc.iter_mut().enumerate() {
-                    let x0 = b as i64 * BLOCK - off;
-                    let (lo, hi) = (x0.max(0), (x0 + BLOCK).min(w));
+                    let x0 = b as i64 * s - off;
+                    let (lo, hi) = (x0.max(0), (x0 + s).min(w));
                     let mut m = *a;
-                    if lo > x0 || hi < x0 + BLOCK {
+                    if lo > x0 || hi < x0 + s {
                         m = m.max(floor);
                     }
                     if lo < hi {
@@ -264,7 +268,7 @@ impl Blocks {
                 }
             }
         });
-        let p = map.pixel_mm() * BLOCK as f64;
+        let p = map.pixel_mm() * s as f64;
         let meta = depthmill_geometry::HeightMapMeta {
             origin_x_mm: map.origin_x_mm() - off as f64 * map.pixel_mm(),
             origin_y_mm: map.origin_y_mm() - off as f64 * map.pixel_mm(),
@@ -273,18 +277,19 @@ impl Blocks {
             ..depthmill_geometry::HeightMapMeta::new(bw as u32, bh as u32, p)
         };
         let map = HeightMap::new(meta, out).map_err(|e| CamError::InvalidMap { message: e.to_string() })?;
-        Ok(Blocks { map, off })
+        Ok(Blocks { map, off, s })
     }
 
     /// Index of the block holding cell `(c, r)` (map cells; must lie on the block grid).
     fn index(&self, c: i64, r: i64) -> usize {
-        let (bc, br) = ((c + self.off) / BLOCK, (r + self.off) / BLOCK);
+        let (bc, br) = ((c + self.off) / self.s, (r + self.off) / self.s);
         (br * i64::from(self.map.width()) + bc) as usize
     }
 }
 
 impl<'a> DiskMax<'a> {
-    fn new(map: &'a HeightMap, blocks: &'a Blocks, radius_mm: f64, floor: f32) -> Self {
+    /// The disk of `radius_mm` over `map`, for tip cells up to `pad` cells off the map.
+    fn new(map: &'a HeightMap, radius_mm: f64, pad: i64, floor: f32) -> Result<Self, CamError> {
         let p = map.pixel_mm();
         let disk = (radius_mm.is_finite() && radius_mm > 0.0)
             .then(|| ToolProfile::flat(2.0 * radius_mm).ok())
@@ -298,7 +303,13 @@ impl<'a> DiskMax<'a> {
             None => vec![(0, 0, 1)],
         };
         let r = disk.map_or(0.0, |_| radius_mm);
-        let hd = (BLOCK - 1) as f64 / 2.0 * p * std::f64::consts::SQRT_2;
+        let half_diagonal = |s: i64| (s - 1) as f64 / 2.0 * p * std::f64::consts::SQRT_2;
+        let mut s = MAX_BLOCK;
+        while s > 1 && 2.0 * half_diagonal(s) > r / 4.0 {
+            s /= 2;
+        }
+        let blocks = Blocks::new(map, s, pad, floor)?;
+        let hd = half_diagonal(s);
         let upper = max_filter_disk(&blocks.map, r + 2.0 * hd + p, floor);
         let low_r = r - 2.0 * hd - p;
         let lower = if low_r > 0.0 {
@@ -306,7 +317,7 @@ impl<'a> DiskMax<'a> {
         } else {
             vec![f32::NEG_INFINITY; upper.len()]
         };
-        DiskMax { map, floor, rows, blocks, upper, lower }
+        Ok(DiskMax { map, floor, rows, blocks, upper, lower })
     }
 
     fn cell(&self, c: i64, r: i64) -> f32 {
@@ -347,32 +358,42 @@ impl<'a> DiskMax<'a> {
     /// (`(z, cell)`), and the first point where it occurs: every point's bounds, then exact values
     /// in decreasing order of their upper bounds until no upper bound can beat the best found.
     fn max_need(&self, at: &[(f64, Option<(i64, i64)>)]) -> Best {
-        let mut floor_of_best = f64::NEG_INFINITY;
-        for &(z, cell) in at {
-            if let Some((c, r)) = cell {
-                let lo = self.lower[self.blocks.index(c, r)].max(self.cell(c, r));
-                floor_of_best = floor_of_best.max(f64::from(lo) - z);
+        // The point with the best lower bound, evaluated exactly, sets the bar.
+        let seed = at
+            .par_iter()
+            .enumerate()
+            .filter_map(|(i, &(z, cell))| {
+                let (c, r) = cell?;
+                let lo = f64::from(self.lower[self.blocks.index(c, r)].max(self.cell(c, r))) - z;
+                (!lo.is_nan()).then_some((lo, i))
+            })
+            .reduce_with(|a, b| if b.0 > a.0 || (b.0 == a.0 && b.1 < a.1) { b } else { a });
+        let mut best = Best::default();
+        let Some((_, first)) = seed else { return best };
+        let mut cache = std::collections::HashMap::new();
+        let mut exact = |i: usize, best: &mut Best| {
+            if let (z, Some((c, r))) = at[i] {
+                let e = *cache.entry((c, r)).or_insert_with(|| self.exact(c, r));
+                best.offer(f64::from(e) - z, i);
             }
-        }
+        };
+        exact(first, &mut best);
+        let bar = best.value;
         let mut candidates: Vec<(f64, usize)> = at
-            .iter()
+            .par_iter()
             .enumerate()
             .filter_map(|(i, &(z, cell))| {
                 let (c, r) = cell?;
                 let up = f64::from(self.upper[self.blocks.index(c, r)]) - z;
-                (up >= floor_of_best).then_some((up, i))
+                (up >= bar).then_some((up, i))
             })
             .collect();
         candidates.sort_unstable_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
-        let mut best = Best::default();
-        let mut cache = std::collections::HashMap::new();
         for (up, i) in candidates {
-            if best.index.is_some() && up < best.value {
+            if up < best.value {
                 break;
             }
-            let (z, Some((c, r))) = at[i] else { continue };
-            let e = *cache.entry((c, r)).or_insert_with(|| self.exact(c, r));
-            best.offer(f64::from(e) - z, i);
+            exact(i, &mut best);
         }
         best
     }

@@ -156,6 +156,9 @@ struct Run {
     starts: Vec<u32>,
     items: Vec<u32>,
     pieces: Vec<Piece>,
+    /// Per bucket, the lowest centre height of its pieces: no piece is below it by more than the
+    /// section radius.
+    zlo: Vec<f64>,
 }
 
 /// One piece of a [`Run`]'s raw lower offset, for a section radius `r'` (`zc`: centre heights).
@@ -252,7 +255,19 @@ impl Run {
             bbox = [bbox[0].min(t.x), bbox[1].max(t.x), bbox[2].min(t.y), bbox[3].max(t.y)];
         }
         let z_min = tips.iter().map(|t| t.z).fold(f64::INFINITY, f64::min);
-        Run { o, d, r, bbox, z_min, u0, bw, starts: counts, items, pieces }
+        let low = |p: &Piece| match *p {
+            Piece::Line { za, ub, ua, slope, .. } => za.min(za + slope * (ub - ua)),
+            Piece::Arc { zk, .. } => zk,
+        };
+        let zlo = (0..nb)
+            .map(|k| {
+                items[counts[k] as usize..counts[k + 1] as usize]
+                    .iter()
+                    .map(|&i| low(&pieces[i as usize]))
+                    .fold(f64::INFINITY, f64::min)
+            })
+            .collect();
+        Run { o, d, r, bbox, z_min, u0, bw, starts: counts, items, pieces, zlo }
     }
 
     /// The columns of the row at `cy` the swept solid can be above (`|v| <= r` and `u` within the
@@ -287,23 +302,26 @@ impl Run {
         Some((c_lo.max(0.0) as usize, c_hi.min(g.w as f64 - 1.0) as usize))
     }
 
-    /// Lowest point of the swept solid above `c` (XY), if the solid is above it.
+    /// Lowers `cell` (at `c`, XY) to the lowest point of the swept solid above it.
     #[inline]
-    fn bottom(&self, c: [f64; 2]) -> Option<f64> {
+    fn lower(&self, c: [f64; 2], cell: &mut f32) {
         let (rx, ry) = (c[0] - self.o[0], c[1] - self.o[1]);
         let u = rx * self.d[0] + ry * self.d[1];
         let v = ry * self.d[0] - rx * self.d[1];
         let rp2 = self.r * self.r - v * v;
         if rp2 < 0.0 {
-            return None;
+            return;
         }
         let rp = rp2.sqrt();
         // Truncation is the floor here (k >= 0), without a libm call per cell.
         let k = (u - self.u0) / self.bw;
         if !(k >= 0.0 && (k as usize) + 1 < self.starts.len()) {
-            return None;
+            return;
         }
         let k = k as usize;
+        if *cell <= (self.zlo[k] - rp) as f32 {
+            return; // already at or below anything this run reaches here
+        }
         let mut best = f64::INFINITY;
         for &i in &self.items[self.starts[k] as usize..self.starts[k + 1] as usize] {
             match self.pieces[i as usize] {
@@ -322,14 +340,17 @@ impl Run {
                 }
             }
         }
-        best.is_finite().then_some(best)
+        let z = best as f32;
+        if z < *cell {
+            *cell = z;
+        }
     }
 }
 
 /// The moves of `op` as sweeps: straight moves at constant Z whole, a ball's straight moves along
-/// one XY line as [`Run`]s (added to `runs`, `bucket_mm` apart along the pass), the rest sampled
-/// `step` apart.
-fn sweeps(op: &SweptOp<'_>, step: f64, bucket_mm: f64, runs: &mut Vec<Run>) -> Vec<Sweep> {
+/// one XY line as [`Run`]s (their tips and line added to `runs`, made into runs afterwards), the
+/// rest sampled `step` apart.
+fn sweeps(op: &SweptOp<'_>, step: f64, runs: &mut Vec<RunTips>) -> Vec<Sweep> {
     let ball = match op.tool.profile.spec() {
         Some(depthmill_geometry::ToolSpec::Ball { diameter_mm }) => Some(diameter_mm / 2.0),
         _ => None,
@@ -342,7 +363,7 @@ fn sweeps(op: &SweptOp<'_>, step: f64, bucket_mm: f64, runs: &mut Vec<Run>) -> V
         match (*seg, ball) {
             (Segment::Rapid(to) | Segment::Linear(to) | Segment::Plunge(to), Some(r)) => {
                 if !run.extend(at, to) {
-                    run.flush(r, bucket_mm, &mut out, runs);
+                    run.flush(r, &mut out, runs);
                     run.extend(at, to);
                 }
             }
@@ -359,7 +380,7 @@ fn sweeps(op: &SweptOp<'_>, step: f64, bucket_mm: f64, runs: &mut Vec<Run>) -> V
             }
             _ => {
                 if let Some(r) = ball {
-                    run.flush(r, bucket_mm, &mut out, runs);
+                    run.flush(r, &mut out, runs);
                 }
                 samples.clear();
                 sample_segment(at, seg, step, &mut samples);
@@ -369,9 +390,17 @@ fn sweeps(op: &SweptOp<'_>, step: f64, bucket_mm: f64, runs: &mut Vec<Run>) -> V
         at = seg.end();
     }
     if let Some(r) = ball {
-        run.flush(r, bucket_mm, &mut out, runs);
+        run.flush(r, &mut out, runs);
     }
     out
+}
+
+/// What a [`Run`] is made from.
+struct RunTips {
+    tips: Vec<Point3<f64>>,
+    o: [f64; 2],
+    d: [f64; 2],
+    r: f64,
 }
 
 /// Largest distance (mm) of a tip position from the XY line of the [`Run`] it joins.
@@ -414,10 +443,10 @@ impl RunBuilder {
 
     /// Emits what was collected: a [`Run`] when there are at least two moves along a line, else
     /// each move on its own.
-    fn flush(&mut self, r: f64, bucket_mm: f64, out: &mut Vec<Sweep>, runs: &mut Vec<Run>) {
+    fn flush(&mut self, r: f64, out: &mut Vec<Sweep>, runs: &mut Vec<RunTips>) {
         match self.line {
             Some((o, d)) if self.tips.len() > 2 => {
-                runs.push(Run::new(&self.tips, o, d, r, bucket_mm));
+                runs.push(RunTips { tips: std::mem::take(&mut self.tips), o, d, r });
                 out.push(Sweep::Run(runs.len() - 1));
             }
             _ => {
@@ -559,12 +588,7 @@ fn apply(
                 let Some((col_lo, col_hi)) = run.columns(cy, g) else { continue };
                 for (col, cell) in line[col_lo..=col_hi].iter_mut().enumerate() {
                     let cx = g.x0 + ((col + col_lo) as f64 + 0.5) * g.p;
-                    if let Some(zz) = run.bottom([cx, cy]) {
-                        let zz = zz as f32;
-                        if zz < *cell {
-                            *cell = zz;
-                        }
-                    }
+                    run.lower([cx, cy], cell);
                 }
             }
             Sweep::Level { a, b, z } => {
@@ -661,8 +685,10 @@ pub fn simulate(
     for op in ops {
         let radius = op.tool.radius_mm();
         let r2 = radius * radius;
-        let mut runs = Vec::new();
-        let sweeps = sweeps(op, p * SAMPLE_STEP_PX, p, &mut runs);
+        let mut run_tips = Vec::new();
+        let sweeps = sweeps(op, p * SAMPLE_STEP_PX, &mut run_tips);
+        // Buckets one cell long along the pass.
+        let runs: Vec<Run> = run_tips.into_par_iter().map(|t| Run::new(&t.tips, t.o, t.d, t.r, p)).collect();
         samples_total += sweeps.len() as u64;
         // Bucket sweeps by the row bands their footprint reaches.
         let bands = h.div_ceil(BAND_ROWS);
