@@ -118,15 +118,37 @@ pub fn run_plan(
         &progress,
         &|| false,
     )?;
-    std::fs::write(output, &out.gcode).with_context(|| format!("writing {}", output.display()))?;
     let sibling = |suffix: &str| -> PathBuf {
         let stem =
             output.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "program".into());
         output.with_file_name(format!("{stem}.{suffix}"))
     };
-    std::fs::write(sibling("report.json"), serde_json::to_vec_pretty(&out.report)?)?;
-    depthmill_geometry::write_png(&out.preview.final_surface, sibling("preview.png"), PngDepth::Bits16)?;
-    depthmill_geometry::write_png(&out.preview.leftover, sibling("leftover.png"), PngDepth::Bits8)?;
+    // The four files at once (the PNGs' compression is the slow part).
+    let (program, report) = std::thread::scope(|scope| {
+        let preview = scope.spawn(|| {
+            depthmill_geometry::write_png(
+                &out.preview.final_surface,
+                sibling("preview.png"),
+                PngDepth::Bits16,
+            )
+        });
+        let leftover = scope.spawn(|| {
+            depthmill_geometry::write_png(&out.preview.leftover, sibling("leftover.png"), PngDepth::Bits8)
+        });
+        let program =
+            std::fs::write(output, &out.gcode).with_context(|| format!("writing {}", output.display()));
+        let report = serde_json::to_vec_pretty(&out.report)
+            .map_err(anyhow::Error::from)
+            .and_then(|json| Ok(std::fs::write(sibling("report.json"), json)?));
+        let join = |h: std::thread::ScopedJoinHandle<'_, Result<(), depthmill_geometry::GeometryError>>| {
+            h.join()
+                .map_err(|_| anyhow::anyhow!("writing a preview image panicked"))?
+                .map_err(anyhow::Error::from)
+        };
+        (program.and(join(preview)).and(join(leftover)), report)
+    });
+    program?;
+    report?;
     crate::outln!(
         "{}: {} blocks, estimated {:.1} min; preview max gouge {:.4} mm, max leftover {:.3} mm, mean leftover {:.3} mm",
         output.display(),
