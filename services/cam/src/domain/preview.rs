@@ -938,7 +938,12 @@ mod tests {
         use proptest::test_runner::{Config, TestRunner};
         let mut runner = TestRunner::new(Config { cases: 64, ..Config::default() });
         let strategy = (
-            0.0f64..std::f64::consts::TAU,
+            prop_oneof![
+                Just(0.0f64),
+                Just(std::f64::consts::PI),
+                Just(std::f64::consts::FRAC_PI_2),
+                0.0f64..std::f64::consts::TAU
+            ],
             prop::sample::select(vec![
                 "ball-1", "ball-2", "ball-3", "ball-6", "flat-2", "flat-6", "bull-4-1", "v-6-90",
             ]),
