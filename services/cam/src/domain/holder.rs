@@ -220,8 +220,10 @@ impl Best {
 struct DiskMax<'a> {
     map: &'a HeightMap,
     floor: f32,
-    /// The disk's rows (point reading): `(dy, dx0, len)`.
-    rows: Vec<(i64, i64, i64)>,
+    /// The disk's rows (point reading): `ext[dy + reach] = (dx0, len)`, `None` for a row it
+    /// misses.
+    ext: Vec<Option<(i64, i64)>>,
+    reach: i64,
     blocks: Blocks,
     upper: Vec<f32>,
     lower: Vec<f32>,
@@ -294,7 +296,7 @@ impl<'a> DiskMax<'a> {
         let disk = (radius_mm.is_finite() && radius_mm > 0.0)
             .then(|| ToolProfile::flat(2.0 * radius_mm).ok())
             .flatten();
-        let rows = match &disk {
+        let rows: Vec<(i64, i64, i64)> = match &disk {
             Some(d) => kernel(d, p, PixelModel::Point)
                 .rows
                 .iter()
@@ -302,6 +304,12 @@ impl<'a> DiskMax<'a> {
                 .collect(),
             None => vec![(0, 0, 1)],
         };
+        let reach =
+            rows.iter().map(|&(dy, dx0, len)| dy.abs().max(dx0.abs()).max(dx0 + len - 1)).max().unwrap_or(0);
+        let mut ext = vec![None; (2 * reach + 1) as usize];
+        for &(dy, dx0, len) in &rows {
+            ext[(dy + reach) as usize] = Some((dx0, len));
+        }
         let r = disk.map_or(0.0, |_| radius_mm);
         let half_diagonal = |s: i64| (s - 1) as f64 / 2.0 * p * std::f64::consts::SQRT_2;
         let mut s = MAX_BLOCK;
@@ -317,7 +325,7 @@ impl<'a> DiskMax<'a> {
         } else {
             vec![f32::NEG_INFINITY; upper.len()]
         };
-        Ok(DiskMax { map, floor, rows, blocks, upper, lower })
+        Ok(DiskMax { map, floor, ext, reach, blocks, upper, lower })
     }
 
     fn cell(&self, c: i64, r: i64) -> f32 {
@@ -329,25 +337,59 @@ impl<'a> DiskMax<'a> {
         if z.is_nan() { self.floor } else { z }
     }
 
-    /// The exact highest point under the disk centred on cell `(c, r)`.
+    /// The exact highest point under the disk centred on cell `(c, r)`: the block maximum of every
+    /// block whose four corner cells lie in the disk (then all its cells do: the disk is convex),
+    /// the cells themselves in the blocks its edge crosses.
     fn exact(&self, c: i64, r: i64) -> f32 {
         let (w, h) = (i64::from(self.map.width()), i64::from(self.map.height()));
         let data = self.map.data();
+        let reach = self.reach;
+        // The disk's cells on row y: [lo, hi).
+        let span = |y: i64| -> Option<(i64, i64)> {
+            let k = y - r + reach;
+            if k < 0 || k >= self.ext.len() as i64 {
+                return None;
+            }
+            self.ext[k as usize].map(|(dx0, len)| (c + dx0, c + dx0 + len))
+        };
+        let inside = |x: i64, y: i64| span(y).is_some_and(|(lo, hi)| x >= lo && x < hi);
+        let b = &self.blocks;
+        let bw = i64::from(b.map.width());
         let mut best = f32::NEG_INFINITY;
-        for &(dy, dx0, len) in &self.rows {
-            let y = r + dy;
-            let (x0, x1) = (c + dx0, c + dx0 + len);
-            if y < 0 || y >= h || x0 < 0 || x1 > w {
-                best = best.max(self.floor);
-            }
-            let (lo, hi) = (x0.max(0), x1.min(w));
-            if y < 0 || y >= h || lo >= hi {
-                continue;
-            }
-            for &z in &data[(y * w + lo) as usize..(y * w + hi) as usize] {
-                let z = if z.is_nan() { self.floor } else { z };
-                if z > best {
-                    best = z;
+        let first = |v: i64| (v + b.off).div_euclid(b.s);
+        for br in first(r - reach)..=first(r + reach) {
+            let (y0, y1) = (br * b.s - b.off, (br + 1) * b.s - b.off);
+            for bc in first(c - reach)..=first(c + reach) {
+                let (x0, x1) = (bc * b.s - b.off, (bc + 1) * b.s - b.off);
+                let on_grid = br >= 0 && bc >= 0 && bc < bw && br < i64::from(b.map.height());
+                if on_grid
+                    && inside(x0, y0)
+                    && inside(x1 - 1, y0)
+                    && inside(x0, y1 - 1)
+                    && inside(x1 - 1, y1 - 1)
+                {
+                    best = best.max(b.map.data()[(br * bw + bc) as usize]);
+                    continue;
+                }
+                for y in y0..y1 {
+                    let Some((lo, hi)) = span(y) else { continue };
+                    let (lo, hi) = (lo.max(x0), hi.min(x1));
+                    if lo >= hi {
+                        continue;
+                    }
+                    if y < 0 || y >= h || lo < 0 || hi > w {
+                        best = best.max(self.floor);
+                    }
+                    let (a, z) = (lo.max(0), hi.min(w));
+                    if y < 0 || y >= h || a >= z {
+                        continue;
+                    }
+                    for &v in &data[(y * w + a) as usize..(y * w + z) as usize] {
+                        let v = if v.is_nan() { self.floor } else { v };
+                        if v > best {
+                            best = v;
+                        }
+                    }
                 }
             }
         }
@@ -472,7 +514,7 @@ mod tests {
             let z = if z.is_finite() { z } else { v.z };
             let Some((c, r)) = big.cell_of(v.x, v.y) else {
                 // Farther off the map than either radius: only the floor is under the tool.
-                let gap = z + tool.cutting_length_mm - f64::from(floor);
+                let gap = tool.cutting_length_mm - (f64::from(floor) - z);
                 if gap < clearance {
                     clearance = gap;
                     worst = [v.x, v.y];
