@@ -311,7 +311,8 @@ impl Writer {
     /// Motion word if it changed.
     fn g_word(&mut self, words: &mut String, g: u8) {
         if self.motion != Some(g) {
-            words.push_str(&format!("G{g}"));
+            words.push('G');
+            words.push(char::from(b'0' + g % 10));
             self.motion = Some(g);
         }
     }
@@ -319,14 +320,14 @@ impl Writer {
     fn axis_words(&self, words: &mut String, q: [i64; 3], axes: [bool; 3]) {
         for (i, name) in ['X', 'Y', 'Z'].into_iter().enumerate() {
             if axes[i] && self.pos[i] != Some(q[i]) {
-                push_word(words, &format!("{name}{}", fmt_q(q[i])));
+                push_q(words, name, q[i]);
             }
         }
     }
 
     fn feed_word(&mut self, words: &mut String, f: i64) {
         if self.feed != Some(f) {
-            push_word(words, &format!("F{}", fmt_q(f)));
+            push_q(words, 'F', f);
             self.feed = Some(f);
         }
     }
@@ -425,11 +426,11 @@ impl Writer {
                 }
                 let mut words = String::new();
                 self.g_word(&mut words, if clockwise { 2 } else { 3 });
-                push_word(&mut words, &format!("X{}", fmt_q(q[0])));
-                push_word(&mut words, &format!("Y{}", fmt_q(q[1])));
+                push_q(&mut words, 'X', q[0]);
+                push_q(&mut words, 'Y', q[1]);
                 self.axis_words(&mut words, q, [false, false, true]);
-                push_word(&mut words, &format!("I{}", fmt_q(i)));
-                push_word(&mut words, &format!("J{}", fmt_q(j)));
+                push_q(&mut words, 'I', i);
+                push_q(&mut words, 'J', j);
                 self.feed_word(&mut words, feed);
                 self.line(sink, &words)?;
                 self.moved(q, exact);
@@ -460,17 +461,42 @@ impl Writer {
     }
 }
 
-fn push_word(words: &mut String, w: &str) {
+/// Appends the word `name` + [`fmt_q`]`(v)` (no allocation: a program has millions of them).
+fn push_q(words: &mut String, name: char, v: i64) {
+    use std::fmt::Write as _;
     if !words.is_empty() {
         words.push(' ');
     }
-    words.push_str(w);
+    words.push(name);
+    if v < 0 {
+        words.push('-');
+    }
+    let a = v.unsigned_abs();
+    // Writing into a String cannot fail.
+    let _ = write!(words, "{}.{:04}", a / 10_000, a % 10_000);
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use nalgebra::Point3;
+
+    #[test]
+    fn words_are_written_as_fmt_q_writes_them() {
+        let mut values = vec![0i64, 1, -1, 9_999, -9_999, 10_000, -10_000, 123_456_789, -5, i64::MAX / 2];
+        let mut x = 0x9e37_79b9_7f4a_7c15u64;
+        for _ in 0..10_000 {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            values.push((x as i64) >> (x % 50));
+        }
+        for v in values {
+            let mut words = String::from("G1");
+            push_q(&mut words, 'X', v);
+            assert_eq!(words, format!("G1 X{}", fmt_q(v)));
+        }
+    }
     use proptest::prelude::*;
 
     fn p(x: f64, y: f64, z: f64) -> Point3<f64> {
