@@ -123,17 +123,22 @@ pub fn run_plan(
             output.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "program".into());
         output.with_file_name(format!("{stem}.{suffix}"))
     };
-    // The four files at once (the PNGs' compression is the slow part).
+    // The four files at once (the PNGs' compression is the slow part; fast DEFLATE for these
+    // pictures).
     let (program, report) = std::thread::scope(|scope| {
         let preview = scope.spawn(|| {
-            depthmill_geometry::write_png(
+            depthmill_geometry::write_png_fast(
                 &out.preview.final_surface,
                 sibling("preview.png"),
                 PngDepth::Bits16,
             )
         });
         let leftover = scope.spawn(|| {
-            depthmill_geometry::write_png(&out.preview.leftover, sibling("leftover.png"), PngDepth::Bits8)
+            depthmill_geometry::write_png_fast(
+                &out.preview.leftover,
+                sibling("leftover.png"),
+                PngDepth::Bits8,
+            )
         });
         let program =
             std::fs::write(output, &out.gcode).with_context(|| format!("writing {}", output.display()));

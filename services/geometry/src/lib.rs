@@ -57,7 +57,7 @@ pub use heightmap::{HeightMap, HeightMapMeta, MAX_CELLS};
 pub use heightmap_io::HeightMapFormat;
 pub use mesh::Mesh;
 pub use npy::{read_npy, read_npy_from, write_npy, write_npy_to};
-pub use png_io::{ImageMapping, PngDepth, read_png, read_png_from, write_png, write_png_to};
+pub use png_io::{ImageMapping, PngDepth, read_png, read_png_from, write_png, write_png_fast, write_png_to};
 pub use pose::{Pose, XyzYpr};
 pub use raster::RasterError;
 pub use tool::{ToolProfile, ToolSpec};
