@@ -10,9 +10,9 @@
 //! ([`max_filter_disk`]: the highest part point under the cylinder). So the check is the largest
 //! `D_r - z` over the visited points, with `z = C(x, y)` (the compensated surface the tip rides on;
 //! a program that stays above C is checked conservatively). `D_r` is not filtered over the whole
-//! map: it is bounded above and below on a grid of 8 x 8 block maxima, and computed exactly only at
-//! the visited points whose upper bound can still hold the largest value (a branch and bound with
-//! the same result, tested against the full filters).
+//! map: it is bounded above and below on a grid of block maxima (up to 8 x 8), and computed
+//! exactly only at the visited points whose upper bound can still hold the largest value (a branch
+//! and bound with the same result, tested against the full filters).
 //!
 //! - Holder: needs `stickout >= D_rh - C` at every visited point; the largest such value is the
 //!   minimum stick-out reported.
@@ -57,8 +57,8 @@ pub struct HolderCheck {
 /// Ok with the smallest clearance when the shank and the holder stay clear; otherwise
 /// [`CamError::HolderCollision`] naming the place, the part of the tool and the minimum stick-out
 /// (the shank case also names the cutting length needed). Errors on a `tip` of another size than
-/// `map` or a non-finite `outside_z_mm`. Cost: the map's 8 x 8 block maxima (O(W·H)), four disk
-/// max filters of that coarse grid, O(1) bounds per visited point, and an exact disk maximum
+/// `map` or a non-finite `outside_z_mm`. Cost: the map's block maxima (O(W·H), blocks up to 8 x 8),
+/// four disk max filters of those coarse grids, O(1) bounds per visited point, and an exact disk maximum
 /// (O(disk cells)) only at the points whose upper bound can still beat the largest need found
 /// (see `DiskMax`): the same result as two full disk filters of the map (tested against them).
 pub fn check_holder(

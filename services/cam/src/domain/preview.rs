@@ -687,8 +687,12 @@ pub fn simulate(
         let r2 = radius * radius;
         let mut run_tips = Vec::new();
         let sweeps = sweeps(op, p * SAMPLE_STEP_PX, &mut run_tips);
-        // Buckets one cell long along the pass.
-        let runs: Vec<Run> = run_tips.into_par_iter().map(|t| Run::new(&t.tips, t.o, t.d, t.r, p)).collect();
+        // Buckets one cell long along the pass, or a sixteenth of the radius when that is longer
+        // (a steep piece spans up to r / bucket buckets: a large ball on fine cells would
+        // otherwise list each piece in hundreds of them).
+        let bucket = p.max(radius / 16.0);
+        let runs: Vec<Run> =
+            run_tips.into_par_iter().map(|t| Run::new(&t.tips, t.o, t.d, t.r, bucket)).collect();
         samples_total += sweeps.len() as u64;
         // Bucket sweeps by the row bands their footprint reaches.
         let bands = h.div_ceil(BAND_ROWS);
