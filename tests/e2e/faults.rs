@@ -63,6 +63,36 @@ async fn a_stage_slowed_past_its_deadline_fails_in_bounded_time_and_the_service_
     stack.shutdown().await
 }
 
+/// Attempts cut short by a deadline under a third of the lease (the lease's renewal period), more of
+/// them than one lease lasts: the worker must renew its lease as each attempt starts and across the
+/// waits between them, or a second worker loop claims the job and the first one's run is taken for a
+/// cancel (the job ended `cancelled` with nobody cancelling it).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn retries_longer_than_a_lease_keep_the_job() -> anyhow::Result<()> {
+    let script = Script::default();
+    // Lease 3 s (the test stack's), deadline 0.4 s, 12 attempts: about 5 s of attempts.
+    let (deadline_s, attempts) = (0.4, 12u32);
+    let stack = TestStack::start_with(StackOptions {
+        machine: MachineBackend::Scripted(script.clone()),
+        stage_deadline_s: deadline_s,
+        max_attempts: attempts,
+        ..Default::default()
+    })
+    .await?;
+    let sha = stack.upload("text/x-gcode", program()).await?;
+    script.set_delay(Duration::from_secs(30));
+    let (_, job) = stack.post_job(&gcode_job(&sha), None).await?;
+    let id = job["id"].as_str().context("id")?.to_string();
+    let done = stack.wait_for_end(&id, Duration::from_secs(60)).await?;
+    assert_eq!(done["status"], "failed", "{done}");
+    assert_eq!(done["error"]["code"], "deadline_exceeded", "{done}");
+    assert_eq!(done["cancel_requested"], false, "{done}");
+    let codes: Vec<&str> =
+        done["attempts"].as_array().into_iter().flatten().filter_map(|a| a["error_code"].as_str()).collect();
+    assert_eq!(codes, vec!["deadline_exceeded"; attempts as usize], "{done}");
+    stack.shutdown().await
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn errors_in_the_middle_of_a_stage_are_retried_or_named_and_the_service_goes_on() -> anyhow::Result<()>
 {

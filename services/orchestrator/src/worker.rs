@@ -290,6 +290,19 @@ impl Worker {
             if let Err(e) = &result {
                 tracing::warn!(job_id = %id, %stage, attempt, error = %e.message, delay_ms = delay.as_millis() as u64, "transient stage error, retrying");
             }
+            // The lease must outlast the wait.
+            let wait_ms = i64::try_from(delay.as_millis()).unwrap_or(i64::MAX / 2);
+            let lease = self
+                .app
+                .store
+                .renew(&id, &self.owner, now_ms(), self.lease_ms().saturating_add(wait_ms))
+                .await?;
+            if !lease.held {
+                return Err(StoreError::LeaseLost { id: id.clone() });
+            }
+            if lease.cancel_requested {
+                cancel.cancel();
+            }
             tokio::select! {
                 () = tokio::time::sleep(delay) => {}
                 () = cancel.cancelled() => {
@@ -318,8 +331,10 @@ impl Worker {
         let deadline = secs(self.cfg.stage_deadline_s);
         let run = self.stages.run(call, deadline, &report);
         tokio::pin!(run);
+        // The first tick is at once: the lease is renewed (and a cancel in the database seen) as
+        // each attempt starts, not only a third of a lease into it (attempts cut short by a
+        // deadline under that would never renew it, and another worker could claim the job).
         let mut ticker = tokio::time::interval(secs(self.cfg.lease_s / 3.0));
-        ticker.tick().await;
         let mut grace: Option<std::pin::Pin<Box<tokio::time::Sleep>>> = None;
         loop {
             tokio::select! {
