@@ -24,11 +24,15 @@ fn outcomes(job: &Value) -> Vec<String> {
         .collect()
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_stage_slowed_past_its_deadline_fails_in_bounded_time_and_the_service_goes_on() -> anyhow::Result<()>
-{
+/// A stack whose machine takes 30 s per program, with `attempts` attempts of `deadline_s` each,
+/// and a G-code job run on it to its end: it must fail `deadline_exceeded` at the execute stage with
+/// every attempt ended by the deadline, not by the service (nor taken for a cancel). Returns the
+/// stack, its script, the program's digest and the ended job.
+async fn job_slowed_past_its_deadline(
+    deadline_s: f64,
+    attempts: u32,
+) -> anyhow::Result<(TestStack, Script, String, Value)> {
     let script = Script::default();
-    let (deadline_s, attempts) = (1.0, 3u32);
     let stack = TestStack::start_with(StackOptions {
         machine: MachineBackend::Scripted(script.clone()),
         stage_deadline_s: deadline_s,
@@ -37,8 +41,6 @@ async fn a_stage_slowed_past_its_deadline_fails_in_bounded_time_and_the_service_
     })
     .await?;
     let sha = stack.upload("text/x-gcode", program()).await?;
-
-    // Slower than the deadline: every attempt times out; the job fails naming the deadline.
     script.set_delay(Duration::from_secs(30));
     let (_, job) = stack.post_job(&gcode_job(&sha), None).await?;
     let id = job["id"].as_str().context("id")?.to_string();
@@ -46,14 +48,21 @@ async fn a_stage_slowed_past_its_deadline_fails_in_bounded_time_and_the_service_
     assert_eq!(done["status"], "failed", "{done}");
     assert_eq!(done["error"]["code"], "deadline_exceeded", "{done}");
     assert_eq!(done["error"]["stage"], "execute", "{done}");
-    let message = done["error"]["message"].as_str().unwrap_or_default();
-    assert!(message.contains("gave up after 3 attempts"), "{message}");
-    // Every attempt was ended by the deadline, not by the service (which would take 30 s), and the
-    // job ended well inside the 60 s wait above.
+    assert_eq!(done["cancel_requested"], false, "{done}");
     assert_eq!(outcomes(&done).len(), attempts as usize, "{done}");
     let codes: Vec<&str> =
         done["attempts"].as_array().into_iter().flatten().filter_map(|a| a["error_code"].as_str()).collect();
     assert_eq!(codes, vec!["deadline_exceeded"; attempts as usize], "{done}");
+    Ok((stack, script, sha, done))
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stage_slowed_past_its_deadline_fails_in_bounded_time_and_the_service_goes_on() -> anyhow::Result<()>
+{
+    // Slower than the deadline: every attempt times out, and the job ends well inside the wait.
+    let (stack, script, sha, done) = job_slowed_past_its_deadline(1.0, 3).await?;
+    let message = done["error"]["message"].as_str().unwrap_or_default();
+    assert!(message.contains("gave up after 3 attempts"), "{message}");
 
     // Back to normal speed: the next job runs.
     script.set_delay(Duration::ZERO);
@@ -69,27 +78,8 @@ async fn a_stage_slowed_past_its_deadline_fails_in_bounded_time_and_the_service_
 /// cancel (the job ended `cancelled` with nobody cancelling it).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn retries_longer_than_a_lease_keep_the_job() -> anyhow::Result<()> {
-    let script = Script::default();
     // Lease 3 s (the test stack's), deadline 0.4 s, 12 attempts: about 5 s of attempts.
-    let (deadline_s, attempts) = (0.4, 12u32);
-    let stack = TestStack::start_with(StackOptions {
-        machine: MachineBackend::Scripted(script.clone()),
-        stage_deadline_s: deadline_s,
-        max_attempts: attempts,
-        ..Default::default()
-    })
-    .await?;
-    let sha = stack.upload("text/x-gcode", program()).await?;
-    script.set_delay(Duration::from_secs(30));
-    let (_, job) = stack.post_job(&gcode_job(&sha), None).await?;
-    let id = job["id"].as_str().context("id")?.to_string();
-    let done = stack.wait_for_end(&id, Duration::from_secs(60)).await?;
-    assert_eq!(done["status"], "failed", "{done}");
-    assert_eq!(done["error"]["code"], "deadline_exceeded", "{done}");
-    assert_eq!(done["cancel_requested"], false, "{done}");
-    let codes: Vec<&str> =
-        done["attempts"].as_array().into_iter().flatten().filter_map(|a| a["error_code"].as_str()).collect();
-    assert_eq!(codes, vec!["deadline_exceeded"; attempts as usize], "{done}");
+    let (stack, ..) = job_slowed_past_its_deadline(0.4, 12).await?;
     stack.shutdown().await
 }
 

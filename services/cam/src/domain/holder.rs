@@ -128,6 +128,19 @@ pub fn check_holder(
         (None, Some(_)) => (gap_holder, holder_at),
         (None, None) => (f64::INFINITY, [f64::NAN; 2]),
     };
+    verdict(tool, (need_shank, shank_at), (need_holder, holder_at), clearance, worst)
+}
+
+/// The check's result from the largest needs of the shank and the holder (mm above the tip, and
+/// where), and the smallest gap with where it is: an error naming the part of the tool that
+/// touches, else the minimum stick-out and the clearance.
+fn verdict(
+    tool: &Tool,
+    (need_shank, shank_at): (f64, [f64; 2]),
+    (need_holder, holder_at): (f64, [f64; 2]),
+    clearance: f64,
+    worst: [f64; 2],
+) -> Result<HolderCheck, CamError> {
     let round_up = |x: f64| (x * 100.0 - 1e-9).ceil() / 100.0;
     let min_stickout_mm = round_up(need_holder.max(need_shank).max(tool.cutting_length_mm));
     if need_shank > tool.cutting_length_mm + TOUCH_MM {
@@ -542,44 +555,7 @@ mod tests {
                 worst = [v.x, v.y];
             }
         }
-        let round_up = |x: f64| (x * 100.0 - 1e-9).ceil() / 100.0;
-        let min_stickout_mm = round_up(need_holder.max(need_shank).max(tool.cutting_length_mm));
-        if need_shank > tool.cutting_length_mm + TOUCH_MM {
-            return Err(CamError::HolderCollision {
-                message: format!(
-                    "tool {}: the shank (diameter {} mm) touches the part at x {:.3} mm, y {:.3} mm: \
-                     the part rises {:.3} mm above the tip there, cutting_length_mm {} is too short; \
-                     use a tool with at least {:.2} mm of cutting length and a stick-out of at least {:.2} mm",
-                    tool.name,
-                    tool.shank_diameter_mm,
-                    shank_at[0],
-                    shank_at[1],
-                    need_shank,
-                    tool.cutting_length_mm,
-                    round_up(need_shank),
-                    min_stickout_mm
-                ),
-                min_stickout_mm,
-            });
-        }
-        if need_holder > tool.stickout_mm + TOUCH_MM {
-            return Err(CamError::HolderCollision {
-                message: format!(
-                    "tool {}: the holder (diameter {} mm) touches the part at x {:.3} mm, y {:.3} mm: \
-                     the part rises {:.3} mm above the tip there, stickout_mm {} is too short; \
-                     the minimum stick-out is {:.2} mm",
-                    tool.name,
-                    tool.holder_diameter_mm,
-                    holder_at[0],
-                    holder_at[1],
-                    need_holder,
-                    tool.stickout_mm,
-                    min_stickout_mm
-                ),
-                min_stickout_mm,
-            });
-        }
-        Ok(HolderCheck { min_stickout_mm, clearance_mm: clearance, worst_xy_mm: worst })
+        verdict(tool, (need_shank, shank_at), (need_holder, holder_at), clearance, worst)
     }
 
     /// `map` grown by `pad` floor cells on every side (same cells, origin moved).
