@@ -189,6 +189,10 @@ pub enum ExecuteError {
 /// slowest feed across the table) is refused after the motion-only pass, before anything is cut.
 pub const MAX_CYCLE_TIME_S: f64 = 24.0 * 3600.0;
 
+/// The comparison run coarsens a 3-axis part's Z-map only while every tool's radius spans this
+/// many of its cells (see [`comparison_setup`]).
+pub const COMPARISON_MIN_RADIUS_CELLS: f64 = 4.0;
+
 fn invalid(field: &str, value: impl std::fmt::Display, reason: &str) -> ExecuteError {
     ExecuteError::Invalid { field: field.into(), value: value.to_string(), reason: reason.into() }
 }
@@ -650,12 +654,20 @@ pub fn execute_faces(
     Ok(ExecuteOutput { report, final_stock, faces, telemetry_csv, telemetry_svg, part_stl, part_view_ply })
 }
 
-/// The set-up of the comparison policy's run. Its figure is a cycle time, so a multi-axis part's
-/// one stock is cut there on dexel cells twice as coarse (a quarter of the rays per grid: the
-/// forces the loop reacts to come from the same engagement and volume, resolved to 2 cells).
+/// The set-up of the comparison policy's run. Its figure is a cycle time, so the stock is cut
+/// there on cells twice as coarse: a multi-axis part's dexels (a quarter of the rays per grid),
+/// and a 3-axis part's Z-map when every tool's radius still spans at least
+/// [`COMPARISON_MIN_RADIUS_CELLS`] of the coarse cells (a quarter of the cells per revolution).
+/// The forces the loop reacts to come from the same engagement and volume, resolved to 2 cells.
 fn comparison_setup(setup: &SimSetup, policy: PolicyKind) -> SimSetup {
     let mut s = SimSetup { policy, ..setup.clone() };
-    if !s.faces.is_empty() {
+    if s.faces.is_empty() {
+        let coarse = 2.0 * s.stock.cell_mm;
+        let min_radius = s.tools.iter().map(|t| t.profile.radius_mm()).fold(f64::INFINITY, f64::min);
+        if min_radius >= COMPARISON_MIN_RADIUS_CELLS * coarse && coarse <= 10.0 {
+            s.stock.cell_mm = coarse;
+        }
+    } else {
         let cell = s.faces.iter().map(|f| f.stock.cell_mm).fold(s.stock.cell_mm, f64::min);
         let c = s.dexel.unwrap_or(DexelCells::tri(cell));
         s.dexel = Some(DexelCells {
@@ -978,6 +990,62 @@ mod tests {
         );
         let rel = (fine.removed_mm3 - coarse.removed_mm3).abs() / fine.removed_mm3;
         assert!(rel < 0.03, "removed {} against {}", fine.removed_mm3, coarse.removed_mm3);
+    }
+
+    #[test]
+    fn the_comparison_run_on_a_coarser_z_map_keeps_the_cycle_time() {
+        // A 3-axis part on a 0.1 mm Z-map: a flat-6 slot, a ball-3 pass along its floor and a
+        // sloped ball-3 pass across the block, under the feed-only loop (its feed answers the
+        // forces).
+        let block = StockSpec {
+            min_x_mm: 0.0,
+            min_y_mm: 0.0,
+            min_z_mm: 0.0,
+            x_mm: 30.0,
+            y_mm: 20.0,
+            z_mm: 10.0,
+            cell_mm: 0.1,
+        };
+        let setup = SimSetup {
+            profile: emco(),
+            material: material("aluminium").expect("al"),
+            stock: block,
+            faces: Vec::new(),
+            dexel: None,
+            tools: tools_for(&emco(), &[]).expect("tools"),
+            policy: PolicyKind::FeedOnly,
+            clamp: false,
+            inclusions: Vec::new(),
+            seed: 1,
+            telemetry_interval_s: 0.0,
+            motion_only: false,
+        };
+        let coarse = comparison_setup(&setup, PolicyKind::FeedOnly);
+        assert!((coarse.stock.cell_mm - 0.2).abs() < 1e-12, "{:?}", coarse.stock);
+        let program = "%\nG21 G90 G17 G94 G40 G49 G80\nT1 M6\nS1500 M3\nG43 H1\nG0 X-5 Y10\nG0 Z15\n\
+                       G1 Z8 F100\nG1 X35 F200\nG0 Z15\nT2 M6\nS2000 M3\nG43 H2\nG0 X-3 Y10\nG1 Z8 F100\n\
+                       G1 X33 F150\nG0 Z15\nG0 X-3 Y4\nG1 Z9.5 F100\nG1 X33 Z8.2 F150\nG0 Z15\nG53 G0 Z0\nM30\n%\n";
+        let run = |s: &SimSetup| {
+            simulate(std::io::Cursor::new(program), s, &|| false, &mut |_| {}).expect("runs").0
+        };
+        let (fine, coarse) = (run(&setup), run(&coarse));
+        assert!(fine.removed_mm3 > 300.0, "the program cuts: {}", fine.removed_mm3);
+        let rel = (fine.cycle_time_s - coarse.cycle_time_s).abs() / fine.cycle_time_s;
+        assert!(
+            rel < 0.02,
+            "cycle time {} on 0.1 mm cells, {} on 0.2 mm",
+            fine.cycle_time_s,
+            coarse.cycle_time_s
+        );
+        let rel = (fine.removed_mm3 - coarse.removed_mm3).abs() / fine.removed_mm3;
+        assert!(rel < 0.03, "removed {} against {}", fine.removed_mm3, coarse.removed_mm3);
+
+        // A tool spanning fewer than four coarse cells keeps the fine grid.
+        let mut small = setup.clone();
+        small.tools = tools_for(&emco(), &[(7, "ball-1".into(), None, None)]).expect("tools");
+        let min_r = small.tools.iter().map(|t| t.profile.radius_mm()).fold(f64::INFINITY, f64::min);
+        assert!(min_r < COMPARISON_MIN_RADIUS_CELLS * 0.2, "{min_r}");
+        assert_eq!(comparison_setup(&small, PolicyKind::FeedOnly).stock.cell_mm, 0.1);
     }
 
     #[test]
