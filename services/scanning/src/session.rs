@@ -4,7 +4,7 @@
 //!
 //! The table is indexed in real time (it is a device on a line: a 90° index at 45 °/s takes about
 //! 2.3 s), the passes at each station are simulated as fast as the CPU allows, on blocking
-//! threads so the async runtime stays responsive.
+//! threads so the async runtime stays responsive, while the table turns to the next station.
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -60,7 +60,10 @@ async fn index_table<S: AsyncRead + AsyncWrite + Unpin>(
     Ok(measured)
 }
 
-/// Runs the stations of `plan`, indexing the table before each.
+/// Runs the stations of `plan`, indexing the table before each. A station's passes are
+/// simulated (on a blocking thread, from the encoder reading the table settled at) while the
+/// table already turns to the next station: the frames were latched at the settled angle, so
+/// only their processing overlaps the turn, as on a real cell.
 async fn run_plan<S: AsyncRead + AsyncWrite + Unpin>(
     mut session: ScanSession,
     plan: &ScanPlan,
@@ -73,42 +76,68 @@ async fn run_plan<S: AsyncRead + AsyncWrite + Unpin>(
     let total = plan.passes().max(1);
     let mut done = 0usize;
     let n = plan.stations.len();
+    let what = if rescan { "rescan station" } else { "station" };
+    let turn = |k: usize, deg: f64, done: usize| {
+        progress(
+            span.0 + (span.1 - span.0) * done as f64 / total as f64,
+            format!("{what} {}/{n}: turning the table to {deg:.1}°", k + 1),
+        );
+    };
+    let mut measured = match plan.stations.first() {
+        Some(first) => {
+            turn(0, first.table_deg, 0);
+            let waited = std::time::Instant::now();
+            let m = index_table(table, first.table_deg, cancel).await?;
+            session.add_table_wait(waited.elapsed().as_secs_f64());
+            m
+        }
+        None => return Ok(session),
+    };
     for (k, station) in plan.stations.iter().enumerate() {
         if cancel.is_cancelled() {
             return Err(ScanError::Cancelled);
         }
-        let what = if rescan { "rescan station" } else { "station" };
-        progress(
-            span.0 + (span.1 - span.0) * done as f64 / total as f64,
-            format!("{what} {}/{n}: turning the table to {:.1}°", k + 1, station.table_deg),
-        );
-        let waited = std::time::Instant::now();
-        let measured = index_table(table, station.table_deg, cancel).await?;
-        session.add_table_wait(waited.elapsed().as_secs_f64());
         let st = station.clone();
         let p = progress.clone();
         let c = cancel.clone();
         let base = done;
-        let (s, r) = blocking(move || {
+        let at = measured;
+        let work = blocking(move || {
             let mut session = session;
             let r = session.run_station(
                 &st,
-                measured,
+                at,
                 rescan,
                 &mut |i, m| {
                     p(
                         span.0 + (span.1 - span.0) * (base + i) as f64 / total as f64,
-                        format!("{what} {}/{n} at {measured:.2}°: pass {i}/{m} done", k + 1),
+                        format!("{what} {}/{n} at {at:.2}°: pass {i}/{m} done", k + 1),
                     )
                 },
                 &|| c.is_cancelled(),
             );
             (session, r)
-        })
-        .await?;
+        });
+        done += station.passes.len();
+        let ((s, r), next) = match plan.stations.get(k + 1) {
+            Some(next) => {
+                turn(k + 1, next.table_deg, done);
+                let indexing = async {
+                    let waited = std::time::Instant::now();
+                    let m = index_table(table, next.table_deg, cancel).await;
+                    (m, waited.elapsed().as_secs_f64())
+                };
+                let (w, (m, secs)) = tokio::join!(work, indexing);
+                (w?, Some((m, secs)))
+            }
+            None => (work.await?, None),
+        };
         r?;
         session = s;
-        done += station.passes.len();
+        if let Some((m, secs)) = next {
+            measured = m?;
+            session.add_table_wait(secs);
+        }
     }
     Ok(session)
 }
