@@ -35,6 +35,8 @@ pub(crate) const SERVICE_NAME: &str = "depthmill.machine.v1.MachineService";
 const MAX_PROGRAM_BYTES: u64 = 2 << 30;
 /// Largest target map accepted, bytes.
 const MAX_MAP_BYTES: u64 = 1 << 30;
+/// Shortest wall time between two live telemetry messages of a run (20 a second).
+const LIVE_TELEMETRY_PERIOD: std::time::Duration = std::time::Duration::from_millis(50);
 
 #[derive(Debug, Default)]
 struct Shared {
@@ -377,14 +379,21 @@ impl pb::machine_service_server::MachineService for MachineServiceImpl {
                         Ok(Box::new(BufReader::with_capacity(1 << 16, std::fs::File::open(&path)?)))
                     };
                     let stop = || token.is_cancelled() || shared_run.stop.load(Ordering::Relaxed);
+                    // Live telemetry: every 0.1 s of simulated time, at most every
+                    // LIVE_TELEMETRY_PERIOD of wall time (a run simulated faster than real time
+                    // would otherwise stream thousands of rows a second that no view can show).
                     let mut next_live = 0.0;
+                    let mut last_live: Option<std::time::Instant> = None;
                     let mut observe = |r: &crate::domain::sim::TelemetryRow| {
                         shared_run.line.store(r.line, Ordering::Relaxed);
                         if let Ok(mut s) = shared_run.state.lock() {
                             s.pos = [r.x_mm, r.y_mm, r.z_mm, r.a_deg];
                         }
-                        if r.time_s >= next_live {
+                        if r.time_s >= next_live
+                            && last_live.is_none_or(|t| t.elapsed() >= LIVE_TELEMETRY_PERIOD)
+                        {
                             next_live = r.time_s + 0.1;
+                            last_live = Some(std::time::Instant::now());
                             let _ = live_tx.try_send(Ok(update(
                                 pb::execute_program_update::Update::Telemetry(pb::Telemetry {
                                     time_s: r.time_s,

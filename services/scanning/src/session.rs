@@ -63,11 +63,14 @@ async fn index_table<S: AsyncRead + AsyncWrite + Unpin>(
 /// Runs the stations of `plan`, indexing the table before each. A station's passes are
 /// simulated (on a blocking thread, from the encoder reading the table settled at) while the
 /// table already turns to the next station: the frames were latched at the settled angle, so
-/// only their processing overlaps the turn, as on a real cell.
+/// only their processing overlaps the turn, as on a real cell. After the last station the table
+/// turns on to `then` when given (where the next plan starts).
+#[allow(clippy::too_many_arguments)]
 async fn run_plan<S: AsyncRead + AsyncWrite + Unpin>(
     mut session: ScanSession,
     plan: &ScanPlan,
     rescan: bool,
+    then: Option<f64>,
     table: &mut TableClient<S>,
     progress: &Progress,
     span: (f64, f64),
@@ -119,12 +122,15 @@ async fn run_plan<S: AsyncRead + AsyncWrite + Unpin>(
             (session, r)
         });
         done += station.passes.len();
-        let ((s, r), next) = match plan.stations.get(k + 1) {
-            Some(next) => {
-                turn(k + 1, next.table_deg, done);
+        let next = plan.stations.get(k + 1).map(|s| s.table_deg).or(then);
+        let ((s, r), next) = match next {
+            Some(deg) => {
+                if k + 1 < n {
+                    turn(k + 1, deg, done);
+                }
                 let indexing = async {
                     let waited = std::time::Instant::now();
-                    let m = index_table(table, next.table_deg, cancel).await;
+                    let m = index_table(table, deg, cancel).await;
                     (m, waited.elapsed().as_secs_f64())
                 };
                 let (w, (m, secs)) = tokio::join!(work, indexing);
@@ -169,7 +175,12 @@ pub async fn run_scan<S: AsyncRead + AsyncWrite + Unpin>(
     table.set_accel(TABLE_ACCEL_DEG_S2).await.map_err(terr)?;
     let adaptive = session.options().adaptive_rescan;
     let first_span = if adaptive { (0.0, 0.75) } else { (0.0, 1.0) };
-    let mut session = run_plan(session, &plan, false, table, &progress, first_span, &cancel).await?;
+    // The table goes on to the rescan's first angle while the last station is simulated and
+    // the coverage computed.
+    let then = adaptive
+        .then(|| session.rescan_angles(plan.stations.last().map(|s| s.table_deg)).first().copied())
+        .flatten();
+    let mut session = run_plan(session, &plan, false, then, table, &progress, first_span, &cancel).await?;
     if adaptive {
         progress(0.75, "coverage map of the first scan".into());
         let (s, found) = blocking(move || {
@@ -197,7 +208,7 @@ pub async fn run_scan<S: AsyncRead + AsyncWrite + Unpin>(
             ));
             session.record_rescan(before, None, targets);
         } else {
-            session = run_plan(session, &rescan, true, table, &progress, (0.78, 0.98), &cancel).await?;
+            session = run_plan(session, &rescan, true, None, table, &progress, (0.78, 0.98), &cancel).await?;
             let (s, after) = blocking(move || {
                 let r = session.holes().map(|(a, _)| a);
                 (session, r)

@@ -738,11 +738,11 @@ impl ScanSession {
     /// Passes aimed at `targets`: from each first-scan angle + 45°, farther away, three short
     /// passes per hole across it (straight down, tilted ±30°, each aimed so its optical axis meets
     /// the hole at the standoff). Passes the arm cannot reach are left out with a diagnostic.
-    pub fn rescan_plan(&mut self, targets: &[HoleTarget]) -> ScanPlan {
-        let spec = self.scanner.spec().clone();
-        let standoff = self.opts.rescan_standoff_mm.unwrap_or_else(|| {
-            (spec.standoff_max_mm - self.placement.height_mm() - 10.0).min(220.0).max(self.opts.standoff_mm)
-        });
+    /// The table angles a rescan visits, in order, when the first scan ended at `last`: each
+    /// first-scan angle turned by 45°, one turn of the table starting from the angle nearest
+    /// `last`. They do not depend on the holes, so the table can be on its way to the first
+    /// while the coverage is computed.
+    pub fn rescan_angles(&self, last: Option<f64>) -> Vec<f64> {
         let mut angles: Vec<f64> = Vec::new();
         let first: Vec<f64> = match &self.opts.passes {
             Some(p) => p.iter().map(|p| p.table_deg).collect(),
@@ -754,10 +754,18 @@ impl ScanSession {
                 angles.push(r);
             }
         }
-        // One turn of the table, starting from the angle nearest where the first scan ended.
-        if let Some(last) = self.stations.last().map(|s| s.table_deg_commanded) {
+        if let Some(last) = last {
             angles.sort_by(|a, b| (a - last).rem_euclid(360.0).total_cmp(&(b - last).rem_euclid(360.0)));
         }
+        angles
+    }
+
+    pub fn rescan_plan(&mut self, targets: &[HoleTarget]) -> ScanPlan {
+        let spec = self.scanner.spec().clone();
+        let standoff = self.opts.rescan_standoff_mm.unwrap_or_else(|| {
+            (spec.standoff_max_mm - self.placement.height_mm() - 10.0).min(220.0).max(self.opts.standoff_mm)
+        });
+        let angles = self.rescan_angles(self.stations.last().map(|s| s.table_deg_commanded));
         let mut seed = ArmModel::HOME_DEG;
         let mut stations = Vec::new();
         let mut obstacles = obstacles::cell_obstacles(&self.layout, &self.placement);
