@@ -11,6 +11,7 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context as _, bail};
+use futures::StreamExt as _;
 use serde_json::{Value, json};
 
 /// Options of `depthmill demo`.
@@ -229,7 +230,7 @@ async fn drive(base: &str, part: Part, args: &DemoArgs, out: &Path) -> anyhow::R
         ));
         match j["status"].as_str() {
             Some("succeeded" | "failed" | "cancelled") => break j,
-            _ => tokio::time::sleep(Duration::from_millis(200)).await,
+            _ => tokio::time::sleep(Duration::from_millis(100)).await,
         }
     };
     bar.finish_and_clear();
@@ -248,21 +249,41 @@ async fn drive(base: &str, part: Part, args: &DemoArgs, out: &Path) -> anyhow::R
     std::fs::create_dir_all(&art_dir)?;
     let mut bytes_of = std::collections::BTreeMap::new();
     let mut listing = Vec::new();
-    if let Some(arts) = done["artifacts"].as_object() {
-        for (name, a) in arts {
-            let sha = a["sha256"].as_str().unwrap_or_default();
-            let resp = client.get(format!("{base}/v1/artifacts/{sha}")).send().await?;
-            if !resp.status().is_success() {
-                bail!("downloading {name}: {}", resp.status());
+    // Downloaded four at a time, each written as it arrives; listed in the job's order.
+    let wanted: Vec<(String, String, String)> = done["artifacts"]
+        .as_object()
+        .map(|arts| {
+            arts.iter()
+                .map(|(name, a)| {
+                    let sha = a["sha256"].as_str().unwrap_or_default().to_string();
+                    let media = a["media_type"].as_str().unwrap_or("").to_string();
+                    (name.clone(), sha, media)
+                })
+                .collect()
+        })
+        .unwrap_or_default();
+    let fetched: Vec<anyhow::Result<(String, PathBuf, Vec<u8>)>> =
+        futures::stream::iter(wanted.into_iter().map(|(name, sha, media)| {
+            let (client, art_dir) = (&client, &art_dir);
+            async move {
+                let resp = client.get(format!("{base}/v1/artifacts/{sha}")).send().await?;
+                if !resp.status().is_success() {
+                    bail!("downloading {name}: {}", resp.status());
+                }
+                let bytes = resp.bytes().await?.to_vec();
+                let path = art_dir.join(crate::client::artifact_file_name(&name, &media));
+                tokio::fs::write(&path, &bytes).await.with_context(|| format!("writing {}", path.display()))?;
+                Ok((name, path, bytes))
             }
-            let bytes = resp.bytes().await?.to_vec();
-            let path =
-                art_dir.join(crate::client::artifact_file_name(name, a["media_type"].as_str().unwrap_or("")));
-            std::fs::write(&path, &bytes).with_context(|| format!("writing {}", path.display()))?;
-            listing.push(format!("  {name:<18} {}", path.display()));
-            if name != "report" && name != "report_json" {
-                bytes_of.insert(name.clone(), bytes);
-            }
+        }))
+        .buffered(4)
+        .collect()
+        .await;
+    for f in fetched {
+        let (name, path, bytes) = f?;
+        listing.push(format!("  {name:<18} {}", path.display()));
+        if name != "report" && name != "report_json" {
+            bytes_of.insert(name, bytes);
         }
     }
     let report = tokio::task::spawn_blocking(move || {
