@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Wall time of `depthmill demo` per stage, release build, RUNS times (default 3).
-# Target: the whole demo under 60 s on a 2-core machine. Prints each run's stage timings, the
+# Target: the whole demo under 20 s on a 2-core machine (the table turning in real time). Prints each run's stage timings, the
 # part of the scan spent waiting for the rotary table (real time) and the wall time.
 set -euo pipefail
 cd "$(dirname "$0")/../../.."
