@@ -132,7 +132,7 @@ pub async fn run(args: &DemoArgs) -> anyhow::Result<()> {
     stack.stop().await.context("stopping the stack")?;
     let summary = result?;
     crate::outln!("{summary}");
-    crate::outln!("demo wall time {:.1} s (target: under 60 s in release)", started.elapsed().as_secs_f64());
+    crate::outln!("demo wall time {:.1} s (target: under 20 s in release)", started.elapsed().as_secs_f64());
     Ok(())
 }
 
