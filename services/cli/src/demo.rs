@@ -272,7 +272,9 @@ async fn drive(base: &str, part: Part, args: &DemoArgs, out: &Path) -> anyhow::R
                 }
                 let bytes = resp.bytes().await?.to_vec();
                 let path = art_dir.join(crate::client::artifact_file_name(&name, &media));
-                tokio::fs::write(&path, &bytes).await.with_context(|| format!("writing {}", path.display()))?;
+                tokio::fs::write(&path, &bytes)
+                    .await
+                    .with_context(|| format!("writing {}", path.display()))?;
                 Ok((name, path, bytes))
             }
         }))

@@ -5,7 +5,8 @@
 //! ([`compensate`]) -> roughing and finishing passes ([`roughing`], [`finishing`]) -> cleaned
 //! segments with arcs ([`cleanup`]) -> G-code ([`gcode`]); [`holder`] checks the tool holder,
 //! [`feeds`] picks feeds and speeds and estimates time, [`preview`] sweeps the program over the
-//! stock to measure gouge and leftover, [`plan`] runs it all.
+//! stock to measure gouge and leftover, [`plan`] runs it all. [`slice`] cuts a mesh into planar
+//! layers (contours, holes, islands) for layer-by-layer milling.
 
 pub mod cleanup;
 pub mod compensate;
@@ -20,6 +21,7 @@ pub mod plan;
 pub mod preview;
 pub mod rest;
 pub mod roughing;
+pub mod slice;
 pub mod tool;
 
 pub use error::CamError;
