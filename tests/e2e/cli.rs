@@ -130,3 +130,108 @@ async fn a_server_that_is_down_or_answers_garbage_gets_one_line_and_exit_1() -> 
     }
     Ok(())
 }
+
+/// A box `lo`..`hi` as triangles, faces outward (or inward: a cavity), vertex indices from `o`.
+fn cuboid(
+    v: &mut Vec<depthmill_geometry::nalgebra::Point3<f64>>,
+    t: &mut Vec<[u32; 3]>,
+    lo: [f64; 3],
+    hi: [f64; 3],
+    inward: bool,
+) {
+    let o = v.len() as u32;
+    for k in 0..8 {
+        v.push(depthmill_geometry::nalgebra::Point3::new(
+            if k & 1 == 0 { lo[0] } else { hi[0] },
+            if k & 2 == 0 { lo[1] } else { hi[1] },
+            if k & 4 == 0 { lo[2] } else { hi[2] },
+        ));
+    }
+    for f in [[0, 2, 3, 1], [4, 5, 7, 6], [0, 1, 5, 4], [2, 6, 7, 3], [0, 4, 6, 2], [1, 3, 7, 5]] {
+        let (a, b, c, d) = (o + f[0], o + f[1], o + f[2], o + f[3]);
+        for tri in [[a, b, c], [a, c, d]] {
+            t.push(if inward { [tri[0], tri[2], tri[1]] } else { tri });
+        }
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn slicing_a_mesh_writes_its_layers_and_names_what_is_wrong() -> anyhow::Result<()> {
+    let dir = tempfile::tempdir()?;
+    let (mut v, mut t) = (Vec::new(), Vec::new());
+    cuboid(&mut v, &mut t, [0.0; 3], [20.0, 20.0, 10.0], false);
+    cuboid(&mut v, &mut t, [5.0, 5.0, 2.0], [15.0, 15.0, 8.0], true);
+    let write = |name: &str, t: &[[u32; 3]]| -> anyhow::Result<String> {
+        let path = dir.path().join(name);
+        let mesh = depthmill_geometry::Mesh::new(v.clone(), t.to_vec())?;
+        let mut f = std::fs::File::create(&path)?;
+        depthmill_geometry::formats::write_stl(&mut f, &mesh, "test box")?;
+        Ok(path.display().to_string())
+    };
+    let closed = write("box.stl", &t)?;
+    let out = dir.path().join("layers.json").display().to_string();
+    let (code, stdout, stderr) = depthmill(&["slice", &closed, "--step-mm", "2", "-o", &out])?;
+    assert_eq!(code, 0, "{stdout}{stderr}");
+    assert!(stdout.contains("5 layers from 1.0000 to 9.0000 mm every 2 mm"), "{stdout}");
+    let doc: serde_json::Value = serde_json::from_slice(&std::fs::read(&out)?)?;
+    assert_eq!(doc["topology"]["closed_manifold"], json!(true));
+    let layers = doc["layers"].as_array().context("layers")?;
+    assert_eq!(layers.len(), 5);
+    // z = 3, 5, 7 cut the cavity: an outer square and a hole in it; z = 1 and 9 the block only.
+    let kinds = |l: &serde_json::Value| -> Vec<String> {
+        l["contours"].as_array().map_or(Vec::new(), |c| {
+            let mut k: Vec<String> =
+                c.iter().map(|c| c["kind"].as_str().unwrap_or("?").to_string()).collect();
+            k.sort();
+            k
+        })
+    };
+    assert_eq!(kinds(&layers[0]), ["outer"]);
+    assert_eq!(kinds(&layers[2]), ["hole", "outer"]);
+    let area: f64 = layers[2]["contours"]
+        .as_array()
+        .context("contours")?
+        .iter()
+        .filter_map(|c| c["area_mm2"].as_f64())
+        .sum();
+    assert!((area - 300.0).abs() < 1e-9, "{area}");
+
+    // An open mesh: the edges are listed and the layer through the gap has an open chain.
+    let mut open = t.clone();
+    let gone = open.remove(4); // a -y wall triangle of the block
+    let path = write("open.stl", &open)?;
+    let (code, stdout, stderr) = depthmill(&["slice", &path, "--step-mm", "2", "-o", &out])?;
+    assert_eq!(code, 0, "{stdout}{stderr}");
+    assert!(stdout.contains("3 boundary edges (open)"), "{stdout}");
+    let doc: serde_json::Value = serde_json::from_slice(&std::fs::read(&out)?)?;
+    assert_eq!(doc["topology"]["boundary_edges"], json!(3));
+    let listed = doc["topology"]["boundary"].as_array().context("boundary")?;
+    // (Listed by coordinates too: the reader renumbers the welded vertices.)
+    let corners: Vec<[f64; 3]> =
+        gone.iter().map(|&i| [v[i as usize].x, v[i as usize].y, v[i as usize].z]).collect();
+    let is_corner = |p: &serde_json::Value| -> bool {
+        corners.iter().any(|c| (0..3).all(|k| p[k].as_f64().is_some_and(|x| (x - c[k]).abs() < 1e-9)))
+    };
+    assert_eq!(listed.len(), 3);
+    assert!(listed.iter().all(|e| is_corner(&e["from_mm"]) && is_corner(&e["to_mm"])), "{listed:?}");
+    let chains: usize = doc["layers"]
+        .as_array()
+        .context("layers")?
+        .iter()
+        .map(|l| l["open"].as_array().map_or(0, Vec::len))
+        .sum();
+    assert!(chains > 0, "{doc}");
+
+    // Bad calls: one line naming what is wrong, exit 1, nothing written.
+    let none = dir.path().join("none.json");
+    let (code, _, stderr) =
+        depthmill(&["slice", &closed, "--step-mm", "-1", "-o", &none.display().to_string()])?;
+    assert_eq!(code, 1);
+    assert!(stderr.contains("--step-mm -1: must be a positive number"), "{stderr}");
+    let (code, _, stderr) =
+        depthmill(&["slice", &closed, "--from-mm", "50", "-o", &none.display().to_string()])?;
+    assert_eq!(code, 1);
+    assert!(stderr.contains("above the mesh's highest point"), "{stderr}");
+    assert!(!none.exists());
+    Ok(())
+}

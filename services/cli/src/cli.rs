@@ -2,7 +2,7 @@
 //! `status`, `watch`, `fetch`) and the offline tools. The binary is [`main_from`] on the process's
 //! arguments; tests run it in processes of their own.
 
-use crate::{cam, client, demo, machine, raster, scan, token};
+use crate::{cam, client, demo, machine, raster, scan, slice, token};
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -149,6 +149,18 @@ enum Command {
         #[arg(short, long)]
         output: PathBuf,
     },
+    /// Slice a mesh (STL/PLY) into planar layers (no server).
+    ///
+    /// Writes OUTPUT (JSON): the mesh's edge check (open, non-manifold and misoriented edges)
+    /// and every layer's closed contours (counter-clockwise outer boundaries, clockwise holes,
+    /// their nesting), open chains and defects.
+    Slice {
+        mesh: PathBuf,
+        #[command(flatten)]
+        args: slice::SliceArgs,
+        #[arg(short, long)]
+        output: PathBuf,
+    },
     /// The whole product on the sample part: starts the embedded stack, scans, reconstructs,
     /// plans, machines and reports, then writes everything to OUTPUT.
     Demo {
@@ -286,6 +298,10 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             Command::Scan { mesh, args, output } => {
                 depthmill_common::telemetry::init_tracing_with_default(cli.log_json, "warn");
                 scan::run(&mesh, &args, &output).await
+            }
+            Command::Slice { mesh, args, output } => {
+                depthmill_common::telemetry::init_tracing(cli.log_json);
+                tokio::task::block_in_place(|| slice::run(&mesh, &args, &output))
             }
             Command::Raster { input, args, output } => {
                 depthmill_common::telemetry::init_tracing(cli.log_json);

@@ -10,4 +10,5 @@ mod machine;
 pub mod out;
 mod raster;
 mod scan;
+mod slice;
 mod token;

@@ -1,0 +1,118 @@
+//! `depthmill slice`: a mesh's planar sections on local files, no server.
+
+use std::io::Write as _;
+use std::path::Path;
+
+use anyhow::{Context as _, bail};
+use depthmill_cam::domain::slice::{ContourKind, MAX_LAYERS, slice, topology};
+use depthmill_geometry::formats::{ReadLimits, read_mesh};
+
+/// Options of `depthmill slice` besides the input and output.
+#[derive(clap::Args, Clone)]
+pub struct SliceArgs {
+    /// Distance between layers, mm.
+    #[arg(long, default_value_t = 1.0, allow_hyphen_values = true)]
+    pub step_mm: f64,
+    /// Height of the first layer, mm (default: half a step above the mesh's lowest point).
+    #[arg(long, allow_hyphen_values = true)]
+    pub from_mm: Option<f64>,
+    /// Length unit of the mesh: mm (default), m or in. The layers are in millimetres.
+    #[arg(long, default_value = "mm")]
+    pub units: String,
+}
+
+/// Edges listed per kind in the output (the counts are complete).
+const LISTED_EDGES: usize = 100;
+
+/// `depthmill slice`: writes OUTPUT (JSON: the mesh's topology check and every layer's
+/// contours, open chains and defects) and prints a summary.
+pub fn run(input: &Path, args: &SliceArgs, output: &Path) -> anyhow::Result<()> {
+    let scale = match args.units.as_str() {
+        "mm" => 1.0,
+        "m" => 1000.0,
+        "in" => 25.4,
+        other => bail!("--units {other}: expected mm, m or in"),
+    };
+    let (mut mesh, _) =
+        read_mesh(input, &ReadLimits::default()).with_context(|| format!("reading {}", input.display()))?;
+    if mesh.triangles.is_empty() {
+        bail!("{}: the mesh has no triangles", input.display());
+    }
+    for p in &mut mesh.vertices {
+        p.coords *= scale;
+    }
+    let (zmin, zmax) =
+        mesh.vertices.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), p| (a.min(p.z), b.max(p.z)));
+    let step = args.step_mm;
+    if !(step.is_finite() && step > 0.0) {
+        bail!("--step-mm {step}: must be a positive number of millimetres");
+    }
+    let from = args.from_mm.unwrap_or(zmin + 0.5 * step);
+    if !from.is_finite() {
+        bail!("--from-mm {from}: must be finite");
+    }
+    let count = ((zmax - from) / step).floor() + 1.0;
+    if count < 1.0 {
+        bail!("--from-mm {from}: above the mesh's highest point {zmax:.4} mm: no layer cuts it");
+    }
+    if count > MAX_LAYERS as f64 {
+        bail!(
+            "{count:.0} layers from {from} mm to {zmax:.4} mm at {step} mm: more than {MAX_LAYERS}; take a larger --step-mm"
+        );
+    }
+    let levels: Vec<f64> = (0..count as usize).map(|i| from + i as f64 * step).collect();
+    let topo = topology(&mesh);
+    let layers = slice(&mesh, &levels)?;
+    let contours: usize = layers.iter().map(|l| l.contours.len()).sum();
+    let holes: usize =
+        layers.iter().flat_map(|l| &l.contours).filter(|c| c.kind == ContourKind::Hole).count();
+    let open: usize = layers.iter().map(|l| l.open.len()).sum();
+    let defects: usize = layers.iter().map(|l| l.defects.len()).sum();
+    let list = |edges: &[(u32, u32)]| -> serde_json::Value {
+        edges
+            .iter()
+            .take(LISTED_EDGES)
+            .map(|&(a, b)| {
+                let (p, q) = (&mesh.vertices[a as usize], &mesh.vertices[b as usize]);
+                serde_json::json!({"vertices": [a, b], "from_mm": [p.x, p.y, p.z], "to_mm": [q.x, q.y, q.z]})
+            })
+            .collect()
+    };
+    let doc = serde_json::json!({
+        "input": input.display().to_string(),
+        "triangles": mesh.triangles.len(),
+        "vertices": mesh.vertices.len(),
+        "z_range_mm": [zmin, zmax],
+        "topology": {
+            "closed_manifold": topo.is_closed_manifold(),
+            "boundary_edges": topo.boundary.len(),
+            "non_manifold_edges": topo.non_manifold.len(),
+            "misoriented_edges": topo.misoriented.len(),
+            "boundary": list(&topo.boundary),
+            "non_manifold": list(&topo.non_manifold),
+            "misoriented": list(&topo.misoriented),
+        },
+        "layers": layers,
+    });
+    let mut w = std::io::BufWriter::new(
+        std::fs::File::create(output).with_context(|| format!("creating {}", output.display()))?,
+    );
+    serde_json::to_writer(&mut w, &doc)?;
+    w.flush().with_context(|| format!("writing {}", output.display()))?;
+    crate::outln!(
+        "{} layers from {from:.4} to {:.4} mm every {step} mm: {contours} contours ({holes} holes), {open} open chains, {defects} defects",
+        levels.len(),
+        levels.last().copied().unwrap_or(from)
+    );
+    if !topo.is_closed_manifold() {
+        crate::outln!(
+            "mesh: {} boundary edges (open), {} non-manifold, {} misoriented (listed in {})",
+            topo.boundary.len(),
+            topo.non_manifold.len(),
+            topo.misoriented.len(),
+            output.display()
+        );
+    }
+    crate::outln!("written {}", output.display());
+    Ok(())
+}
