@@ -6,7 +6,8 @@
 //! segments with arcs ([`cleanup`]) -> G-code ([`gcode`]); [`holder`] checks the tool holder,
 //! [`feeds`] picks feeds and speeds and estimates time, [`preview`] sweeps the program over the
 //! stock to measure gouge and leftover, [`plan`] runs it all. [`slice`] cuts a mesh into planar
-//! layers (contours, holes, islands) for layer-by-layer milling.
+//! layers (contours, holes, islands) for layer-by-layer milling, [`layer_passes`] the rings that
+//! cut a layer from the stock in to the part.
 
 pub mod cleanup;
 pub mod compensate;
@@ -16,6 +17,7 @@ pub mod feeds;
 pub mod finishing;
 pub mod gcode;
 pub mod holder;
+pub mod layer_passes;
 pub mod path;
 pub mod plan;
 pub mod preview;
