@@ -196,6 +196,24 @@ async fn slicing_a_mesh_writes_its_layers_and_names_what_is_wrong() -> anyhow::R
         .sum();
     assert!((area - 300.0).abs() < 1e-9, "{area}");
 
+    // Rings for a tool: the cavity (10 mm) takes a 6 mm tool, a 12 mm one is reported.
+    let (code, stdout, stderr) =
+        depthmill(&["slice", &closed, "--step-mm", "2", "--tool", "flat-6", "-o", &out])?;
+    assert_eq!(code, 0, "{stdout}{stderr}");
+    assert!(stdout.contains("flat-6: ") && !stdout.contains("not cut"), "{stdout}");
+    let doc: serde_json::Value = serde_json::from_slice(&std::fs::read(&out)?)?;
+    let rings = doc["passes"]["layers"][2]["rings"].as_array().context("rings")?;
+    // Out to the stock's corners 5 mm beyond the part, then the finishing ring 3 mm off it.
+    assert!(rings.len() >= 2, "{rings:?}");
+    assert_eq!(rings.last().context("ring")?["offset_mm"], json!(3.0));
+    let (code, stdout, stderr) =
+        depthmill(&["slice", &closed, "--step-mm", "2", "--tool", "flat-12", "-o", &out])?;
+    assert_eq!(code, 0, "{stdout}{stderr}");
+    assert!(stdout.contains("3 holes narrower than the tool are not cut"), "{stdout}");
+    let (code, _, stderr) = depthmill(&["slice", &closed, "--tool", "spoon-3", "-o", &out])?;
+    assert_eq!(code, 1);
+    assert!(stderr.contains("--tool spoon-3"), "{stderr}");
+
     // An open mesh: the edges are listed and the layer through the gap has an open chain.
     let mut open = t.clone();
     let gone = open.remove(4); // a -y wall triangle of the block

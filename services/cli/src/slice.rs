@@ -4,6 +4,7 @@ use std::io::Write as _;
 use std::path::Path;
 
 use anyhow::{Context as _, bail};
+use depthmill_cam::domain::layer_passes::{PassOptions, layer_passes};
 use depthmill_cam::domain::slice::{ContourKind, MAX_LAYERS, slice, topology};
 use depthmill_geometry::formats::{ReadLimits, read_mesh};
 
@@ -19,6 +20,15 @@ pub struct SliceArgs {
     /// Length unit of the mesh: mm (default), m or in. The layers are in millimetres.
     #[arg(long, default_value = "mm")]
     pub units: String,
+    /// Also plan each layer's rings for this tool (e.g. flat-6): from the stock in to the part.
+    #[arg(long)]
+    pub tool: Option<String>,
+    /// Radial depth of cut between rings, mm (default: half the tool's diameter).
+    #[arg(long)]
+    pub radial_depth_mm: Option<f64>,
+    /// Stock around the part in X and Y, mm (the stock is the part's box grown by it).
+    #[arg(long, default_value_t = 5.0)]
+    pub stock_margin_mm: f64,
 }
 
 /// Edges listed per kind in the output (the counts are complete).
@@ -68,6 +78,56 @@ pub fn run(input: &Path, args: &SliceArgs, output: &Path) -> anyhow::Result<()> 
         layers.iter().flat_map(|l| &l.contours).filter(|c| c.kind == ContourKind::Hole).count();
     let open: usize = layers.iter().map(|l| l.open.len()).sum();
     let defects: usize = layers.iter().map(|l| l.defects.len()).sum();
+    let passes = match &args.tool {
+        None => None,
+        Some(spec) => {
+            let tool: depthmill_geometry::ToolProfile =
+                spec.parse().map_err(|e| anyhow::anyhow!("--tool {spec}: {e}"))?;
+            let r = tool.radius_mm();
+            let m = args.stock_margin_mm;
+            if !(m.is_finite() && m >= 0.0) {
+                bail!("--stock-margin-mm {m}: must be a non-negative number of millimetres");
+            }
+            let (lo, hi) =
+                mesh.vertices.iter().fold(([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]), |(lo, hi), p| {
+                    ([lo[0].min(p.x), lo[1].min(p.y)], [hi[0].max(p.x), hi[1].max(p.y)])
+                });
+            let o = PassOptions {
+                tool_radius_mm: r,
+                radial_depth_mm: args.radial_depth_mm.unwrap_or(r),
+                arc_tolerance_mm: (0.01f64).min(0.1 * r),
+                stock: [lo[0] - m, lo[1] - m, hi[0] + m, hi[1] + m],
+            };
+            let planned = layers
+                .iter()
+                .map(|l| layer_passes(l, &o))
+                .collect::<Result<Vec<_>, _>>()
+                .map_err(|e| anyhow::anyhow!("layer passes: {e}"))?;
+            let rings: usize = planned.iter().map(|p| p.rings.len()).sum();
+            let unreached: Vec<String> = planned
+                .iter()
+                .flat_map(|p| {
+                    p.unreached.iter().map(move |u| {
+                        format!("z {:.3} at ({:.3}, {:.3}), {:.3} mm²", p.z_mm, u.at[0], u.at[1], u.area_mm2)
+                    })
+                })
+                .collect();
+            crate::outln!(
+                "{spec}: {rings} rings over {} layers, radial depth {} mm, stock {:?}",
+                planned.len(),
+                o.radial_depth_mm,
+                o.stock
+            );
+            if !unreached.is_empty() {
+                crate::outln!(
+                    "{} holes narrower than the tool are not cut: {}",
+                    unreached.len(),
+                    unreached.iter().take(5).cloned().collect::<Vec<_>>().join("; ")
+                );
+            }
+            Some(serde_json::json!({"tool": spec, "options": o, "layers": planned}))
+        }
+    };
     let list = |edges: &[(u32, u32)]| -> serde_json::Value {
         edges
             .iter()
@@ -93,6 +153,7 @@ pub fn run(input: &Path, args: &SliceArgs, output: &Path) -> anyhow::Result<()> 
             "misoriented": list(&topo.misoriented),
         },
         "layers": layers,
+        "passes": passes,
     });
     let mut w = std::io::BufWriter::new(
         std::fs::File::create(output).with_context(|| format!("creating {}", output.display()))?,
