@@ -175,8 +175,7 @@ pub async fn run_scan<S: AsyncRead + AsyncWrite + Unpin>(
     table.set_accel(TABLE_ACCEL_DEG_S2).await.map_err(terr)?;
     let adaptive = session.options().adaptive_rescan;
     let first_span = if adaptive { (0.0, 0.75) } else { (0.0, 1.0) };
-    // The table goes on to the rescan's first angle while the last station is simulated and
-    // the coverage computed.
+    // The table goes on to the rescan's first angle while the last station is simulated.
     let then = adaptive
         .then(|| session.rescan_angles(plan.stations.last().map(|s| s.table_deg)).first().copied())
         .flatten();

@@ -741,7 +741,7 @@ impl ScanSession {
     /// The table angles a rescan visits, in order, when the first scan ended at `last`: each
     /// first-scan angle turned by 45°, one turn of the table starting from the angle nearest
     /// `last`. They do not depend on the holes, so the table can be on its way to the first
-    /// while the coverage is computed.
+    /// while the first scan's last station is still being simulated.
     pub fn rescan_angles(&self, last: Option<f64>) -> Vec<f64> {
         let mut angles: Vec<f64> = Vec::new();
         let first: Vec<f64> = match &self.opts.passes {
