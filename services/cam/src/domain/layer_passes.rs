@@ -264,6 +264,188 @@ pub fn layer_passes(layer: &Layer, o: &PassOptions) -> Result<LayerPasses, PassE
     Ok(LayerPasses { z_mm: layer.z_mm, rings, unreached })
 }
 
+/// How a move of a layer program runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MoveKind {
+    /// Cutting (a ring) or a link through cleared material or air at feed.
+    Feed,
+    /// Up to the clearance height, across above everything, and back down (retract and re-enter).
+    Rapid,
+}
+
+/// One straight move of a layer program, to `to` (mm).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct PathMove {
+    pub to: [f64; 3],
+    pub kind: MoveKind,
+}
+
+/// A layer program and how its pieces were joined.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct LayerProgram {
+    pub moves: Vec<PathMove>,
+    /// Links run at feed: within a layer clear of the part (a step in to the next ring cuts at
+    /// most the radial depth, as the rings do), or across cleared material and down in the air
+    /// beside the stock to the next layer.
+    pub feed_links: usize,
+    /// Links that retract to the clearance height and re-enter.
+    pub retracts: usize,
+}
+
+/// Shortest distance between segments `a`-`b` and `c`-`d`.
+fn segment_distance(a: [f64; 2], b: [f64; 2], c: [f64; 2], d: [f64; 2]) -> f64 {
+    let cross =
+        |o: [f64; 2], p: [f64; 2], q: [f64; 2]| (p[0] - o[0]) * (q[1] - o[1]) - (p[1] - o[1]) * (q[0] - o[0]);
+    let (d1, d2, d3, d4) = (cross(c, d, a), cross(c, d, b), cross(a, b, c), cross(a, b, d));
+    if ((d1 > 0.0 && d2 < 0.0) || (d1 < 0.0 && d2 > 0.0))
+        && ((d3 > 0.0 && d4 < 0.0) || (d3 < 0.0 && d4 > 0.0))
+    {
+        return 0.0;
+    }
+    let point_seg = |p: [f64; 2], s0: [f64; 2], s1: [f64; 2]| {
+        let (dx, dy) = (s1[0] - s0[0], s1[1] - s0[1]);
+        let l2 = dx * dx + dy * dy;
+        let t =
+            if l2 > 0.0 { (((p[0] - s0[0]) * dx + (p[1] - s0[1]) * dy) / l2).clamp(0.0, 1.0) } else { 0.0 };
+        (p[0] - s0[0] - t * dx).hypot(p[1] - s0[1] - t * dy)
+    };
+    point_seg(a, c, d).min(point_seg(b, c, d)).min(point_seg(c, a, b)).min(point_seg(d, a, b))
+}
+
+/// Whether the tool centre can go straight from `a` to `b` in the layer without coming nearer
+/// than `clear` to the part's section (so it never cuts the part).
+fn clear_of(part: &[Vec<[f64; 2]>], a: [f64; 2], b: [f64; 2], clear: f64) -> bool {
+    part.iter().all(|c| (0..c.len()).all(|i| segment_distance(a, b, c[i], c[(i + 1) % c.len()]) >= clear))
+}
+
+/// Joins the layers' rings into one program, top layer first, each layer from its outermost
+/// ring in to its finishing ring. `parts[i]` is layer `i`'s section (its contours), `layers[i]`
+/// its rings (heights decreasing). Between two cuts of a layer the tool goes straight at feed
+/// when the link keeps at least `r - tol` from the part (outside the ring just cut everything is
+/// cut away or air; a step in to the next ring cuts no more than the radial depth), and
+/// otherwise retracts to `clear_z_mm` and re-enters. Down to the next layer it moves across at the height it is at, then down
+/// beside the next layer's first cut, when that start is off the stock (in the air) and the way
+/// across keeps clear of this layer's part; else it retracts. A closed loop starts at its vertex
+/// nearest the tool; an open piece from its nearer end.
+///
+/// Errors: layers and sections of different counts, heights not decreasing, a clearance height
+/// not above every layer.
+pub fn link_layers(
+    parts: &[Vec<Vec<[f64; 2]>>],
+    layers: &[LayerPasses],
+    o: &PassOptions,
+    clear_z_mm: f64,
+) -> Result<LayerProgram, PassError> {
+    if parts.len() != layers.len() {
+        return Err(invalid("layers", layers.len() as f64, format!("{} sections given", parts.len())));
+    }
+    if let Some(w) = layers.windows(2).find(|w| w[1].z_mm >= w[0].z_mm) {
+        return Err(invalid("z_mm", w[1].z_mm, format!("must be below the layer before it ({})", w[0].z_mm)));
+    }
+    if let Some(top) = layers.first()
+        && !(clear_z_mm.is_finite() && clear_z_mm > top.z_mm)
+    {
+        return Err(invalid("clear_z_mm", clear_z_mm, format!("must be above the top layer ({})", top.z_mm)));
+    }
+    let r = o.tool_radius_mm;
+    let clear = r - o.arc_tolerance_mm - 1e-9;
+    let s = o.stock;
+    let in_air = |p: [f64; 2]| p[0] < s[0] - r || p[0] > s[2] + r || p[1] < s[1] - r || p[1] > s[3] + r;
+    let on_border = |p: [f64; 2]| {
+        p[0] <= s[0] - r + 1e-9
+            || p[0] >= s[2] + r - 1e-9
+            || p[1] <= s[1] - r + 1e-9
+            || p[1] >= s[3] + r - 1e-9
+    };
+    let mut prog = LayerProgram::default();
+    let mut at: Option<[f64; 3]> = None;
+    let retract = |prog: &mut LayerProgram, at: [f64; 3], to: [f64; 3]| {
+        prog.moves.push(PathMove { to: [at[0], at[1], clear_z_mm], kind: MoveKind::Rapid });
+        prog.moves.push(PathMove { to: [to[0], to[1], clear_z_mm], kind: MoveKind::Rapid });
+        prog.moves.push(PathMove { to, kind: MoveKind::Rapid });
+        prog.retracts += 1;
+    };
+    for (part, layer) in parts.iter().zip(layers) {
+        let z = layer.z_mm;
+        for ring in &layer.rings {
+            // Every cut of the ring, the nearest next.
+            let mut todo: Vec<(bool, &Vec<[f64; 2]>)> =
+                ring.loops.iter().map(|l| (true, l)).chain(ring.pieces.iter().map(|p| (false, p))).collect();
+            while !todo.is_empty() {
+                let here = at.map_or([0.0, 0.0], |p| [p[0], p[1]]);
+                let d2 = |q: [f64; 2]| (q[0] - here[0]).powi(2) + (q[1] - here[1]).powi(2);
+                let (k, start) = todo
+                    .iter()
+                    .enumerate()
+                    .map(|(k, (closed, pts))| {
+                        let best = if *closed {
+                            (0..pts.len()).min_by(|&i, &j| d2(pts[i]).total_cmp(&d2(pts[j]))).unwrap_or(0)
+                        } else if d2(pts[pts.len() - 1]) < d2(pts[0]) {
+                            pts.len() - 1
+                        } else {
+                            0
+                        };
+                        (k, best, d2(pts[best]))
+                    })
+                    .min_by(|a, b| a.2.total_cmp(&b.2))
+                    .map(|(k, best, _)| (k, best))
+                    .unwrap_or((0, 0));
+                let (closed, pts) = todo.swap_remove(k);
+                let order: Vec<[f64; 2]> = if closed {
+                    (0..=pts.len()).map(|i| pts[(start + i) % pts.len()]).collect()
+                } else if start == 0 {
+                    pts.clone()
+                } else {
+                    pts.iter().rev().copied().collect()
+                };
+                let first = [order[0][0], order[0][1], z];
+                match at {
+                    None => {
+                        prog.moves
+                            .push(PathMove { to: [first[0], first[1], clear_z_mm], kind: MoveKind::Rapid });
+                        prog.moves.push(PathMove { to: first, kind: MoveKind::Rapid });
+                    }
+                    Some(p) if (p[2] - z).abs() < 1e-12 => {
+                        if clear_of(part, [p[0], p[1]], order[0], clear) {
+                            prog.moves.push(PathMove { to: first, kind: MoveKind::Feed });
+                            prog.feed_links += 1;
+                        } else {
+                            retract(&mut prog, p, first);
+                        }
+                    }
+                    Some(p) => {
+                        // Down a layer: across at the height above (cleared there), then down
+                        // in the air beside the stock.
+                        let prev_part = parts
+                            .iter()
+                            .zip(layers)
+                            .find(|(_, l)| (l.z_mm - p[2]).abs() < 1e-12)
+                            .map_or(part, |(pp, _)| pp);
+                        let outside = in_air(order[0]) || on_border(order[0]);
+                        if outside && clear_of(prev_part, [p[0], p[1]], order[0], clear) {
+                            prog.moves
+                                .push(PathMove { to: [first[0], first[1], p[2]], kind: MoveKind::Feed });
+                            prog.moves.push(PathMove { to: first, kind: MoveKind::Feed });
+                            prog.feed_links += 1;
+                        } else {
+                            retract(&mut prog, p, first);
+                        }
+                    }
+                }
+                for q in &order[1..] {
+                    prog.moves.push(PathMove { to: [q[0], q[1], z], kind: MoveKind::Feed });
+                }
+                at = order.last().map(|q| [q[0], q[1], z]);
+            }
+        }
+    }
+    if let Some(p) = at {
+        prog.moves.push(PathMove { to: [p[0], p[1], clear_z_mm], kind: MoveKind::Rapid });
+    }
+    Ok(prog)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -349,6 +531,68 @@ mod tests {
         assert!(layer_passes(&l, &opts(1.0, 1.0, [5.0, 0.0, 1.0, 10.0])).is_err());
         let e = layer_passes(&l, &opts(1.0, 1e-6, [-1e6, -1e6, 1e6, 1e6])).expect_err("rings");
         assert!(e.to_string().contains("more than 10000"), "{e}");
+    }
+
+    /// Every feed move of `prog` at a layer's height keeps `r - tol` from that layer's part.
+    fn feeds_clear(parts: &[Vec<Vec<[f64; 2]>>], zs: &[f64], prog: &LayerProgram, clear: f64) -> bool {
+        let mut from: Option<[f64; 3]> = None;
+        for m in &prog.moves {
+            if let (Some(a), MoveKind::Feed) = (from, m.kind)
+                && (a[2] - m.to[2]).abs() < 1e-12
+            {
+                let k = zs.iter().position(|z| (z - a[2]).abs() < 1e-12).expect("a layer's height");
+                if !clear_of(&parts[k], [a[0], a[1]], [m.to[0], m.to[1]], clear) {
+                    return false;
+                }
+            }
+            from = Some(m.to);
+        }
+        true
+    }
+
+    #[test]
+    fn layers_link_through_cleared_material_and_retract_where_the_part_is_in_the_way() {
+        // A square post: every layer starts in the air at the stock's border, so each layer
+        // links down beside the stock without retracting.
+        let post = vec![square(0.0, 0.0, 10.0, true)];
+        let o = opts(1.0, 1.5, [-6.0, -6.0, 16.0, 16.0]);
+        let zs = [9.0, 6.0, 3.0];
+        let layers: Vec<LayerPasses> = zs
+            .iter()
+            .map(|&z| layer_passes(&Layer { z_mm: z, ..layer(post.clone()) }, &o).expect("passes"))
+            .collect();
+        let parts = vec![post.clone(); 3];
+        let prog = link_layers(&parts, &layers, &o, 20.0).expect("program");
+        assert_eq!(prog.retracts, 0, "{prog:?}");
+        assert!(prog.feed_links > 0);
+        assert!(feeds_clear(&parts, &zs, &prog, 1.0 - 0.005 - 1e-9));
+        // The program ends up at the clearance height and visits every layer.
+        assert_eq!(prog.moves.last().map(|m| m.to[2]), Some(20.0));
+        for z in zs {
+            assert!(prog.moves.iter().any(|m| m.to[2] == z));
+        }
+
+        // Two posts side by side a little more than a tool apart: the rings wrap both, some
+        // links between them would cross a post and retract instead.
+        let two = vec![square(0.0, 0.0, 10.0, true), square(12.5, 0.0, 10.0, true)];
+        let o = opts(1.0, 1.0, [-3.0, -3.0, 25.5, 13.0]);
+        let l = layer_passes(&Layer { z_mm: 5.0, ..layer(two.clone()) }, &o).expect("passes");
+        let prog =
+            link_layers(std::slice::from_ref(&two), std::slice::from_ref(&l), &o, 20.0).expect("program");
+        assert!(feeds_clear(std::slice::from_ref(&two), &[5.0], &prog, 1.0 - 0.005 - 1e-9));
+        assert!(prog.retracts > 0, "{} links, {} retracts", prog.feed_links, prog.retracts);
+
+        // Bad calls.
+        assert!(link_layers(&parts[..2], &layers, &o, 20.0).is_err());
+        assert!(
+            link_layers(&parts, &layers, &o, 5.0)
+                .expect_err("clearance")
+                .to_string()
+                .contains("clear_z_mm 5")
+        );
+        let mut up = layers.clone();
+        up.reverse();
+        assert!(link_layers(&parts, &up, &o, 20.0).is_err());
     }
 
     proptest! {
