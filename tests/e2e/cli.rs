@@ -206,6 +206,19 @@ async fn slicing_a_mesh_writes_its_layers_and_names_what_is_wrong() -> anyhow::R
     // Out to the stock's corners 5 mm beyond the part, then the finishing ring 3 mm off it.
     assert!(rings.len() >= 2, "{rings:?}");
     assert_eq!(rings.last().context("ring")?["offset_mm"], json!(3.0));
+    // The layers' program as G-code: LinuxCNC-style, the tool in the header, and the machine
+    // service's interpreter takes it within the mill's travel.
+    let ngc = dir.path().join("box.ngc").display().to_string();
+    let (code, stdout, stderr) =
+        depthmill(&["slice", &closed, "--step-mm", "2", "--tool", "flat-6", "--gcode", &ngc, "-o", &out])?;
+    assert_eq!(code, 0, "{stdout}{stderr}");
+    assert!(stdout.contains("program: ") && stdout.contains("feed links"), "{stdout}");
+    let text = std::fs::read_to_string(&ngc)?;
+    assert!(
+        text.contains("(T1 flat-6: flat D6.0000 mm, 2 flutes - layers)") && text.trim_end().ends_with('%')
+    );
+    let (code, stdout, stderr) = depthmill(&["check", &ngc])?;
+    assert_eq!(code, 0, "{stdout}{stderr}");
     let (code, stdout, stderr) =
         depthmill(&["slice", &closed, "--step-mm", "2", "--tool", "flat-12", "-o", &out])?;
     assert_eq!(code, 0, "{stdout}{stderr}");

@@ -4,7 +4,7 @@ use std::io::Write as _;
 use std::path::Path;
 
 use anyhow::{Context as _, bail};
-use depthmill_cam::domain::layer_passes::{PassOptions, layer_passes};
+use depthmill_cam::domain::layer_passes::{LayerProgram, MoveKind, PassOptions, layer_passes, link_layers};
 use depthmill_cam::domain::slice::{ContourKind, MAX_LAYERS, slice, topology};
 use depthmill_geometry::formats::{ReadLimits, read_mesh};
 
@@ -29,6 +29,63 @@ pub struct SliceArgs {
     /// Stock around the part in X and Y, mm (the stock is the part's box grown by it).
     #[arg(long, default_value_t = 5.0)]
     pub stock_margin_mm: f64,
+    /// With --tool: write the layers' program as G-code (LinuxCNC dialect, the tool in T1),
+    /// top layer first, rings joined by `link_layers`.
+    #[arg(long)]
+    pub gcode: Option<std::path::PathBuf>,
+    /// Feed of the program, mm/min.
+    #[arg(long, default_value_t = 150.0)]
+    pub feed_mm_min: f64,
+    /// Spindle speed of the program, rpm.
+    #[arg(long, default_value_t = 1500.0)]
+    pub rpm: f64,
+}
+
+/// The layer program as G-code for a 3-axis mill: the tool in T1 (named in the header the way
+/// the machine service reads it), absolute millimetres, rapids as G0 and cuts and links as G1.
+fn gcode(
+    program: &LayerProgram,
+    tool: &str,
+    diameter: f64,
+    feed: f64,
+    rpm: f64,
+    clear_z: f64,
+    input: &Path,
+) -> anyhow::Result<String> {
+    if !(feed.is_finite() && feed > 0.0) {
+        bail!("--feed-mm-min {feed}: must be a positive feed");
+    }
+    if !(rpm.is_finite() && rpm > 0.0) {
+        bail!("--rpm {rpm}: must be a positive speed");
+    }
+    use std::fmt::Write as _;
+    let mut g = String::new();
+    let name = input.file_name().map_or(String::new(), |n| n.to_string_lossy().replace(['(', ')'], ""));
+    writeln!(g, "%")?;
+    writeln!(g, "(depthmill layer program: {name})")?;
+    writeln!(g, "G21 G90 G17 G94 G40 G49 G80")?;
+    writeln!(g, "(T1 {tool}: flat D{diameter:.4} mm, 2 flutes - layers)")?;
+    writeln!(g, "T1 M6")?;
+    writeln!(g, "S{rpm:.0} M3")?;
+    writeln!(g, "G43 H1")?;
+    writeln!(g, "G0 Z{clear_z:.4}")?;
+    let mut feed_set = false;
+    for m in &program.moves {
+        let [x, y, z] = m.to;
+        match m.kind {
+            MoveKind::Rapid => writeln!(g, "G0 X{x:.4} Y{y:.4} Z{z:.4}")?,
+            MoveKind::Feed if !feed_set => {
+                writeln!(g, "G1 X{x:.4} Y{y:.4} Z{z:.4} F{feed:.1}")?;
+                feed_set = true;
+            }
+            MoveKind::Feed => writeln!(g, "G1 X{x:.4} Y{y:.4} Z{z:.4}")?,
+        }
+    }
+    writeln!(g, "M5")?;
+    writeln!(g, "G53 G0 Z0")?;
+    writeln!(g, "M30")?;
+    writeln!(g, "%")?;
+    Ok(g)
 }
 
 /// Edges listed per kind in the output (the counts are complete).
@@ -125,7 +182,30 @@ pub fn run(input: &Path, args: &SliceArgs, output: &Path) -> anyhow::Result<()> 
                     unreached.iter().take(5).cloned().collect::<Vec<_>>().join("; ")
                 );
             }
-            Some(serde_json::json!({"tool": spec, "options": o, "layers": planned}))
+            // Top layer first.
+            let parts: Vec<Vec<Vec<[f64; 2]>>> =
+                layers.iter().rev().map(|l| l.contours.iter().map(|c| c.points.clone()).collect()).collect();
+            let top_down: Vec<_> = planned.iter().rev().cloned().collect();
+            let clear_z = zmax + 5.0;
+            let program = link_layers(&parts, &top_down, &o, clear_z)
+                .map_err(|e| anyhow::anyhow!("linking the layers: {e}"))?;
+            crate::outln!(
+                "program: {} moves, {} feed links, {} retracts to Z {clear_z:.3}",
+                program.moves.len(),
+                program.feed_links,
+                program.retracts
+            );
+            if let Some(path) = &args.gcode {
+                let text = gcode(&program, spec, 2.0 * r, args.feed_mm_min, args.rpm, clear_z, input)?;
+                std::fs::write(path, text).with_context(|| format!("writing {}", path.display()))?;
+                crate::outln!("written {}", path.display());
+            }
+            Some(serde_json::json!({
+                "tool": spec,
+                "options": o,
+                "layers": planned,
+                "program": {"moves": program.moves.len(), "feed_links": program.feed_links, "retracts": program.retracts},
+            }))
         }
     };
     let list = |edges: &[(u32, u32)]| -> serde_json::Value {

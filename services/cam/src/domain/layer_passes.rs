@@ -270,7 +270,8 @@ pub fn layer_passes(layer: &Layer, o: &PassOptions) -> Result<LayerPasses, PassE
 pub enum MoveKind {
     /// Cutting (a ring) or a link through cleared material or air at feed.
     Feed,
-    /// Up to the clearance height, across above everything, and back down (retract and re-enter).
+    /// Up to the clearance height and across above everything (a retract; the way back down
+    /// is a feed move, as material may stand below).
     Rapid,
 }
 
@@ -324,7 +325,7 @@ fn clear_of(part: &[Vec<[f64; 2]>], a: [f64; 2], b: [f64; 2], clear: f64) -> boo
 /// its rings (heights decreasing). Between two cuts of a layer the tool goes straight at feed
 /// when the link keeps at least `r - tol` from the part (outside the ring just cut everything is
 /// cut away or air; a step in to the next ring cuts no more than the radial depth), and
-/// otherwise retracts to `clear_z_mm` and re-enters. Down to the next layer it moves across at the height it is at, then down
+/// otherwise retracts to `clear_z_mm` and re-enters (across at rapid, down at feed). Down to the next layer it moves across at the height it is at, then down
 /// beside the next layer's first cut, when that start is off the stock (in the air) and the way
 /// across keeps clear of this layer's part; else it retracts. A closed loop starts at its vertex
 /// nearest the tool; an open piece from its nearer end.
@@ -363,7 +364,8 @@ pub fn link_layers(
     let retract = |prog: &mut LayerProgram, at: [f64; 3], to: [f64; 3]| {
         prog.moves.push(PathMove { to: [at[0], at[1], clear_z_mm], kind: MoveKind::Rapid });
         prog.moves.push(PathMove { to: [to[0], to[1], clear_z_mm], kind: MoveKind::Rapid });
-        prog.moves.push(PathMove { to, kind: MoveKind::Rapid });
+        // Down at feed: below the clearance height there may be material not yet cut.
+        prog.moves.push(PathMove { to, kind: MoveKind::Feed });
         prog.retracts += 1;
     };
     for (part, layer) in parts.iter().zip(layers) {
@@ -404,7 +406,7 @@ pub fn link_layers(
                     None => {
                         prog.moves
                             .push(PathMove { to: [first[0], first[1], clear_z_mm], kind: MoveKind::Rapid });
-                        prog.moves.push(PathMove { to: first, kind: MoveKind::Rapid });
+                        prog.moves.push(PathMove { to: first, kind: MoveKind::Feed });
                     }
                     Some(p) if (p[2] - z).abs() < 1e-12 => {
                         if clear_of(part, [p[0], p[1]], order[0], clear) {
