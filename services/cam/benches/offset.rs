@@ -55,7 +55,7 @@ fn overlay(contours: &[Vec<[f64; 2]>], delta: f64) -> Vec<Vec<[f64; 2]>> {
     let style = OutlineStyle::new(delta).line_join(LineJoin::Round(angle));
     // One shape per contour (no holes here).
     let shapes: Vec<Vec<Vec<[f64; 2]>>> = contours.iter().map(|c| vec![c.clone()]).collect();
-    shapes.outline_as::<i64>(&style).into_iter().flatten().collect()
+    shapes.outline(&style).into_iter().flatten().collect()
 }
 
 fn dist_to_polygon(p: [f64; 2], poly: &[[f64; 2]]) -> f64 {

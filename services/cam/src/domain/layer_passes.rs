@@ -127,6 +127,12 @@ pub fn distance_to(contours: &[Vec<[f64; 2]>], q: [f64; 2]) -> f64 {
         .fold(f64::INFINITY, f64::min)
 }
 
+/// Whether `q` lies on the border of the rectangle `[x0, y0, x1, y1]` (to 1e-9 mm).
+fn on_rect_border(q: &[f64; 2], b: [f64; 4]) -> bool {
+    let near = |a: f64, c: f64| (a - c).abs() <= 1e-9;
+    near(q[0], b[0]) || near(q[0], b[2]) || near(q[1], b[1]) || near(q[1], b[3])
+}
+
 /// The pieces of the closed loop `ring` inside the rectangle `[x0, y0, x1, y1]`: the loop itself
 /// when it stays inside, else its open runs inside (segments clipped at the border).
 fn clip_loop(ring: &[[f64; 2]], b: [f64; 4]) -> (Option<Polyline2>, Vec<Polyline2>) {
@@ -212,26 +218,58 @@ pub fn layer_passes(layer: &Layer, o: &PassOptions) -> Result<LayerPasses, PassE
         return Err(invalid("stock", s[0], format!("{s:?}: need x_min < x_max and y_min < y_max, finite")));
     }
     let part: Vec<Vec<[f64; 2]>> = layer.contours.iter().map(|c| c.points.clone()).collect();
-    // The farthest stock corner from the part (a corner inside the part is 0 away).
-    let corners = [[s[0], s[1]], [s[2], s[1]], [s[2], s[3]], [s[0], s[3]]];
-    let far = corners
-        .iter()
-        .map(|&c| {
-            let inside = layer.contours.iter().filter(|k| contains(&k.points, c)).count() % 2 == 1;
-            if inside || part.is_empty() { 0.0 } else { distance_to(&part, c) }
-        })
-        .fold(0.0, f64::max);
-    let count = if part.is_empty() { 0.0 } else { ((far - 2.0 * r) / ae).ceil().max(0.0) };
-    if count >= MAX_RINGS as f64 {
+    // The fewest rings whose outermost one reaches all the stock: the region within `d_K + r`
+    // of the part must hold the whole rectangle (its corners inside, and none of its boundary
+    // inside the rectangle; the corners alone are not enough when the part is concave or has
+    // wide holes, whose middles may be farther than any corner).
+    let rect = [s[0], s[1], s[2], s[3]];
+    let covered = |reach: f64| -> bool {
+        let region = offset(&part, reach, tol);
+        let corners = [[s[0], s[1]], [s[2], s[1]], [s[2], s[3]], [s[0], s[3]]];
+        corners.iter().all(|&c| region.iter().filter(|k| contains(k, c)).count() % 2 == 1)
+            && region.iter().all(|k| {
+                let (whole, pieces) = clip_loop(k, rect);
+                whole.is_none() && pieces.iter().all(|p| p.iter().all(|q| on_rect_border(q, rect)))
+            })
+    };
+    // No point of the stock is farther from the part than its diagonal (when the part meets
+    // the stock at all): more rings than that needs are refused before offsetting anything.
+    let diagonal = (s[2] - s[0]).hypot(s[3] - s[1]);
+    if !part.is_empty() && (diagonal - 2.0 * r) / ae >= MAX_RINGS as f64 {
         return Err(invalid(
             "radial_depth_mm",
             ae,
-            format!("{count:.0} rings to reach the stock's corner {far:.3} mm away: more than {MAX_RINGS}"),
+            format!(
+                "up to {:.0} rings across the stock's {diagonal:.3} mm diagonal: more than {MAX_RINGS}",
+                (diagonal - 2.0 * r) / ae
+            ),
         ));
+    }
+    // Coverage grows with the reach: the smallest count by bisection.
+    let mut count = 0usize;
+    if !part.is_empty() && !covered(2.0 * r) {
+        let (mut lo, mut hi) = (0usize, ((diagonal - 2.0 * r) / ae).ceil().max(1.0) as usize);
+        if !covered(2.0 * r + hi as f64 * ae) {
+            return Err(invalid(
+                "stock",
+                s[0],
+                format!("{s:?}: the part's section at z {} does not meet the stock", layer.z_mm),
+            ));
+        }
+        // covered(lo) is false, covered(hi) true.
+        while hi - lo > 1 {
+            let mid = lo + (hi - lo) / 2;
+            if covered(2.0 * r + mid as f64 * ae) {
+                hi = mid;
+            } else {
+                lo = mid;
+            }
+        }
+        count = hi;
     }
     let grown = [s[0] - r, s[1] - r, s[2] + r, s[3] + r];
     let mut rings = Vec::new();
-    for k in (0..=count as usize).rev() {
+    for k in (0..=count).rev() {
         if part.is_empty() {
             break;
         }
@@ -503,6 +541,26 @@ mod tests {
             assert!(piece.iter().all(|q| q[0] >= -11.0 - 1e-9 && q[0] <= 21.0 + 1e-9));
         }
         assert!(p.unreached.is_empty());
+    }
+
+    #[test]
+    fn the_rings_reach_the_middle_of_a_wide_hole_farther_than_any_stock_corner() {
+        // A 40 mm square frame with a 30 mm square hole: the stock's corners are 2.8 mm from
+        // the part, the hole's middle 15 mm.
+        let l = layer(vec![square(0.0, 0.0, 40.0, true), square(5.0, 5.0, 30.0, false)]);
+        let p = layer_passes(&l, &opts(1.0, 1.5, [-2.0, -2.0, 42.0, 42.0])).expect("passes");
+        let reach = p.rings.first().expect("rings").offset_mm + 1.0;
+        assert!(reach >= 15.0, "the outermost ring reaches {reach} mm");
+        assert!(reach < 15.0 + 1.5 + 1e-9, "one ring more than needed: {reach}");
+        // Inside the hole the innermost ring of the middle is a small loop around the centre.
+        assert!(
+            p.rings[0]
+                .loops
+                .iter()
+                .chain(&p.rings[0].pieces)
+                .flatten()
+                .all(|q| { (q[0] - 20.0).abs() <= 15.0 && (q[1] - 20.0).abs() <= 15.0 })
+        );
     }
 
     #[test]
