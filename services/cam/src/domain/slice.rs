@@ -329,9 +329,56 @@ fn chain(h: f64, segs: Vec<Segment>) -> Layer {
             }
         }
     }
+    let open = join_open(h, open, &mut closed, &mut defects);
     cancel_opposite_pairs(&mut closed);
     let contours = nest(h, closed, &mut defects);
     Layer { z_mm: h, contours, open, defects }
+}
+
+/// Joins open chains whose ends meet at the same point (to 1e-9 mm and 1e-12 relative): the
+/// mark of a mesh whose reader dropped a zero-area triangle (its three collinear edges are then
+/// used once each) or that has a crack of no width. A chain that closes becomes a contour, with a
+/// [`Defect`] naming the edges it was closed across; chains whose ends meet nothing stay open.
+fn join_open(
+    h: f64,
+    mut chains: Vec<OpenChain>,
+    closed: &mut Vec<Vec<[f64; 2]>>,
+    defects: &mut Vec<Defect>,
+) -> Vec<OpenChain> {
+    let near = |p: [f64; 2], q: [f64; 2]| {
+        (p[0] - q[0]).hypot(p[1] - q[1]) <= 1e-9 + 1e-12 * p[0].abs().max(p[1].abs())
+    };
+    let first = |c: &OpenChain| c.points.first().copied().unwrap_or([f64::NAN; 2]);
+    let last = |c: &OpenChain| c.points.last().copied().unwrap_or([f64::NAN; 2]);
+    loop {
+        if let Some(i) = chains.iter().position(|c| c.points.len() >= 3 && near(last(c), first(c))) {
+            let c = chains.swap_remove(i);
+            let gap = (last(&c)[0] - first(&c)[0]).hypot(last(&c)[1] - first(&c)[1]);
+            defects.push(Defect {
+                z_mm: h,
+                edge: Some(c.end_edge),
+                at: first(&c),
+                message: format!(
+                    "closed across a gap of {gap:.1e} mm between edges {:?} and {:?}: a degenerate or missing triangle",
+                    c.end_edge, c.start_edge
+                ),
+            });
+            let mut pts = c.points;
+            pts.pop();
+            closed.push(without_spikes(pts));
+            continue;
+        }
+        let pair = (0..chains.len()).find_map(|i| {
+            (0..chains.len()).find(|&j| j != i && near(last(&chains[i]), first(&chains[j]))).map(|j| (i, j))
+        });
+        let Some((i, j)) = pair else { break };
+        let tail = chains[j].clone();
+        let head = &mut chains[i];
+        head.points.extend(tail.points.iter().skip(1).copied());
+        head.end_edge = tail.end_edge;
+        chains.remove(j);
+    }
+    chains
 }
 
 /// A closed contour without the back-and-forth steps a layer through a ridge or a knife edge
@@ -736,6 +783,28 @@ mod tests {
         assert_eq!(topology(&flipped).misoriented.len(), 3);
         let l = &slice(&flipped, &[0.5]).expect("slices")[0];
         assert!(!l.defects.is_empty() || !l.open.is_empty(), "{l:?}");
+    }
+
+    #[test]
+    fn a_crack_of_no_width_is_closed_and_reported() {
+        // A cube whose edge (0,0,0)-(0,0,10) is split at (0,0,5) on one face only: what a
+        // reader leaves after dropping the zero-area triangle that closed the seam.
+        let mut m = Mesh { vertices: Vec::new(), triangles: Vec::new() };
+        cuboid(&mut m, [0.0; 3], [10.0; 3], false);
+        m.vertices.push(Point3::new(0.0, 0.0, 5.0));
+        let k = m.triangles.iter().position(|t| *t == [0, 4, 6]).expect("the -x face's triangle");
+        m.triangles[k] = [0, 8, 6];
+        m.triangles.push([8, 4, 6]);
+        let topo = topology(&m);
+        assert_eq!(topo.boundary, vec![(0, 4), (0, 8), (4, 8)]);
+        for z in [3.0, 7.0] {
+            let l = &slice(&m, &[z]).expect("slices")[0];
+            assert!(l.open.is_empty(), "{l:?}");
+            assert_eq!(l.contours.len(), 1);
+            assert!((l.area_mm2() - 100.0).abs() < 1e-9);
+            assert_eq!(l.defects.len(), 1);
+            assert!(l.defects[0].message.starts_with("closed across a gap of 0.0e0 mm"), "{:?}", l.defects);
+        }
     }
 
     #[test]
