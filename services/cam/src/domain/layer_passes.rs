@@ -87,10 +87,26 @@ pub fn offset(contours: &[Vec<[f64; 2]>], d: f64, tol: f64) -> Vec<Vec<[f64; 2]>
     if d <= 0.0 {
         return contours.to_vec();
     }
+    // A hole whose box is at most 2d across on its narrow side has an inscribed circle of
+    // radius at most d: the offset fills it (every point of it is within d of its rim, and every
+    // point outside it is nearer its rim than its inside), so it is left out exactly, sparing
+    // the offsetter the loops it would turn inside out.
+    let kept: Vec<Vec<[f64; 2]>> = contours
+        .iter()
+        .filter(|c| {
+            area(c) > 0.0 || {
+                let (lo, hi) = c.iter().fold(([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]), |(lo, hi), p| {
+                    ([lo[0].min(p[0]), lo[1].min(p[1])], [hi[0].max(p[0]), hi[1].max(p[1])])
+                });
+                0.5 * (hi[0] - lo[0]).min(hi[1] - lo[1]) > d
+            }
+        })
+        .cloned()
+        .collect();
     // The chord angle whose sagitta is `tol` on an arc of radius `d`.
     let angle = 2.0 * (1.0 - (tol / d).min(1.0)).acos();
     let style = OutlineStyle::new(d).line_join(LineJoin::Round(angle.max(1e-3)));
-    contours.to_vec().outline_as::<i64>(&style).into_iter().flatten().collect()
+    kept.outline_as::<i64>(&style).into_iter().flatten().collect()
 }
 
 fn area(p: &[[f64; 2]]) -> f64 {
@@ -657,6 +673,36 @@ mod tests {
 
     proptest! {
         #![proptest_config(ProptestConfig { cases: 32, ..ProptestConfig::default() })]
+
+        /// Leaving out the holes an offset fills changes nothing: the same region as offsetting
+        /// every contour (random plates with random rectangular holes).
+        #[test]
+        fn holes_left_out_of_an_offset_change_nothing(
+            holes in proptest::collection::vec((1.0f64..30.0, 1.0f64..30.0, 0.5f64..8.0, 0.5f64..8.0), 1..6),
+            d in 0.2f64..6.0,
+        ) {
+            let mut part = vec![square(0.0, 0.0, 40.0, true)];
+            for (x, y, w, h) in holes {
+                let (w, h) = (w.min(39.0 - x), h.min(39.0 - y));
+                let rect = vec![[x, y], [x, y + h], [x + w, y + h], [x + w, y]]; // clockwise
+                if part.iter().skip(1).all(|p: &Vec<[f64; 2]>| {
+                    let b = p.iter().fold([f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY], |b, q| {
+                        [b[0].min(q[0]), b[1].min(q[1]), b[2].max(q[0]), b[3].max(q[1])]
+                    });
+                    x + w < b[0] - 0.1 || x > b[2] + 0.1 || y + h < b[1] - 0.1 || y > b[3] + 0.1
+                }) {
+                    part.push(rect);
+                }
+            }
+            let angle = 2.0 * (1.0 - (0.005 / d).min(1.0)).acos();
+            let style = OutlineStyle::new(d).line_join(LineJoin::Round(angle.max(1e-3)));
+            let all: Vec<Vec<[f64; 2]>> = part.clone().outline_as::<i64>(&style).into_iter().flatten().collect();
+            let kept = offset(&part, d, 0.005);
+            let (a, b): (f64, f64) = (all.iter().map(|c| area(c)).sum(), kept.iter().map(|c| area(c)).sum());
+            prop_assert!((a - b).abs() < 1e-6 * a.abs(), "all contours {} vs holes left out {}", a, b);
+            prop_assert_eq!(all.iter().filter(|c| area(c) < 0.0).count(), kept.iter().filter(|c| area(c) < 0.0).count());
+        }
+
 
         /// Random star-shaped parts: every vertex of every ring is at the ring's offset from the
         /// part (within the arc tolerance, by brute force over the part's edges), outside it.
