@@ -426,8 +426,13 @@ pub fn link_layers(
         let z = layer.z_mm;
         for ring in &layer.rings {
             // Every cut of the ring, the nearest next.
-            let mut todo: Vec<(bool, &Vec<[f64; 2]>)> =
-                ring.loops.iter().map(|l| (true, l)).chain(ring.pieces.iter().map(|p| (false, p))).collect();
+            let mut todo: Vec<(bool, &Vec<[f64; 2]>)> = ring
+                .loops
+                .iter()
+                .map(|l| (true, l))
+                .chain(ring.pieces.iter().map(|p| (false, p)))
+                .filter(|(_, p)| !p.is_empty())
+                .collect();
             while !todo.is_empty() {
                 let here = at.map_or([0.0, 0.0], |p| [p[0], p[1]]);
                 let d2 = |q: [f64; 2]| (q[0] - here[0]).powi(2) + (q[1] - here[1]).powi(2);
