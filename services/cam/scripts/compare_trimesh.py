@@ -26,6 +26,15 @@ from scipy.spatial import cKDTree
 ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", "..", ".."))
 
 
+def worst_distance(mine, theirs):
+    """Largest nearest-neighbour distance either way between two point sets (inf if one is empty)."""
+    a = np.concatenate([np.asarray(c) for c in mine]) if mine else np.zeros((0, 2))
+    b = np.concatenate(theirs) if theirs else np.zeros((0, 2))
+    if len(a) and len(b):
+        return max(cKDTree(b).query(a)[0].max(), cKDTree(a).query(b)[0].max())
+    return 0.0 if len(a) == len(b) else float("inf")
+
+
 def main():
     tmp = tempfile.mkdtemp(prefix="depthmill-slice-")
     out = subprocess.run(
@@ -54,7 +63,7 @@ def main():
 
     worst = 0.0
     loops_differ = 0
-    for k, (path, mine) in enumerate(zip(sections, ours)):
+    for path, mine in zip(sections, ours):
         theirs = []
         if path is not None:
             to3d = path.metadata["to_3D"]
@@ -63,12 +72,7 @@ def main():
                 theirs.append((h @ to3d.T)[:, :2])
         if len(theirs) != len(mine):
             loops_differ += 1
-        a = np.concatenate([np.asarray(c) for c in mine]) if mine else np.zeros((0, 2))
-        b = np.concatenate(theirs) if theirs else np.zeros((0, 2))
-        if len(a) and len(b):
-            worst = max(worst, cKDTree(b).query(a)[0].max(), cKDTree(a).query(b)[0].max())
-        elif len(a) != len(b):
-            worst = float("inf")
+        worst = max(worst, worst_distance(mine, theirs))
     print(
         f"contours: {sum(len(m) for m in ours)} closed loops ours; layers whose loop count differs: {loops_differ}; "
         f"largest vertex distance either way to section_multiplane's paths: {worst:.2e} mm"
@@ -80,13 +84,8 @@ def main():
     lines, _, _ = trimesh.intersections.mesh_multiplane(mesh, [0.0, 0.0, 0.0], [0.0, 0.0, 1.0], levels)
     raw_s = time.time() - t
     worst_raw = 0.0
-    for k, (seg, mine) in enumerate(zip(lines, ours)):
-        b = np.asarray(seg).reshape(-1, 2)
-        a = np.concatenate([np.asarray(c) for c in mine]) if mine else np.zeros((0, 2))
-        if len(a) and len(b):
-            worst_raw = max(worst_raw, cKDTree(b).query(a)[0].max(), cKDTree(a).query(b)[0].max())
-        elif len(a) != len(b):
-            worst_raw = float("inf")
+    for seg, mine in zip(lines, ours):
+        worst_raw = max(worst_raw, worst_distance(mine, [np.asarray(seg).reshape(-1, 2)]))
     print(
         f"raw segments (mesh_multiplane, {raw_s:.3f} s, {raw_s / ours_s:.1f}x ours): largest vertex distance either way "
         f"{worst_raw:.2e} mm (target <= 1e-6): {'SAME' if worst_raw <= 1e-6 and loops_differ == 0 else 'DIFFERENT'}"

@@ -21,7 +21,7 @@
 use i_overlay::mesh::float::outline::offset::OutlineOffset;
 use i_overlay::mesh::float::style::{LineJoin, OutlineStyle};
 
-use super::slice::{ContourKind, Layer};
+use super::slice::{ContourKind, Layer, bounds, contains, signed_area as area};
 
 /// A 2-D polyline (or closed loop), mm.
 pub type Polyline2 = Vec<[f64; 2]>;
@@ -95,10 +95,8 @@ pub fn offset(contours: &[Vec<[f64; 2]>], d: f64, tol: f64) -> Vec<Vec<[f64; 2]>
         .iter()
         .filter(|c| {
             area(c) > 0.0 || {
-                let (lo, hi) = c.iter().fold(([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]), |(lo, hi), p| {
-                    ([lo[0].min(p[0]), lo[1].min(p[1])], [hi[0].max(p[0]), hi[1].max(p[1])])
-                });
-                0.5 * (hi[0] - lo[0]).min(hi[1] - lo[1]) > d
+                let b = bounds(c);
+                0.5 * (b[2] - b[0]).min(b[3] - b[1]) > d
             }
         })
         .cloned()
@@ -107,25 +105,6 @@ pub fn offset(contours: &[Vec<[f64; 2]>], d: f64, tol: f64) -> Vec<Vec<[f64; 2]>
     let angle = 2.0 * (1.0 - (tol / d).min(1.0)).acos();
     let style = OutlineStyle::new(d).line_join(LineJoin::Round(angle.max(1e-3)));
     kept.outline_as::<i64>(&style).into_iter().flatten().collect()
-}
-
-fn area(p: &[[f64; 2]]) -> f64 {
-    let n = p.len();
-    0.5 * (0..n).map(|i| p[i][0] * p[(i + 1) % n][1] - p[(i + 1) % n][0] * p[i][1]).sum::<f64>()
-}
-
-fn contains(p: &[[f64; 2]], q: [f64; 2]) -> bool {
-    let mut inside = false;
-    let n = p.len();
-    let mut j = n - 1;
-    for i in 0..n {
-        let (a, b) = (p[i], p[j]);
-        if (a[1] > q[1]) != (b[1] > q[1]) && q[0] < a[0] + (q[1] - a[1]) / (b[1] - a[1]) * (b[0] - a[0]) {
-            inside = !inside;
-        }
-        j = i;
-    }
-    inside
 }
 
 /// Distance from `q` to the nearest edge of any of `contours`.
@@ -691,9 +670,7 @@ mod tests {
                 let (w, h) = (w.min(39.0 - x), h.min(39.0 - y));
                 let rect = vec![[x, y], [x, y + h], [x + w, y + h], [x + w, y]]; // clockwise
                 if part.iter().skip(1).all(|p: &Vec<[f64; 2]>| {
-                    let b = p.iter().fold([f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY], |b, q| {
-                        [b[0].min(q[0]), b[1].min(q[1]), b[2].max(q[0]), b[3].max(q[1])]
-                    });
+                    let b = bounds(p);
                     x + w < b[0] - 0.1 || x > b[2] + 0.1 || y + h < b[1] - 0.1 || y > b[3] + 0.1
                 }) {
                     part.push(rect);

@@ -447,7 +447,8 @@ fn cancel_opposite_pairs(closed: &mut Vec<Vec<[f64; 2]>>) {
     });
 }
 
-fn signed_area(p: &[[f64; 2]]) -> f64 {
+/// Signed area of the closed polygon `p` (shoelace), positive counter-clockwise.
+pub(crate) fn signed_area(p: &[[f64; 2]]) -> f64 {
     let n = p.len();
     0.5 * (0..n)
         .map(|i| {
@@ -458,10 +459,10 @@ fn signed_area(p: &[[f64; 2]]) -> f64 {
 }
 
 /// Even-odd test of `q` against the closed polygon `p`.
-fn contains(p: &[[f64; 2]], q: [f64; 2]) -> bool {
+pub(crate) fn contains(p: &[[f64; 2]], q: [f64; 2]) -> bool {
     let mut inside = false;
     let n = p.len();
-    let mut j = n - 1;
+    let Some(mut j) = n.checked_sub(1) else { return false };
     for i in 0..n {
         let (a, b) = (p[i], p[j]);
         if (a[1] > q[1]) != (b[1] > q[1]) {
@@ -475,16 +476,17 @@ fn contains(p: &[[f64; 2]], q: [f64; 2]) -> bool {
     inside
 }
 
+/// The box of the points `p`: `[x_min, y_min, x_max, y_max]` (infinite the wrong way round when
+/// `p` is empty).
+pub(crate) fn bounds(p: &[[f64; 2]]) -> [f64; 4] {
+    p.iter().fold([f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY], |b, q| {
+        [b[0].min(q[0]), b[1].min(q[1]), b[2].max(q[0]), b[3].max(q[1])]
+    })
+}
+
 fn nest(h: f64, closed: Vec<Vec<[f64; 2]>>, defects: &mut Vec<Defect>) -> Vec<Contour> {
     let areas: Vec<f64> = closed.iter().map(|p| signed_area(p)).collect();
-    let boxes: Vec<[f64; 4]> = closed
-        .iter()
-        .map(|p| {
-            p.iter().fold([f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY], |b, q| {
-                [b[0].min(q[0]), b[1].min(q[1]), b[2].max(q[0]), b[3].max(q[1])]
-            })
-        })
-        .collect();
+    let boxes: Vec<[f64; 4]> = closed.iter().map(|p| bounds(p)).collect();
     // A point just inside each contour's own region: a millionth of its longest edge off the
     // edge's middle, towards the side the contour encloses (left of a counter-clockwise one).
     // Not a vertex another contour may touch, nor a point on an edge another contour shares.
