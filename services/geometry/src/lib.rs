@@ -28,9 +28,12 @@
 //! - [`tool`]: [`ToolProfile`] (solid of revolution) and [`ToolSpec`] (`ball-6`, `v-6-90`, ...).
 //! - [`compensate`]: tool compensation of a height map (grayscale dilation by the tool, exact and
 //!   fast), for the CAM's toolpaths and the machine's part opened by the tools.
+//! - [`arm`]: a 6-axis arm (the Adept Viper s650) by its DH table: forward and inverse kinematics,
+//!   Jacobian, dexterity, singularity margins, joint limits and trapezoidal move times.
 //! - [`artifact`]: [`ArtifactRef`] and [`MediaType`].
 //! - [`units`]: [`LengthUnit`], [`Units`] (given or detected from the header and the size).
 
+pub mod arm;
 pub mod artifact;
 pub mod cloud;
 pub mod compensate;

@@ -21,7 +21,11 @@
 use i_overlay::mesh::float::outline::offset::OutlineOffset;
 use i_overlay::mesh::float::style::{LineJoin, OutlineStyle};
 
-use super::slice::{ContourKind, Layer, bounds, contains, signed_area as area};
+use depthmill_geometry::Mesh;
+
+use super::slice::{
+    ContourKind, Layer, MAX_LAYERS, SliceError, bounds, contains, levels, signed_area as area, slice,
+};
 
 /// A 2-D polyline (or closed loop), mm.
 pub type Polyline2 = Vec<[f64; 2]>;
@@ -34,6 +38,8 @@ pub const MAX_RINGS: usize = 10_000;
 pub enum PassError {
     #[error("{field} {value}: {reason}")]
     Invalid { field: &'static str, value: f64, reason: String },
+    #[error(transparent)]
+    Slice(#[from] SliceError),
 }
 
 /// What a layer is cut with, and from.
@@ -484,6 +490,103 @@ pub fn link_layers(
         prog.moves.push(PathMove { to: [p[0], p[1], clear_z_mm], kind: MoveKind::Rapid });
     }
     Ok(prog)
+}
+
+/// How a mesh is cut layer by layer ([`mesh_program`]).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct MeshProgramOptions {
+    /// Distance between layers, mm.
+    pub step_mm: f64,
+    /// Height of the lowest layer (default: half a step above the mesh's lowest point).
+    pub from_mm: Option<f64>,
+    pub tool_radius_mm: f64,
+    /// Radial depth of cut (default: the tool's radius).
+    pub radial_depth_mm: Option<f64>,
+    /// Stock around the part's box in X and Y, mm.
+    pub stock_margin_mm: f64,
+    /// Clearance height above the part's top for retracts, mm.
+    pub clearance_mm: f64,
+}
+
+/// A mesh's layers, their rings and the program joining them, top layer first.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MeshProgram {
+    /// Layers bottom up, as sliced.
+    pub layers: Vec<Layer>,
+    /// Each layer's rings, bottom up.
+    pub passes: Vec<LayerPasses>,
+    pub options: PassOptions,
+    pub program: LayerProgram,
+    pub clear_z_mm: f64,
+    /// The mesh's height range.
+    pub z_range_mm: [f64; 2],
+}
+
+/// Slices `mesh` every `step_mm` from `from_mm` up to its top, plans each layer's rings with
+/// a stock rectangle around the part's box, and joins them top layer first ([`link_layers`]).
+///
+/// Errors: a mesh with no triangles or a non-finite vertex, bad settings (named), more than
+/// [`MAX_LAYERS`] layers, a first layer above the mesh.
+pub fn mesh_program(mesh: &Mesh, o: &MeshProgramOptions) -> Result<MeshProgram, PassError> {
+    if mesh.triangles.is_empty() {
+        return Err(invalid("triangles", 0.0, "the mesh has none"));
+    }
+    let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
+    for p in &mesh.vertices {
+        for k in 0..3 {
+            lo[k] = lo[k].min(p[k]);
+            hi[k] = hi[k].max(p[k]);
+        }
+    }
+    let step = o.step_mm;
+    if !(step.is_finite() && step > 0.0) {
+        return Err(invalid("step_mm", step, "must be a positive number of millimetres"));
+    }
+    let m = o.stock_margin_mm;
+    if !(m.is_finite() && m >= 0.0) {
+        return Err(invalid("stock_margin_mm", m, "must be a non-negative number of millimetres"));
+    }
+    if !(o.clearance_mm.is_finite() && o.clearance_mm > 0.0) {
+        return Err(invalid("clearance_mm", o.clearance_mm, "must be a positive height"));
+    }
+    let from = o.from_mm.unwrap_or(lo[2] + 0.5 * step);
+    if !from.is_finite() {
+        return Err(invalid("from_mm", from, "must be finite"));
+    }
+    let count = ((hi[2] - from) / step).floor() + 1.0;
+    if count < 1.0 {
+        return Err(invalid(
+            "from_mm",
+            from,
+            format!("above the mesh's highest point {:.4} mm: no layer cuts it", hi[2]),
+        ));
+    }
+    if count > MAX_LAYERS as f64 {
+        return Err(invalid(
+            "step_mm",
+            step,
+            format!(
+                "{count:.0} layers from {from} mm to {:.4} mm: more than {MAX_LAYERS}; take a larger step",
+                hi[2]
+            ),
+        ));
+    }
+    let layers = slice(mesh, &levels(from, step, count as usize)?)?;
+    let r = o.tool_radius_mm;
+    let options = PassOptions {
+        tool_radius_mm: r,
+        radial_depth_mm: o.radial_depth_mm.unwrap_or(r),
+        arc_tolerance_mm: (0.01f64).min(0.1 * r),
+        stock: [lo[0] - m, lo[1] - m, hi[0] + m, hi[1] + m],
+    };
+    let passes = layers.iter().map(|l| layer_passes(l, &options)).collect::<Result<Vec<_>, _>>()?;
+    // Top layer first.
+    let parts: Vec<Vec<Polyline2>> =
+        layers.iter().rev().map(|l| l.contours.iter().map(|c| c.points.clone()).collect()).collect();
+    let top_down: Vec<LayerPasses> = passes.iter().rev().cloned().collect();
+    let clear_z_mm = hi[2] + o.clearance_mm;
+    let program = link_layers(&parts, &top_down, &options, clear_z_mm)?;
+    Ok(MeshProgram { layers, passes, options, program, clear_z_mm, z_range_mm: [lo[2], hi[2]] })
 }
 
 #[cfg(test)]

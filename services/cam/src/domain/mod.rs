@@ -7,9 +7,12 @@
 //! [`feeds`] picks feeds and speeds and estimates time, [`preview`] sweeps the program over the
 //! stock to measure gouge and leftover, [`plan`] runs it all. [`slice`] cuts a mesh into planar
 //! layers (contours, holes, islands) for layer-by-layer milling, [`layer_passes`] the rings that
-//! cut a layer from the stock in to the part.
+//! cut a layer from the stock in to the part, [`clearance`] checks the tool, shank and holder
+//! against the mesh and tilts the tool where the upright one collides, and [`robot`] turns the
+//! checked path into a joint trajectory of the 6-axis arm with a spindle on its flange.
 
 pub mod cleanup;
+pub mod clearance;
 pub mod compensate;
 pub mod contour;
 pub mod error;
@@ -22,6 +25,7 @@ pub mod path;
 pub mod plan;
 pub mod preview;
 pub mod rest;
+pub mod robot;
 pub mod roughing;
 pub mod slice;
 pub mod tool;

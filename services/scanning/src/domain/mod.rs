@@ -1,7 +1,7 @@
 //! The scanning library: simulated devices behind the interfaces real ones sit behind.
 //!
-//! - [`robot`]: the Adept Viper s650 arm (DH model, forward and inverse kinematics, Jacobian and
-//!   dexterity, the scanner bracket) and its simulated motion controller.
+//! - [`robot`]: the Adept Viper s650 arm (its model, `depthmill_geometry::arm`, re-exported) and
+//!   its simulated motion controller.
 //! - [`latch`]: the encoder-latching device: positions of the robot and the table stored at
 //!   every scanner sync pulse, with latency and jitter.
 //! - [`scanner`]: the SLP-400 class laser line scanner cast at the part's mesh (own BVH):

@@ -49,7 +49,7 @@ use nalgebra::Isometry3;
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
-use super::kinematics::{ArmModel, IkConfig, IkError, JointLimitViolation, Singularity};
+use depthmill_geometry::arm::{ArmModel, IkConfig, IkError, JointLimitViolation, Singularity, min_move_time};
 
 /// Below this distance (degrees) an axis is "in position" and a move of it is skipped.
 const IN_POSITION_DEG: f64 = 1e-6;
@@ -234,17 +234,6 @@ impl Track {
     fn freeze(&mut self, t: f64) {
         let (p, _) = self.truncate(t);
         self.target_deg = p;
-    }
-}
-
-/// Shortest time (s) to move `d` degrees from rest to rest with top speed `v` and acceleration `a`.
-fn min_move_time(d: f64, v: f64, a: f64) -> f64 {
-    if d <= 0.0 {
-        0.0
-    } else if d >= v * v / a {
-        d / v + v / a
-    } else {
-        2.0 * (d / a).sqrt()
     }
 }
 
@@ -693,7 +682,7 @@ mod tests {
     use rand::{Rng, SeedableRng};
 
     use super::*;
-    use crate::domain::robot::kinematics::pose_distance;
+    use depthmill_geometry::arm::pose_distance;
 
     /// Initialized and homed at t = 0 with the home move finished; returns the time it finished.
     fn ready() -> (MotionController, f64) {
@@ -908,7 +897,7 @@ mod tests {
         assert!(matches!(e, RobotError::Unreachable(IkError::OutOfReach { .. })), "{e:?}");
         assert!(e.to_string().contains("is beyond the reach 578.4 mm"), "{e}");
         // Singular targets are refused with the margin: the wrist centre on the axis of joint 1.
-        let singular = c.model().fk(&crate::domain::robot::kinematics::tests::wrist_on_joint1_axis());
+        let singular = c.model().fk(&ArmModel::viper_wrist_on_joint1_axis_deg());
         let e = c.move_pose(end, &singular, 0.5).expect_err("singular");
         assert!(matches!(e, RobotError::Singular(Singularity::Shoulder { .. })), "{e:?}");
         assert!(e.to_string().starts_with("target refused: shoulder singularity"), "{e}");

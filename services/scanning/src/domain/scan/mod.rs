@@ -54,8 +54,8 @@ pub use plan::{Pass, ScanPlan, Station, plan_scan};
 
 use super::latch::{EncoderLatch, LatchConfig, LatchError, PositionSource};
 use super::robot::controller::{MotionController, RobotError};
-use super::robot::kinematics::ArmModel;
 use super::scanner::{DropCounts, Floor, Scanner, ScannerError, ScannerSpec};
+use depthmill_geometry::arm::ArmModel;
 
 /// Arm speed (fraction of the joints' top speeds) between passes.
 const APPROACH_SPEED: f64 = 0.5;

@@ -10,7 +10,7 @@ use nalgebra::{Point3, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::{CellLayout, PartPlacement, ScanError};
-use crate::domain::robot::kinematics::ArmModel;
+use depthmill_geometry::arm::ArmModel;
 
 /// Spacing of the samples along each link of the skeleton, mm.
 pub const SAMPLE_MM: f64 = 10.0;

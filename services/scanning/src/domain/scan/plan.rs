@@ -6,8 +6,8 @@ use serde::Serialize;
 
 use super::options::{ScanMode, ScanOptions};
 use super::{CellLayout, PartPlacement, ScanError};
-use crate::domain::robot::kinematics::{ArmModel, IkConfig, JointLimit};
 use crate::domain::scanner::ScannerSpec;
+use depthmill_geometry::arm::{ArmModel, IkConfig, JointLimit};
 
 /// One straight pass of the sensor at rest orientation.
 #[derive(Debug, Clone, PartialEq, Serialize)]

@@ -1,7 +1,7 @@
 #![allow(clippy::unwrap_used)] // tests may unwrap
 
 use super::*;
-use crate::domain::robot::kinematics::pose_distance;
+use depthmill_geometry::arm::pose_distance;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 

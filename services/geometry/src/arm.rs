@@ -1,7 +1,72 @@
 //! Kinematics of a 6-axis arm described by standard Denavit–Hartenberg parameters: forward
 //! kinematics, the geometric Jacobian, the dexterity measure, singularity margins and inverse
 //! kinematics (closed form for the Viper/Denso layout with a spherical wrist, damped least squares
-//! otherwise). See the [module root](super) for the DH table, the frames and the sources.
+//! otherwise), and the arm's motion times (a synchronised trapezoid per joint). The scanning service's
+//! arm carries the scanner with it; the CAM's robot milling puts a spindle on the same flange.
+//!
+//! # Conventions
+//!
+//! - **Units.** Millimetres and degrees at the API (`q_deg`, `*_mm`, `*_deg_s`), radians inside.
+//!   Jacobians are per radian of joint motion (mm/rad and rad/rad). Joints are numbered 1 to 6 in
+//!   messages and in the controller's `axis` arguments; arrays are indexed 0 to 5.
+//! - **DH convention: standard (distal) Denavit–Hartenberg**, as in ViSP's Viper model (not
+//!   Craig's modified convention). Link `i` maps frame `i` to frame `i−1`:
+//!   `A_i = Rz(θ_i) · Tz(d_i) · Tx(a_i) · Rx(α_i)`, `θ_i = q_i + offset_i`, and joint `i` turns
+//!   about the Z axis of frame `i−1`.
+//! - **Frames** (poses are named `b_from_a`, as in `depthmill_geometry::pose`):
+//!   - world: the cell frame; `ArmModel::base` is `world_from_base`.
+//!   - base (DH frame 0): on the mounting face, Z up along joint 1, X forward (towards the arm at
+//!     `q1 = 0`).
+//!   - DH frames 1…6; frame 6 is the tool flange (row 6 carries the flange offset `d6`), Z out of
+//!     the flange.
+//!   - tool: the scanner's optical frame (Z along the viewing direction, X along the laser line);
+//!     `ArmModel::tool` is `flange_from_tool`, the scanner bracket.
+//!   - `ArmModel::fk` returns `world_from_tool`; IK takes the same.
+//!
+//! # The Adept Viper s650
+//!
+//! | joint | a (mm) | α    | d (mm) | θ offset | range          | top speed |
+//! |-------|--------|------|--------|----------|----------------|-----------|
+//! | 1     | 75     | −90° | 335    | 0        | −170° … +170°  | 328 °/s   |
+//! | 2     | 270    | 0    | 0      | 0        | −190° … +45°   | 300 °/s   |
+//! | 3     | 90     | −90° | 0      | −180°    | −29° … +256°   | 375 °/s   |
+//! | 4     | 0      | +90° | 295    | 0        | −190° … +190°  | 375 °/s   |
+//! | 5     | 0      | −90° | 0      | 0        | −120° … +120°  | 375 °/s   |
+//! | 6     | 0      | 0    | 80     | −180°    | −360° … +360°  | 600 °/s   |
+//!
+//! The wrist is spherical (`a4 = a5 = d5 = 0`: the axes of joints 4, 5, 6 meet at the wrist
+//! centre, 80 mm behind the flange), so IK is closed-form. At `q = 0` the upper arm is horizontal,
+//! the forearm vertical and the flange frame parallel to the base, 255 mm forward and 710 mm up;
+//! Adept's READY pose `(0, −90, 180, 0, 0, 0)` puts the flange at (450, 0, 695) mm pointing
+//! forward. The wrist centre reaches `75 + 270 + √(90² + 295²) = 653.4` mm from the joint 1
+//! axis, matching the 653 mm reach Adept quotes for the s650.
+//!
+//! Sources (numbers only; no code copied):
+//! - DH lengths, offsets and joint ranges: ViSP (Inria), `vpViper650.h` (the DH table with the
+//!   `q3 − π` and `q6 − π` offsets) and `vpViper650.cpp` (`a1 = 0.075, a2 = 0.270, a3 = 0.090,
+//!   d1 = 0.335, d4 = 0.295, d6 = 0.080` m — ViSP adds a 101.6 mm tool changer to `d6`, we do not
+//!   — and the software limits listed above), <https://github.com/lagadic/visp>,
+//!   `modules/robot/{include/visp3,src/real-robot/viper}/`. ViSP drives a real s650 with these
+//!   joint values, so the offsets follow Adept's joint zeroes.
+//! - Cross-check of lengths, ranges and the top joint speeds: A. Dumitrache's Viper s650 simulator
+//!   `RobotSim.py` (CIMR, Politehnica University of Bucharest, 2010: link offsets 203 + 132 = 335,
+//!   75, 270, 90, 108 + 187 = 295, 60 + 20 = 80 mm, the same ranges, `max_joint_speed = [328, 300,
+//!   375, 375, 375, 600]` °/s), and the ROS-Industrial experimental URDF
+//!   `adept_s650_support/urdf/s650.urdf` (velocity limits 5.72468, 5.235, 6.544, 6.544, 6.544,
+//!   10.47 rad/s = the same speeds; the same ranges except joint 6 clipped to ±180°).
+//! - **Not verified**: Adept's own Viper s650 user's guide was not available to check the table
+//!   against; the two independent models above agree on every number used here. The URDF's joint
+//!   2 height (391 mm) disagrees with both (335 mm) and was not used. **Joint accelerations are not
+//!   published**: the model assumes each joint reaches its top speed in 0.25 s (4 × top speed per
+//!   second). The scanner bracket ([`ArmModel::scanner_bracket`]) is a nominal design,
+//!   to be replaced by the calibrated transform.
+//!
+//! # Singularities
+//!
+//! [`SingularityMargins`] measures the distance from the three singular families
+//! named in DESIGN §6: wrist (axes 4 and 6 aligned, `q5 = 0`), shoulder/alignment (wrist centre
+//! on the axis of joint 1 — axis 6 on axis 1 is a special case) and elbow (arm fully stretched,
+//! `q3 = 180° − atan2(295, 90) = 106.97°`). The dexterity `sqrt(det(JᵀJ))` vanishes on all three.
 //!
 //! # Inverse kinematics
 //!
@@ -602,6 +667,24 @@ impl ArmModel {
             && self.dh[1].a_mm > 0.0
     }
 
+    /// A Viper s650 pose (degrees) with the wrist centre on the axis of joint 1, a shoulder
+    /// singularity: with `q3 = 180°` the arm plane offset is `u = 360·cos q2 − 295·sin q2 = −a1 =
+    /// −75` mm.
+    pub fn viper_wrist_on_joint1_axis_deg() -> [f64; 6] {
+        let (r, psi) = (360.0f64.hypot(295.0), 295.0f64.atan2(360.0));
+        let q2 = -(-75.0 / r).acos() - psi;
+        [0.0, q2.to_degrees(), 180.0, 0.0, 60.0, 0.0]
+    }
+
+    /// Shortest time (s) of a synchronised rest-to-rest move `from → to` (degrees) with every
+    /// joint's cruise speed at most `speed_frac` × its top speed: the longest single-joint
+    /// trapezoid ([`min_move_time`]), which every other joint is re-timed to match.
+    pub fn move_time_s(&self, from: &[f64; 6], to: &[f64; 6], speed_frac: f64) -> f64 {
+        self.limits.iter().zip(from.iter().zip(to)).fold(0.0, |t, (l, (a, b))| {
+            t.max(min_move_time((b - a).abs(), l.max_speed_deg_s * speed_frac, l.max_accel_deg_s2))
+        })
+    }
+
     /// Largest shoulder–wrist-centre distance (mm) of the Viper layout: `a2 + √(a3² + d4²)`.
     pub fn reach_mm(&self) -> f64 {
         self.dh[1].a_mm + self.dh[2].a_mm.hypot(self.dh[3].d_mm)
@@ -946,6 +1029,18 @@ fn same_joints(a: &[f64; 6], b: &[f64; 6]) -> bool {
     a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-6)
 }
 
+/// Shortest time (s) to move one joint `d` degrees from rest to rest with top speed `v` (°/s) and
+/// acceleration `a` (°/s²): a trapezoid, or a triangle when `d < v²/a`.
+pub fn min_move_time(d: f64, v: f64, a: f64) -> f64 {
+    if d <= 0.0 {
+        0.0
+    } else if d >= v * v / a {
+        d / v + v / a
+    } else {
+        2.0 * (d / a).sqrt()
+    }
+}
+
 /// Rotation vector (axis × angle, radians, angle in `[0, π]`) of `q`, accurate for tiny angles.
 pub fn rotation_vector(q: &UnitQuaternion<f64>) -> Vector3<f64> {
     let (w, v) = if q.w < 0.0 { (-q.w, -q.imag()) } else { (q.w, q.imag()) };
@@ -1151,14 +1246,6 @@ pub(crate) mod tests {
         assert_eq!(m.ik(&bad, IkConfig::any()), Err(IkError::InvalidTarget { what: "translation" }));
     }
 
-    /// Joints putting the wrist centre on the axis of joint 1: with `q3 = 180°` the arm plane
-    /// offset is `u = 360·cos q2 − 295·sin q2 = −a1 = −75` mm.
-    pub(crate) fn wrist_on_joint1_axis() -> [f64; 6] {
-        let (r, psi) = (360.0f64.hypot(295.0), 295.0f64.atan2(360.0));
-        let q2 = -(-75.0 / r).acos() - psi;
-        [0.0, q2.to_degrees(), 180.0, 0.0, 60.0, 0.0]
-    }
-
     #[test]
     fn singular_targets_are_reported_with_their_margin() {
         let m = ArmModel::viper_s650();
@@ -1172,8 +1259,8 @@ pub(crate) mod tests {
         // Other branches of the same pose are not singular.
         assert!(!m.ik(&m.fk(&q), IkConfig::default()).expect("other branches").is_empty());
         // Wrist centre on the axis of joint 1: every branch shares it.
-        let above = m.fk(&wrist_on_joint1_axis());
-        assert!(m.singularity_margins(&wrist_on_joint1_axis()).shoulder_mm < 1e-9);
+        let above = m.fk(&ArmModel::viper_wrist_on_joint1_axis_deg());
+        assert!(m.singularity_margins(&ArmModel::viper_wrist_on_joint1_axis_deg()).shoulder_mm < 1e-9);
         let e = m.ik(&above, IkConfig::default()).expect_err("shoulder singular");
         assert!(
             matches!(e, IkError::Singular(Singularity::Shoulder { distance_mm, .. }) if distance_mm < 1e-9),

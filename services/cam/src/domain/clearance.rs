@@ -1,0 +1,894 @@
+//! Clearance of the tool, its shank and its holder from a part mesh at any tool orientation, and
+//! the smallest tilt that clears a position where the upright tool collides (seed 001's holder
+//! interference check and its avoidance by tilting, for milling from a mesh on a robot).
+//!
+//! # Model
+//!
+//! - **The tool as stacked cylinders** ([`ToolBody`]) along its axis from the tip: the cutting
+//!   end as `CUTTING_SLICES` cylinders, each with the profile's radius at the slice's bottom (so
+//!   inside the true solid: the cutting end may touch the part, and only entering it by more than
+//!   the gouge tolerance counts; a ball's or bull's end is under-estimated by at most a sixteenth
+//!   of its radius), the fluted length above the profile at the tool's radius less the tolerance,
+//!   then the shank from the cutting length to the stick-out and the holder above it (the tool
+//!   library's geometry), and optionally the spindle's body above the holder. The shank, holder
+//!   and spindle must not touch the part at all.
+//! - **The exact test** of a cylinder against a triangle: the triangle is clipped to the slab
+//!   between the cylinder's end planes (a convex polygon) and projected along the axis; the
+//!   cylinder meets it iff that convex polygon comes nearer the axis than the radius. No
+//!   sampling: [`cylinder_distance`] is compared with a brute-force reference in the tests.
+//! - **Candidates** come from a uniform grid over the mesh's triangle boxes ([`MeshIndex`]).
+//! - **Tilting** ([`clear_path`]): at a position where the upright tool collides, the tool is
+//!   turned about its tip, the axis leaning by `tilt` towards azimuth `φ`. Every
+//!   [`TiltOptions::azimuths`] directions is tried from a small tilt up in [`TiltOptions::step_deg`]
+//!   steps to [`TiltOptions::max_tilt_deg`]; the smallest clearing tilt wins (ties to the azimuth
+//!   nearest the previous position's) and is refined by bisection to an eighth of a step. Then
+//!   the lean (the axis's horizontal part) is ramped along the path so that it changes by at
+//!   most [`TiltOptions::max_rate_deg_mm`] per millimetre of travel (the neighbours of a tilted
+//!   stretch lean too, each checked), so the robot's wrist turns smoothly; a rapid breaks the
+//!   chain. Positions that no tilt clears are reported with where they are and left out of the
+//!   cut (the program lifts over them).
+
+use depthmill_geometry::Mesh;
+use nalgebra::{Point3, Unit, Vector3};
+
+use super::tool::Tool;
+
+/// Slices of the cutting end's profile in a [`ToolBody`].
+pub const CUTTING_SLICES: usize = 16;
+
+/// One cylinder of a [`ToolBody`], heights along the axis from the tip.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct Section {
+    pub from_mm: f64,
+    pub to_mm: f64,
+    pub radius_mm: f64,
+    /// Which part of the tool: `"cutting"`, `"shank"`, `"holder"` or `"spindle"`.
+    pub part: &'static str,
+}
+
+/// The tool in its holder as cylinders along its axis (see the module docs).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct ToolBody {
+    pub sections: Vec<Section>,
+}
+
+impl ToolBody {
+    /// `tool`'s body with the cutting end shrunk by `gouge_tol_mm` (radially and at the tip) and
+    /// a spindle body of `spindle` = (diameter, length) mm above the holder, if given.
+    pub fn new(tool: &Tool, gouge_tol_mm: f64, spindle: Option<(f64, f64)>) -> Self {
+        let tol = gouge_tol_mm.max(0.0);
+        let r = tool.radius_mm();
+        let top = tool.profile.max_height_mm();
+        let mut sections = Vec::new();
+        // The profile's radius at the bottom of each slice (radius steps of r/16); heights are
+        // non-decreasing in the radius, so each cylinder lies inside the tool.
+        let mut prev_h = tol;
+        for k in 1..=CUTTING_SLICES {
+            let rk = r * (k - 1) as f64 / CUTTING_SLICES as f64;
+            let hk = tool.profile.height_at(r * k as f64 / CUTTING_SLICES as f64).unwrap_or(top).max(tol);
+            if hk > prev_h + 1e-12 && rk - tol > 0.0 {
+                sections.push(Section { from_mm: prev_h, to_mm: hk, radius_mm: rk - tol, part: "cutting" });
+            }
+            prev_h = prev_h.max(hk);
+        }
+        if tool.cutting_length_mm > prev_h && r - tol > 0.0 {
+            sections.push(Section {
+                from_mm: prev_h,
+                to_mm: tool.cutting_length_mm,
+                radius_mm: r - tol,
+                part: "cutting",
+            });
+        }
+        if tool.stickout_mm > tool.cutting_length_mm {
+            sections.push(Section {
+                from_mm: tool.cutting_length_mm,
+                to_mm: tool.stickout_mm,
+                radius_mm: tool.shank_diameter_mm / 2.0,
+                part: "shank",
+            });
+        }
+        let holder_top = tool.stickout_mm + tool.holder_length_mm;
+        sections.push(Section {
+            from_mm: tool.stickout_mm,
+            to_mm: holder_top,
+            radius_mm: tool.holder_diameter_mm / 2.0,
+            part: "holder",
+        });
+        if let Some((d, l)) = spindle
+            && d > 0.0
+            && l > 0.0
+        {
+            sections.push(Section {
+                from_mm: holder_top,
+                to_mm: holder_top + l,
+                radius_mm: d / 2.0,
+                part: "spindle",
+            });
+        }
+        ToolBody { sections }
+    }
+
+    /// Widest radius of any section.
+    pub fn max_radius_mm(&self) -> f64 {
+        self.sections.iter().map(|s| s.radius_mm).fold(0.0, f64::max)
+    }
+
+    /// Top of the body above the tip.
+    pub fn length_mm(&self) -> f64 {
+        self.sections.iter().map(|s| s.to_mm).fold(0.0, f64::max)
+    }
+}
+
+/// A uniform grid over a mesh's triangles for box queries.
+#[derive(Debug, Clone)]
+pub struct MeshIndex {
+    tris: Vec<[Vector3<f64>; 3]>,
+    lo: Vector3<f64>,
+    cell: f64,
+    dims: [usize; 3],
+    /// Cell `c`'s triangles are `items[starts[c]..starts[c + 1]]`.
+    starts: Vec<u32>,
+    items: Vec<u32>,
+}
+
+/// Largest grid of a [`MeshIndex`] (cells).
+const MAX_INDEX_CELLS: usize = 1 << 21;
+
+impl MeshIndex {
+    /// Indexes `mesh`'s triangles (degenerate ones included: a sliver still blocks the holder).
+    pub fn new(mesh: &Mesh) -> Self {
+        let tris: Vec<[Vector3<f64>; 3]> = mesh
+            .triangles
+            .iter()
+            .map(|t| t.map(|i| mesh.vertices.get(i as usize).map_or_else(Vector3::zeros, |p| p.coords)))
+            .filter(|t| t.iter().all(|v| v.iter().all(|c| c.is_finite())))
+            .collect();
+        let (mut lo, mut hi) = (Vector3::repeat(f64::INFINITY), Vector3::repeat(f64::NEG_INFINITY));
+        for v in tris.iter().flatten() {
+            lo = lo.inf(v);
+            hi = hi.sup(v);
+        }
+        if tris.is_empty() {
+            lo = Vector3::zeros();
+            hi = Vector3::zeros();
+        }
+        let size = hi - lo;
+        // About as many cells as triangles, at most MAX_INDEX_CELLS.
+        let volume = size.iter().map(|s| s.max(1e-3)).product::<f64>();
+        let target = (tris.len().clamp(1, MAX_INDEX_CELLS)) as f64;
+        let mut cell = (volume / target).cbrt().max(1e-3);
+        let dims_for = |cell: f64| size.map(|s| ((s / cell).floor() as usize + 1).max(1));
+        let mut dims = dims_for(cell);
+        while dims.iter().product::<usize>() > MAX_INDEX_CELLS {
+            cell *= 1.25;
+            dims = dims_for(cell);
+        }
+        let dims = [dims.x, dims.y, dims.z];
+        let mut index = MeshIndex { tris, lo, cell, dims, starts: Vec::new(), items: Vec::new() };
+        let ranges: Vec<[[usize; 2]; 3]> = index
+            .tris
+            .iter()
+            .map(|t| {
+                let (a, b) = (t[0].inf(&t[1]).inf(&t[2]), t[0].sup(&t[1]).sup(&t[2]));
+                index.cell_range(&a, &b)
+            })
+            .collect();
+        let ncells = dims[0] * dims[1] * dims[2];
+        let mut counts = vec![0u32; ncells + 1];
+        for r in &ranges {
+            index.for_cells(r, |c| counts[c + 1] += 1);
+        }
+        for c in 0..ncells {
+            counts[c + 1] += counts[c];
+        }
+        let mut fill = counts.clone();
+        let mut items = vec![0u32; counts[ncells] as usize];
+        for (t, r) in ranges.iter().enumerate() {
+            index.for_cells(r, |c| {
+                items[fill[c] as usize] = t as u32;
+                fill[c] += 1;
+            });
+        }
+        index.starts = counts;
+        index.items = items;
+        index
+    }
+
+    /// Triangles indexed.
+    pub fn len(&self) -> usize {
+        self.tris.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.tris.is_empty()
+    }
+
+    fn cell_range(&self, a: &Vector3<f64>, b: &Vector3<f64>) -> [[usize; 2]; 3] {
+        std::array::from_fn(|k| {
+            let f = |v: f64| (((v - self.lo[k]) / self.cell).floor().max(0.0) as usize).min(self.dims[k] - 1);
+            [f(a[k]), f(b[k])]
+        })
+    }
+
+    fn for_cells(&self, r: &[[usize; 2]; 3], mut f: impl FnMut(usize)) {
+        for z in r[2][0]..=r[2][1] {
+            for y in r[1][0]..=r[1][1] {
+                for x in r[0][0]..=r[0][1] {
+                    f((z * self.dims[1] + y) * self.dims[0] + x);
+                }
+            }
+        }
+    }
+
+    /// Indices of the triangles whose cells meet the box `a..b` (each once, ascending), into `out`.
+    fn candidates(&self, a: &Vector3<f64>, b: &Vector3<f64>, out: &mut Vec<u32>) {
+        out.clear();
+        if self.tris.is_empty() {
+            return;
+        }
+        let hi = self.lo + Vector3::from(self.dims.map(|d| d as f64 * self.cell));
+        if (0..3).any(|k| b[k] < self.lo[k] || a[k] > hi[k]) {
+            return;
+        }
+        let r = self.cell_range(a, b);
+        self.for_cells(&r, |c| {
+            out.extend_from_slice(&self.items[self.starts[c] as usize..self.starts[c + 1] as usize]);
+        });
+        out.sort_unstable();
+        out.dedup();
+    }
+}
+
+/// An orthonormal pair perpendicular to the unit vector `a`.
+fn perpendiculars(a: &Vector3<f64>) -> (Vector3<f64>, Vector3<f64>) {
+    let helper = if a.x.abs() < 0.9 { Vector3::x() } else { Vector3::y() };
+    let u = a.cross(&helper).normalize();
+    (u, a.cross(&u))
+}
+
+/// Distance from the origin to the segment `p`-`q` (2-D).
+fn origin_segment_distance(p: [f64; 2], q: [f64; 2]) -> f64 {
+    let d = [q[0] - p[0], q[1] - p[1]];
+    let l2 = d[0] * d[0] + d[1] * d[1];
+    let t = if l2 > 0.0 { (-(p[0] * d[0] + p[1] * d[1]) / l2).clamp(0.0, 1.0) } else { 0.0 };
+    (p[0] + t * d[0]).hypot(p[1] + t * d[1])
+}
+
+/// The smallest distance from the axis of a cylinder (through `base`, direction `axis`, heights
+/// `0..=length` along it) to the part of triangle `tri` between the cylinder's end planes, or
+/// `None` when the triangle has no point there. The cylinder of radius `R` meets the triangle iff
+/// the distance is below `R`.
+pub fn cylinder_distance(
+    tri: &[Vector3<f64>; 3],
+    base: &Vector3<f64>,
+    axis: &Unit<Vector3<f64>>,
+    length: f64,
+) -> Option<f64> {
+    let (u, v) = perpendiculars(axis);
+    // In the cylinder's frame: (x, y) across the axis, h along it.
+    let mut poly: Vec<[f64; 3]> = tri
+        .iter()
+        .map(|p| {
+            let d = p - base;
+            [d.dot(&u), d.dot(&v), d.dot(axis)]
+        })
+        .collect();
+    for (keep_above, plane) in [(true, 0.0), (false, length)] {
+        let inside = |p: &[f64; 3]| if keep_above { p[2] >= plane } else { p[2] <= plane };
+        let mut out = Vec::with_capacity(poly.len() + 2);
+        for i in 0..poly.len() {
+            let (p, q) = (poly[i], poly[(i + 1) % poly.len()]);
+            if inside(&p) {
+                out.push(p);
+            }
+            if inside(&p) != inside(&q) {
+                let t = (plane - p[2]) / (q[2] - p[2]);
+                out.push([p[0] + t * (q[0] - p[0]), p[1] + t * (q[1] - p[1]), plane]);
+            }
+        }
+        poly = out;
+        if poly.is_empty() {
+            return None;
+        }
+    }
+    // The projection along the axis is convex: the origin is inside iff it is on one side of
+    // every edge (a polygon of no area falls back to its edges' distance).
+    let n = poly.len();
+    let (mut pos, mut neg) = (false, false);
+    let mut best = f64::INFINITY;
+    for i in 0..n {
+        let (p, q) = (poly[i], poly[(i + 1) % n]);
+        let cross = p[0] * q[1] - p[1] * q[0];
+        pos |= cross > 0.0;
+        neg |= cross < 0.0;
+        best = best.min(origin_segment_distance([p[0], p[1]], [q[0], q[1]]));
+    }
+    let area2: f64 = (0..n)
+        .map(|i| {
+            let (p, q) = (poly[i], poly[(i + 1) % n]);
+            p[0] * q[1] - p[1] * q[0]
+        })
+        .sum();
+    if area2.abs() > 1e-18 && !(pos && neg) {
+        return Some(0.0);
+    }
+    Some(best)
+}
+
+/// Where a tool body meets the part.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct Hit {
+    /// The section's part (`"cutting"`, `"shank"`, `"holder"`, `"spindle"`).
+    pub part: &'static str,
+    /// The triangle's index in the indexed list.
+    pub triangle: u32,
+    /// How far into the section's cylinder the triangle reaches, mm.
+    pub depth_mm: f64,
+}
+
+/// Reused buffers of the collision queries.
+#[derive(Debug, Default)]
+pub struct Scratch {
+    candidates: Vec<u32>,
+}
+
+/// The first section of `body` (tip upwards) that meets the part with its tip at `tip` and its
+/// axis along `axis` (from the tip towards the holder), or `None` when the whole body is clear.
+pub fn collision(
+    index: &MeshIndex,
+    body: &ToolBody,
+    tip: &Point3<f64>,
+    axis: &Unit<Vector3<f64>>,
+    scratch: &mut Scratch,
+) -> Option<Hit> {
+    for s in &body.sections {
+        let base = tip.coords + axis.as_ref() * s.from_mm;
+        let top = tip.coords + axis.as_ref() * s.to_mm;
+        let pad = Vector3::repeat(s.radius_mm);
+        index.candidates(&(base.inf(&top) - pad), &(base.sup(&top) + pad), &mut scratch.candidates);
+        let mut deepest: Option<Hit> = None;
+        for &t in &scratch.candidates {
+            if let Some(d) = cylinder_distance(&index.tris[t as usize], &base, axis, s.to_mm - s.from_mm)
+                && d < s.radius_mm
+                && deepest.is_none_or(|h| s.radius_mm - d > h.depth_mm)
+            {
+                deepest = Some(Hit { part: s.part, triangle: t, depth_mm: s.radius_mm - d });
+            }
+        }
+        if deepest.is_some() {
+            return deepest;
+        }
+    }
+    None
+}
+
+/// Rapid moves are sampled this many times more sparsely than feed moves.
+pub const RAPID_SAMPLES_APART: f64 = 5.0;
+
+/// Settings of the tilt search (see the module docs).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct TiltOptions {
+    /// Largest tilt from the upright axis, degrees.
+    pub max_tilt_deg: f64,
+    /// Tilt step of the search, degrees (refined to an eighth of it).
+    pub step_deg: f64,
+    /// Directions of lean tried.
+    pub azimuths: usize,
+    /// Largest change of the tool axis per millimetre of travel, degrees.
+    pub max_rate_deg_mm: f64,
+    /// Positions checked along a move at least this often, mm.
+    pub sample_mm: f64,
+    /// How far the cutting end may enter the part, mm.
+    pub gouge_tol_mm: f64,
+}
+
+impl Default for TiltOptions {
+    fn default() -> Self {
+        TiltOptions {
+            max_tilt_deg: 40.0,
+            step_deg: 2.0,
+            azimuths: 24,
+            max_rate_deg_mm: 2.0,
+            sample_mm: 1.0,
+            gouge_tol_mm: 0.01,
+        }
+    }
+}
+
+impl TiltOptions {
+    /// Checks every setting is usable.
+    pub fn validate(&self) -> Result<(), String> {
+        let bad = |k: &str, v: f64, want: &str| Err(format!("{k} {v}: {want}"));
+        if !(self.max_tilt_deg.is_finite() && (0.0..=80.0).contains(&self.max_tilt_deg)) {
+            return bad("max_tilt_deg", self.max_tilt_deg, "must be from 0 to 80 degrees");
+        }
+        if !(self.step_deg.is_finite() && self.step_deg >= 0.1 && self.step_deg <= 10.0) {
+            return bad("step_deg", self.step_deg, "must be from 0.1 to 10 degrees");
+        }
+        if !(4..=360).contains(&self.azimuths) {
+            return bad("azimuths", self.azimuths as f64, "must be from 4 to 360 directions");
+        }
+        if !(self.max_rate_deg_mm.is_finite() && self.max_rate_deg_mm > 0.0) {
+            return bad("max_rate_deg_mm", self.max_rate_deg_mm, "must be a positive rate");
+        }
+        if !(self.sample_mm.is_finite() && self.sample_mm >= 0.01) {
+            return bad("sample_mm", self.sample_mm, "must be at least 0.01 mm");
+        }
+        if !(self.gouge_tol_mm.is_finite() && self.gouge_tol_mm >= 0.0) {
+            return bad("gouge_tol_mm", self.gouge_tol_mm, "must be a non-negative distance");
+        }
+        Ok(())
+    }
+}
+
+/// The axis leaning by `tilt` (radians) towards azimuth `phi` (radians, from +X about +Z).
+pub fn leaning_axis(tilt: f64, phi: f64) -> Unit<Vector3<f64>> {
+    Unit::new_normalize(Vector3::new(tilt.sin() * phi.cos(), tilt.sin() * phi.sin(), tilt.cos()))
+}
+
+fn axis_of_lean(l: [f64; 2]) -> Unit<Vector3<f64>> {
+    let tilt = l[0].hypot(l[1]);
+    if tilt < 1e-15 { Vector3::z_axis() } else { leaning_axis(tilt, l[1].atan2(l[0])) }
+}
+
+/// One position of a checked path.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct OrientedPoint {
+    pub tip: [f64; 3],
+    /// Tool axis (unit, from the tip towards the holder).
+    pub axis: [f64; 3],
+    /// Reached by a rapid move (else a feed move).
+    pub rapid: bool,
+    /// No tilt clears this position: the program lifts over it.
+    pub blocked: bool,
+}
+
+/// A position no tilt clears.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct Blocked {
+    pub at_mm: [f64; 3],
+    /// What the upright tool hits there.
+    pub part: &'static str,
+    pub depth_mm: f64,
+}
+
+/// The checked path and what the check found.
+#[derive(Debug, Clone, PartialEq, Default, serde::Serialize)]
+pub struct ClearedPath {
+    pub points: Vec<OrientedPoint>,
+    /// Positions where the upright tool collides.
+    pub colliding: usize,
+    /// Positions that lean (to clear, or ramping to and from a clearing lean).
+    pub tilted: usize,
+    pub max_tilt_deg: f64,
+    /// Largest change of the tool axis per millimetre between neighbouring feed positions.
+    pub max_rate_deg_mm: f64,
+    pub blocked: Vec<Blocked>,
+}
+
+/// The smallest tilt (radians) and its azimuth clearing `tip`, preferring `prefer_phi`.
+fn search_tilt(
+    index: &MeshIndex,
+    body: &ToolBody,
+    tip: &Point3<f64>,
+    o: &TiltOptions,
+    prefer_phi: Option<f64>,
+    scratch: &mut Scratch,
+) -> Option<(f64, f64)> {
+    let step = o.step_deg.to_radians();
+    let max = o.max_tilt_deg.to_radians();
+    let steps = (max / step).floor() as usize;
+    let mut best: Option<(usize, f64)> = None;
+    let order: Vec<f64> = {
+        let base = prefer_phi.unwrap_or(0.0);
+        // The preferred direction first, then outwards from it both ways.
+        let n = o.azimuths;
+        let d = std::f64::consts::TAU / n as f64;
+        let k0 = (base / d).round() as i64;
+        (0..n as i64)
+            .map(|i| {
+                let off = if i % 2 == 1 { (i + 1) / 2 } else { -(i / 2) };
+                (k0 + off) as f64 * d
+            })
+            .collect()
+    };
+    for &phi in &order {
+        let limit = best.map_or(steps, |(k, _)| k.saturating_sub(1));
+        for k in 1..=limit {
+            let axis = leaning_axis(k as f64 * step, phi);
+            if collision(index, body, tip, &axis, scratch).is_none() {
+                best = Some((k, phi));
+                break;
+            }
+        }
+    }
+    let (k, phi) = best?;
+    // Bisection between the last colliding and the first clearing step.
+    let (mut lo, mut hi) = ((k - 1) as f64 * step, k as f64 * step);
+    for _ in 0..3 {
+        let mid = 0.5 * (lo + hi);
+        if collision(index, body, tip, &leaning_axis(mid, phi), scratch).is_none() {
+            hi = mid;
+        } else {
+            lo = mid;
+        }
+    }
+    Some((hi, phi))
+}
+
+/// Checks every position of a path (moves to `points`, each a rapid or a feed; feed moves
+/// sampled every [`TiltOptions::sample_mm`], rapids every [`RAPID_SAMPLES_APART`] times that, so
+/// that a robot moving joint-interpolated between neighbours stays near the checked line) and tilts the tool where the upright one collides
+/// (see the module docs). `start` is where the path begins.
+pub fn clear_path(
+    index: &MeshIndex,
+    body: &ToolBody,
+    start: [f64; 3],
+    moves: &[([f64; 3], bool)],
+    o: &TiltOptions,
+) -> Result<ClearedPath, String> {
+    o.validate()?;
+    // Positions: every move end, feed moves subdivided.
+    let mut pts: Vec<([f64; 3], bool)> = vec![(start, true)];
+    let mut prev = start;
+    for &(to, rapid) in moves {
+        if !to.iter().all(|v| v.is_finite()) {
+            return Err(format!("move {} to {to:?}: not a finite position", pts.len()));
+        }
+        let len = (0..3).map(|k| (to[k] - prev[k]).powi(2)).sum::<f64>().sqrt();
+        let spacing = if rapid { RAPID_SAMPLES_APART * o.sample_mm } else { o.sample_mm };
+        let n = (len / spacing).ceil().max(1.0) as usize;
+        for i in 1..n {
+            let t = i as f64 / n as f64;
+            pts.push((std::array::from_fn(|k| prev[k] + t * (to[k] - prev[k])), rapid));
+        }
+        pts.push((to, rapid));
+        prev = to;
+    }
+    let mut scratch = Scratch::default();
+    let mut out = ClearedPath::default();
+    // Per position: the lean that clears it (zero when upright clears), or blocked.
+    let mut leans: Vec<Option<[f64; 2]>> = Vec::with_capacity(pts.len());
+    let mut prefer: Option<f64> = None;
+    for &(p, rapid) in &pts {
+        let tip = Point3::from(p);
+        match collision(index, body, &tip, &Vector3::z_axis(), &mut scratch) {
+            None => {
+                leans.push(Some([0.0, 0.0]));
+            }
+            Some(hit) => {
+                out.colliding += 1;
+                match search_tilt(index, body, &tip, o, prefer, &mut scratch) {
+                    Some((tilt, phi)) => {
+                        prefer = Some(phi);
+                        leans.push(Some([tilt * phi.cos(), tilt * phi.sin()]));
+                    }
+                    None => {
+                        out.blocked.push(Blocked { at_mm: p, part: hit.part, depth_mm: hit.depth_mm });
+                        leans.push(None);
+                    }
+                }
+            }
+        }
+        if rapid {
+            prefer = None;
+        }
+    }
+    // Ramp the lean along each chain of feed positions, both ways.
+    let rate = o.max_rate_deg_mm.to_radians();
+    let dist = |i: usize, j: usize| (0..3).map(|k| (pts[i].0[k] - pts[j].0[k]).powi(2)).sum::<f64>().sqrt();
+    let ramp = |from: usize, to: usize, leans: &mut Vec<Option<[f64; 2]>>, scratch: &mut Scratch| {
+        let (Some(l), Some(cur)) = (leans[from], leans[to]) else { return };
+        let mag = l[0].hypot(l[1]);
+        let allowed = mag - rate * dist(from, to);
+        if allowed <= 0.0 || allowed <= cur[0].hypot(cur[1]) {
+            return;
+        }
+        let cand = [l[0] * allowed / mag, l[1] * allowed / mag];
+        if collision(index, body, &Point3::from(pts[to].0), &axis_of_lean(cand), scratch).is_none() {
+            leans[to] = Some(cand);
+        }
+    };
+    let feeds: Vec<usize> = (1..pts.len()).filter(|&i| !pts[i].1).collect();
+    for &i in &feeds {
+        ramp(i - 1, i, &mut leans, &mut scratch);
+    }
+    for &i in feeds.iter().rev() {
+        ramp(i, i - 1, &mut leans, &mut scratch);
+    }
+    let mut last_axis: Option<(usize, Unit<Vector3<f64>>)> = None;
+    for (i, (&(p, rapid), lean)) in pts.iter().zip(&leans).enumerate() {
+        let axis = lean.map_or(Vector3::z_axis(), axis_of_lean);
+        let tilt = axis.z.clamp(-1.0, 1.0).acos().to_degrees();
+        if lean.is_some_and(|l| l[0].hypot(l[1]) > 0.0) {
+            out.tilted += 1;
+            out.max_tilt_deg = out.max_tilt_deg.max(tilt);
+        }
+        if let Some((j, a)) = last_axis
+            && j + 1 == i
+            && !rapid
+            && lean.is_some()
+        {
+            let d = dist(j, i);
+            if d > 1e-9 {
+                let turn = a.dot(&axis).clamp(-1.0, 1.0).acos().to_degrees();
+                out.max_rate_deg_mm = out.max_rate_deg_mm.max(turn / d);
+            }
+        }
+        last_axis = lean.map(|_| (i, axis));
+        out.points.push(OrientedPoint {
+            tip: p,
+            axis: [axis.x, axis.y, axis.z],
+            rapid,
+            blocked: lean.is_none(),
+        });
+    }
+    Ok(out)
+}
+
+impl ClearedPath {
+    /// The path with every stretch of blocked positions replaced by a lift over it: from the
+    /// last clear position straight up to `clear_z` (rapid), across to above the next clear
+    /// position, and down to it at feed with that position's axis (sampled and checked like the
+    /// rest; a descent that collides is added to [`ClearedPath::blocked`]).
+    pub fn lifted(&self, index: &MeshIndex, body: &ToolBody, clear_z: f64, o: &TiltOptions) -> ClearedPath {
+        let mut out = ClearedPath { points: Vec::with_capacity(self.points.len()), ..self.clone() };
+        let mut scratch = Scratch::default();
+        let mut i = 0;
+        while i < self.points.len() {
+            let p = self.points[i];
+            if !p.blocked {
+                out.points.push(p);
+                i += 1;
+                continue;
+            }
+            let end = (i..self.points.len()).find(|&j| !self.points[j].blocked);
+            let Some(j) = end else { break };
+            let next = self.points[j];
+            if let Some(last) = out.points.last().copied() {
+                out.points.push(OrientedPoint {
+                    tip: [last.tip[0], last.tip[1], clear_z],
+                    rapid: true,
+                    ..last
+                });
+            }
+            out.points.push(OrientedPoint { tip: [next.tip[0], next.tip[1], clear_z], rapid: true, ..next });
+            let drop = clear_z - next.tip[2];
+            let n = (drop / o.sample_mm).ceil().max(1.0) as usize;
+            let axis = Unit::new_normalize(Vector3::from(next.axis));
+            for k in 1..n {
+                let tip = [next.tip[0], next.tip[1], clear_z - drop * k as f64 / n as f64];
+                if let Some(hit) = collision(index, body, &Point3::from(tip), &axis, &mut scratch) {
+                    out.blocked.push(Blocked { at_mm: tip, part: hit.part, depth_mm: hit.depth_mm });
+                }
+                out.points.push(OrientedPoint { tip, rapid: false, ..next });
+            }
+            i = j;
+        }
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use proptest::prelude::*;
+
+    use super::*;
+    use crate::domain::tool::Tool;
+
+    /// Reference: the distance from the axis over a fine barycentric sampling of the triangle,
+    /// restricted to the slab (`None` when no sample is in it).
+    fn sampled_distance(
+        tri: &[Vector3<f64>; 3],
+        base: &Vector3<f64>,
+        axis: &Unit<Vector3<f64>>,
+        length: f64,
+        n: usize,
+    ) -> Option<f64> {
+        let mut best: Option<f64> = None;
+        for i in 0..=n {
+            for j in 0..=n - i {
+                let (a, b) = (i as f64 / n as f64, j as f64 / n as f64);
+                let p = tri[0] * (1.0 - a - b) + tri[1] * a + tri[2] * b - base;
+                let h = p.dot(axis);
+                if (0.0..=length).contains(&h) {
+                    let d = (p - axis.as_ref() * h).norm();
+                    best = Some(best.map_or(d, |x: f64| x.min(d)));
+                }
+            }
+        }
+        best
+    }
+
+    fn v3() -> impl Strategy<Value = Vector3<f64>> {
+        (-5.0f64..5.0, -5.0f64..5.0, -5.0f64..5.0).prop_map(|(x, y, z)| Vector3::new(x, y, z))
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(300))]
+
+        /// The exact distance is never above any sampled one and within the sampling's spacing
+        /// of the smallest; when the slab holds a sample the exact test finds the triangle there.
+        #[test]
+        fn cylinder_distance_matches_sampling(a in v3(), b in v3(), c in v3(), base in v3(), dir in v3(), len in 0.5f64..6.0) {
+            prop_assume!(dir.norm() > 0.1);
+            let axis = Unit::new_normalize(dir);
+            let tri = [a, b, c];
+            let n = 200;
+            let exact = cylinder_distance(&tri, &base, &axis, len);
+            let sampled = sampled_distance(&tri, &base, &axis, len, n);
+            let spacing = [a - b, b - c, c - a].iter().map(|e| e.norm()).fold(0.0, f64::max) / n as f64;
+            match (exact, sampled) {
+                (Some(e), Some(s)) => {
+                    prop_assert!(e <= s + 1e-9, "exact {e} above sampled {s}");
+                    prop_assert!(s <= e + 2.0 * spacing + 1e-9, "exact {e} far below sampled {s}");
+                }
+                (None, Some(s)) => prop_assert!(false, "exact found nothing, sampled {s}"),
+                // The slab may hold a sliver between samples.
+                (_, None) => {}
+            }
+        }
+    }
+
+    fn tool() -> Tool {
+        Tool::from_spec(&"flat-6".parse().expect("spec")).expect("tool")
+    }
+
+    /// A closed box mesh.
+    fn block(lo: [f64; 3], hi: [f64; 3]) -> Mesh {
+        let v: Vec<Point3<f64>> = (0..8)
+            .map(|i| {
+                Point3::new(
+                    if i & 1 == 0 { lo[0] } else { hi[0] },
+                    if i & 2 == 0 { lo[1] } else { hi[1] },
+                    if i & 4 == 0 { lo[2] } else { hi[2] },
+                )
+            })
+            .collect();
+        let quads = [[0, 2, 3, 1], [4, 5, 7, 6], [0, 1, 5, 4], [2, 6, 7, 3], [0, 4, 6, 2], [1, 3, 7, 5]];
+        let tris = quads.iter().flat_map(|q| [[q[0], q[1], q[2]], [q[0], q[2], q[3]]]).collect();
+        Mesh::new(v, tris).expect("mesh")
+    }
+
+    #[test]
+    fn the_body_stacks_the_tool_library_geometry() {
+        let t = tool();
+        let b = ToolBody::new(&t, 0.01, Some((60.0, 100.0)));
+        let parts: Vec<&str> = b.sections.iter().map(|s| s.part).collect();
+        assert_eq!(parts, ["cutting", "shank", "holder", "spindle"]);
+        assert!((b.sections[0].radius_mm - 2.99).abs() < 1e-12);
+        assert_eq!(b.sections[2].radius_mm, 16.0);
+        assert!((b.length_mm() - (t.stickout_mm + t.holder_length_mm + 100.0)).abs() < 1e-9);
+        // A ball's cutting end: slices inside the sphere.
+        let ball = Tool::from_spec(&"ball-6".parse().expect("spec")).expect("tool");
+        let bb = ToolBody::new(&ball, 0.0, None);
+        for s in bb.sections.iter().filter(|s| s.part == "cutting" && s.from_mm < 3.0) {
+            let h = s.from_mm;
+            let true_r = (3.0f64 * 3.0 - (3.0 - h) * (3.0 - h)).max(0.0).sqrt();
+            assert!(s.radius_mm <= true_r + 1e-9, "{s:?} outside the ball ({true_r})");
+            assert!(true_r - s.radius_mm <= 3.0 / CUTTING_SLICES as f64 + 1e-9);
+        }
+    }
+
+    #[test]
+    fn collisions_name_the_part_that_hits() {
+        // A wall 60 mm tall, its face at x = 0; the tool beside it at z = 10.
+        let mesh = block([-20.0, -50.0, 0.0], [0.0, 50.0, 60.0]);
+        let index = MeshIndex::new(&mesh);
+        let body = ToolBody::new(&tool(), 0.01, None);
+        let mut s = Scratch::default();
+        let up = Vector3::z_axis();
+        // Tool edge touching the wall: clear of the cutting end within the tolerance, but the
+        // holder (radius 16) reaches into the wall.
+        let hit = collision(&index, &body, &Point3::new(3.0, 0.0, 10.0), &up, &mut s).expect("hit");
+        assert_eq!(hit.part, "holder");
+        assert!((hit.depth_mm - 13.0).abs() < 1e-9, "{hit:?}");
+        // Into the wall by 0.5 mm: the cutting end gouges.
+        let hit = collision(&index, &body, &Point3::new(2.5, 0.0, 10.0), &up, &mut s).expect("hit");
+        assert_eq!(hit.part, "cutting");
+        // Far enough: clear. Above the wall: clear.
+        assert!(collision(&index, &body, &Point3::new(16.5, 0.0, 10.0), &up, &mut s).is_none());
+        assert!(collision(&index, &body, &Point3::new(3.0, 0.0, 60.5), &up, &mut s).is_none());
+    }
+
+    #[test]
+    fn a_wall_is_cleared_by_leaning_away_with_a_smooth_ramp() {
+        let mesh = block([-20.0, -50.0, 0.0], [0.0, 50.0, 60.0]);
+        let index = MeshIndex::new(&mesh);
+        let body = ToolBody::new(&tool(), 0.01, None);
+        let o = TiltOptions::default();
+        // Along the wall at 3 mm, coming in from 40 mm away.
+        let moves = [([40.0, -20.0, 10.0], true), ([3.0, -20.0, 10.0], false), ([3.0, 20.0, 10.0], false)];
+        let path = clear_path(&index, &body, [40.0, -20.0, 70.0], &moves, &o).expect("path");
+        assert!(path.blocked.is_empty(), "{:?}", path.blocked);
+        assert!(path.colliding > 0);
+        let mut s = Scratch::default();
+        for p in &path.points {
+            let axis = Unit::new_normalize(Vector3::from(p.axis));
+            assert!(collision(&index, &body, &Point3::from(p.tip), &axis, &mut s).is_none(), "{p:?}");
+            // Leans away from the wall (+X), never towards it.
+            assert!(p.axis[0] >= -1e-12, "{p:?}");
+        }
+        // The holder must move 13 mm out over a 34 mm stick-out, plus its own tilt: about 20°.
+        assert!((18.0..=30.0).contains(&path.max_tilt_deg), "{}", path.max_tilt_deg);
+        // The smallest clearing tilt: a degree less collides.
+        let along = path.points.iter().find(|p| p.tip[0] == 3.0 && p.tip[1] == 0.0).expect("point");
+        let tilt = along.axis[2].acos();
+        assert!(
+            collision(
+                &index,
+                &body,
+                &Point3::from(along.tip),
+                &leaning_axis(tilt - 1f64.to_radians(), 0.0),
+                &mut s
+            )
+            .is_some()
+        );
+        // The ramp keeps the axis turning within the rate on the way in.
+        assert!(path.max_rate_deg_mm <= o.max_rate_deg_mm + 1e-6, "{}", path.max_rate_deg_mm);
+    }
+
+    #[test]
+    fn a_pocket_too_narrow_for_the_holder_is_reported() {
+        // A slot 8 mm wide, 50 mm deep between two walls: no tilt within 40° clears the holder
+        // at its bottom.
+        let left = block([-40.0, -50.0, 0.0], [-4.0, 50.0, 50.0]);
+        let right = block([4.0, -50.0, 0.0], [40.0, 50.0, 50.0]);
+        let n = left.vertices.len() as u32;
+        let mut mesh = left.clone();
+        mesh.vertices.extend(right.vertices);
+        mesh.triangles.extend(right.triangles.iter().map(|t| t.map(|i| i + n)));
+        let index = MeshIndex::new(&mesh);
+        let body = ToolBody::new(&tool(), 0.01, None);
+        let moves = [([0.0, -10.0, 5.0], false), ([0.0, 10.0, 5.0], false)];
+        let path =
+            clear_path(&index, &body, [0.0, -10.0, 5.0], &moves, &TiltOptions::default()).expect("path");
+        assert!(!path.blocked.is_empty());
+        assert!(path.points.iter().all(|p| p.blocked));
+        assert_eq!(path.blocked[0].part, "holder");
+        assert_eq!(path.blocked[0].at_mm, [0.0, -10.0, 5.0]);
+    }
+
+    #[test]
+    fn blocked_stretches_are_lifted_over() {
+        // Through a slot 8 mm wide and 50 mm long between walls 50 mm tall: the holder cannot
+        // reach its middle at any tilt; near its ends it leans out of the way.
+        let left = block([-40.0, -25.0, 0.0], [-4.0, 25.0, 50.0]);
+        let right = block([4.0, -25.0, 0.0], [40.0, 25.0, 50.0]);
+        let n = left.vertices.len() as u32;
+        let mut mesh = left.clone();
+        mesh.vertices.extend(right.vertices);
+        mesh.triangles.extend(right.triangles.iter().map(|t| t.map(|i| i + n)));
+        let index = MeshIndex::new(&mesh);
+        let body = ToolBody::new(&tool(), 0.01, None);
+        let o = TiltOptions::default();
+        let moves = [([0.0, -60.0, 5.0], false), ([0.0, 60.0, 5.0], false)];
+        let path = clear_path(&index, &body, [0.0, -60.0, 5.0], &moves, &o).expect("path");
+        assert!(path.points.iter().any(|p| p.blocked));
+        let lifted = path.lifted(&index, &body, 70.0, &o);
+        assert!(lifted.points.iter().all(|p| !p.blocked));
+        let high: Vec<&OrientedPoint> = lifted.points.iter().filter(|p| p.tip[2] == 70.0).collect();
+        assert_eq!(high.len(), 2);
+        assert!(high.iter().all(|p| p.rapid));
+        // Everything kept is clear, the descent included.
+        let mut s = Scratch::default();
+        for p in &lifted.points {
+            let axis = Unit::new_normalize(Vector3::from(p.axis));
+            assert!(collision(&index, &body, &Point3::from(p.tip), &axis, &mut s).is_none(), "{p:?}");
+        }
+        assert_eq!(lifted.blocked.len(), path.blocked.len());
+    }
+
+    #[test]
+    fn bad_options_and_positions_are_refused() {
+        let index = MeshIndex::new(&block([0.0; 3], [1.0; 3]));
+        let body = ToolBody::new(&tool(), 0.01, None);
+        let o = TiltOptions { max_tilt_deg: 95.0, ..TiltOptions::default() };
+        let e = clear_path(&index, &body, [0.0; 3], &[], &o).expect_err("tilt");
+        assert!(e.contains("max_tilt_deg 95"), "{e}");
+        let e =
+            clear_path(&index, &body, [0.0; 3], &[([f64::NAN, 0.0, 0.0], false)], &TiltOptions::default())
+                .expect_err("nan");
+        assert!(e.contains("move 1"), "{e}");
+    }
+}

@@ -1,0 +1,560 @@
+//! Robot milling (seed 001): a checked toolpath ([`super::clearance::ClearedPath`]: tip
+//! positions and tool axes in the part frame) becomes a joint trajectory of the 6-axis arm the
+//! scanning cell uses ([`depthmill_geometry::arm`], the Adept Viper s650), with a spindle on its
+//! flange instead of the scanner.
+//!
+//! # Frames
+//!
+//! - `base_from_part` ([`RobotCell::base_from_part`]) places the part in the robot's base frame
+//!   (the arm's `base` is `world_from_base`, the identity by default).
+//! - `flange_from_tip` ([`RobotCell::flange_from_tip`]): the spindle's axis is the flange's Z;
+//!   the tool tip sits `spindle_length_mm + holder_length_mm + stickout_mm` out along it. The
+//!   tool frame's Z points from the holder to the tip (minus the toolpath's axis); the spindle is
+//!   symmetric about it, so the turn about it (the *spin*) is free: one spin is chosen for the
+//!   whole program.
+//!
+//! # Planning
+//!
+//! 1. **Branch and spin**: for each spin in 30° steps and each IK branch found at the first
+//!    reachable position, the program is followed on up to [`CHOICE_SAMPLES`] evenly spread
+//!    positions keeping that branch; the pair reaching the most positions, then with the
+//!    greatest smallest dexterity `sqrt(det(JᵀJ))`, is kept.
+//! 2. **Along the path**: every position is solved in that one branch (no flips), nearest to the
+//!    previous joints, refused within the arm's singularity margins and outside its joint
+//!    limits. Positions that fail are grouped into unreachable stretches with the reason (out of
+//!    reach, a joint limit, a singularity); a feed step whose joints jump more than
+//!    [`MAX_FEED_JUMP_DEG`] is reported the same way (the arm cannot follow the straight line
+//!    there without turning a joint through a large angle).
+//! 3. **Timing** with the arm's motion model: a rapid is a synchronised rest-to-rest trapezoid
+//!    per joint ([`ArmModel::move_time_s`]); a feed step takes the longer of its length at the
+//!    feed and its largest joint turn at that joint's top speed (the controller blends feed
+//!    steps, so they do not stop; the joint speeds cap the feed where the wrist turns fast).
+//!    All speeds are scaled by [`RobotCell::speed_frac`].
+
+use depthmill_geometry::arm::{ArmModel, Configuration, IkConfig, SingularityMargins};
+use nalgebra::{Isometry3, Matrix4, Rotation3, Translation3, Unit, UnitQuaternion, Vector3};
+
+use depthmill_geometry::Mesh;
+
+use super::clearance::{ClearedPath, MeshIndex, OrientedPoint, TiltOptions, ToolBody, clear_path};
+use super::layer_passes::{MeshProgram, MeshProgramOptions, MoveKind, PassError, mesh_program};
+use super::tool::Tool;
+
+/// Positions sampled to choose the branch and the spin.
+pub const CHOICE_SAMPLES: usize = 64;
+
+/// Largest turn of any joint over one feed step, degrees.
+pub const MAX_FEED_JUMP_DEG: f64 = 20.0;
+
+/// The arm with a spindle and where the part stands.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RobotCell {
+    /// The arm; its `tool` is replaced by the spindle and the tool ([`RobotCell::arm_for`]).
+    pub arm: ArmModel,
+    pub base_from_part: Isometry3<f64>,
+    /// Flange face to spindle nose, mm.
+    pub spindle_length_mm: f64,
+    pub spindle_diameter_mm: f64,
+    /// Fraction of the joints' top speeds the program uses (0, 1].
+    pub speed_frac: f64,
+}
+
+/// Why no robot program could be made.
+#[derive(Debug, PartialEq, thiserror::Error)]
+pub enum RobotPlanError {
+    #[error("{field} {value}: {expected}")]
+    Invalid { field: &'static str, value: String, expected: &'static str },
+    #[error("the arm reaches none of the program's {positions} positions: at the first, {reason}")]
+    Unreachable { positions: usize, reason: String },
+    #[error("layers: {0}")]
+    Layers(#[from] PassError),
+    #[error("tool clearance: {0}")]
+    Clearance(String),
+}
+
+impl RobotCell {
+    /// The Viper s650 at the world origin, the part at `base_from_part`, a 150 mm x 60 mm spindle,
+    /// joints at most at 50 % of their top speed.
+    pub fn viper_s650(base_from_part: Isometry3<f64>) -> Self {
+        RobotCell {
+            arm: ArmModel::viper_s650(),
+            base_from_part,
+            spindle_length_mm: 150.0,
+            spindle_diameter_mm: 60.0,
+            speed_frac: 0.5,
+        }
+    }
+
+    /// Checks the settings.
+    pub fn validate(&self) -> Result<(), RobotPlanError> {
+        let bad = |field, value: f64, expected| {
+            Err(RobotPlanError::Invalid { field, value: value.to_string(), expected })
+        };
+        if !(self.spindle_length_mm.is_finite() && self.spindle_length_mm >= 0.0) {
+            return bad("spindle_length_mm", self.spindle_length_mm, "must be a non-negative length");
+        }
+        if !(self.spindle_diameter_mm.is_finite() && self.spindle_diameter_mm >= 0.0) {
+            return bad("spindle_diameter_mm", self.spindle_diameter_mm, "must be a non-negative diameter");
+        }
+        if !(self.speed_frac.is_finite() && self.speed_frac > 0.0 && self.speed_frac <= 1.0) {
+            return bad("speed_frac", self.speed_frac, "must be in (0, 1]");
+        }
+        let t = self.base_from_part.translation.vector;
+        if !(t.iter().all(|v| v.is_finite())
+            && self.base_from_part.rotation.coords.iter().all(|v| v.is_finite()))
+        {
+            return Err(RobotPlanError::Invalid {
+                field: "base_from_part",
+                value: format!("{t:?}"),
+                expected: "must be finite",
+            });
+        }
+        Ok(())
+    }
+
+    /// `flange_from_tip` for `tool` (see the module docs).
+    pub fn flange_from_tip(&self, tool: &Tool) -> Isometry3<f64> {
+        Isometry3::translation(0.0, 0.0, self.spindle_length_mm + tool.holder_length_mm + tool.stickout_mm)
+    }
+
+    /// The arm with `tool` in the spindle as its tool frame.
+    pub fn arm_for(&self, tool: &Tool) -> ArmModel {
+        self.arm.clone().with_tool(self.flange_from_tip(tool))
+    }
+
+    /// `world_from_tip` with the tip at `tip` and the axis along `axis` (part frame), turned
+    /// by `spin` (radians) about the tool's axis.
+    pub fn target(&self, tip: &[f64; 3], axis: &[f64; 3], spin: f64) -> Isometry3<f64> {
+        let a = Unit::new_normalize(Vector3::from(*axis));
+        let lean = UnitQuaternion::rotation_between(&Vector3::z(), &a).unwrap_or_else(|| {
+            // Straight down: half a turn about X.
+            UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI)
+        });
+        let r = lean
+            * UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI)
+            * UnitQuaternion::from_axis_angle(&Vector3::z_axis(), spin);
+        self.arm.base
+            * self.base_from_part
+            * Isometry3::from_parts(Translation3::from(Vector3::from(*tip)), r)
+    }
+}
+
+/// One position of the joint trajectory.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct JointPoint {
+    /// Time from the program's start, s.
+    pub t_s: f64,
+    /// Joints 1-6, degrees (the previous position's when not reachable).
+    pub q_deg: [f64; 6],
+    /// Tip and tool axis in the part frame.
+    pub tip_mm: [f64; 3],
+    pub axis: [f64; 3],
+    pub rapid: bool,
+    pub reachable: bool,
+}
+
+/// Consecutive positions the arm cannot take.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct Stretch {
+    /// Indices into the trajectory's points, inclusive.
+    pub from_point: usize,
+    pub to_point: usize,
+    /// The first position's tip, part frame.
+    pub at_mm: [f64; 3],
+    pub reason: String,
+}
+
+/// The robot program (see the module docs); serialised, it is the joint-trajectory file.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct RobotProgram {
+    /// `"depthmill-joint-trajectory/1"`.
+    pub format: &'static str,
+    pub arm: &'static str,
+    pub configuration: String,
+    pub spin_deg: f64,
+    /// Row-major 4 x 4 transforms, mm.
+    pub base_from_part: [[f64; 4]; 4],
+    pub flange_from_tip: [[f64; 4]; 4],
+    pub speed_frac: f64,
+    pub feed_mm_min: f64,
+    pub duration_s: f64,
+    pub feed_s: f64,
+    pub rapid_s: f64,
+    /// Feed steps slowed by a joint's top speed.
+    pub joint_limited_steps: usize,
+    pub min_dexterity: f64,
+    /// The smallest margins from each singularity over the program.
+    pub min_margins: SingularityMargins,
+    pub unreachable: Vec<Stretch>,
+    pub points: Vec<JointPoint>,
+}
+
+/// Frame format of the trajectory file.
+pub const TRAJECTORY_FORMAT: &str = "depthmill-joint-trajectory/1";
+
+fn matrix(i: &Isometry3<f64>) -> [[f64; 4]; 4] {
+    let m: Matrix4<f64> = i.to_homogeneous();
+    std::array::from_fn(|r| std::array::from_fn(|c| m[(r, c)]))
+}
+
+/// Follows `points` in `config` with `spin` from the first reachable one; positions reached and
+/// the smallest dexterity on the way.
+fn follow(
+    arm: &ArmModel,
+    cell: &RobotCell,
+    points: &[&OrientedPoint],
+    config: Configuration,
+    spin: f64,
+) -> (usize, f64) {
+    let ik = IkConfig::only(config);
+    let mut prev: Option<[f64; 6]> = None;
+    let (mut reached, mut dex) = (0, f64::INFINITY);
+    for p in points {
+        let target = cell.target(&p.tip, &p.axis, spin);
+        let sol = match prev {
+            Some(q) => arm.ik_nearest(&target, &q, &ik).ok(),
+            None => arm.ik_solutions(&target, &ik).ok().and_then(|s| s.into_iter().next()),
+        };
+        if let Some(s) = sol {
+            reached += 1;
+            dex = dex.min(arm.dexterity(&s.q_deg));
+            prev = Some(s.q_deg);
+        }
+    }
+    (reached, dex)
+}
+
+/// The joint trajectory of `path` (its blocked positions are not cut: the caller lifts over
+/// them) for `tool` at `feed_mm_min` (see the module docs).
+pub fn robot_program(
+    cell: &RobotCell,
+    tool: &Tool,
+    path: &ClearedPath,
+    feed_mm_min: f64,
+) -> Result<RobotProgram, RobotPlanError> {
+    cell.validate()?;
+    if !(feed_mm_min.is_finite() && feed_mm_min > 0.0) {
+        return Err(RobotPlanError::Invalid {
+            field: "feed_mm_min",
+            value: feed_mm_min.to_string(),
+            expected: "must be a positive feed",
+        });
+    }
+    let arm = cell.arm_for(tool);
+    let points: Vec<&OrientedPoint> = path.points.iter().filter(|p| !p.blocked).collect();
+    if points.is_empty() {
+        return Err(RobotPlanError::Unreachable {
+            positions: 0,
+            reason: "the program has no position".into(),
+        });
+    }
+    // 1. Branch and spin.
+    let step = points.len().div_ceil(CHOICE_SAMPLES).max(1);
+    let samples: Vec<&OrientedPoint> = points.iter().step_by(step).copied().collect();
+    let mut best: Option<(usize, f64, Configuration, f64)> = None;
+    let mut first_error = String::new();
+    for k in 0..12 {
+        let spin = (k as f64 * 30.0).to_radians();
+        // Branches at the first sample the arm reaches with this spin.
+        let branches = samples.iter().find_map(|p| {
+            match arm.ik_solutions(&cell.target(&p.tip, &p.axis, spin), &IkConfig::default()) {
+                Ok(s) if !s.is_empty() => Some(s),
+                Ok(_) => None,
+                Err(e) => {
+                    if first_error.is_empty() {
+                        first_error = e.to_string();
+                    }
+                    None
+                }
+            }
+        });
+        for s in branches.unwrap_or_default() {
+            let (n, dex) = follow(&arm, cell, &samples, s.configuration, spin);
+            if best.is_none_or(|(bn, bd, _, _)| n > bn || (n == bn && dex > bd)) {
+                best = Some((n, dex, s.configuration, spin));
+            }
+        }
+    }
+    let Some((_, _, config, spin)) = best else {
+        return Err(RobotPlanError::Unreachable { positions: points.len(), reason: first_error });
+    };
+    // 2. Along the path, 3. timing.
+    let ik = IkConfig::only(config);
+    let feed = feed_mm_min / 60.0;
+    let mut out: Vec<JointPoint> = Vec::with_capacity(points.len());
+    let mut unreachable: Vec<Stretch> = Vec::new();
+    let mut prev_q: Option<[f64; 6]> = None;
+    let (mut t, mut feed_s, mut rapid_s, mut limited) = (0.0, 0.0, 0.0, 0);
+    let mut dex_min = f64::INFINITY;
+    let mut margins =
+        SingularityMargins { wrist_deg: f64::INFINITY, shoulder_mm: f64::INFINITY, elbow_deg: f64::INFINITY };
+    let mut prev_tip: Option<[f64; 3]> = None;
+    for (i, p) in points.iter().enumerate() {
+        let target = cell.target(&p.tip, &p.axis, spin);
+        let sol = match prev_q {
+            Some(q) => arm.ik_nearest(&target, &q, &ik),
+            None => arm.ik_solutions(&target, &ik).and_then(|s| {
+                s.into_iter().next().ok_or(depthmill_geometry::arm::IkError::NotConverged {
+                    position_error_mm: f64::NAN,
+                    angle_error_deg: f64::NAN,
+                })
+            }),
+        };
+        let mut reason = None;
+        let mut jumped = false;
+        let q = match (sol, prev_q) {
+            (Ok(s), Some(q0)) => {
+                let jump = (0..6).map(|j| (s.q_deg[j] - q0[j]).abs()).fold(0.0, f64::max);
+                if !p.rapid && jump > MAX_FEED_JUMP_DEG {
+                    // The arm gets there, but not along the line: reported, and followed on
+                    // from there.
+                    reason = Some(format!(
+                        "a joint turns {jump:.1}° over one feed step (more than {MAX_FEED_JUMP_DEG}°): the straight line passes near a singularity or a joint limit"
+                    ));
+                    jumped = true;
+                }
+                s.q_deg
+            }
+            (Ok(s), None) => s.q_deg,
+            (Err(e), q0) => {
+                reason = Some(e.to_string());
+                q0.unwrap_or(ArmModel::HOME_DEG)
+            }
+        };
+        let reachable = reason.is_none();
+        if let Some(r) = reason {
+            match unreachable.last_mut() {
+                Some(s) if s.to_point + 1 == i && s.reason == r => s.to_point = i,
+                _ => unreachable.push(Stretch { from_point: i, to_point: i, at_mm: p.tip, reason: r }),
+            }
+        } else {
+            dex_min = dex_min.min(arm.dexterity(&q));
+            let m = arm.singularity_margins(&q);
+            margins.wrist_deg = margins.wrist_deg.min(m.wrist_deg);
+            margins.shoulder_mm = margins.shoulder_mm.min(m.shoulder_mm);
+            margins.elbow_deg = margins.elbow_deg.min(m.elbow_deg);
+        }
+        if let (Some(q0), Some(tip0)) = (prev_q, prev_tip) {
+            if p.rapid {
+                let dt = arm.move_time_s(&q0, &q, cell.speed_frac);
+                rapid_s += dt;
+                t += dt;
+            } else {
+                let len = (0..3).map(|k| (p.tip[k] - tip0[k]).powi(2)).sum::<f64>().sqrt();
+                let joint = (0..6)
+                    .map(|j| (q[j] - q0[j]).abs() / (arm.limits[j].max_speed_deg_s * cell.speed_frac))
+                    .fold(0.0, f64::max);
+                let dt = (len / feed).max(joint);
+                if joint > len / feed {
+                    limited += 1;
+                }
+                feed_s += dt;
+                t += dt;
+            }
+        }
+        out.push(JointPoint { t_s: t, q_deg: q, tip_mm: p.tip, axis: p.axis, rapid: p.rapid, reachable });
+        if reachable || jumped {
+            prev_q = Some(q);
+        }
+        prev_tip = Some(p.tip);
+    }
+    if out.iter().all(|p| !p.reachable) {
+        return Err(RobotPlanError::Unreachable {
+            positions: out.len(),
+            reason: unreachable.first().map_or_else(String::new, |s| s.reason.clone()),
+        });
+    }
+    Ok(RobotProgram {
+        format: TRAJECTORY_FORMAT,
+        arm: "Adept Viper s650",
+        configuration: config.to_string(),
+        spin_deg: spin.to_degrees(),
+        base_from_part: matrix(&cell.base_from_part),
+        flange_from_tip: matrix(&cell.flange_from_tip(tool)),
+        speed_frac: cell.speed_frac,
+        feed_mm_min,
+        duration_s: t,
+        feed_s,
+        rapid_s,
+        joint_limited_steps: limited,
+        min_dexterity: dex_min,
+        min_margins: margins,
+        unreachable,
+        points: out,
+    })
+}
+
+/// A robot milling job from a mesh.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RobotJob {
+    pub tool: Tool,
+    pub layers: MeshProgramOptions,
+    pub tilt: TiltOptions,
+    pub cell: RobotCell,
+    pub feed_mm_min: f64,
+}
+
+/// What [`plan_robot`] made.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RobotPlan {
+    /// The layers, their rings and the 3-axis program joining them.
+    pub layers: MeshProgram,
+    /// Every position checked and tilted, blocked stretches lifted over.
+    pub path: ClearedPath,
+    pub robot: RobotProgram,
+}
+
+/// The whole robot plan of a mesh: slice and ring the layers ([`mesh_program`]), check the tool
+/// body (with the spindle) against the mesh at every position and tilt it where needed
+/// ([`clear_path`]), lift over what no tilt clears, and solve the arm along it
+/// ([`robot_program`]).
+pub fn plan_robot(mesh: &Mesh, job: &RobotJob) -> Result<RobotPlan, RobotPlanError> {
+    job.cell.validate()?;
+    let layers = mesh_program(mesh, &job.layers)?;
+    let index = MeshIndex::new(mesh);
+    let spindle = Some((job.cell.spindle_diameter_mm, job.cell.spindle_length_mm));
+    let body = ToolBody::new(&job.tool, job.tilt.gouge_tol_mm, spindle);
+    let start = layers
+        .program
+        .moves
+        .first()
+        .map_or([0.0, 0.0, layers.clear_z_mm], |m| [m.to[0], m.to[1], layers.clear_z_mm]);
+    let moves: Vec<([f64; 3], bool)> =
+        layers.program.moves.iter().map(|m| (m.to, m.kind == MoveKind::Rapid)).collect();
+    let checked = clear_path(&index, &body, start, &moves, &job.tilt).map_err(RobotPlanError::Clearance)?;
+    let path = checked.lifted(&index, &body, layers.clear_z_mm, &job.tilt);
+    let robot = robot_program(&job.cell, &job.tool, &path, job.feed_mm_min)?;
+    Ok(RobotPlan { layers, path, robot })
+}
+
+/// The tool axis as the A and B words of the robot program's G-code: the axis is
+/// `Ry(B) · Rx(A) · Z` = `(cos A sin B, −sin A, cos A cos B)`, degrees.
+pub fn axis_to_ab(axis: &[f64; 3]) -> (f64, f64) {
+    let a = (-axis[1]).clamp(-1.0, 1.0).asin();
+    let b = axis[0].atan2(axis[2]);
+    (a.to_degrees(), b.to_degrees())
+}
+
+/// The inverse of [`axis_to_ab`].
+pub fn ab_to_axis(a_deg: f64, b_deg: f64) -> [f64; 3] {
+    let r = Rotation3::from_axis_angle(&Vector3::y_axis(), b_deg.to_radians())
+        * Rotation3::from_axis_angle(&Vector3::x_axis(), a_deg.to_radians());
+    let v = r * Vector3::z();
+    [v.x, v.y, v.z]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::domain::clearance::{ClearedPath, OrientedPoint};
+
+    fn tool() -> Tool {
+        Tool::from_spec(&"flat-6".parse().expect("spec")).expect("tool")
+    }
+
+    fn cell() -> RobotCell {
+        RobotCell::viper_s650(Isometry3::translation(420.0, 0.0, 0.0))
+    }
+
+    fn path(points: Vec<([f64; 3], [f64; 3], bool)>) -> ClearedPath {
+        ClearedPath {
+            points: points
+                .into_iter()
+                .map(|(tip, axis, rapid)| OrientedPoint { tip, axis, rapid, blocked: false })
+                .collect(),
+            ..ClearedPath::default()
+        }
+    }
+
+    #[test]
+    fn ab_words_round_trip() {
+        for (a, b) in [(0.0, 0.0), (10.0, -20.0), (-35.0, 40.0), (25.0, 0.0)] {
+            let v = ab_to_axis(a, b);
+            let (a2, b2) = axis_to_ab(&v);
+            assert!((a - a2).abs() < 1e-9 && (b - b2).abs() < 1e-9, "{a} {b} -> {a2} {b2}");
+        }
+    }
+
+    #[test]
+    fn the_arm_puts_the_tip_and_axis_where_the_program_says() {
+        let c = cell();
+        let t = tool();
+        let mut pts = vec![([0.0, -20.0, 30.0], [0.0, 0.0, 1.0], true)];
+        // Leaning up to 20° at 2° per millimetre, then back.
+        for i in 0..=40 {
+            let y = -20.0 + i as f64;
+            let tilt = (2.0 * (10.0 - (i as f64 - 20.0).abs())).max(0.0).to_radians();
+            pts.push(([10.0, y, 10.0], [tilt.sin(), 0.0, tilt.cos()], false));
+        }
+        let prog = robot_program(&c, &t, &path(pts), 600.0).expect("program");
+        assert!(prog.unreachable.is_empty(), "{:?}", prog.unreachable);
+        let arm = c.arm_for(&t);
+        for p in &prog.points {
+            let world = arm.fk(&p.q_deg);
+            let part = c.base_from_part.inverse() * world;
+            let tip = part.translation.vector;
+            assert!((tip - Vector3::from(p.tip_mm)).norm() < 1e-5, "{tip:?} vs {:?}", p.tip_mm);
+            // The tool frame's Z points from the holder to the tip: minus the axis.
+            let z = part.rotation * Vector3::z();
+            assert!((z + Vector3::from(p.axis)).norm() < 1e-6, "{z:?} vs {:?}", p.axis);
+        }
+        // One branch throughout.
+        let branches: std::collections::HashSet<String> =
+            prog.points.iter().map(|p| arm.configuration(&p.q_deg).to_string()).collect();
+        assert_eq!(branches.len(), 1, "{branches:?}");
+        // Times increase; the 40 mm of feed at 10 mm/s take at least 4 s.
+        assert!(prog.points.windows(2).all(|w| w[1].t_s >= w[0].t_s));
+        assert!(prog.feed_s >= 4.0 - 1e-9, "{}", prog.feed_s);
+        assert!(prog.min_dexterity > 0.0 && prog.min_margins.wrist_deg >= 1.0);
+    }
+
+    #[test]
+    fn positions_out_of_reach_are_reported_as_stretches() {
+        let c = cell();
+        let t = tool();
+        let mut pts = vec![([0.0, 0.0, 30.0], [0.0, 0.0, 1.0], true)];
+        // Feed out to 900 mm from the base: beyond the reach on the way.
+        for i in 0..=50 {
+            pts.push(([i as f64 * 10.0, 0.0, 10.0], [0.0, 0.0, 1.0], false));
+        }
+        let prog = robot_program(&c, &t, &path(pts), 600.0).expect("program");
+        assert!(!prog.unreachable.is_empty());
+        let s = &prog.unreachable[0];
+        assert!(s.reason.contains("reach"), "{s:?}");
+        assert!(s.to_point >= s.from_point);
+        // The far end is among the unreachable points, the near ones are fine.
+        assert!(!prog.points.last().expect("last").reachable);
+        assert!(prog.points[1].reachable);
+    }
+
+    #[test]
+    fn an_abrupt_turn_of_the_tool_is_reported_and_followed_on() {
+        let c = cell();
+        let t = tool();
+        let s30 = 30f64.to_radians();
+        let mut pts = vec![([0.0, -20.0, 30.0], [0.0, 0.0, 1.0], true)];
+        for i in 0..=40 {
+            let axis = if i > 20 { [s30.sin(), 0.0, s30.cos()] } else { [0.0, 0.0, 1.0] };
+            pts.push(([10.0, -20.0 + i as f64, 10.0], axis, false));
+        }
+        let prog = robot_program(&c, &t, &path(pts), 600.0).expect("program");
+        assert_eq!(prog.unreachable.len(), 1, "{:?}", prog.unreachable);
+        let s = &prog.unreachable[0];
+        assert_eq!((s.from_point, s.to_point), (22, 22));
+        assert!(s.reason.contains("over one feed step"), "{}", s.reason);
+        assert!(prog.points[23..].iter().all(|p| p.reachable));
+    }
+
+    #[test]
+    fn bad_settings_are_refused() {
+        let t = tool();
+        let p = path(vec![([0.0; 3], [0.0, 0.0, 1.0], true)]);
+        let e = robot_program(&RobotCell { speed_frac: 1.5, ..cell() }, &t, &p, 600.0).expect_err("speed");
+        assert!(e.to_string().contains("speed_frac 1.5"), "{e}");
+        let e = robot_program(&cell(), &t, &p, 0.0).expect_err("feed");
+        assert!(e.to_string().contains("feed_mm_min 0"), "{e}");
+        let far = RobotCell::viper_s650(Isometry3::translation(3000.0, 0.0, 0.0));
+        let e = robot_program(&far, &t, &p, 600.0).expect_err("reach");
+        assert!(matches!(e, RobotPlanError::Unreachable { .. }), "{e}");
+    }
+}
