@@ -42,7 +42,7 @@ fn library(tools_dir: Option<&Path>) -> anyhow::Result<ToolLibrary> {
     Ok(lib)
 }
 
-fn tool(name: &str, tools_dir: Option<&Path>) -> anyhow::Result<Tool> {
+pub(crate) fn tool(name: &str, tools_dir: Option<&Path>) -> anyhow::Result<Tool> {
     if name.ends_with(".tool") {
         return Ok(Tool::read_file(Path::new(name))?);
     }

@@ -2,7 +2,7 @@
 //! `status`, `watch`, `fetch`) and the offline tools. The binary is [`main_from`] on the process's
 //! arguments; tests run it in processes of their own.
 
-use crate::{cam, client, demo, machine, raster, scan, slice, token};
+use crate::{cam, client, demo, machine, raster, robot, scan, slice, token};
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -122,6 +122,10 @@ enum Command {
     ///
     /// Also writes <stem>.report.json, <stem>.preview.png (the surface the program leaves) and
     /// <stem>.leftover.png next to the program.
+    ///
+    /// With --robot, MAP is a mesh (STL/PLY) milled layer by layer by the 6-axis arm with a
+    /// spindle: writes the Cartesian program (tool tip X Y Z, tool axis A B), <stem>.joints.json
+    /// (the joint trajectory) and <stem>.robot.json (clearance, tilts, reach, timing).
     Plan {
         map: PathBuf,
         /// The job's "plan" object as JSON (stock, roughing, finishing, dialect), as in DESIGN.md §7.
@@ -134,6 +138,8 @@ enum Command {
         map_args: cam::MapArgs,
         #[arg(long)]
         tools_dir: Option<PathBuf>,
+        #[command(flatten)]
+        robot: robot::RobotArgs,
         /// Output program (.ngc).
         #[arg(short, long)]
         output: PathBuf,
@@ -307,8 +313,18 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 depthmill_common::telemetry::init_tracing(cli.log_json);
                 tokio::task::block_in_place(|| raster::run(&input, &args, &output))
             }
-            Command::Plan { map, options, roughing_map, map_args, tools_dir, output } => {
+            Command::Plan { map, options, roughing_map, map_args, tools_dir, robot, output } => {
                 depthmill_common::telemetry::init_tracing(cli.log_json);
+                if robot.robot {
+                    if options.is_some() || roughing_map.is_some() {
+                        anyhow::bail!(
+                            "--robot plans from the mesh alone: --options and --roughing-map do not apply"
+                        );
+                    }
+                    return tokio::task::block_in_place(|| {
+                        robot::run(&map, &robot, tools_dir.as_deref(), &output)
+                    });
+                }
                 tokio::task::block_in_place(|| {
                     cam::run_plan(
                         &map,

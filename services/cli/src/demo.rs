@@ -104,13 +104,9 @@ pub async fn run(args: &DemoArgs) -> anyhow::Result<()> {
             Part { bytes, media_type, name: path.file_stem().map(|s| s.to_string_lossy().into_owned()) }
         }
         None => {
-            let mesh = depthmill_scanning::domain::sample::sample_relief(0.25);
+            let mesh = depthmill_geometry::sample::sample_relief(0.25);
             let mut stl = Vec::new();
-            depthmill_geometry::formats::write_stl(
-                &mut stl,
-                &mesh,
-                depthmill_scanning::domain::sample::STL_HEADER,
-            )?;
+            depthmill_geometry::formats::write_stl(&mut stl, &mesh, depthmill_geometry::sample::STL_HEADER)?;
             let part_path = out.join("part.stl");
             std::fs::write(&part_path, &stl).with_context(|| format!("writing {}", part_path.display()))?;
             crate::outln!(

@@ -9,6 +9,7 @@ pub mod embedded;
 mod machine;
 pub mod out;
 mod raster;
+mod robot;
 mod scan;
 mod slice;
 mod token;

@@ -4,7 +4,7 @@ use std::io::Write as _;
 use std::path::Path;
 
 use anyhow::{Context as _, bail};
-use depthmill_cam::domain::layer_passes::{LayerProgram, MoveKind, PassOptions, layer_passes, link_layers};
+use depthmill_cam::domain::layer_passes::{LayerProgram, MeshProgramOptions, MoveKind, mesh_program};
 use depthmill_cam::domain::slice::{ContourKind, MAX_LAYERS, slice, topology};
 use depthmill_geometry::formats::{ReadLimits, read_mesh};
 
@@ -140,26 +140,21 @@ pub fn run(input: &Path, args: &SliceArgs, output: &Path) -> anyhow::Result<()> 
         Some(spec) => {
             let tool: depthmill_geometry::ToolProfile =
                 spec.parse().map_err(|e| anyhow::anyhow!("--tool {spec}: {e}"))?;
-            let r = tool.radius_mm();
-            let m = args.stock_margin_mm;
-            if !(m.is_finite() && m >= 0.0) {
-                bail!("--stock-margin-mm {m}: must be a non-negative number of millimetres");
-            }
-            let (lo, hi) =
-                mesh.vertices.iter().fold(([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]), |(lo, hi), p| {
-                    ([lo[0].min(p.x), lo[1].min(p.y)], [hi[0].max(p.x), hi[1].max(p.y)])
-                });
-            let o = PassOptions {
-                tool_radius_mm: r,
-                radial_depth_mm: args.radial_depth_mm.unwrap_or(r),
-                arc_tolerance_mm: (0.01f64).min(0.1 * r),
-                stock: [lo[0] - m, lo[1] - m, hi[0] + m, hi[1] + m],
-            };
-            let planned = layers
-                .iter()
-                .map(|l| layer_passes(l, &o))
-                .collect::<Result<Vec<_>, _>>()
-                .map_err(|e| anyhow::anyhow!("layer passes: {e}"))?;
+            let planned_mesh = mesh_program(
+                &mesh,
+                &MeshProgramOptions {
+                    step_mm: step,
+                    from_mm: Some(from),
+                    tool_radius_mm: tool.radius_mm(),
+                    radial_depth_mm: args.radial_depth_mm,
+                    stock_margin_mm: args.stock_margin_mm,
+                    clearance_mm: 5.0,
+                },
+            )
+            .map_err(|e| anyhow::anyhow!("layer passes: {e}"))?;
+            let o = planned_mesh.options;
+            let r = o.tool_radius_mm;
+            let planned = &planned_mesh.passes;
             let rings: usize = planned.iter().map(|p| p.rings.len()).sum();
             let unreached: Vec<String> = planned
                 .iter()
@@ -182,13 +177,7 @@ pub fn run(input: &Path, args: &SliceArgs, output: &Path) -> anyhow::Result<()> 
                     unreached.iter().take(5).cloned().collect::<Vec<_>>().join("; ")
                 );
             }
-            // Top layer first.
-            let parts: Vec<Vec<Vec<[f64; 2]>>> =
-                layers.iter().rev().map(|l| l.contours.iter().map(|c| c.points.clone()).collect()).collect();
-            let top_down: Vec<_> = planned.iter().rev().cloned().collect();
-            let clear_z = zmax + 5.0;
-            let program = link_layers(&parts, &top_down, &o, clear_z)
-                .map_err(|e| anyhow::anyhow!("linking the layers: {e}"))?;
+            let (program, clear_z) = (&planned_mesh.program, planned_mesh.clear_z_mm);
             crate::outln!(
                 "program: {} moves, {} feed links, {} retracts to Z {clear_z:.3}",
                 program.moves.len(),
@@ -196,7 +185,7 @@ pub fn run(input: &Path, args: &SliceArgs, output: &Path) -> anyhow::Result<()> 
                 program.retracts
             );
             if let Some(path) = &args.gcode {
-                let text = gcode(&program, spec, 2.0 * r, args.feed_mm_min, args.rpm, clear_z, input)?;
+                let text = gcode(program, spec, 2.0 * r, args.feed_mm_min, args.rpm, clear_z, input)?;
                 std::fs::write(path, text).with_context(|| format!("writing {}", path.display()))?;
                 crate::outln!("written {}", path.display());
             }

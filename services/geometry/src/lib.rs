@@ -24,6 +24,7 @@
 //!   [`formats::ReadLimits`], format sniffing, and the PLY and STL writers.
 //! - [`raster`]: point clouds to height maps (max-Z binning, enclosed-hole filling, coverage);
 //!   [`mesh_raster`]: a mesh's exact top surface at cell centres (z-buffer).
+//! - [`sample`]: the generated sample part (a relief) of the demo, the tests and the benches.
 //! - [`pose`]: [`Pose`], [`XyzYpr`] (ZYX angles), [`Face::view_from_part`].
 //! - [`tool`]: [`ToolProfile`] (solid of revolution) and [`ToolSpec`] (`ball-6`, `v-6-90`, ...).
 //! - [`compensate`]: tool compensation of a height map (grayscale dilation by the tool, exact and
@@ -48,6 +49,7 @@ pub mod npy;
 pub mod png_io;
 pub mod pose;
 pub mod raster;
+pub mod sample;
 pub mod tool;
 pub mod units;
 

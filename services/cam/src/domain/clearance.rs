@@ -194,6 +194,17 @@ impl MeshIndex {
         index
     }
 
+    /// The same triangles in one unbounded cell: every query that meets the mesh's box returns
+    /// every triangle (the reference the tests and the benchmark hold the grid against).
+    pub fn unindexed(mesh: &Mesh) -> Self {
+        let mut index = MeshIndex::new(mesh);
+        index.dims = [1, 1, 1];
+        index.cell = f64::INFINITY;
+        index.starts = vec![0, index.tris.len() as u32];
+        index.items = (0..index.tris.len() as u32).collect();
+        index
+    }
+
     /// Triangles indexed.
     pub fn len(&self) -> usize {
         self.tris.len()
@@ -254,6 +265,94 @@ fn origin_segment_distance(p: [f64; 2], q: [f64; 2]) -> f64 {
     (p[0] + t * d[0]).hypot(p[1] + t * d[1])
 }
 
+/// A cylinder's frame: `(x, y)` across its axis, `h` along it from its base.
+struct CylinderFrame {
+    base: Vector3<f64>,
+    u: Vector3<f64>,
+    v: Vector3<f64>,
+    axis: Vector3<f64>,
+    length: f64,
+}
+
+/// Most vertices of a triangle clipped by two parallel planes.
+const MAX_CLIPPED: usize = 5;
+
+impl CylinderFrame {
+    fn new(base: &Vector3<f64>, axis: &Unit<Vector3<f64>>, length: f64) -> Self {
+        let (u, v) = perpendiculars(axis);
+        CylinderFrame { base: *base, u, v, axis: axis.into_inner(), length }
+    }
+
+    fn local(&self, tri: &[Vector3<f64>; 3]) -> [[f64; 3]; 3] {
+        tri.map(|p| {
+            let d = p - self.base;
+            [d.dot(&self.u), d.dot(&self.v), d.dot(&self.axis)]
+        })
+    }
+
+    /// Whether the cylinder of `radius` meets `tri` (quick rejections first).
+    fn meets(&self, tri: &[Vector3<f64>; 3], radius: f64) -> Option<f64> {
+        let l = self.local(tri);
+        let all = |f: &dyn Fn(&[f64; 3]) -> bool| l.iter().all(f);
+        if all(&|p| p[2] < 0.0)
+            || all(&|p| p[2] > self.length)
+            || all(&|p| p[0] >= radius)
+            || all(&|p| p[0] <= -radius)
+            || all(&|p| p[1] >= radius)
+            || all(&|p| p[1] <= -radius)
+        {
+            return None;
+        }
+        clipped_distance(&l, self.length).filter(|&d| d < radius)
+    }
+}
+
+/// [`cylinder_distance`] on a triangle already in the cylinder's frame.
+fn clipped_distance(tri: &[[f64; 3]; 3], length: f64) -> Option<f64> {
+    let mut poly = [[0.0; 3]; MAX_CLIPPED];
+    poly[..3].copy_from_slice(tri);
+    let mut n = 3;
+    for (keep_above, plane) in [(true, 0.0), (false, length)] {
+        let inside = |p: &[f64; 3]| if keep_above { p[2] >= plane } else { p[2] <= plane };
+        let mut out = [[0.0; 3]; MAX_CLIPPED];
+        let mut m = 0;
+        for i in 0..n {
+            let (p, q) = (poly[i], poly[(i + 1) % n]);
+            if inside(&p) && m < MAX_CLIPPED {
+                out[m] = p;
+                m += 1;
+            }
+            if inside(&p) != inside(&q) && m < MAX_CLIPPED {
+                let t = (plane - p[2]) / (q[2] - p[2]);
+                out[m] = [p[0] + t * (q[0] - p[0]), p[1] + t * (q[1] - p[1]), plane];
+                m += 1;
+            }
+        }
+        poly = out;
+        n = m;
+        if n == 0 {
+            return None;
+        }
+    }
+    // The projection along the axis is convex: the origin is inside iff it is on one side of
+    // every edge (a polygon of no area falls back to its edges' distance).
+    let (mut pos, mut neg) = (false, false);
+    let mut best = f64::INFINITY;
+    let mut area2 = 0.0;
+    for i in 0..n {
+        let (p, q) = (poly[i], poly[(i + 1) % n]);
+        let cross = p[0] * q[1] - p[1] * q[0];
+        area2 += cross;
+        pos |= cross > 0.0;
+        neg |= cross < 0.0;
+        best = best.min(origin_segment_distance([p[0], p[1]], [q[0], q[1]]));
+    }
+    if area2.abs() > 1e-18 && !(pos && neg) {
+        return Some(0.0);
+    }
+    Some(best)
+}
+
 /// The smallest distance from the axis of a cylinder (through `base`, direction `axis`, heights
 /// `0..=length` along it) to the part of triangle `tri` between the cylinder's end planes, or
 /// `None` when the triangle has no point there. The cylinder of radius `R` meets the triangle iff
@@ -264,55 +363,8 @@ pub fn cylinder_distance(
     axis: &Unit<Vector3<f64>>,
     length: f64,
 ) -> Option<f64> {
-    let (u, v) = perpendiculars(axis);
-    // In the cylinder's frame: (x, y) across the axis, h along it.
-    let mut poly: Vec<[f64; 3]> = tri
-        .iter()
-        .map(|p| {
-            let d = p - base;
-            [d.dot(&u), d.dot(&v), d.dot(axis)]
-        })
-        .collect();
-    for (keep_above, plane) in [(true, 0.0), (false, length)] {
-        let inside = |p: &[f64; 3]| if keep_above { p[2] >= plane } else { p[2] <= plane };
-        let mut out = Vec::with_capacity(poly.len() + 2);
-        for i in 0..poly.len() {
-            let (p, q) = (poly[i], poly[(i + 1) % poly.len()]);
-            if inside(&p) {
-                out.push(p);
-            }
-            if inside(&p) != inside(&q) {
-                let t = (plane - p[2]) / (q[2] - p[2]);
-                out.push([p[0] + t * (q[0] - p[0]), p[1] + t * (q[1] - p[1]), plane]);
-            }
-        }
-        poly = out;
-        if poly.is_empty() {
-            return None;
-        }
-    }
-    // The projection along the axis is convex: the origin is inside iff it is on one side of
-    // every edge (a polygon of no area falls back to its edges' distance).
-    let n = poly.len();
-    let (mut pos, mut neg) = (false, false);
-    let mut best = f64::INFINITY;
-    for i in 0..n {
-        let (p, q) = (poly[i], poly[(i + 1) % n]);
-        let cross = p[0] * q[1] - p[1] * q[0];
-        pos |= cross > 0.0;
-        neg |= cross < 0.0;
-        best = best.min(origin_segment_distance([p[0], p[1]], [q[0], q[1]]));
-    }
-    let area2: f64 = (0..n)
-        .map(|i| {
-            let (p, q) = (poly[i], poly[(i + 1) % n]);
-            p[0] * q[1] - p[1] * q[0]
-        })
-        .sum();
-    if area2.abs() > 1e-18 && !(pos && neg) {
-        return Some(0.0);
-    }
-    Some(best)
+    let f = CylinderFrame::new(base, axis, length);
+    clipped_distance(&f.local(tri), length)
 }
 
 /// Where a tool body meets the part.
@@ -341,18 +393,43 @@ pub fn collision(
     axis: &Unit<Vector3<f64>>,
     scratch: &mut Scratch,
 ) -> Option<Hit> {
+    first_hit(index, body, tip, axis, scratch, false)
+}
+
+/// Whether the body at `tip` along `axis` meets the part (stops at the first triangle).
+pub fn collides(
+    index: &MeshIndex,
+    body: &ToolBody,
+    tip: &Point3<f64>,
+    axis: &Unit<Vector3<f64>>,
+    scratch: &mut Scratch,
+) -> bool {
+    first_hit(index, body, tip, axis, scratch, true).is_some()
+}
+
+fn first_hit(
+    index: &MeshIndex,
+    body: &ToolBody,
+    tip: &Point3<f64>,
+    axis: &Unit<Vector3<f64>>,
+    scratch: &mut Scratch,
+    any: bool,
+) -> Option<Hit> {
     for s in &body.sections {
         let base = tip.coords + axis.as_ref() * s.from_mm;
         let top = tip.coords + axis.as_ref() * s.to_mm;
         let pad = Vector3::repeat(s.radius_mm);
         index.candidates(&(base.inf(&top) - pad), &(base.sup(&top) + pad), &mut scratch.candidates);
+        let frame = CylinderFrame::new(&base, axis, s.to_mm - s.from_mm);
         let mut deepest: Option<Hit> = None;
         for &t in &scratch.candidates {
-            if let Some(d) = cylinder_distance(&index.tris[t as usize], &base, axis, s.to_mm - s.from_mm)
-                && d < s.radius_mm
+            if let Some(d) = frame.meets(&index.tris[t as usize], s.radius_mm)
                 && deepest.is_none_or(|h| s.radius_mm - d > h.depth_mm)
             {
                 deepest = Some(Hit { part: s.part, triangle: t, depth_mm: s.radius_mm - d });
+                if any {
+                    return deepest;
+                }
             }
         }
         if deepest.is_some() {
@@ -466,51 +543,60 @@ pub struct ClearedPath {
     pub blocked: Vec<Blocked>,
 }
 
-/// The smallest tilt (radians) and its azimuth clearing `tip`, preferring `prefer_phi`.
+/// Azimuths whose smallest clearing tilt is within this many steps of the smallest of all
+/// compete on how little the axis turns from the previous position's.
+const AZIMUTH_SLACK_STEPS: usize = 2;
+
+/// The tilt (radians) and azimuth clearing `tip`: the smallest tilt, or, after a tilted
+/// position, the clearing axis nearest the previous one (`prev`) among tilts within
+/// [`AZIMUTH_SLACK_STEPS`] of the smallest, so the lean does not swap sides between neighbours.
 fn search_tilt(
     index: &MeshIndex,
     body: &ToolBody,
     tip: &Point3<f64>,
     o: &TiltOptions,
-    prefer_phi: Option<f64>,
+    prev: Option<&Unit<Vector3<f64>>>,
     scratch: &mut Scratch,
 ) -> Option<(f64, f64)> {
     let step = o.step_deg.to_radians();
     let max = o.max_tilt_deg.to_radians();
     let steps = (max / step).floor() as usize;
-    let mut best: Option<(usize, f64)> = None;
-    let order: Vec<f64> = {
-        let base = prefer_phi.unwrap_or(0.0);
-        // The preferred direction first, then outwards from it both ways.
-        let n = o.azimuths;
-        let d = std::f64::consts::TAU / n as f64;
-        let k0 = (base / d).round() as i64;
-        (0..n as i64)
-            .map(|i| {
-                let off = if i % 2 == 1 { (i + 1) / 2 } else { -(i / 2) };
-                (k0 + off) as f64 * d
-            })
-            .collect()
-    };
-    for &phi in &order {
-        let limit = best.map_or(steps, |(k, _)| k.saturating_sub(1));
-        for k in 1..=limit {
-            let axis = leaning_axis(k as f64 * step, phi);
-            if collision(index, body, tip, &axis, scratch).is_none() {
-                best = Some((k, phi));
-                break;
-            }
+    let n = o.azimuths;
+    let d = std::f64::consts::TAU / n as f64;
+    // The previous lean's direction first, then outwards from it both ways.
+    let k0 = prev.filter(|a| a.x.hypot(a.y) > 1e-12).map_or(0, |a| (a.y.atan2(a.x) / d).round() as i64);
+    let order = (0..n as i64).map(|i| {
+        let off = if i % 2 == 1 { (i + 1) / 2 } else { -(i / 2) };
+        (k0 + off) as f64 * d
+    });
+    let mut found: Vec<(usize, f64)> = Vec::new();
+    let mut kmin = usize::MAX;
+    for phi in order {
+        let limit = if kmin == usize::MAX { steps } else { (kmin + AZIMUTH_SLACK_STEPS).min(steps) };
+        if let Some(k) =
+            (1..=limit).find(|&k| !collides(index, body, tip, &leaning_axis(k as f64 * step, phi), scratch))
+        {
+            kmin = kmin.min(k);
+            found.push((k, phi));
         }
     }
-    let (k, phi) = best?;
+    let turn = |k: usize, phi: f64| {
+        prev.map_or(0.0, |a| a.dot(&leaning_axis(k as f64 * step, phi)).clamp(-1.0, 1.0).acos())
+    };
+    let (k, phi) = found.into_iter().filter(|&(k, _)| k <= kmin + AZIMUTH_SLACK_STEPS).min_by(|a, b| {
+        let key = |&(k, phi): &(usize, f64)| if prev.is_some() { (turn(k, phi), k) } else { (0.0, k) };
+        let (ta, ka) = key(a);
+        let (tb, kb) = key(b);
+        ta.total_cmp(&tb).then(ka.cmp(&kb))
+    })?;
     // Bisection between the last colliding and the first clearing step.
     let (mut lo, mut hi) = ((k - 1) as f64 * step, k as f64 * step);
     for _ in 0..3 {
         let mid = 0.5 * (lo + hi);
-        if collision(index, body, tip, &leaning_axis(mid, phi), scratch).is_none() {
-            hi = mid;
-        } else {
+        if collides(index, body, tip, &leaning_axis(mid, phi), scratch) {
             lo = mid;
+        } else {
+            hi = mid;
         }
     }
     Some((hi, phi))
@@ -549,29 +635,32 @@ pub fn clear_path(
     let mut out = ClearedPath::default();
     // Per position: the lean that clears it (zero when upright clears), or blocked.
     let mut leans: Vec<Option<[f64; 2]>> = Vec::with_capacity(pts.len());
-    let mut prefer: Option<f64> = None;
+    // The previous position's axis while it leans (the chain breaks at a rapid).
+    let mut prev_axis: Option<Unit<Vector3<f64>>> = None;
     for &(p, rapid) in &pts {
         let tip = Point3::from(p);
         match collision(index, body, &tip, &Vector3::z_axis(), &mut scratch) {
             None => {
                 leans.push(Some([0.0, 0.0]));
+                prev_axis = None;
             }
             Some(hit) => {
                 out.colliding += 1;
-                match search_tilt(index, body, &tip, o, prefer, &mut scratch) {
+                match search_tilt(index, body, &tip, o, prev_axis.as_ref(), &mut scratch) {
                     Some((tilt, phi)) => {
-                        prefer = Some(phi);
+                        prev_axis = Some(leaning_axis(tilt, phi));
                         leans.push(Some([tilt * phi.cos(), tilt * phi.sin()]));
                     }
                     None => {
                         out.blocked.push(Blocked { at_mm: p, part: hit.part, depth_mm: hit.depth_mm });
                         leans.push(None);
+                        prev_axis = None;
                     }
                 }
             }
         }
         if rapid {
-            prefer = None;
+            prev_axis = None;
         }
     }
     // Ramp the lean along each chain of feed positions, both ways.
@@ -585,7 +674,7 @@ pub fn clear_path(
             return;
         }
         let cand = [l[0] * allowed / mag, l[1] * allowed / mag];
-        if collision(index, body, &Point3::from(pts[to].0), &axis_of_lean(cand), scratch).is_none() {
+        if !collides(index, body, &Point3::from(pts[to].0), &axis_of_lean(cand), scratch) {
             leans[to] = Some(cand);
         }
     };
@@ -877,6 +966,39 @@ mod tests {
             assert!(collision(&index, &body, &Point3::from(p.tip), &axis, &mut s).is_none(), "{p:?}");
         }
         assert_eq!(lifted.blocked.len(), path.blocked.len());
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(64))]
+
+        /// The grid's candidates miss nothing: on a soup of random triangles, the body at random
+        /// tips and axes hits exactly what it hits when every triangle is tested.
+        #[test]
+        fn the_grid_finds_what_testing_every_triangle_finds(seed in 0u64..1000) {
+            use rand::{Rng, SeedableRng};
+            let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+            let mut v = Vec::new();
+            let mut t = Vec::new();
+            for i in 0..200u32 {
+                let c = Vector3::new(rng.random_range(-60.0..60.0), rng.random_range(-60.0..60.0), rng.random_range(0.0..60.0));
+                for _ in 0..3 {
+                    v.push(Point3::from(c + Vector3::new(rng.random_range(-8.0..8.0), rng.random_range(-8.0..8.0), rng.random_range(-8.0..8.0))));
+                }
+                t.push([3 * i, 3 * i + 1, 3 * i + 2]);
+            }
+            let mesh = Mesh::new(v, t).expect("mesh");
+            let (grid, all) = (MeshIndex::new(&mesh), MeshIndex::unindexed(&mesh));
+            let body = ToolBody::new(&tool(), 0.01, Some((60.0, 100.0)));
+            let mut s = Scratch::default();
+            for _ in 0..50 {
+                let tip = Point3::new(rng.random_range(-70.0..70.0), rng.random_range(-70.0..70.0), rng.random_range(-10.0..70.0));
+                let axis = leaning_axis(rng.random_range(0.0..0.8), rng.random_range(0.0..std::f64::consts::TAU));
+                let a = collision(&grid, &body, &tip, &axis, &mut s);
+                let b = collision(&all, &body, &tip, &axis, &mut s);
+                prop_assert_eq!(a.map(|h| (h.part, h.depth_mm)), b.map(|h| (h.part, h.depth_mm)));
+                prop_assert_eq!(collides(&grid, &body, &tip, &axis, &mut s), a.is_some());
+            }
+        }
     }
 
     #[test]

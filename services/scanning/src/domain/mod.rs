@@ -9,14 +9,12 @@
 //! - [`table`]: the rotary table's physics (DC motor, 1:480 gearbox, 11520-count encoder, PID on
 //!   trapezoidal profiles) and its ASCII protocol; the socket server and client driver are in
 //!   [`crate::devices`].
-//! - [`sample`]: the generated sample part of the demo and the end-to-end tests.
 //! - [`scan`]: scan planning (straight passes at a standoff, per table angle, IK-checked) and
 //!   execution (dynamic with latched poses, or stop-and-move), the registered cloud, the adaptive
 //!   rescan of the holes.
 
 pub mod latch;
 pub mod robot;
-pub mod sample;
 pub mod scan;
 pub mod scanner;
 pub mod table;

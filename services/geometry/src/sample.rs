@@ -7,7 +7,7 @@
 //! top is a height field sampled every `step_mm`, so every face is undercut-free; flanks stay
 //! under about 20° so a sensor looking straight down sees them within its 25° incidence limit.
 
-use depthmill_geometry::Mesh;
+use crate::Mesh;
 use nalgebra::Point3;
 
 /// Header of the sample's STL file.

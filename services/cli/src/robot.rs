@@ -1,0 +1,269 @@
+//! `depthmill plan MESH --robot`: robot milling from a mesh on local files, no server. The mesh is
+//! sliced and cut layer by layer by the 6-axis arm with a spindle on its flange; the tool, shank,
+//! holder and spindle are checked against the mesh at every position and tilted where the
+//! upright tool collides.
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context as _, bail};
+use depthmill_cam::domain::clearance::{ClearedPath, TiltOptions};
+use depthmill_cam::domain::layer_passes::MeshProgramOptions;
+use depthmill_cam::domain::robot::{RobotCell, RobotJob, RobotPlan, axis_to_ab, plan_robot};
+use depthmill_geometry::formats::{ReadLimits, read_mesh};
+use nalgebra::{Isometry3, Vector3};
+
+/// Options of `depthmill plan --robot`.
+#[derive(clap::Args, Clone, Debug)]
+pub struct RobotArgs {
+    /// Plan robot milling from a mesh (STL/PLY) instead of a 3-axis program from a depth map.
+    #[arg(long)]
+    pub robot: bool,
+    /// With --robot: the tool (library name or .tool file).
+    #[arg(long, default_value = "flat-6", requires = "robot")]
+    pub tool: String,
+    /// With --robot: distance between layers, mm.
+    #[arg(long, default_value_t = 2.0, requires = "robot")]
+    pub step_mm: f64,
+    /// With --robot: radial depth of cut between rings, mm (default: the tool's radius).
+    #[arg(long, requires = "robot")]
+    pub radial_depth_mm: Option<f64>,
+    /// With --robot: stock around the part in X and Y, mm.
+    #[arg(long, default_value_t = 5.0, requires = "robot")]
+    pub stock_margin_mm: f64,
+    /// With --robot: length unit of the mesh: mm, m or in.
+    #[arg(long, default_value = "mm", requires = "robot")]
+    pub units: String,
+    /// With --robot: where the part's origin stands in the robot's base frame, "X,Y,Z" mm
+    /// (default: the part's box centred 420 mm in front of the base, its bottom at Z 0).
+    #[arg(long, requires = "robot", allow_hyphen_values = true)]
+    pub part_at: Option<String>,
+    /// With --robot: the part's turn about the base's Z axis, degrees.
+    #[arg(long, default_value_t = 0.0, requires = "robot", allow_hyphen_values = true)]
+    pub part_yaw_deg: f64,
+    /// With --robot: feed, mm/min.
+    #[arg(long, default_value_t = 600.0, requires = "robot")]
+    pub feed_mm_min: f64,
+    /// With --robot: spindle speed, rpm.
+    #[arg(long, default_value_t = 12000.0, requires = "robot")]
+    pub rpm: f64,
+    /// With --robot: largest tilt of the tool from upright, degrees.
+    #[arg(long, default_value_t = 40.0, requires = "robot")]
+    pub max_tilt_deg: f64,
+    /// With --robot: flange to spindle nose, mm.
+    #[arg(long, default_value_t = 150.0, requires = "robot")]
+    pub spindle_length_mm: f64,
+    /// With --robot: spindle body diameter, mm (checked against the part like the holder).
+    #[arg(long, default_value_t = 60.0, requires = "robot")]
+    pub spindle_diameter_mm: f64,
+}
+
+fn parse_xyz(text: &str) -> anyhow::Result<[f64; 3]> {
+    let v: Vec<f64> = text
+        .split(',')
+        .map(|s| s.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|e| anyhow::anyhow!("--part-at {text}: {e}; expected X,Y,Z in mm"))?;
+    match v.as_slice() {
+        [x, y, z] if v.iter().all(|c| c.is_finite()) => Ok([*x, *y, *z]),
+        _ => bail!("--part-at {text}: expected three finite numbers X,Y,Z in mm"),
+    }
+}
+
+/// The robot program as G-code: the tool tip in the part frame (X, Y, Z) and the tool axis as
+/// A and B (the axis is `Ry(B)·Rx(A)·Z`), rapids as G0, feeds as G1.
+pub fn gcode(plan: &RobotPlan, tool: &str, feed: f64, rpm: f64, input: &Path) -> anyhow::Result<String> {
+    if !(rpm.is_finite() && rpm > 0.0) {
+        bail!("--rpm {rpm}: must be a positive speed");
+    }
+    let mut g = String::new();
+    let name = input.file_name().map_or(String::new(), |n| n.to_string_lossy().replace(['(', ')'], ""));
+    writeln!(g, "%")?;
+    writeln!(g, "(depthmill robot program: {name})")?;
+    writeln!(
+        g,
+        "(tool tip X Y Z in the part frame, mm; tool axis from A and B, degrees: axis = Ry B . Rx A . Z)"
+    )?;
+    writeln!(
+        g,
+        "(arm: {}, {}, spin {:.0} deg; joint trajectory in the .joints.json beside this file)",
+        plan.robot.arm, plan.robot.configuration, plan.robot.spin_deg
+    )?;
+    writeln!(g, "G21 G90 G17 G94 G40 G49 G80")?;
+    writeln!(g, "(T1 {tool})")?;
+    writeln!(g, "T1 M6")?;
+    writeln!(g, "S{rpm:.0} M3")?;
+    let mut feed_set = false;
+    for p in &plan.path.points {
+        let [x, y, z] = p.tip;
+        let (a, b) = axis_to_ab(&p.axis);
+        let (a, b) = (if a.abs() < 5e-5 { 0.0 } else { a }, if b.abs() < 5e-5 { 0.0 } else { b });
+        if p.rapid {
+            writeln!(g, "G0 X{x:.4} Y{y:.4} Z{z:.4} A{a:.4} B{b:.4}")?;
+        } else if !feed_set {
+            writeln!(g, "G1 X{x:.4} Y{y:.4} Z{z:.4} A{a:.4} B{b:.4} F{feed:.1}")?;
+            feed_set = true;
+        } else {
+            writeln!(g, "G1 X{x:.4} Y{y:.4} Z{z:.4} A{a:.4} B{b:.4}")?;
+        }
+    }
+    writeln!(g, "M5")?;
+    writeln!(g, "M30")?;
+    writeln!(g, "%")?;
+    Ok(g)
+}
+
+fn clearance_json(p: &ClearedPath) -> serde_json::Value {
+    serde_json::json!({
+        "positions": p.points.len(),
+        "colliding_upright": p.colliding,
+        "tilted": p.tilted,
+        "max_tilt_deg": p.max_tilt_deg,
+        "max_axis_rate_deg_mm": p.max_rate_deg_mm,
+        "blocked": p.blocked.len(),
+        "blocked_positions": p.blocked.iter().take(100).collect::<Vec<_>>(),
+    })
+}
+
+/// `depthmill plan MESH --robot -o OUTPUT.ngc`: writes OUTPUT (the Cartesian program),
+/// `<stem>.joints.json` (the joint trajectory) and `<stem>.robot.json` (the report).
+pub fn run(input: &Path, args: &RobotArgs, tools_dir: Option<&Path>, output: &Path) -> anyhow::Result<()> {
+    let scale = match args.units.as_str() {
+        "mm" => 1.0,
+        "m" => 1000.0,
+        "in" => 25.4,
+        other => bail!("--units {other}: expected mm, m or in"),
+    };
+    let (mut mesh, _) =
+        read_mesh(input, &ReadLimits::default()).with_context(|| format!("reading {}", input.display()))?;
+    if mesh.triangles.is_empty() {
+        bail!("{}: the mesh has no triangles", input.display());
+    }
+    for p in &mut mesh.vertices {
+        p.coords *= scale;
+    }
+    let tool = crate::cam::tool(&args.tool, tools_dir).with_context(|| format!("--tool {}", args.tool))?;
+    let (lo, hi) = mesh
+        .vertices
+        .iter()
+        .fold((Vector3::repeat(f64::INFINITY), Vector3::repeat(f64::NEG_INFINITY)), |(lo, hi), p| {
+            (lo.inf(&p.coords), hi.sup(&p.coords))
+        });
+    let at = match &args.part_at {
+        Some(t) => Vector3::from(parse_xyz(t)?),
+        None => Vector3::new(420.0 - 0.5 * (lo.x + hi.x), -0.5 * (lo.y + hi.y), -lo.z),
+    };
+    if !args.part_yaw_deg.is_finite() {
+        bail!("--part-yaw-deg {}: must be finite", args.part_yaw_deg);
+    }
+    let base_from_part = Isometry3::new(at, Vector3::z() * args.part_yaw_deg.to_radians());
+    let cell = RobotCell {
+        spindle_length_mm: args.spindle_length_mm,
+        spindle_diameter_mm: args.spindle_diameter_mm,
+        ..RobotCell::viper_s650(base_from_part)
+    };
+    let job = RobotJob {
+        layers: MeshProgramOptions {
+            step_mm: args.step_mm,
+            from_mm: None,
+            tool_radius_mm: tool.radius_mm(),
+            radial_depth_mm: args.radial_depth_mm,
+            stock_margin_mm: args.stock_margin_mm,
+            clearance_mm: 5.0,
+        },
+        tilt: TiltOptions { max_tilt_deg: args.max_tilt_deg, ..TiltOptions::default() },
+        cell,
+        feed_mm_min: args.feed_mm_min,
+        tool: tool.clone(),
+    };
+    let started = std::time::Instant::now();
+    let plan = plan_robot(&mesh, &job).with_context(|| format!("planning {}", input.display()))?;
+    let elapsed = started.elapsed().as_secs_f64();
+    let sibling = |suffix: &str| -> PathBuf {
+        let stem =
+            output.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "robot".into());
+        output.with_file_name(format!("{stem}.{suffix}"))
+    };
+    let text = gcode(&plan, &tool.name, args.feed_mm_min, args.rpm, input)?;
+    std::fs::write(output, text).with_context(|| format!("writing {}", output.display()))?;
+    let joints = sibling("joints.json");
+    std::fs::write(&joints, serde_json::to_vec(&plan.robot)?)
+        .with_context(|| format!("writing {}", joints.display()))?;
+    let unreached: Vec<serde_json::Value> = plan
+        .layers
+        .passes
+        .iter()
+        .flat_map(|p| {
+            p.unreached
+                .iter()
+                .map(move |u| serde_json::json!({"z_mm": p.z_mm, "at_mm": u.at, "area_mm2": u.area_mm2}))
+        })
+        .collect();
+    let r = &plan.robot;
+    let report = serde_json::json!({
+        "input": input.display().to_string(),
+        "tool": tool.name,
+        "layers": plan.layers.layers.len(),
+        "rings": plan.layers.passes.iter().map(|p| p.rings.len()).sum::<usize>(),
+        "feed_links": plan.layers.program.feed_links,
+        "retracts": plan.layers.program.retracts,
+        "holes_too_narrow": unreached,
+        "clearance": clearance_json(&plan.path),
+        "robot": {
+            "arm": r.arm,
+            "configuration": r.configuration,
+            "spin_deg": r.spin_deg,
+            "base_from_part": r.base_from_part,
+            "duration_s": r.duration_s,
+            "feed_s": r.feed_s,
+            "rapid_s": r.rapid_s,
+            "joint_limited_steps": r.joint_limited_steps,
+            "min_dexterity": r.min_dexterity,
+            "min_margins": r.min_margins,
+            "unreachable": r.unreachable,
+        },
+        "planning_s": elapsed,
+    });
+    let report_path = sibling("robot.json");
+    std::fs::write(&report_path, serde_json::to_vec_pretty(&report)?)
+        .with_context(|| format!("writing {}", report_path.display()))?;
+    let c = &plan.path;
+    crate::outln!(
+        "{}: {} layers, {} rings, {} positions; upright tool collides at {}, {} tilted (max {:.1}°, axis turning at most {:.2}°/mm), {} blocked and lifted over",
+        input.display(),
+        plan.layers.layers.len(),
+        plan.layers.passes.iter().map(|p| p.rings.len()).sum::<usize>(),
+        c.points.len(),
+        c.colliding,
+        c.tilted,
+        c.max_tilt_deg,
+        c.max_rate_deg_mm,
+        c.blocked.len()
+    );
+    crate::outln!(
+        "arm {} ({}, spin {:.0}°): {:.1} min ({:.1} min feed, {:.1} min rapid), min dexterity {:.3e}, {} unreachable stretches; planned in {elapsed:.2} s",
+        r.arm,
+        r.configuration,
+        r.spin_deg,
+        r.duration_s / 60.0,
+        r.feed_s / 60.0,
+        r.rapid_s / 60.0,
+        r.min_dexterity,
+        r.unreachable.len()
+    );
+    for s in r.unreachable.iter().take(5) {
+        crate::outln!(
+            "  unreachable: points {}-{} from ({:.2}, {:.2}, {:.2}) mm: {}",
+            s.from_point,
+            s.to_point,
+            s.at_mm[0],
+            s.at_mm[1],
+            s.at_mm[2],
+            s.reason
+        );
+    }
+    for p in [output.to_path_buf(), joints, report_path] {
+        crate::outln!("{}", p.display());
+    }
+    Ok(())
+}
