@@ -266,3 +266,81 @@ async fn slicing_a_mesh_writes_its_layers_and_names_what_is_wrong() -> anyhow::R
     assert!(!none.exists());
     Ok(())
 }
+
+/// `depthmill plan MESH --robot`: a block 20 x 20 x 60 mm milled layer by layer by the arm. Near
+/// its foot the upright holder (32 mm across, 34 mm above the tip) would hit the block's own
+/// wall, so the tool leans out; every position of the joint trajectory puts the tip where the
+/// program says (checked here by the arm's forward kinematics), one branch throughout. Bad
+/// combinations and a part out of reach are refused with what is wrong.
+#[test]
+fn a_mesh_is_planned_for_the_robot_with_the_holder_clear() -> anyhow::Result<()> {
+    use depthmill_geometry::arm::ArmModel;
+    use depthmill_geometry::nalgebra::{Matrix4, Vector3};
+    let dir = tempfile::tempdir()?;
+    let (mut v, mut t) = (Vec::new(), Vec::new());
+    cuboid(&mut v, &mut t, [0.0; 3], [20.0, 20.0, 60.0], false);
+    let stl = dir.path().join("tall.stl");
+    let mesh = depthmill_geometry::Mesh::new(v, t)?;
+    depthmill_geometry::formats::write_stl(&mut std::fs::File::create(&stl)?, &mesh, "tall block")?;
+    let stl = stl.display().to_string();
+    let ngc = dir.path().join("tall.ngc").display().to_string();
+    let (code, stdout, stderr) = depthmill(&["plan", &stl, "--robot", "--step-mm", "10", "-o", &ngc])?;
+    assert_eq!(code, 0, "{stdout}{stderr}");
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("tall.robot.json"))?)?;
+    let c = &report["clearance"];
+    assert!(c["colliding_upright"].as_u64().context("colliding")? > 0, "{c}");
+    assert!(c["tilted"].as_u64().context("tilted")? > 0, "{c}");
+    assert_eq!(c["blocked"], json!(0), "{c}");
+    assert!(c["max_tilt_deg"].as_f64().context("tilt")? > 10.0, "{c}");
+    assert_eq!(report["layers"], json!(6));
+    let joints: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("tall.joints.json"))?)?;
+    assert_eq!(joints["format"], json!("depthmill-joint-trajectory/1"));
+    let matrix = |v: &serde_json::Value| -> anyhow::Result<Matrix4<f64>> {
+        let rows: Vec<Vec<f64>> = serde_json::from_value(v.clone())?;
+        Ok(Matrix4::from_fn(|r, c| rows[r][c]))
+    };
+    let base_from_part = matrix(&joints["base_from_part"])?;
+    let flange_from_tip = matrix(&joints["flange_from_tip"])?;
+    let arm = ArmModel::viper_s650();
+    let points = joints["points"].as_array().context("points")?;
+    assert!(points.len() > 100);
+    let mut branches = std::collections::HashSet::new();
+    for p in points.iter().filter(|p| p["reachable"] == json!(true)) {
+        let q: [f64; 6] = serde_json::from_value(p["q_deg"].clone())?;
+        let tip: [f64; 3] = serde_json::from_value(p["tip_mm"].clone())?;
+        let axis: [f64; 3] = serde_json::from_value(p["axis"].clone())?;
+        let part_from_tip = base_from_part.try_inverse().context("inverse")?
+            * arm.flange(&q).to_homogeneous()
+            * flange_from_tip;
+        let at = Vector3::new(part_from_tip[(0, 3)], part_from_tip[(1, 3)], part_from_tip[(2, 3)]);
+        assert!((at - Vector3::from(tip)).norm() < 1e-4, "{at:?} vs {tip:?}");
+        // The tool frame's Z runs from the holder to the tip: against the program's axis.
+        let z = Vector3::new(part_from_tip[(0, 2)], part_from_tip[(1, 2)], part_from_tip[(2, 2)]);
+        assert!((z + Vector3::from(axis)).norm() < 1e-6, "{z:?} vs {axis:?}");
+        branches.insert(arm.configuration(&q));
+    }
+    assert_eq!(branches.len(), 1, "{branches:?}");
+    let program = std::fs::read_to_string(&ngc)?;
+    let word = |l: &str, w: char| -> Option<f64> {
+        l.split_whitespace().find_map(|t| t.strip_prefix(w).and_then(|x| x.parse::<f64>().ok()))
+    };
+    assert!(
+        program.lines().filter(|l| l.starts_with("G1 ")).any(|l| {
+            word(l, 'A').is_some_and(|a| a.abs() > 1.0) || word(l, 'B').is_some_and(|b| b.abs() > 1.0)
+        }),
+        "leaning feed moves in the program"
+    );
+
+    let (code, _, stderr) = depthmill(&["plan", &stl, "--robot", "--options", &stl, "-o", &ngc])?;
+    assert_eq!(code, 1);
+    assert!(stderr.contains("--options and --roughing-map do not apply"), "{stderr}");
+    let (code, _, stderr) = depthmill(&["plan", &stl, "--robot", "--part-at", "3000,0,0", "-o", &ngc])?;
+    assert_eq!(code, 1);
+    assert!(stderr.contains("the arm reaches none"), "{stderr}");
+    let (code, _, stderr) = depthmill(&["plan", &stl, "--robot", "--part-at", "1,2", "-o", &ngc])?;
+    assert_eq!(code, 1);
+    assert!(stderr.contains("--part-at 1,2"), "{stderr}");
+    Ok(())
+}

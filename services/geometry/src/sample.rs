@@ -111,7 +111,7 @@ pub fn sample_relief(step_mm: f64) -> Mesh {
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
-    use depthmill_geometry::formats::{Geometry, read_any_from, write_stl};
+    use crate::formats::{Geometry, read_any_from, write_stl};
     use std::collections::HashMap;
 
     #[test]
