@@ -9,7 +9,9 @@
 
 use std::time::Instant;
 
-use depthmill_cam::domain::clearance::{MeshIndex, Scratch, TiltOptions, ToolBody, clear_path, collides};
+use depthmill_cam::domain::clearance::{
+    MeshIndex, Scratch, TiltOptions, ToolBody, any_axis, clear_path, collides,
+};
 use depthmill_cam::domain::layer_passes::{MeshProgramOptions, MoveKind, mesh_program};
 use depthmill_cam::domain::robot::{RobotCell, RobotJob, plan_robot, robot_program};
 use depthmill_cam::domain::tool::Tool;
@@ -55,8 +57,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let moves: Vec<([f64; 3], bool)> =
         layers.program.moves.iter().map(|m| (m.to, m.kind == MoveKind::Rapid)).collect();
     let start = [moves[0].0[0], moves[0].0[1], layers.clear_z_mm];
-    let (t_clear, _) = best(3, || clear_path(&index, &body, start, &moves, &job.tilt));
-    let (t_arm, _) = best(3, || robot_program(&job.cell, &tool, &plan.path, job.feed_mm_min));
+    let (t_clear, _) = best(3, || clear_path(&index, &body, start, &moves, &job.tilt, &any_axis));
+    let (t_arm, _) = best(3, || robot_program(&job.cell, &tool, &plan.path, job.feed_mm_min, None));
     let c = &plan.path;
     println!(
         "plan: {} layers, {} positions ({} collide upright, {} tilted, max {:.1}°, {} blocked); arm {:.1} min, {} unreachable stretches",

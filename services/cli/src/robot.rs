@@ -53,6 +53,10 @@ pub struct RobotArgs {
     /// With --robot: flange to spindle nose, mm.
     #[arg(long, default_value_t = 150.0, requires = "robot")]
     pub spindle_length_mm: f64,
+    /// With --robot: angle between the flange's axis and the spindle's, degrees (90: across the
+    /// flange on a bracket; 0: on the flange's axis).
+    #[arg(long, default_value_t = 90.0, requires = "robot")]
+    pub spindle_mount_deg: f64,
     /// With --robot: spindle body diameter, mm (checked against the part like the holder).
     #[arg(long, default_value_t = 60.0, requires = "robot")]
     pub spindle_diameter_mm: f64,
@@ -159,6 +163,7 @@ pub fn run(input: &Path, args: &RobotArgs, tools_dir: Option<&Path>, output: &Pa
     let base_from_part = Isometry3::new(at, Vector3::z() * args.part_yaw_deg.to_radians());
     let cell = RobotCell {
         spindle_length_mm: args.spindle_length_mm,
+        spindle_mount_deg: args.spindle_mount_deg,
         spindle_diameter_mm: args.spindle_diameter_mm,
         ..RobotCell::viper_s650(base_from_part)
     };

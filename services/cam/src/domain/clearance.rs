@@ -231,9 +231,9 @@ impl MeshIndex {
         }
     }
 
-    /// Indices of the triangles whose cells meet the box `a..b` (each once, ascending), into `out`.
-    fn candidates(&self, a: &Vector3<f64>, b: &Vector3<f64>, out: &mut Vec<u32>) {
-        out.clear();
+    /// Indices of the triangles whose cells meet the box `a..b`, each once, into `scratch`.
+    fn candidates(&self, a: &Vector3<f64>, b: &Vector3<f64>, scratch: &mut Scratch) {
+        scratch.candidates.clear();
         if self.tris.is_empty() {
             return;
         }
@@ -241,12 +241,23 @@ impl MeshIndex {
         if (0..3).any(|k| b[k] < self.lo[k] || a[k] > hi[k]) {
             return;
         }
+        // A generation stamp per triangle instead of sorting out the repeats.
+        if scratch.seen.len() != self.tris.len() || scratch.generation == u32::MAX {
+            scratch.seen = vec![0; self.tris.len()];
+            scratch.generation = 0;
+        }
+        scratch.generation += 1;
+        let g = scratch.generation;
         let r = self.cell_range(a, b);
+        let (seen, out) = (&mut scratch.seen, &mut scratch.candidates);
         self.for_cells(&r, |c| {
-            out.extend_from_slice(&self.items[self.starts[c] as usize..self.starts[c + 1] as usize]);
+            for &t in &self.items[self.starts[c] as usize..self.starts[c + 1] as usize] {
+                if seen[t as usize] != g {
+                    seen[t as usize] = g;
+                    out.push(t);
+                }
+            }
         });
-        out.sort_unstable();
-        out.dedup();
     }
 }
 
@@ -382,6 +393,9 @@ pub struct Hit {
 #[derive(Debug, Default)]
 pub struct Scratch {
     candidates: Vec<u32>,
+    /// Per triangle, the query that last listed it.
+    seen: Vec<u32>,
+    generation: u32,
 }
 
 /// The first section of `body` (tip upwards) that meets the part with its tip at `tip` and its
@@ -419,7 +433,7 @@ fn first_hit(
         let base = tip.coords + axis.as_ref() * s.from_mm;
         let top = tip.coords + axis.as_ref() * s.to_mm;
         let pad = Vector3::repeat(s.radius_mm);
-        index.candidates(&(base.inf(&top) - pad), &(base.sup(&top) + pad), &mut scratch.candidates);
+        index.candidates(&(base.inf(&top) - pad), &(base.sup(&top) + pad), scratch);
         let frame = CylinderFrame::new(&base, axis, s.to_mm - s.from_mm);
         let mut deepest: Option<Hit> = None;
         for &t in &scratch.candidates {
@@ -543,6 +557,15 @@ pub struct ClearedPath {
     pub blocked: Vec<Blocked>,
 }
 
+/// Which tilted axes the machine carrying the tool can take at a tip (the robot planner refuses
+/// axes near the arm's wrist singularity); [`any_axis`] takes every one.
+pub type Accept<'a> = &'a (dyn Fn(&Point3<f64>, &Unit<Vector3<f64>>) -> bool + Sync);
+
+/// Every axis is acceptable.
+pub fn any_axis(_: &Point3<f64>, _: &Unit<Vector3<f64>>) -> bool {
+    true
+}
+
 /// Azimuths whose smallest clearing tilt is within this many steps of the smallest of all
 /// compete on how little the axis turns from the previous position's.
 const AZIMUTH_SLACK_STEPS: usize = 2;
@@ -556,6 +579,7 @@ fn search_tilt(
     tip: &Point3<f64>,
     o: &TiltOptions,
     prev: Option<&Unit<Vector3<f64>>>,
+    accept: Accept<'_>,
     scratch: &mut Scratch,
 ) -> Option<(f64, f64)> {
     let step = o.step_deg.to_radians();
@@ -573,9 +597,10 @@ fn search_tilt(
     let mut kmin = usize::MAX;
     for phi in order {
         let limit = if kmin == usize::MAX { steps } else { (kmin + AZIMUTH_SLACK_STEPS).min(steps) };
-        if let Some(k) =
-            (1..=limit).find(|&k| !collides(index, body, tip, &leaning_axis(k as f64 * step, phi), scratch))
-        {
+        if let Some(k) = (1..=limit).find(|&k| {
+            let axis = leaning_axis(k as f64 * step, phi);
+            !collides(index, body, tip, &axis, scratch) && accept(tip, &axis)
+        }) {
             kmin = kmin.min(k);
             found.push((k, phi));
         }
@@ -593,7 +618,8 @@ fn search_tilt(
     let (mut lo, mut hi) = ((k - 1) as f64 * step, k as f64 * step);
     for _ in 0..3 {
         let mid = 0.5 * (lo + hi);
-        if collides(index, body, tip, &leaning_axis(mid, phi), scratch) {
+        let axis = leaning_axis(mid, phi);
+        if collides(index, body, tip, &axis, scratch) || !accept(tip, &axis) {
             lo = mid;
         } else {
             hi = mid;
@@ -612,6 +638,7 @@ pub fn clear_path(
     start: [f64; 3],
     moves: &[([f64; 3], bool)],
     o: &TiltOptions,
+    accept: Accept<'_>,
 ) -> Result<ClearedPath, String> {
     o.validate()?;
     // Positions: every move end, feed moves subdivided.
@@ -646,7 +673,7 @@ pub fn clear_path(
             }
             Some(hit) => {
                 out.colliding += 1;
-                match search_tilt(index, body, &tip, o, prev_axis.as_ref(), &mut scratch) {
+                match search_tilt(index, body, &tip, o, prev_axis.as_ref(), accept, &mut scratch) {
                     Some((tilt, phi)) => {
                         prev_axis = Some(leaning_axis(tilt, phi));
                         leans.push(Some([tilt * phi.cos(), tilt * phi.sin()]));
@@ -674,7 +701,8 @@ pub fn clear_path(
             return;
         }
         let cand = [l[0] * allowed / mag, l[1] * allowed / mag];
-        if !collides(index, body, &Point3::from(pts[to].0), &axis_of_lean(cand), scratch) {
+        let (tip, axis) = (Point3::from(pts[to].0), axis_of_lean(cand));
+        if !collides(index, body, &tip, &axis, scratch) && accept(&tip, &axis) {
             leans[to] = Some(cand);
         }
     };
@@ -717,12 +745,34 @@ pub fn clear_path(
 
 impl ClearedPath {
     /// The path with every stretch of blocked positions replaced by a lift over it: from the
-    /// last clear position straight up to `clear_z` (rapid), across to above the next clear
-    /// position, and down to it at feed with that position's axis (sampled and checked like the
-    /// rest; a descent that collides is added to [`ClearedPath::blocked`]).
-    pub fn lifted(&self, index: &MeshIndex, body: &ToolBody, clear_z: f64, o: &TiltOptions) -> ClearedPath {
+    /// last clear position straight up to `clear_z` (rapid), across to where the next clear
+    /// position's axis meets that height, and down along the axis to it at feed (sampled and
+    /// checked like the rest; upright where `accept` refuses that axis or it collides and upright does not; a
+    /// descent that still collides is added to [`ClearedPath::blocked`]).
+    pub fn lifted(
+        &self,
+        index: &MeshIndex,
+        body: &ToolBody,
+        clear_z: f64,
+        o: &TiltOptions,
+        accept: Accept<'_>,
+    ) -> ClearedPath {
         let mut out = ClearedPath { points: Vec::with_capacity(self.points.len()), ..self.clone() };
         let mut scratch = Scratch::default();
+        // The axis `p` has, or upright where the machine cannot take it there (or it collides
+        // and upright does not).
+        let settle = |tip: [f64; 3], p: &OrientedPoint, scratch: &mut Scratch| -> OrientedPoint {
+            let at = Point3::from(tip);
+            let axis = Unit::new_normalize(Vector3::from(p.axis));
+            let fits =
+                |a: &Unit<Vector3<f64>>, s: &mut Scratch| !collides(index, body, &at, a, s) && accept(&at, a);
+            let axis = if !fits(&axis, scratch) && fits(&Vector3::z_axis(), scratch) {
+                Vector3::z_axis()
+            } else {
+                axis
+            };
+            OrientedPoint { tip, axis: [axis.x, axis.y, axis.z], ..*p }
+        };
         let mut i = 0;
         while i < self.points.len() {
             let p = self.points[i];
@@ -735,22 +785,25 @@ impl ClearedPath {
             let Some(j) = end else { break };
             let next = self.points[j];
             if let Some(last) = out.points.last().copied() {
-                out.points.push(OrientedPoint {
-                    tip: [last.tip[0], last.tip[1], clear_z],
-                    rapid: true,
-                    ..last
-                });
+                let up = OrientedPoint { rapid: true, ..last };
+                out.points.push(settle([last.tip[0], last.tip[1], clear_z], &up, &mut scratch));
             }
-            out.points.push(OrientedPoint { tip: [next.tip[0], next.tip[1], clear_z], rapid: true, ..next });
-            let drop = clear_z - next.tip[2];
-            let n = (drop / o.sample_mm).ceil().max(1.0) as usize;
-            let axis = Unit::new_normalize(Vector3::from(next.axis));
+            // Down along the next position's axis (the body slides along its own line, clear
+            // of what it clears there), from where that line meets the clearance height.
+            let a = next.axis;
+            let reach = if a[2] > 1e-6 { (clear_z - next.tip[2]).max(0.0) / a[2] } else { 0.0 };
+            let along = |t: f64| [next.tip[0] + a[0] * t, next.tip[1] + a[1] * t, next.tip[2] + a[2] * t];
+            let over = OrientedPoint { rapid: true, ..next };
+            out.points.push(settle(along(reach), &over, &mut scratch));
+            let n = (reach / o.sample_mm).ceil().max(1.0) as usize;
             for k in 1..n {
-                let tip = [next.tip[0], next.tip[1], clear_z - drop * k as f64 / n as f64];
+                let tip = along(reach * (n - k) as f64 / n as f64);
+                let q = settle(tip, &OrientedPoint { rapid: false, ..next }, &mut scratch);
+                let axis = Unit::new_normalize(Vector3::from(q.axis));
                 if let Some(hit) = collision(index, body, &Point3::from(tip), &axis, &mut scratch) {
                     out.blocked.push(Blocked { at_mm: tip, part: hit.part, depth_mm: hit.depth_mm });
                 }
-                out.points.push(OrientedPoint { tip, rapid: false, ..next });
+                out.points.push(q);
             }
             i = j;
         }
@@ -888,7 +941,7 @@ mod tests {
         let o = TiltOptions::default();
         // Along the wall at 3 mm, coming in from 40 mm away.
         let moves = [([40.0, -20.0, 10.0], true), ([3.0, -20.0, 10.0], false), ([3.0, 20.0, 10.0], false)];
-        let path = clear_path(&index, &body, [40.0, -20.0, 70.0], &moves, &o).expect("path");
+        let path = clear_path(&index, &body, [40.0, -20.0, 70.0], &moves, &o, &any_axis).expect("path");
         assert!(path.blocked.is_empty(), "{:?}", path.blocked);
         assert!(path.colliding > 0);
         let mut s = Scratch::default();
@@ -930,8 +983,8 @@ mod tests {
         let index = MeshIndex::new(&mesh);
         let body = ToolBody::new(&tool(), 0.01, None);
         let moves = [([0.0, -10.0, 5.0], false), ([0.0, 10.0, 5.0], false)];
-        let path =
-            clear_path(&index, &body, [0.0, -10.0, 5.0], &moves, &TiltOptions::default()).expect("path");
+        let path = clear_path(&index, &body, [0.0, -10.0, 5.0], &moves, &TiltOptions::default(), &any_axis)
+            .expect("path");
         assert!(!path.blocked.is_empty());
         assert!(path.points.iter().all(|p| p.blocked));
         assert_eq!(path.blocked[0].part, "holder");
@@ -952,9 +1005,9 @@ mod tests {
         let body = ToolBody::new(&tool(), 0.01, None);
         let o = TiltOptions::default();
         let moves = [([0.0, -60.0, 5.0], false), ([0.0, 60.0, 5.0], false)];
-        let path = clear_path(&index, &body, [0.0, -60.0, 5.0], &moves, &o).expect("path");
+        let path = clear_path(&index, &body, [0.0, -60.0, 5.0], &moves, &o, &any_axis).expect("path");
         assert!(path.points.iter().any(|p| p.blocked));
-        let lifted = path.lifted(&index, &body, 70.0, &o);
+        let lifted = path.lifted(&index, &body, 70.0, &o, &any_axis);
         assert!(lifted.points.iter().all(|p| !p.blocked));
         let high: Vec<&OrientedPoint> = lifted.points.iter().filter(|p| p.tip[2] == 70.0).collect();
         assert_eq!(high.len(), 2);
@@ -1006,11 +1059,17 @@ mod tests {
         let index = MeshIndex::new(&block([0.0; 3], [1.0; 3]));
         let body = ToolBody::new(&tool(), 0.01, None);
         let o = TiltOptions { max_tilt_deg: 95.0, ..TiltOptions::default() };
-        let e = clear_path(&index, &body, [0.0; 3], &[], &o).expect_err("tilt");
+        let e = clear_path(&index, &body, [0.0; 3], &[], &o, &any_axis).expect_err("tilt");
         assert!(e.contains("max_tilt_deg 95"), "{e}");
-        let e =
-            clear_path(&index, &body, [0.0; 3], &[([f64::NAN, 0.0, 0.0], false)], &TiltOptions::default())
-                .expect_err("nan");
+        let e = clear_path(
+            &index,
+            &body,
+            [0.0; 3],
+            &[([f64::NAN, 0.0, 0.0], false)],
+            &TiltOptions::default(),
+            &any_axis,
+        )
+        .expect_err("nan");
         assert!(e.contains("move 1"), "{e}");
     }
 }

@@ -7,8 +7,11 @@
 //!
 //! - `base_from_part` ([`RobotCell::base_from_part`]) places the part in the robot's base frame
 //!   (the arm's `base` is `world_from_base`, the identity by default).
-//! - `flange_from_tip` ([`RobotCell::flange_from_tip`]): the spindle's axis is the flange's Z;
-//!   the tool tip sits `spindle_length_mm + holder_length_mm + stickout_mm` out along it. The
+//! - `flange_from_tip` ([`RobotCell::flange_from_tip`]): the spindle's axis is the flange's Z
+//!   turned by `spindle_mount_deg` about the flange's X (90° by default: the spindle on a bracket
+//!   across the flange, as robot milling cells mount it, so that a tool pointing down leaves the
+//!   wrist bent, far from its singularity); the tool tip sits `spindle_length_mm +
+//!   holder_length_mm + stickout_mm` out along that axis. The
 //!   tool frame's Z points from the holder to the tip (minus the toolpath's axis); the spindle is
 //!   symmetric about it, so the turn about it (the *spin*) is free: one spin is chosen for the
 //!   whole program.
@@ -32,7 +35,7 @@
 //!    All speeds are scaled by [`RobotCell::speed_frac`].
 
 use depthmill_geometry::arm::{ArmModel, Configuration, IkConfig, SingularityMargins};
-use nalgebra::{Isometry3, Matrix4, Rotation3, Translation3, Unit, UnitQuaternion, Vector3};
+use nalgebra::{Isometry3, Matrix4, Point3, Rotation3, Translation3, Unit, UnitQuaternion, Vector3};
 
 use depthmill_geometry::Mesh;
 
@@ -43,6 +46,10 @@ use super::tool::Tool;
 /// Positions sampled to choose the branch and the spin.
 pub const CHOICE_SAMPLES: usize = 64;
 
+/// A tilted tool axis keeps the arm's wrist at least this far from its singularity, degrees
+/// (the joints 4 and 6 swing fast near it).
+pub const TILT_WRIST_MARGIN_DEG: f64 = 10.0;
+
 /// Largest turn of any joint over one feed step, degrees.
 pub const MAX_FEED_JUMP_DEG: f64 = 20.0;
 
@@ -52,8 +59,12 @@ pub struct RobotCell {
     /// The arm; its `tool` is replaced by the spindle and the tool ([`RobotCell::arm_for`]).
     pub arm: ArmModel,
     pub base_from_part: Isometry3<f64>,
-    /// Flange face to spindle nose, mm.
+    /// Flange face to spindle nose along the spindle's axis, mm.
     pub spindle_length_mm: f64,
+    /// Angle between the flange's axis and the spindle's, degrees (a turn about the flange's X
+    /// axis): 0 puts the spindle on the flange's axis, 90 across it on a bracket, which keeps the
+    /// wrist far from its singularity while the tool points down.
+    pub spindle_mount_deg: f64,
     pub spindle_diameter_mm: f64,
     /// Fraction of the joints' top speeds the program uses (0, 1].
     pub speed_frac: f64,
@@ -73,13 +84,14 @@ pub enum RobotPlanError {
 }
 
 impl RobotCell {
-    /// The Viper s650 at the world origin, the part at `base_from_part`, a 150 mm x 60 mm spindle,
-    /// joints at most at 50 % of their top speed.
+    /// The Viper s650 at the world origin, the part at `base_from_part`, a 150 mm x 60 mm spindle
+    /// mounted across the flange, joints at most at 50 % of their top speed.
     pub fn viper_s650(base_from_part: Isometry3<f64>) -> Self {
         RobotCell {
             arm: ArmModel::viper_s650(),
             base_from_part,
             spindle_length_mm: 150.0,
+            spindle_mount_deg: 90.0,
             spindle_diameter_mm: 60.0,
             speed_frac: 0.5,
         }
@@ -95,6 +107,9 @@ impl RobotCell {
         }
         if !(self.spindle_diameter_mm.is_finite() && self.spindle_diameter_mm >= 0.0) {
             return bad("spindle_diameter_mm", self.spindle_diameter_mm, "must be a non-negative diameter");
+        }
+        if !(self.spindle_mount_deg.is_finite() && (0.0..=90.0).contains(&self.spindle_mount_deg)) {
+            return bad("spindle_mount_deg", self.spindle_mount_deg, "must be from 0 to 90 degrees");
         }
         if !(self.speed_frac.is_finite() && self.speed_frac > 0.0 && self.speed_frac <= 1.0) {
             return bad("speed_frac", self.speed_frac, "must be in (0, 1]");
@@ -114,7 +129,9 @@ impl RobotCell {
 
     /// `flange_from_tip` for `tool` (see the module docs).
     pub fn flange_from_tip(&self, tool: &Tool) -> Isometry3<f64> {
-        Isometry3::translation(0.0, 0.0, self.spindle_length_mm + tool.holder_length_mm + tool.stickout_mm)
+        let mount = UnitQuaternion::from_axis_angle(&Vector3::x_axis(), self.spindle_mount_deg.to_radians());
+        let reach = self.spindle_length_mm + tool.holder_length_mm + tool.stickout_mm;
+        Isometry3::from_parts(Translation3::from(mount * Vector3::new(0.0, 0.0, reach)), mount)
     }
 
     /// The arm with `tool` in the spindle as its tool frame.
@@ -202,15 +219,15 @@ fn matrix(i: &Isometry3<f64>) -> [[f64; 4]; 4] {
 fn follow(
     arm: &ArmModel,
     cell: &RobotCell,
-    points: &[&OrientedPoint],
+    points: &[([f64; 3], [f64; 3])],
     config: Configuration,
     spin: f64,
 ) -> (usize, f64) {
     let ik = IkConfig::only(config);
     let mut prev: Option<[f64; 6]> = None;
     let (mut reached, mut dex) = (0, f64::INFINITY);
-    for p in points {
-        let target = cell.target(&p.tip, &p.axis, spin);
+    for (tip, axis) in points {
+        let target = cell.target(tip, axis, spin);
         let sol = match prev {
             Some(q) => arm.ik_nearest(&target, &q, &ik).ok(),
             None => arm.ik_solutions(&target, &ik).ok().and_then(|s| s.into_iter().next()),
@@ -224,13 +241,57 @@ fn follow(
     (reached, dex)
 }
 
+/// The branch and spin (radians) that reach the most of up to [`CHOICE_SAMPLES`] positions spread
+/// evenly over `points` (tip, axis), then with the greatest smallest dexterity; only `branch`
+/// when given.
+pub fn choose_branch(
+    arm: &ArmModel,
+    cell: &RobotCell,
+    points: &[([f64; 3], [f64; 3])],
+    branch: Option<Configuration>,
+) -> Result<(Configuration, f64), RobotPlanError> {
+    let step = points.len().div_ceil(CHOICE_SAMPLES).max(1);
+    let samples: Vec<([f64; 3], [f64; 3])> = points.iter().step_by(step).copied().collect();
+    let mut best: Option<(usize, f64, Configuration, f64)> = None;
+    let mut first_error = String::new();
+    for k in 0..12 {
+        let spin = (k as f64 * 30.0).to_radians();
+        // Branches at the first sample the arm reaches with this spin.
+        let branches = samples.iter().find_map(|(tip, axis)| {
+            match arm.ik_solutions(&cell.target(tip, axis, spin), &IkConfig::default()) {
+                Ok(s) if !s.is_empty() => Some(s),
+                Ok(_) => None,
+                Err(e) => {
+                    if first_error.is_empty() {
+                        first_error = e.to_string();
+                    }
+                    None
+                }
+            }
+        });
+        for s in branches.unwrap_or_default() {
+            if branch.is_some_and(|b| b != s.configuration) {
+                continue;
+            }
+            let (n, dex) = follow(arm, cell, &samples, s.configuration, spin);
+            if best.is_none_or(|(bn, bd, _, _)| n > bn || (n == bn && dex > bd)) {
+                best = Some((n, dex, s.configuration, spin));
+            }
+        }
+    }
+    best.map(|(_, _, c, spin)| (c, spin))
+        .ok_or(RobotPlanError::Unreachable { positions: points.len(), reason: first_error })
+}
+
 /// The joint trajectory of `path` (its blocked positions are not cut: the caller lifts over
-/// them) for `tool` at `feed_mm_min` (see the module docs).
+/// them) for `tool` at `feed_mm_min` (see the module docs), in `branch` when given (else the
+/// branch chosen as the module docs say).
 pub fn robot_program(
     cell: &RobotCell,
     tool: &Tool,
     path: &ClearedPath,
     feed_mm_min: f64,
+    branch: Option<Configuration>,
 ) -> Result<RobotProgram, RobotPlanError> {
     cell.validate()?;
     if !(feed_mm_min.is_finite() && feed_mm_min > 0.0) {
@@ -249,35 +310,8 @@ pub fn robot_program(
         });
     }
     // 1. Branch and spin.
-    let step = points.len().div_ceil(CHOICE_SAMPLES).max(1);
-    let samples: Vec<&OrientedPoint> = points.iter().step_by(step).copied().collect();
-    let mut best: Option<(usize, f64, Configuration, f64)> = None;
-    let mut first_error = String::new();
-    for k in 0..12 {
-        let spin = (k as f64 * 30.0).to_radians();
-        // Branches at the first sample the arm reaches with this spin.
-        let branches = samples.iter().find_map(|p| {
-            match arm.ik_solutions(&cell.target(&p.tip, &p.axis, spin), &IkConfig::default()) {
-                Ok(s) if !s.is_empty() => Some(s),
-                Ok(_) => None,
-                Err(e) => {
-                    if first_error.is_empty() {
-                        first_error = e.to_string();
-                    }
-                    None
-                }
-            }
-        });
-        for s in branches.unwrap_or_default() {
-            let (n, dex) = follow(&arm, cell, &samples, s.configuration, spin);
-            if best.is_none_or(|(bn, bd, _, _)| n > bn || (n == bn && dex > bd)) {
-                best = Some((n, dex, s.configuration, spin));
-            }
-        }
-    }
-    let Some((_, _, config, spin)) = best else {
-        return Err(RobotPlanError::Unreachable { positions: points.len(), reason: first_error });
-    };
+    let samples: Vec<([f64; 3], [f64; 3])> = points.iter().map(|p| (p.tip, p.axis)).collect();
+    let (config, spin) = choose_branch(&arm, cell, &samples, branch)?;
     // 2. Along the path, 3. timing.
     let ik = IkConfig::only(config);
     let feed = feed_mm_min / 60.0;
@@ -421,9 +455,29 @@ pub fn plan_robot(mesh: &Mesh, job: &RobotJob) -> Result<RobotPlan, RobotPlanErr
         .map_or([0.0, 0.0, layers.clear_z_mm], |m| [m.to[0], m.to[1], layers.clear_z_mm]);
     let moves: Vec<([f64; 3], bool)> =
         layers.program.moves.iter().map(|m| (m.to, m.kind == MoveKind::Rapid)).collect();
-    let checked = clear_path(&index, &body, start, &moves, &job.tilt).map_err(RobotPlanError::Clearance)?;
-    let path = checked.lifted(&index, &body, layers.clear_z_mm, &job.tilt);
-    let robot = robot_program(&job.cell, &job.tool, &path, job.feed_mm_min)?;
+    // The program keeps the branch that reaches the part's top middle upright with the most
+    // dexterity, and its tilts keep that branch's wrist at least TILT_WRIST_MARGIN_DEG from its
+    // singularity and its joints within their limits.
+    let arm = job.cell.arm_for(&job.tool);
+    let upright: Vec<([f64; 3], [f64; 3])> = moves.iter().map(|m| (m.0, [0.0, 0.0, 1.0])).collect();
+    let prefer = Some(choose_branch(&arm, &job.cell, &upright, None)?.0);
+    let tilt_ik = prefer.map(|c| IkConfig {
+        singularity_thresholds: SingularityMargins {
+            wrist_deg: TILT_WRIST_MARGIN_DEG,
+            ..SingularityMargins::DEFAULT
+        },
+        ..IkConfig::only(c)
+    });
+    let accept = |tip: &Point3<f64>, axis: &Unit<Vector3<f64>>| -> bool {
+        tilt_ik.is_none_or(|ik| {
+            let target = job.cell.target(&tip.coords.into(), &axis.into_inner().into(), 0.0);
+            arm.ik_solutions(&target, &ik).is_ok_and(|s| !s.is_empty())
+        })
+    };
+    let checked =
+        clear_path(&index, &body, start, &moves, &job.tilt, &accept).map_err(RobotPlanError::Clearance)?;
+    let path = checked.lifted(&index, &body, layers.clear_z_mm, &job.tilt, &accept);
+    let robot = robot_program(&job.cell, &job.tool, &path, job.feed_mm_min, prefer)?;
     Ok(RobotPlan { layers, path, robot })
 }
 
@@ -486,7 +540,7 @@ mod tests {
             let tilt = (2.0 * (10.0 - (i as f64 - 20.0).abs())).max(0.0).to_radians();
             pts.push(([10.0, y, 10.0], [tilt.sin(), 0.0, tilt.cos()], false));
         }
-        let prog = robot_program(&c, &t, &path(pts), 600.0).expect("program");
+        let prog = robot_program(&c, &t, &path(pts), 600.0, None).expect("program");
         assert!(prog.unreachable.is_empty(), "{:?}", prog.unreachable);
         let arm = c.arm_for(&t);
         for p in &prog.points {
@@ -517,7 +571,7 @@ mod tests {
         for i in 0..=50 {
             pts.push(([i as f64 * 10.0, 0.0, 10.0], [0.0, 0.0, 1.0], false));
         }
-        let prog = robot_program(&c, &t, &path(pts), 600.0).expect("program");
+        let prog = robot_program(&c, &t, &path(pts), 600.0, None).expect("program");
         assert!(!prog.unreachable.is_empty());
         let s = &prog.unreachable[0];
         assert!(s.reason.contains("reach"), "{s:?}");
@@ -537,7 +591,7 @@ mod tests {
             let axis = if i > 20 { [s30.sin(), 0.0, s30.cos()] } else { [0.0, 0.0, 1.0] };
             pts.push(([10.0, -20.0 + i as f64, 10.0], axis, false));
         }
-        let prog = robot_program(&c, &t, &path(pts), 600.0).expect("program");
+        let prog = robot_program(&c, &t, &path(pts), 600.0, None).expect("program");
         assert_eq!(prog.unreachable.len(), 1, "{:?}", prog.unreachable);
         let s = &prog.unreachable[0];
         assert_eq!((s.from_point, s.to_point), (22, 22));
@@ -549,12 +603,13 @@ mod tests {
     fn bad_settings_are_refused() {
         let t = tool();
         let p = path(vec![([0.0; 3], [0.0, 0.0, 1.0], true)]);
-        let e = robot_program(&RobotCell { speed_frac: 1.5, ..cell() }, &t, &p, 600.0).expect_err("speed");
+        let e =
+            robot_program(&RobotCell { speed_frac: 1.5, ..cell() }, &t, &p, 600.0, None).expect_err("speed");
         assert!(e.to_string().contains("speed_frac 1.5"), "{e}");
-        let e = robot_program(&cell(), &t, &p, 0.0).expect_err("feed");
+        let e = robot_program(&cell(), &t, &p, 0.0, None).expect_err("feed");
         assert!(e.to_string().contains("feed_mm_min 0"), "{e}");
         let far = RobotCell::viper_s650(Isometry3::translation(3000.0, 0.0, 0.0));
-        let e = robot_program(&far, &t, &p, 600.0).expect_err("reach");
+        let e = robot_program(&far, &t, &p, 600.0, None).expect_err("reach");
         assert!(matches!(e, RobotPlanError::Unreachable { .. }), "{e}");
     }
 }
