@@ -135,10 +135,93 @@ pub struct SimulateArgs {
     /// Skip the comparison runs (no adaptation, other policy).
     #[arg(long)]
     pub no_compare: bool,
+    /// PROGRAM is a robot joint trajectory (`depthmill plan MESH --robot` writes
+    /// <stem>.joints.json): replay it through the arm's kinematics on a dexel stock.
+    #[arg(long)]
+    pub robot: bool,
+    /// With --robot: the part's mesh (STL/PLY) to measure the machined part against.
+    #[arg(long, requires = "robot")]
+    pub part: Option<PathBuf>,
+    /// With --robot: length unit of the part's mesh: mm, m or in.
+    #[arg(long, default_value = "mm", requires = "robot")]
+    pub part_units: String,
+}
+
+/// `depthmill simulate JOINTS.json --robot`: the robot program cut on a dexel stock; writes
+/// report.json and part.stl (the simulated part) to OUT_DIR.
+fn run_robot(trajectory: &Path, args: &SimulateArgs, out_dir: &Path) -> anyhow::Result<()> {
+    use depthmill_machine::domain::robot::{RobotRunOptions, Trajectory, run};
+    let bytes = std::fs::read(trajectory).with_context(|| format!("reading {}", trajectory.display()))?;
+    let traj = Trajectory::from_json(&bytes).map_err(|e| anyhow::anyhow!("{}: {e}", trajectory.display()))?;
+    let reference = match &args.part {
+        Some(p) => {
+            let scale = match args.part_units.as_str() {
+                "mm" => 1.0,
+                "m" => 1000.0,
+                "in" => 25.4,
+                other => bail!("--part-units {other}: expected mm, m or in"),
+            };
+            let (mut mesh, _) = depthmill_geometry::formats::read_mesh(p, &Default::default())
+                .with_context(|| format!("reading {}", p.display()))?;
+            for v in &mut mesh.vertices {
+                v.coords *= scale;
+            }
+            Some(depthmill_machine::domain::part::mesh_samples(
+                &mesh,
+                depthmill_machine::domain::part::MAX_REFERENCE_POINTS,
+            ))
+        }
+        None => None,
+    };
+    let cell = args.cell_mm.unwrap_or(0.25);
+    let opts = RobotRunOptions { cell_mm: cell, max_error_mm: 0.5 * cell };
+    let started = std::time::Instant::now();
+    let (report, stock) = run(&traj, &opts, reference.as_deref())
+        .map_err(|e| anyhow::anyhow!("{}: {e}", trajectory.display()))?;
+    let wall = started.elapsed().as_secs_f64();
+    std::fs::create_dir_all(out_dir).with_context(|| format!("creating {}", out_dir.display()))?;
+    let report_path = out_dir.join("report.json");
+    std::fs::write(&report_path, serde_json::to_vec_pretty(&report)?)
+        .with_context(|| format!("writing {}", report_path.display()))?;
+    let step = stock.surface_step_mm(depthmill_machine::domain::job::VIEW_SAMPLES);
+    let mesh = stock.surface_mesh(step)?;
+    let stl = out_dir.join("part.stl");
+    let mut f = std::io::BufWriter::new(
+        std::fs::File::create(&stl).with_context(|| format!("creating {}", stl.display()))?,
+    );
+    depthmill_geometry::formats::write_stl(&mut f, &mesh, "depthmill simulated robot-milled part")?;
+    std::io::Write::flush(&mut f).with_context(|| format!("writing {}", stl.display()))?;
+    crate::outln!(
+        "{}: {} points, {} steps cut in {wall:.1} s on {cell} mm dexels; cycle {:.1} min; removed {:.0} mm³ ({:.0} mm³ by rapids)",
+        trajectory.display(),
+        report.points,
+        report.steps_cut,
+        report.cycle_time_s / 60.0,
+        report.removed_mm3,
+        report.rapid_removed_mm3
+    );
+    if let Some(d) = &report.deviation {
+        crate::outln!(
+            "against the part ({} samples): max gouge {:.3} mm, max leftover {:.3} mm, mean {:.3} mm, RMS {:.3} mm, {:.1} % within 0.1 mm, {:.1} % within 1 mm",
+            d.points,
+            d.max_gouge_mm,
+            d.max_leftover_mm,
+            d.mean_mm,
+            d.rms_mm,
+            100.0 * d.within_0_1_mm,
+            100.0 * d.within_1_mm
+        );
+    }
+    crate::outln!("{}", report_path.display());
+    crate::outln!("{}", stl.display());
+    Ok(())
 }
 
 /// `depthmill simulate`: run a program on the simulated machine; write the results to a folder.
 pub fn run_simulate(program: &Path, args: &SimulateArgs, out_dir: &Path) -> anyhow::Result<()> {
+    if args.robot {
+        return run_robot(program, args, out_dir);
+    }
     let Some(policy) = PolicyKind::parse(&args.adaptive) else {
         bail!("--adaptive '{}' is not aco, feed_only or off", args.adaptive);
     };

@@ -285,6 +285,10 @@ struct CylinderFrame {
     length: f64,
 }
 
+/// A section touching the part within this distance does not collide (rounding of a shank as
+/// wide as the tool running along the wall the tool finishes), mm.
+pub const CONTACT_MM: f64 = 1e-6;
+
 /// Most vertices of a triangle clipped by two parallel planes.
 const MAX_CLIPPED: usize = 5;
 
@@ -314,7 +318,7 @@ impl CylinderFrame {
         {
             return None;
         }
-        clipped_distance(&l, self.length).filter(|&d| d < radius)
+        clipped_distance(&l, self.length).filter(|&d| d < radius - CONTACT_MM)
     }
 }
 
@@ -745,7 +749,7 @@ pub fn clear_path(
 
 impl ClearedPath {
     /// The path with every stretch of blocked positions replaced by a lift over it: from the
-    /// last clear position straight up to `clear_z` (rapid), across to where the next clear
+    /// last clear position straight up to `clear_z` (at feed: stock may stand above it), across to where the next clear
     /// position's axis meets that height, and down along the axis to it at feed (sampled and
     /// checked like the rest; upright where `accept` refuses that axis or it collides and upright does not; a
     /// descent that still collides is added to [`ClearedPath::blocked`]).
@@ -785,7 +789,8 @@ impl ClearedPath {
             let Some(j) = end else { break };
             let next = self.points[j];
             if let Some(last) = out.points.last().copied() {
-                let up = OrientedPoint { rapid: true, ..last };
+                // Up at feed: stock may stand above.
+                let up = OrientedPoint { rapid: false, ..last };
                 out.points.push(settle([last.tip[0], last.tip[1], clear_z], &up, &mut scratch));
             }
             // Down along the next position's axis (the body slides along its own line, clear

@@ -14,7 +14,8 @@
 //!   holder_length_mm + stickout_mm` out along that axis. The
 //!   tool frame's Z points from the holder to the tip (minus the toolpath's axis); the spindle is
 //!   symmetric about it, so the turn about it (the *spin*) is free: one spin is chosen for the
-//!   whole program.
+//!   whole program (with the spindle off the flange's axis it moves the wrist, so it is chosen
+//!   before the tilts, which must keep that wrist clear).
 //!
 //! # Planning
 //!
@@ -37,7 +38,7 @@
 use depthmill_geometry::arm::{ArmModel, Configuration, IkConfig, SingularityMargins};
 use nalgebra::{Isometry3, Matrix4, Point3, Rotation3, Translation3, Unit, UnitQuaternion, Vector3};
 
-use depthmill_geometry::Mesh;
+use depthmill_geometry::{Mesh, ToolProfile};
 
 use super::clearance::{ClearedPath, MeshIndex, OrientedPoint, TiltOptions, ToolBody, clear_path};
 use super::layer_passes::{MeshProgram, MeshProgramOptions, MoveKind, PassError, mesh_program};
@@ -49,6 +50,12 @@ pub const CHOICE_SAMPLES: usize = 64;
 /// A tilted tool axis keeps the arm's wrist at least this far from its singularity, degrees
 /// (the joints 4 and 6 swing fast near it).
 pub const TILT_WRIST_MARGIN_DEG: f64 = 10.0;
+
+/// A feed step whose joints turn more than this is split along the line, degrees.
+pub const JOINT_STEP_DEG: f64 = 2.0;
+
+/// Most pieces a feed step is split into.
+pub const MAX_SPLIT: usize = 64;
 
 /// Largest turn of any joint over one feed step, degrees.
 pub const MAX_FEED_JUMP_DEG: f64 = 20.0;
@@ -194,6 +201,14 @@ pub struct RobotProgram {
     pub flange_from_tip: [[f64; 4]; 4],
     pub speed_frac: f64,
     pub feed_mm_min: f64,
+    /// The tool's cutting profile and its length out of the holder (the solid the simulation
+    /// sweeps), mm.
+    pub tool_profile: ToolProfile,
+    pub tool_length_mm: f64,
+    /// The stock the program starts from, an axis-aligned box of the part frame (set by the
+    /// planner; the part's box when planned from a path alone), mm.
+    pub stock_min_mm: [f64; 3],
+    pub stock_max_mm: [f64; 3],
     pub duration_s: f64,
     pub feed_s: f64,
     pub rapid_s: f64,
@@ -284,14 +299,14 @@ pub fn choose_branch(
 }
 
 /// The joint trajectory of `path` (its blocked positions are not cut: the caller lifts over
-/// them) for `tool` at `feed_mm_min` (see the module docs), in `branch` when given (else the
-/// branch chosen as the module docs say).
+/// them) for `tool` at `feed_mm_min` (see the module docs), in `branch` (a configuration and a
+/// spin, radians) when given, else the one [`choose_branch`] picks.
 pub fn robot_program(
     cell: &RobotCell,
     tool: &Tool,
     path: &ClearedPath,
     feed_mm_min: f64,
-    branch: Option<Configuration>,
+    branch: Option<(Configuration, f64)>,
 ) -> Result<RobotProgram, RobotPlanError> {
     cell.validate()?;
     if !(feed_mm_min.is_finite() && feed_mm_min > 0.0) {
@@ -303,6 +318,9 @@ pub fn robot_program(
     }
     let arm = cell.arm_for(tool);
     let points: Vec<&OrientedPoint> = path.points.iter().filter(|p| !p.blocked).collect();
+    let stock = points.iter().fold(([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]), |(lo, hi), p| {
+        (std::array::from_fn(|k| lo[k].min(p.tip[k])), std::array::from_fn(|k| hi[k].max(p.tip[k])))
+    });
     if points.is_empty() {
         return Err(RobotPlanError::Unreachable {
             positions: 0,
@@ -311,7 +329,10 @@ pub fn robot_program(
     }
     // 1. Branch and spin.
     let samples: Vec<([f64; 3], [f64; 3])> = points.iter().map(|p| (p.tip, p.axis)).collect();
-    let (config, spin) = choose_branch(&arm, cell, &samples, branch)?;
+    let (config, spin) = match branch {
+        Some(b) => b,
+        None => choose_branch(&arm, cell, &samples, None)?,
+    };
     // 2. Along the path, 3. timing.
     let ik = IkConfig::only(config);
     let feed = feed_mm_min / 60.0;
@@ -323,8 +344,10 @@ pub fn robot_program(
     let mut margins =
         SingularityMargins { wrist_deg: f64::INFINITY, shoulder_mm: f64::INFINITY, elbow_deg: f64::INFINITY };
     let mut prev_tip: Option<[f64; 3]> = None;
-    for (i, p) in points.iter().enumerate() {
-        let target = cell.target(&p.tip, &p.axis, spin);
+    // One position: IK nearest the last, the reports, the time from the last.
+    let mut push = |tip: [f64; 3], axis: [f64; 3], rapid: bool, out: &mut Vec<JointPoint>| {
+        let i = out.len();
+        let target = cell.target(&tip, &axis, spin);
         let sol = match prev_q {
             Some(q) => arm.ik_nearest(&target, &q, &ik),
             None => arm.ik_solutions(&target, &ik).and_then(|s| {
@@ -339,7 +362,7 @@ pub fn robot_program(
         let q = match (sol, prev_q) {
             (Ok(s), Some(q0)) => {
                 let jump = (0..6).map(|j| (s.q_deg[j] - q0[j]).abs()).fold(0.0, f64::max);
-                if !p.rapid && jump > MAX_FEED_JUMP_DEG {
+                if !rapid && jump > MAX_FEED_JUMP_DEG {
                     // The arm gets there, but not along the line: reported, and followed on
                     // from there.
                     reason = Some(format!(
@@ -359,7 +382,7 @@ pub fn robot_program(
         if let Some(r) = reason {
             match unreachable.last_mut() {
                 Some(s) if s.to_point + 1 == i && s.reason == r => s.to_point = i,
-                _ => unreachable.push(Stretch { from_point: i, to_point: i, at_mm: p.tip, reason: r }),
+                _ => unreachable.push(Stretch { from_point: i, to_point: i, at_mm: tip, reason: r }),
             }
         } else {
             dex_min = dex_min.min(arm.dexterity(&q));
@@ -369,12 +392,12 @@ pub fn robot_program(
             margins.elbow_deg = margins.elbow_deg.min(m.elbow_deg);
         }
         if let (Some(q0), Some(tip0)) = (prev_q, prev_tip) {
-            if p.rapid {
+            if rapid {
                 let dt = arm.move_time_s(&q0, &q, cell.speed_frac);
                 rapid_s += dt;
                 t += dt;
             } else {
-                let len = (0..3).map(|k| (p.tip[k] - tip0[k]).powi(2)).sum::<f64>().sqrt();
+                let len = (0..3).map(|k| (tip[k] - tip0[k]).powi(2)).sum::<f64>().sqrt();
                 let joint = (0..6)
                     .map(|j| (q[j] - q0[j]).abs() / (arm.limits[j].max_speed_deg_s * cell.speed_frac))
                     .fold(0.0, f64::max);
@@ -386,11 +409,32 @@ pub fn robot_program(
                 t += dt;
             }
         }
-        out.push(JointPoint { t_s: t, q_deg: q, tip_mm: p.tip, axis: p.axis, rapid: p.rapid, reachable });
+        out.push(JointPoint { t_s: t, q_deg: q, tip_mm: tip, axis, rapid, reachable });
         if reachable || jumped {
             prev_q = Some(q);
         }
-        prev_tip = Some(p.tip);
+        prev_tip = Some(tip);
+    };
+    for p in &points {
+        // A step whose joints turn more than JOINT_STEP_DEG is split along the line (the axis
+        // turning evenly), so the arm's joint interpolation between the points it is given stays
+        // near the line; rapids too (a joint-interpolated rapid swings the tip off its line).
+        if let Some(last) = out.last().copied()
+            && last.reachable
+            && let Ok(s) = arm.ik_nearest(&cell.target(&p.tip, &p.axis, spin), &last.q_deg, &ik)
+        {
+            let turn = (0..6).map(|j| (s.q_deg[j] - last.q_deg[j]).abs()).fold(0.0, f64::max);
+            let n = ((turn / JOINT_STEP_DEG).ceil() as usize).clamp(1, MAX_SPLIT);
+            let (a0, a1) = (Vector3::from(last.axis), Vector3::from(p.axis));
+            let r = UnitQuaternion::rotation_between(&a0, &a1).unwrap_or_else(UnitQuaternion::identity);
+            for k in 1..n {
+                let f = k as f64 / n as f64;
+                let tip = std::array::from_fn(|c| last.tip_mm[c] + f * (p.tip[c] - last.tip_mm[c]));
+                let axis = r.powf(f) * a0;
+                push(tip, [axis.x, axis.y, axis.z], p.rapid, &mut out);
+            }
+        }
+        push(p.tip, p.axis, p.rapid, &mut out);
     }
     if out.iter().all(|p| !p.reachable) {
         return Err(RobotPlanError::Unreachable {
@@ -407,6 +451,10 @@ pub fn robot_program(
         flange_from_tip: matrix(&cell.flange_from_tip(tool)),
         speed_frac: cell.speed_frac,
         feed_mm_min,
+        tool_profile: tool.profile.clone(),
+        tool_length_mm: tool.stickout_mm,
+        stock_min_mm: stock.0,
+        stock_max_mm: stock.1,
         duration_s: t,
         feed_s,
         rapid_s,
@@ -453,31 +501,38 @@ pub fn plan_robot(mesh: &Mesh, job: &RobotJob) -> Result<RobotPlan, RobotPlanErr
         .moves
         .first()
         .map_or([0.0, 0.0, layers.clear_z_mm], |m| [m.to[0], m.to[1], layers.clear_z_mm]);
-    let moves: Vec<([f64; 3], bool)> =
-        layers.program.moves.iter().map(|m| (m.to, m.kind == MoveKind::Rapid)).collect();
-    // The program keeps the branch that reaches the part's top middle upright with the most
-    // dexterity, and its tilts keep that branch's wrist at least TILT_WRIST_MARGIN_DEG from its
-    // singularity and its joints within their limits.
+    // A retract straight up runs at feed: stock may stand above where a stretch was lifted over.
+    let mut moves: Vec<([f64; 3], bool)> = Vec::with_capacity(layers.program.moves.len());
+    let mut from = start;
+    for m in &layers.program.moves {
+        let up = m.to[0] == from[0] && m.to[1] == from[1] && m.to[2] > from[2];
+        moves.push((m.to, m.kind == MoveKind::Rapid && !up));
+        from = m.to;
+    }
+    // The program keeps the branch and spin chosen on the upright program, and its tilts keep
+    // that branch's wrist at least TILT_WRIST_MARGIN_DEG from its singularity and its joints
+    // within their limits (with the spindle off the flange's axis, the spin moves the wrist).
     let arm = job.cell.arm_for(&job.tool);
     let upright: Vec<([f64; 3], [f64; 3])> = moves.iter().map(|m| (m.0, [0.0, 0.0, 1.0])).collect();
-    let prefer = Some(choose_branch(&arm, &job.cell, &upright, None)?.0);
-    let tilt_ik = prefer.map(|c| IkConfig {
+    let (config, spin) = choose_branch(&arm, &job.cell, &upright, None)?;
+    let tilt_ik = IkConfig {
         singularity_thresholds: SingularityMargins {
             wrist_deg: TILT_WRIST_MARGIN_DEG,
             ..SingularityMargins::DEFAULT
         },
-        ..IkConfig::only(c)
-    });
+        ..IkConfig::only(config)
+    };
     let accept = |tip: &Point3<f64>, axis: &Unit<Vector3<f64>>| -> bool {
-        tilt_ik.is_none_or(|ik| {
-            let target = job.cell.target(&tip.coords.into(), &axis.into_inner().into(), 0.0);
-            arm.ik_solutions(&target, &ik).is_ok_and(|s| !s.is_empty())
-        })
+        let target = job.cell.target(&tip.coords.into(), &axis.into_inner().into(), spin);
+        arm.ik_solutions(&target, &tilt_ik).is_ok_and(|s| !s.is_empty())
     };
     let checked =
         clear_path(&index, &body, start, &moves, &job.tilt, &accept).map_err(RobotPlanError::Clearance)?;
     let path = checked.lifted(&index, &body, layers.clear_z_mm, &job.tilt, &accept);
-    let robot = robot_program(&job.cell, &job.tool, &path, job.feed_mm_min, prefer)?;
+    let mut robot = robot_program(&job.cell, &job.tool, &path, job.feed_mm_min, Some((config, spin)))?;
+    let st = layers.options.stock;
+    robot.stock_min_mm = [st[0], st[1], layers.z_range_mm[0]];
+    robot.stock_max_mm = [st[2], st[3], layers.z_range_mm[1]];
     Ok(RobotPlan { layers, path, robot })
 }
 

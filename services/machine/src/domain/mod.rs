@@ -27,5 +27,6 @@ pub mod job;
 pub mod part;
 pub mod profile;
 pub mod removal;
+pub mod robot;
 pub mod sensors;
 pub mod sim;
