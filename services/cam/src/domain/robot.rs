@@ -40,7 +40,9 @@ use nalgebra::{Isometry3, Matrix4, Point3, Rotation3, Translation3, Unit, UnitQu
 
 use depthmill_geometry::{Mesh, ToolProfile};
 
-use super::clearance::{ClearedPath, MeshIndex, OrientedPoint, TiltOptions, ToolBody, clear_path};
+use super::clearance::{
+    ClearedPath, MeshIndex, OrientedPoint, TiltOptions, ToolBody, axis_between, clear_path,
+};
 use super::layer_passes::{MeshProgram, MeshProgramOptions, MoveKind, PassError, mesh_program};
 use super::tool::Tool;
 
@@ -237,10 +239,10 @@ fn follow(
     points: &[([f64; 3], [f64; 3])],
     config: Configuration,
     spin: f64,
-) -> (usize, f64) {
+) -> (usize, f64, f64) {
     let ik = IkConfig::only(config);
     let mut prev: Option<[f64; 6]> = None;
-    let (mut reached, mut dex) = (0, f64::INFINITY);
+    let (mut reached, mut dex, mut margin) = (0, f64::INFINITY, f64::INFINITY);
     for (tip, axis) in points {
         let target = cell.target(tip, axis, spin);
         let sol = match prev {
@@ -250,15 +252,18 @@ fn follow(
         if let Some(s) = sol {
             reached += 1;
             dex = dex.min(arm.dexterity(&s.q_deg));
+            for (l, q) in arm.limits.iter().zip(&s.q_deg) {
+                margin = margin.min((q - l.min_deg).min(l.max_deg - q));
+            }
             prev = Some(s.q_deg);
         }
     }
-    (reached, dex)
+    (reached, dex, margin)
 }
 
 /// The branch and spin (radians) that reach the most of up to [`CHOICE_SAMPLES`] positions spread
-/// evenly over `points` (tip, axis), then with the greatest smallest dexterity; only `branch`
-/// when given.
+/// evenly over `points` (tip, axis), then keep the joints farthest from their limits (in 10°
+/// steps up to 60°), then with the greatest smallest dexterity; only `branch` when given.
 pub fn choose_branch(
     arm: &ArmModel,
     cell: &RobotCell,
@@ -267,7 +272,7 @@ pub fn choose_branch(
 ) -> Result<(Configuration, f64), RobotPlanError> {
     let step = points.len().div_ceil(CHOICE_SAMPLES).max(1);
     let samples: Vec<([f64; 3], [f64; 3])> = points.iter().step_by(step).copied().collect();
-    let mut best: Option<(usize, f64, Configuration, f64)> = None;
+    let mut best: Option<(usize, i64, f64, Configuration, f64)> = None;
     let mut first_error = String::new();
     for k in 0..12 {
         let spin = (k as f64 * 30.0).to_radians();
@@ -288,13 +293,18 @@ pub fn choose_branch(
             if branch.is_some_and(|b| b != s.configuration) {
                 continue;
             }
-            let (n, dex) = follow(arm, cell, &samples, s.configuration, spin);
-            if best.is_none_or(|(bn, bd, _, _)| n > bn || (n == bn && dex > bd)) {
-                best = Some((n, dex, s.configuration, spin));
+            let (n, dex, margin) = follow(arm, cell, &samples, s.configuration, spin);
+            // Joints kept off their limits (in 10° steps up to 60°) before dexterity: a wrist
+            // joint near its limit winds up against it along rings.
+            let room = (margin.min(60.0) / 10.0).floor() as i64;
+            if best
+                .is_none_or(|(bn, br, bd, _, _)| (n, room) > (bn, br) || ((n, room) == (bn, br) && dex > bd))
+            {
+                best = Some((n, room, dex, s.configuration, spin));
             }
         }
     }
-    best.map(|(_, _, c, spin)| (c, spin))
+    best.map(|(_, _, _, c, spin)| (c, spin))
         .ok_or(RobotPlanError::Unreachable { positions: points.len(), reason: first_error })
 }
 
@@ -417,7 +427,7 @@ pub fn robot_program(
     };
     for p in &points {
         // A step whose joints turn more than JOINT_STEP_DEG is split along the line (the axis
-        // turning evenly), so the arm's joint interpolation between the points it is given stays
+        // turning as the clearance check turned it, `axis_between`), so the arm's joint interpolation between the points it is given stays
         // near the line; rapids too (a joint-interpolated rapid swings the tip off its line).
         if let Some(last) = out.last().copied()
             && last.reachable
@@ -425,13 +435,10 @@ pub fn robot_program(
         {
             let turn = (0..6).map(|j| (s.q_deg[j] - last.q_deg[j]).abs()).fold(0.0, f64::max);
             let n = ((turn / JOINT_STEP_DEG).ceil() as usize).clamp(1, MAX_SPLIT);
-            let (a0, a1) = (Vector3::from(last.axis), Vector3::from(p.axis));
-            let r = UnitQuaternion::rotation_between(&a0, &a1).unwrap_or_else(UnitQuaternion::identity);
             for k in 1..n {
                 let f = k as f64 / n as f64;
                 let tip = std::array::from_fn(|c| last.tip_mm[c] + f * (p.tip[c] - last.tip_mm[c]));
-                let axis = r.powf(f) * a0;
-                push(tip, [axis.x, axis.y, axis.z], p.rapid, &mut out);
+                push(tip, axis_between(&last.axis, &p.axis, f), p.rapid, &mut out);
             }
         }
         push(p.tip, p.axis, p.rapid, &mut out);
