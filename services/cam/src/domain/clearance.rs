@@ -1075,7 +1075,7 @@ mod tests {
         let high: Vec<&OrientedPoint> =
             lifted.points.iter().filter(|p| (p.tip[2] - 70.0).abs() < 1e-9).collect();
         // One pair per lift (a turn too sharp to make in the slot lifts too).
-        assert!(high.len() >= 2 && high.len() % 2 == 0, "{high:?}");
+        assert!(high.len() >= 2 && high.len().is_multiple_of(2), "{high:?}");
         assert!(high.chunks(2).all(|p| !p[0].rapid && p[1].rapid), "{high:?}");
         // Everything kept is clear, the descent included.
         let mut s = Scratch::default();
