@@ -149,3 +149,62 @@ fn five_axis_words_agree_with_linuxcnc_rs274() -> anyhow::Result<()> {
     assert!((last.c - 90.0).abs() < 1e-9 && (last.a + 30.0).abs() < 1e-9, "{last:?}");
     Ok(())
 }
+
+/// The robot program (tool tip X Y Z in the part frame, the tool axis as A and B) reads in
+/// LinuxCNC's interpreter: one move per position of the checked path, with the A and B words as
+/// the planner's axes give them.
+#[test]
+fn robot_programs_run_in_linuxcnc_rs274() -> anyhow::Result<()> {
+    use depthmill_cam::domain::clearance::TiltOptions;
+    use depthmill_cam::domain::layer_passes::MeshProgramOptions;
+    use depthmill_cam::domain::robot::{RobotCell, RobotJob, ab_to_axis, plan_robot, robot_gcode};
+    use depthmill_geometry::nalgebra::Isometry3;
+    if !rs274_or_skip() {
+        return Ok(());
+    }
+    let dir = tempfile::tempdir()?;
+    // A block 20 x 20 x 60 mm: the holder leans clear of it near its foot.
+    let mesh = depthmill_geometry::Mesh::cuboid(20.0, 20.0, 60.0);
+    let tool = ToolLibrary::builtin()?.resolve("flat-6")?;
+    let job = RobotJob {
+        layers: MeshProgramOptions {
+            step_mm: 10.0,
+            from_mm: None,
+            tool_radius_mm: tool.radius_mm(),
+            radial_depth_mm: None,
+            stock_margin_mm: 5.0,
+            clearance_mm: 5.0,
+        },
+        tilt: TiltOptions::default(),
+        cell: RobotCell::viper_s650(Isometry3::translation(410.0, -10.0, 0.0)),
+        feed_mm_min: 600.0,
+        tool: tool.clone(),
+    };
+    let plan = plan_robot(&mesh, &job)?;
+    let text = robot_gcode(&plan, &tool.name, 600.0, 12000.0, "tall block")?;
+    let program = dir.path().join("robot.ngc");
+    std::fs::write(&program, &text)?;
+    let table = dir.path().join("tool.tbl");
+    std::fs::write(&table, "T1 P1 D6.0 Z0 ;flat\n")?;
+    let canon = dir.path().join("canon.txt");
+    let run = Command::new("rs274").arg("-t").arg(&table).arg("-g").arg(&program).arg(&canon).output()?;
+    assert!(run.status.success(), "rs274 failed: {}", String::from_utf8_lossy(&run.stdout));
+    let moves = std::fs::read_to_string(&canon)?;
+    assert!(moves.contains("PROGRAM_END"), "the interpreter stopped early");
+    let straight: Vec<Vec<f64>> = moves
+        .lines()
+        .filter_map(|l| l.split_once("STRAIGHT_").map(|(_, r)| r))
+        .filter_map(|r| r.split_once('(').and_then(|(_, args)| args.strip_suffix(')')))
+        .map(|args| args.split(',').filter_map(|v| v.trim().parse::<f64>().ok()).collect())
+        .collect();
+    assert_eq!(straight.len(), plan.path.points.len(), "one move per position");
+    let mut leaning = 0;
+    for (m, p) in straight.iter().zip(&plan.path.points) {
+        assert!((0..3).all(|k| (m[k] - p.tip[k]).abs() < 1e-3), "{m:?} vs {:?}", p.tip);
+        let axis = ab_to_axis(m[3], m[4]);
+        assert!((0..3).all(|k| (axis[k] - p.axis[k]).abs() < 1e-4), "{m:?} vs {:?}", p.axis);
+        leaning += usize::from(p.axis[2] < 0.999);
+    }
+    assert!(leaning > 0, "some positions lean");
+    Ok(())
+}

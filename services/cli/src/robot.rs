@@ -3,13 +3,12 @@
 //! holder and spindle are checked against the mesh at every position and tilted where the
 //! upright tool collides.
 
-use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context as _, bail};
 use depthmill_cam::domain::clearance::{ClearedPath, TiltOptions};
 use depthmill_cam::domain::layer_passes::MeshProgramOptions;
-use depthmill_cam::domain::robot::{RobotCell, RobotJob, RobotPlan, axis_to_ab, plan_robot};
+use depthmill_cam::domain::robot::{RobotCell, RobotJob, plan_robot, robot_gcode};
 use depthmill_geometry::formats::{ReadLimits, read_mesh};
 use nalgebra::{Isometry3, Vector3};
 
@@ -72,49 +71,6 @@ fn parse_xyz(text: &str) -> anyhow::Result<[f64; 3]> {
         [x, y, z] if v.iter().all(|c| c.is_finite()) => Ok([*x, *y, *z]),
         _ => bail!("--part-at {text}: expected three finite numbers X,Y,Z in mm"),
     }
-}
-
-/// The robot program as G-code: the tool tip in the part frame (X, Y, Z) and the tool axis as
-/// A and B (the axis is `Ry(B)·Rx(A)·Z`), rapids as G0, feeds as G1.
-pub fn gcode(plan: &RobotPlan, tool: &str, feed: f64, rpm: f64, input: &Path) -> anyhow::Result<String> {
-    if !(rpm.is_finite() && rpm > 0.0) {
-        bail!("--rpm {rpm}: must be a positive speed");
-    }
-    let mut g = String::new();
-    let name = input.file_name().map_or(String::new(), |n| n.to_string_lossy().replace(['(', ')'], ""));
-    writeln!(g, "%")?;
-    writeln!(g, "(depthmill robot program: {name})")?;
-    writeln!(
-        g,
-        "(tool tip X Y Z in the part frame, mm; tool axis from A and B, degrees: axis = Ry B . Rx A . Z)"
-    )?;
-    writeln!(
-        g,
-        "(arm: {}, {}, spin {:.0} deg; joint trajectory in the .joints.json beside this file)",
-        plan.robot.arm, plan.robot.configuration, plan.robot.spin_deg
-    )?;
-    writeln!(g, "G21 G90 G17 G94 G40 G49 G80")?;
-    writeln!(g, "(T1 {tool})")?;
-    writeln!(g, "T1 M6")?;
-    writeln!(g, "S{rpm:.0} M3")?;
-    let mut feed_set = false;
-    for p in &plan.path.points {
-        let [x, y, z] = p.tip;
-        let (a, b) = axis_to_ab(&p.axis);
-        let (a, b) = (if a.abs() < 5e-5 { 0.0 } else { a }, if b.abs() < 5e-5 { 0.0 } else { b });
-        if p.rapid {
-            writeln!(g, "G0 X{x:.4} Y{y:.4} Z{z:.4} A{a:.4} B{b:.4}")?;
-        } else if !feed_set {
-            writeln!(g, "G1 X{x:.4} Y{y:.4} Z{z:.4} A{a:.4} B{b:.4} F{feed:.1}")?;
-            feed_set = true;
-        } else {
-            writeln!(g, "G1 X{x:.4} Y{y:.4} Z{z:.4} A{a:.4} B{b:.4}")?;
-        }
-    }
-    writeln!(g, "M5")?;
-    writeln!(g, "M30")?;
-    writeln!(g, "%")?;
-    Ok(g)
 }
 
 fn clearance_json(p: &ClearedPath) -> serde_json::Value {
@@ -189,7 +145,8 @@ pub fn run(input: &Path, args: &RobotArgs, tools_dir: Option<&Path>, output: &Pa
             output.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "robot".into());
         output.with_file_name(format!("{stem}.{suffix}"))
     };
-    let text = gcode(&plan, &tool.name, args.feed_mm_min, args.rpm, input)?;
+    let title = input.file_name().map_or(String::new(), |n| n.to_string_lossy().into_owned());
+    let text = robot_gcode(&plan, &tool.name, args.feed_mm_min, args.rpm, &title)?;
     std::fs::write(output, text).with_context(|| format!("writing {}", output.display()))?;
     let joints = sibling("joints.json");
     std::fs::write(&joints, serde_json::to_vec(&plan.robot)?)

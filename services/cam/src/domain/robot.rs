@@ -543,6 +543,66 @@ pub fn plan_robot(mesh: &Mesh, job: &RobotJob) -> Result<RobotPlan, RobotPlanErr
     Ok(RobotPlan { layers, path, robot })
 }
 
+/// The robot program as G-code (LinuxCNC's words): the tool tip in the part frame (X, Y, Z) and
+/// the tool axis as A and B ([`axis_to_ab`]), rapids as G0 and feeds as G1, the tool in T1, the
+/// joint trajectory named in the header. `title` goes into the header comment.
+///
+/// Errors: a feed or spindle speed that is not positive.
+pub fn robot_gcode(
+    plan: &RobotPlan,
+    tool: &str,
+    feed_mm_min: f64,
+    rpm: f64,
+    title: &str,
+) -> Result<String, RobotPlanError> {
+    use std::fmt::Write as _;
+    let bad =
+        |field, value: f64, expected| RobotPlanError::Invalid { field, value: value.to_string(), expected };
+    if !(feed_mm_min.is_finite() && feed_mm_min > 0.0) {
+        return Err(bad("feed_mm_min", feed_mm_min, "must be a positive feed"));
+    }
+    if !(rpm.is_finite() && rpm > 0.0) {
+        return Err(bad("rpm", rpm, "must be a positive speed"));
+    }
+    let clean = |t: &str| t.replace(['(', ')'], "");
+    let mut g = String::new();
+    let mut line = |text: std::fmt::Arguments<'_>| {
+        let _ = g.write_fmt(text);
+        g.push('\n');
+    };
+    line(format_args!("%"));
+    line(format_args!("(depthmill robot program: {})", clean(title)));
+    line(format_args!(
+        "(tool tip X Y Z in the part frame, mm; tool axis from A and B, degrees: axis = Ry B . Rx A . Z)"
+    ));
+    line(format_args!(
+        "(arm: {}, {}, spin {:.0} deg; joint trajectory in the .joints.json beside this file)",
+        plan.robot.arm, plan.robot.configuration, plan.robot.spin_deg
+    ));
+    line(format_args!("G21 G90 G17 G94 G40 G49 G80"));
+    line(format_args!("(T1 {})", clean(tool)));
+    line(format_args!("T1 M6"));
+    line(format_args!("S{rpm:.0} M3"));
+    let mut feed_set = false;
+    for p in &plan.path.points {
+        let [x, y, z] = p.tip;
+        let (a, b) = axis_to_ab(&p.axis);
+        let (a, b) = (if a.abs() < 5e-5 { 0.0 } else { a }, if b.abs() < 5e-5 { 0.0 } else { b });
+        if p.rapid {
+            line(format_args!("G0 X{x:.4} Y{y:.4} Z{z:.4} A{a:.4} B{b:.4}"));
+        } else if !feed_set {
+            line(format_args!("G1 X{x:.4} Y{y:.4} Z{z:.4} A{a:.4} B{b:.4} F{feed_mm_min:.1}"));
+            feed_set = true;
+        } else {
+            line(format_args!("G1 X{x:.4} Y{y:.4} Z{z:.4} A{a:.4} B{b:.4}"));
+        }
+    }
+    line(format_args!("M5"));
+    line(format_args!("M30"));
+    line(format_args!("%"));
+    Ok(g)
+}
+
 /// The tool axis as the A and B words of the robot program's G-code: the axis is
 /// `Ry(B) · Rx(A) · Z` = `(cos A sin B, −sin A, cos A cos B)`, degrees.
 pub fn axis_to_ab(axis: &[f64; 3]) -> (f64, f64) {
