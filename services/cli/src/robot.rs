@@ -137,6 +137,17 @@ pub fn run(input: &Path, args: &RobotArgs, tools_dir: Option<&Path>, output: &Pa
         feed_mm_min: args.feed_mm_min,
         tool: tool.clone(),
     };
+    // The mesh's edge check first: an open or non-manifold mesh may fail to plan, and says why.
+    let topo = depthmill_cam::domain::slice::topology(&mesh);
+    if !topo.is_closed_manifold() {
+        crate::outln!(
+            "warning: {}: the mesh is not closed: {} open, {} non-manifold and {} misoriented edges (listed by `depthmill slice`)",
+            input.display(),
+            topo.boundary.len(),
+            topo.non_manifold.len(),
+            topo.misoriented.len()
+        );
+    }
     let started = std::time::Instant::now();
     let plan = plan_robot(&mesh, &job).with_context(|| format!("planning {}", input.display()))?;
     let elapsed = started.elapsed().as_secs_f64();
@@ -162,8 +173,19 @@ pub fn run(input: &Path, args: &RobotArgs, tools_dir: Option<&Path>, output: &Pa
         })
         .collect();
     let r = &plan.robot;
+    let defects: Vec<&depthmill_cam::domain::slice::Defect> =
+        plan.layers.layers.iter().flat_map(|l| &l.defects).collect();
+    let open_chains: usize = plan.layers.layers.iter().map(|l| l.open.len()).sum();
     let report = serde_json::json!({
         "input": input.display().to_string(),
+        "mesh": {
+            "closed_manifold": topo.is_closed_manifold(),
+            "boundary_edges": topo.boundary.len(),
+            "non_manifold_edges": topo.non_manifold.len(),
+            "misoriented_edges": topo.misoriented.len(),
+            "layer_defects": defects.iter().take(100).collect::<Vec<_>>(),
+            "open_chains": open_chains,
+        },
         "tool": tool.name,
         "layers": plan.layers.layers.len(),
         "rings": plan.layers.passes.iter().map(|p| p.rings.len()).sum::<usize>(),
@@ -189,6 +211,18 @@ pub fn run(input: &Path, args: &RobotArgs, tools_dir: Option<&Path>, output: &Pa
     let report_path = sibling("robot.json");
     std::fs::write(&report_path, serde_json::to_vec_pretty(&report)?)
         .with_context(|| format!("writing {}", report_path.display()))?;
+    if !defects.is_empty() || open_chains > 0 {
+        crate::outln!(
+            "warning: {}: {} layer defects (closed where the chain's ends meet), {} open chains (not cut); listed in {}",
+            input.display(),
+            defects.len(),
+            open_chains,
+            report_path.display()
+        );
+        for d in defects.iter().take(3) {
+            crate::outln!("  z {:.3} at ({:.3}, {:.3}): {}", d.z_mm, d.at[0], d.at[1], d.message);
+        }
+    }
     let c = &plan.path;
     crate::outln!(
         "{}: {} layers, {} rings, {} positions; upright tool collides at {}, {} tilted (max {:.1}°, axis turning at most {:.2}°/mm), {} blocked and lifted over",

@@ -87,9 +87,15 @@ pub enum RobotPlanError {
     #[error("the arm reaches none of the program's {positions} positions: at the first, {reason}")]
     Unreachable { positions: usize, reason: String },
     #[error("layers: {0}")]
-    Layers(#[from] PassError),
+    Layers(PassError),
     #[error("tool clearance: {0}")]
     Clearance(String),
+}
+
+impl From<PassError> for RobotPlanError {
+    fn from(e: PassError) -> Self {
+        RobotPlanError::Layers(e)
+    }
 }
 
 impl RobotCell {
