@@ -20,13 +20,19 @@
 //! - **Tilting** ([`clear_path`]): at a position where the upright tool collides, the tool is
 //!   turned about its tip, the axis leaning by `tilt` towards azimuth `φ`. Every
 //!   [`TiltOptions::azimuths`] directions is tried from a small tilt up in [`TiltOptions::step_deg`]
-//!   steps to [`TiltOptions::max_tilt_deg`]; the smallest clearing tilt wins (ties to the azimuth
-//!   nearest the previous position's) and is refined by bisection to an eighth of a step. Then
+//!   steps to [`TiltOptions::max_tilt_deg`]; the smallest clearing tilt wins (after a tilted
+//!   position: the clearing axis nearest the previous one among tilts within two steps of the
+//!   smallest, so the lean does not swap sides) and is refined by bisection to an eighth of a
+//!   step. Then
 //!   the lean (the axis's horizontal part) is ramped along the path so that it changes by at
 //!   most [`TiltOptions::max_rate_deg_mm`] per millimetre of travel (the neighbours of a tilted
 //!   stretch lean too, each checked), so the robot's wrist turns smoothly; a rapid breaks the
-//!   chain. Positions that no tilt clears are reported with where they are and left out of the
-//!   cut (the program lifts over them).
+//!   chain. Only axes the machine carrying the tool accepts count ([`Accept`]: the robot planner
+//!   refuses axes its arm cannot take there). Where the axis still turns by more than a step
+//!   between neighbours, the poses on the way are checked too, and a turn that would sweep the
+//!   tool into the part blocks the position it turns to. Positions that no tilt clears are
+//!   reported with where they are and what hits, and left out of the cut: the program lifts over
+//!   them ([`ClearedPath::lifted`]: out along the tool's axis, across, down along the next axis).
 
 use depthmill_geometry::Mesh;
 use nalgebra::{Point3, Unit, Vector3};

@@ -19,16 +19,21 @@
 //!
 //! # Planning
 //!
-//! 1. **Branch and spin**: for each spin in 30° steps and each IK branch found at the first
-//!    reachable position, the program is followed on up to [`CHOICE_SAMPLES`] evenly spread
-//!    positions keeping that branch; the pair reaching the most positions, then with the
-//!    greatest smallest dexterity `sqrt(det(JᵀJ))`, is kept.
+//! 1. **Branch and spin** ([`choose_branch`], on the upright program before the tilts): for each
+//!    spin in 30° steps and each IK branch found at the first reachable position, the program is
+//!    followed on up to [`CHOICE_SAMPLES`] evenly spread positions keeping that branch; the pair
+//!    reaching the most positions, then keeping the joints farthest from their limits (in 10°
+//!    steps up to 60°: a wrist joint near its limit winds up against it along rings and would
+//!    have to turn a whole turn back in the cut), then with the greatest smallest dexterity
+//!    `sqrt(det(JᵀJ))`, is kept.
 //! 2. **Along the path**: every position is solved in that one branch (no flips), nearest to the
 //!    previous joints, refused within the arm's singularity margins and outside its joint
-//!    limits. Positions that fail are grouped into unreachable stretches with the reason (out of
-//!    reach, a joint limit, a singularity); a feed step whose joints jump more than
-//!    [`MAX_FEED_JUMP_DEG`] is reported the same way (the arm cannot follow the straight line
-//!    there without turning a joint through a large angle).
+//!    limits. A step (feed or rapid) whose joints turn more than [`JOINT_STEP_DEG`] is split along
+//!    its line, the axis turning as the clearance check turned it, so the controller's joint
+//!    interpolation between the points stays on the line. Positions that fail are grouped into
+//!    unreachable stretches with the reason (out of reach, a joint limit, a singularity); a feed
+//!    step whose joints still jump more than [`MAX_FEED_JUMP_DEG`] is reported the same way (the
+//!    arm cannot follow the straight line there without turning a joint through a large angle).
 //! 3. **Timing** with the arm's motion model: a rapid is a synchronised rest-to-rest trapezoid
 //!    per joint ([`ArmModel::move_time_s`]); a feed step takes the longer of its length at the
 //!    feed and its largest joint turn at that joint's top speed (the controller blends feed
@@ -53,10 +58,10 @@ pub const CHOICE_SAMPLES: usize = 64;
 /// (the joints 4 and 6 swing fast near it).
 pub const TILT_WRIST_MARGIN_DEG: f64 = 10.0;
 
-/// A feed step whose joints turn more than this is split along the line, degrees.
+/// A step whose joints turn more than this is split along its line, degrees.
 pub const JOINT_STEP_DEG: f64 = 2.0;
 
-/// Most pieces a feed step is split into.
+/// Most pieces a step is split into.
 pub const MAX_SPLIT: usize = 64;
 
 /// Largest turn of any joint over one feed step, degrees.
