@@ -201,7 +201,10 @@ impl Worker {
                     Ok(_) => (AttemptOutcome::Ok, None),
                     Err(e) => (AttemptOutcome::Failed, Some((e.code.as_str(), e.message.as_str()))),
                 };
-                self.app.store.finish_attempt(id, stage, attempt, o, err, now_ms()).await?;
+                // An ok attempt is recorded with the stage's result (`complete_stage`).
+                if o != AttemptOutcome::Ok {
+                    self.app.store.finish_attempt(id, stage, attempt, o, err, now_ms()).await?;
+                }
                 r
             } else {
                 match self.run_with_retries(call, first, &cancel, shutdown).await? {
@@ -276,7 +279,11 @@ impl Worker {
                 Err(_) => (AttemptOutcome::Failed, None),
             };
             let err = result.as_ref().err().map(|e| (e.code.as_str(), e.message.as_str()));
-            self.app.store.finish_attempt(&id, stage, attempt, outcome, err, now_ms()).await?;
+            // An ok attempt is recorded with the stage's result (`complete_stage`, one transaction),
+            // so a stop in between runs the stage again without an ok attempt left behind.
+            if outcome != AttemptOutcome::Ok {
+                self.app.store.finish_attempt(&id, stage, attempt, outcome, err, now_ms()).await?;
+            }
             metrics::counter!("depthmill_stage_attempts_total", "stage" => stage.as_str(), "outcome" => outcome.as_str())
                 .increment(1);
             let Some(delay) = delay else {

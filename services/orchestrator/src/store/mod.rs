@@ -216,8 +216,8 @@ pub trait JobStore: Send + Sync + 'static {
         error: Option<(&str, &str)>,
         now_ms: i64,
     ) -> Result<(), StoreError>;
-    /// Records a stage's result and moves the job to `next` (or to succeeded when `None`), atomically.
-    /// Recording the same stage twice is refused by the schema.
+    /// Records a stage's result, marks its running attempt ok and moves the job to `next` (or to
+    /// succeeded when `None`), atomically. Recording the same stage twice is refused by the schema.
     async fn complete_stage(
         &self,
         id: &str,

@@ -400,6 +400,18 @@ impl JobStore for SqliteStore {
         if updated == 0 {
             return Err(StoreError::LeaseLost { id: id.to_string() });
         }
+        // The owner's running attempt of the stage is recorded as ok in the same transaction: a
+        // stop between the two would leave an ok attempt of a stage that is run again.
+        sqlx::query(
+            "UPDATE attempts SET outcome = 'ok', finished_at_ms = ?3 \
+             WHERE job_id = ?1 AND stage = ?2 AND owner = ?4 AND outcome = 'running'",
+        )
+        .bind(id)
+        .bind(result.stage.as_str())
+        .bind(now_ms)
+        .bind(owner)
+        .execute(&mut *tx)
+        .await?;
         sqlx::query(
             "INSERT INTO stage_results (job_id, stage, outputs, started_at_ms, finished_at_ms) VALUES (?, ?, ?, ?, ?)",
         )

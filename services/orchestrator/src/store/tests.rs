@@ -120,7 +120,13 @@ async fn leases_fence_writers_and_a_stage_is_recorded_once(db: Db) {
         s.end("j1", "a", JobStatus::Failed, None, 5002).await,
         Err(StoreError::LeaseLost { .. })
     ));
+    let b_attempt = s.begin_attempt("j1", "b", Stage::Execute, 5002).await.expect("begin");
     s.complete_stage("j1", "b", &r, Some(Stage::Report), 0.5, 5003).await.expect("b completes");
+    // b's attempt is ok with the stage, in the same write; a's (it lost the lease) is not.
+    let attempts = s.get("j1").await.expect("get").expect("job").attempts;
+    let outcome = |n: u32| attempts.iter().find(|a| a.attempt == n).map(|a| a.outcome);
+    assert_eq!(outcome(b_attempt), Some(AttemptOutcome::Ok), "{attempts:?}");
+    assert_eq!(outcome(attempt), Some(AttemptOutcome::Running), "{attempts:?}");
     // A second record of the same stage is refused by the schema, and changes nothing.
     let again = s.complete_stage("j1", "b", &r, Some(Stage::Report), 0.9, 5004).await;
     assert!(again.is_err(), "recorded twice");
