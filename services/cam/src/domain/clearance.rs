@@ -659,8 +659,9 @@ fn search_tilt(
 
 /// Checks every position of a path (moves to `points`, each a rapid or a feed; feed moves
 /// sampled every [`TiltOptions::sample_mm`], rapids every [`RAPID_SAMPLES_APART`] times that, so
-/// that a robot moving joint-interpolated between neighbours stays near the checked line) and tilts the tool where the upright one collides
-/// (see the module docs). `start` is where the path begins.
+/// that a robot moving joint-interpolated between neighbours stays near the checked line) and
+/// tilts the tool where the upright one collides, taking only axes `accept` takes (see the
+/// module docs). `start` is where the path begins.
 pub fn clear_path(
     index: &MeshIndex,
     body: &ToolBody,

@@ -438,8 +438,9 @@ pub fn robot_program(
     };
     for p in &points {
         // A step whose joints turn more than JOINT_STEP_DEG is split along the line (the axis
-        // turning as the clearance check turned it, `axis_between`), so the arm's joint interpolation between the points it is given stays
-        // near the line; rapids too (a joint-interpolated rapid swings the tip off its line).
+        // turning as the clearance check turned it, `axis_between`), so the arm's joint
+        // interpolation between the points it is given stays near the line; rapids too (a
+        // joint-interpolated rapid swings the tip off its line).
         if let Some(last) = out.last().copied()
             && last.reachable
             && let Ok(s) = arm.ik_nearest(&cell.target(&p.tip, &p.axis, spin), &last.q_deg, &ik)
