@@ -113,16 +113,8 @@ fn parts_dir() -> std::path::PathBuf {
 async fn real_cad_parts_run_end_to_end() -> anyhow::Result<()> {
     let dir = parts_dir();
     let files = [("mesh-hinge.stl", "mm", "size"), ("mesh-flange.stl", "m", "size")];
-    if files.iter().any(|(f, ..)| !dir.join(f).is_file()) {
-        let msg = format!(
-            "real parts missing in {}: run tests/parts/fetch.sh {} (or set DEPTHMILL_PARTS_DIR)",
-            dir.display(),
-            dir.display()
-        );
-        if std::env::var("DEPTHMILL_REQUIRE_PARTS").is_ok_and(|v| v == "1") {
-            anyhow::bail!(msg);
-        }
-        eprintln!("skipped: {msg}");
+    let names: Vec<&str> = files.iter().map(|(f, ..)| *f).collect();
+    if !parts_present(&dir, &names)? {
         return Ok(());
     }
     // The flange is a 1.3 MB ASCII STL.
@@ -196,6 +188,24 @@ async fn real_cad_parts_run_end_to_end() -> anyhow::Result<()> {
     stack.shutdown().await
 }
 
+/// Whether `files` are all in `dir`; when not, the test is skipped with what to run, or fails
+/// where `DEPTHMILL_REQUIRE_PARTS=1` (CI).
+fn parts_present(dir: &std::path::Path, files: &[&str]) -> anyhow::Result<bool> {
+    if files.iter().all(|f| dir.join(f).is_file()) {
+        return Ok(true);
+    }
+    let msg = format!(
+        "real parts missing in {}: run tests/parts/fetch.sh {} (or set DEPTHMILL_PARTS_DIR)",
+        dir.display(),
+        dir.display()
+    );
+    if std::env::var("DEPTHMILL_REQUIRE_PARTS").is_ok_and(|v| v == "1") {
+        anyhow::bail!(msg);
+    }
+    eprintln!("skipped: {msg}");
+    Ok(false)
+}
+
 /// Slicing real meshes (seed 001's first step): the hinge and the flange cut into closed
 /// contours with their bores as holes and nothing to report; two broken ones from public test
 /// data named for what is wrong: an OpenSCAD bug file whose zero-area triangle the reader drops
@@ -208,13 +218,7 @@ fn real_meshes_are_sliced_and_broken_ones_say_what_is_wrong() -> anyhow::Result<
     let dir = parts_dir();
     let files =
         ["mesh-hinge.stl", "mesh-flange.stl", "bad/zero-area-triangle.stl", "bad/open-mech-holes-shark.stl"];
-    if files.iter().any(|f| !dir.join(f).is_file()) {
-        let msg =
-            format!("real parts missing in {}: run tests/parts/fetch.sh {}", dir.display(), dir.display());
-        if std::env::var("DEPTHMILL_REQUIRE_PARTS").is_ok_and(|v| v == "1") {
-            anyhow::bail!(msg);
-        }
-        eprintln!("skipped: {msg}");
+    if !parts_present(&dir, &files)? {
         return Ok(());
     }
     let read = |f: &str, scale: f64| -> anyhow::Result<depthmill_geometry::Mesh> {
@@ -273,13 +277,7 @@ fn real_meshes_are_planned_for_the_robot_and_cut_in_simulation() -> anyhow::Resu
     use depthmill_machine::domain::robot::{RobotRunOptions, Trajectory, run};
     let dir = parts_dir();
     let files = ["mesh-hinge.stl", "bad/zero-area-triangle.stl", "bad/open-mech-holes-shark.stl"];
-    if files.iter().any(|f| !dir.join(f).is_file()) {
-        let msg =
-            format!("real parts missing in {}: run tests/parts/fetch.sh {}", dir.display(), dir.display());
-        if std::env::var("DEPTHMILL_REQUIRE_PARTS").is_ok_and(|v| v == "1") {
-            anyhow::bail!(msg);
-        }
-        eprintln!("skipped: {msg}");
+    if !parts_present(&dir, &files)? {
         return Ok(());
     }
     let tool = ToolLibrary::builtin()?.resolve("flat-6")?;
@@ -288,14 +286,7 @@ fn real_meshes_are_planned_for_the_robot_and_cut_in_simulation() -> anyhow::Resu
             (std::array::from_fn(|k| lo[k].min(p[k])), std::array::from_fn(|k| hi[k].max(p[k])))
         });
         RobotJob {
-            layers: MeshProgramOptions {
-                step_mm: 2.0,
-                from_mm: None,
-                tool_radius_mm: tool.radius_mm(),
-                radial_depth_mm: None,
-                stock_margin_mm: 5.0,
-                clearance_mm: 5.0,
-            },
+            layers: MeshProgramOptions::new(2.0, tool.radius_mm()),
             tilt: TiltOptions::default(),
             cell: RobotCell::viper_s650(Isometry3::translation(
                 420.0 - 0.5 * (lo[0] + hi[0]),

@@ -167,14 +167,7 @@ fn robot_programs_run_in_linuxcnc_rs274() -> anyhow::Result<()> {
     let mesh = depthmill_geometry::Mesh::cuboid(20.0, 20.0, 60.0);
     let tool = ToolLibrary::builtin()?.resolve("flat-6")?;
     let job = RobotJob {
-        layers: MeshProgramOptions {
-            step_mm: 10.0,
-            from_mm: None,
-            tool_radius_mm: tool.radius_mm(),
-            radial_depth_mm: None,
-            stock_margin_mm: 5.0,
-            clearance_mm: 5.0,
-        },
+        layers: MeshProgramOptions::new(10.0, tool.radius_mm()),
         tilt: TiltOptions::default(),
         cell: RobotCell::viper_s650(Isometry3::translation(410.0, -10.0, 0.0)),
         feed_mm_min: 600.0,

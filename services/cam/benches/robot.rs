@@ -34,14 +34,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mesh = sample_relief(0.5);
     let tool = Tool::from_spec(&"flat-6".parse()?)?;
     let job = RobotJob {
-        layers: MeshProgramOptions {
-            step_mm: 1.0,
-            from_mm: None,
-            tool_radius_mm: tool.radius_mm(),
-            radial_depth_mm: None,
-            stock_margin_mm: 5.0,
-            clearance_mm: 5.0,
-        },
+        layers: MeshProgramOptions::new(1.0, tool.radius_mm()),
         tilt: TiltOptions::default(),
         cell: RobotCell::viper_s650(Isometry3::translation(420.0, 0.0, 0.0)),
         feed_mm_min: 600.0,

@@ -155,17 +155,7 @@ fn run_robot(trajectory: &Path, args: &SimulateArgs, out_dir: &Path) -> anyhow::
     let traj = Trajectory::from_json(&bytes).map_err(|e| anyhow::anyhow!("{}: {e}", trajectory.display()))?;
     let reference = match &args.part {
         Some(p) => {
-            let scale = match args.part_units.as_str() {
-                "mm" => 1.0,
-                "m" => 1000.0,
-                "in" => 25.4,
-                other => bail!("--part-units {other}: expected mm, m or in"),
-            };
-            let (mut mesh, _) = depthmill_geometry::formats::read_mesh(p, &Default::default())
-                .with_context(|| format!("reading {}", p.display()))?;
-            for v in &mut mesh.vertices {
-                v.coords *= scale;
-            }
+            let mesh = crate::slice::read_mesh_in(p, &args.part_units, "--part-units")?;
             Some(depthmill_machine::domain::part::mesh_samples(
                 &mesh,
                 depthmill_machine::domain::part::MAX_REFERENCE_POINTS,

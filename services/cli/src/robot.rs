@@ -9,7 +9,6 @@ use anyhow::{Context as _, bail};
 use depthmill_cam::domain::clearance::{ClearedPath, TiltOptions};
 use depthmill_cam::domain::layer_passes::MeshProgramOptions;
 use depthmill_cam::domain::robot::{RobotCell, RobotJob, plan_robot, robot_gcode};
-use depthmill_geometry::formats::{ReadLimits, read_mesh};
 use nalgebra::{Isometry3, Vector3};
 
 /// Options of `depthmill plan --robot`.
@@ -88,20 +87,7 @@ fn clearance_json(p: &ClearedPath) -> serde_json::Value {
 /// `depthmill plan MESH --robot -o OUTPUT.ngc`: writes OUTPUT (the Cartesian program),
 /// `<stem>.joints.json` (the joint trajectory) and `<stem>.robot.json` (the report).
 pub fn run(input: &Path, args: &RobotArgs, tools_dir: Option<&Path>, output: &Path) -> anyhow::Result<()> {
-    let scale = match args.units.as_str() {
-        "mm" => 1.0,
-        "m" => 1000.0,
-        "in" => 25.4,
-        other => bail!("--units {other}: expected mm, m or in"),
-    };
-    let (mut mesh, _) =
-        read_mesh(input, &ReadLimits::default()).with_context(|| format!("reading {}", input.display()))?;
-    if mesh.triangles.is_empty() {
-        bail!("{}: the mesh has no triangles", input.display());
-    }
-    for p in &mut mesh.vertices {
-        p.coords *= scale;
-    }
+    let mesh = crate::slice::read_mesh_in(input, &args.units, "--units")?;
     let tool = crate::cam::tool(&args.tool, tools_dir).with_context(|| format!("--tool {}", args.tool))?;
     let (lo, hi) = mesh
         .vertices
@@ -125,12 +111,9 @@ pub fn run(input: &Path, args: &RobotArgs, tools_dir: Option<&Path>, output: &Pa
     };
     let job = RobotJob {
         layers: MeshProgramOptions {
-            step_mm: args.step_mm,
-            from_mm: None,
-            tool_radius_mm: tool.radius_mm(),
             radial_depth_mm: args.radial_depth_mm,
             stock_margin_mm: args.stock_margin_mm,
-            clearance_mm: 5.0,
+            ..MeshProgramOptions::new(args.step_mm, tool.radius_mm())
         },
         tilt: TiltOptions { max_tilt_deg: args.max_tilt_deg, ..TiltOptions::default() },
         cell,

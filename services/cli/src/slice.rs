@@ -88,17 +88,15 @@ fn gcode(
     Ok(g)
 }
 
-/// Edges listed per kind in the output (the counts are complete).
-const LISTED_EDGES: usize = 100;
-
-/// `depthmill slice`: writes OUTPUT (JSON: the mesh's topology check and every layer's
-/// contours, open chains and defects) and prints a summary.
-pub fn run(input: &Path, args: &SliceArgs, output: &Path) -> anyhow::Result<()> {
-    let scale = match args.units.as_str() {
-        "mm" => 1.0,
-        "m" => 1000.0,
-        "in" => 25.4,
-        other => bail!("--units {other}: expected mm, m or in"),
+/// Reads a mesh (STL/PLY) in `units` (`mm`, `m` or `in`, given by the option `flag`) and scales
+/// it to millimetres; a mesh with no triangles is refused.
+pub(crate) fn read_mesh_in(
+    input: &Path,
+    units: &str,
+    flag: &str,
+) -> anyhow::Result<depthmill_geometry::Mesh> {
+    let Some(unit) = depthmill_geometry::units::LengthUnit::parse(units) else {
+        bail!("{flag} {units}: expected mm, m or in");
     };
     let (mut mesh, _) =
         read_mesh(input, &ReadLimits::default()).with_context(|| format!("reading {}", input.display()))?;
@@ -106,8 +104,18 @@ pub fn run(input: &Path, args: &SliceArgs, output: &Path) -> anyhow::Result<()> 
         bail!("{}: the mesh has no triangles", input.display());
     }
     for p in &mut mesh.vertices {
-        p.coords *= scale;
+        p.coords *= unit.mm_per_unit();
     }
+    Ok(mesh)
+}
+
+/// Edges listed per kind in the output (the counts are complete).
+const LISTED_EDGES: usize = 100;
+
+/// `depthmill slice`: writes OUTPUT (JSON: the mesh's topology check and every layer's
+/// contours, open chains and defects) and prints a summary.
+pub fn run(input: &Path, args: &SliceArgs, output: &Path) -> anyhow::Result<()> {
+    let mesh = read_mesh_in(input, &args.units, "--units")?;
     let (zmin, zmax) =
         mesh.vertices.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), p| (a.min(p.z), b.max(p.z)));
     let step = args.step_mm;

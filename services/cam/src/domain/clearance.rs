@@ -961,6 +961,14 @@ mod tests {
         Mesh::new(v, tris).expect("mesh")
     }
 
+    /// Two meshes as one.
+    fn both(mut a: Mesh, b: Mesh) -> Mesh {
+        let n = a.vertices.len() as u32;
+        a.vertices.extend(b.vertices);
+        a.triangles.extend(b.triangles.iter().map(|t| t.map(|i| i + n)));
+        a
+    }
+
     #[test]
     fn the_body_stacks_the_tool_library_geometry() {
         let t = tool();
@@ -1045,10 +1053,7 @@ mod tests {
         // at its bottom.
         let left = block([-40.0, -50.0, 0.0], [-4.0, 50.0, 50.0]);
         let right = block([4.0, -50.0, 0.0], [40.0, 50.0, 50.0]);
-        let n = left.vertices.len() as u32;
-        let mut mesh = left.clone();
-        mesh.vertices.extend(right.vertices);
-        mesh.triangles.extend(right.triangles.iter().map(|t| t.map(|i| i + n)));
+        let mesh = both(left, right);
         let index = MeshIndex::new(&mesh);
         let body = ToolBody::new(&tool(), 0.01, None);
         let moves = [([0.0, -10.0, 5.0], false), ([0.0, 10.0, 5.0], false)];
@@ -1066,10 +1071,7 @@ mod tests {
         // reach its middle at any tilt; near its ends it leans out of the way.
         let left = block([-40.0, -25.0, 0.0], [-4.0, 25.0, 50.0]);
         let right = block([4.0, -25.0, 0.0], [40.0, 25.0, 50.0]);
-        let n = left.vertices.len() as u32;
-        let mut mesh = left.clone();
-        mesh.vertices.extend(right.vertices);
-        mesh.triangles.extend(right.triangles.iter().map(|t| t.map(|i| i + n)));
+        let mesh = both(left, right);
         let index = MeshIndex::new(&mesh);
         let body = ToolBody::new(&tool(), 0.01, None);
         let o = TiltOptions::default();

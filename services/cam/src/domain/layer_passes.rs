@@ -508,6 +508,21 @@ pub struct MeshProgramOptions {
     pub clearance_mm: f64,
 }
 
+impl MeshProgramOptions {
+    /// Layers every `step_mm` from the default first layer, for a tool of `tool_radius_mm`: radial
+    /// depth the tool's radius, 5 mm of stock around the part, retracts 5 mm above it.
+    pub fn new(step_mm: f64, tool_radius_mm: f64) -> Self {
+        MeshProgramOptions {
+            step_mm,
+            from_mm: None,
+            tool_radius_mm,
+            radial_depth_mm: None,
+            stock_margin_mm: 5.0,
+            clearance_mm: 5.0,
+        }
+    }
+}
+
 /// A mesh's layers, their rings and the program joining them, top layer first.
 #[derive(Debug, Clone, PartialEq)]
 pub struct MeshProgram {
