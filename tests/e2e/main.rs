@@ -22,6 +22,7 @@ mod plan;
 mod reconstruct;
 mod recovery;
 mod replicas;
+mod robot;
 mod rs274;
 mod scan;
 mod tls;

@@ -148,6 +148,15 @@ type Updates = tokio_stream::wrappers::ReceiverStream<Result<pb::ExecuteProgramU
 #[tonic::async_trait]
 impl MachineService for Scripted {
     type ExecuteProgramStream = Updates;
+    type ExecuteRobotStream = tokio_stream::wrappers::ReceiverStream<Result<pb::ExecuteRobotUpdate, Status>>;
+
+    /// The scripted machine is a mill: it answers as a machine service without a robot cell.
+    async fn execute_robot(
+        &self,
+        _request: Request<pb::ExecuteRobotRequest>,
+    ) -> Result<Response<Self::ExecuteRobotStream>, Status> {
+        Err(Status::unimplemented("scripted machine: no robot cell"))
+    }
 
     /// A scripted machine has no profiles to check against: it answers as a service that predates
     /// the call, so the orchestrator leaves the check to the stage.

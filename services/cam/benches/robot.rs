@@ -10,7 +10,7 @@
 use std::time::Instant;
 
 use depthmill_cam::domain::clearance::{
-    MeshIndex, Scratch, TiltOptions, ToolBody, any_axis, clear_path, collides,
+    MeshIndex, Scratch, TiltOptions, ToolBody, any_axis, clear_path, collides, never,
 };
 use depthmill_cam::domain::layer_passes::{MeshProgramOptions, MoveKind, mesh_program};
 use depthmill_cam::domain::robot::{RobotCell, RobotJob, plan_robot, robot_program};
@@ -50,7 +50,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let moves: Vec<([f64; 3], bool)> =
         layers.program.moves.iter().map(|m| (m.to, m.kind == MoveKind::Rapid)).collect();
     let start = [moves[0].0[0], moves[0].0[1], layers.clear_z_mm];
-    let (t_clear, _) = best(3, || clear_path(&index, &body, start, &moves, &job.tilt, &any_axis));
+    let (t_clear, _) = best(3, || clear_path(&index, &body, start, &moves, &job.tilt, &any_axis, &never));
     let (t_arm, _) = best(3, || robot_program(&job.cell, &tool, &plan.path, job.feed_mm_min, None));
     let c = &plan.path;
     println!(

@@ -255,9 +255,38 @@ fn progress_update(fraction: f64, message: &str) -> pb::PlanToolpathsUpdate {
     }
 }
 
+type RobotStream = Pin<Box<dyn tokio_stream::Stream<Item = Result<pb::PlanRobotUpdate, Status>> + Send>>;
+
 #[tonic::async_trait]
 impl pb::cam_service_server::CamService for CamServiceImpl {
     type PlanToolpathsStream = UpdateStream;
+    type PlanRobotStream = RobotStream;
+
+    #[tracing::instrument(skip_all, fields(job_id))]
+    async fn plan_robot(
+        &self,
+        request: Request<pb::PlanRobotRequest>,
+    ) -> Result<Response<Self::PlanRobotStream>, Status> {
+        let req = request.into_inner();
+        let job_id = req.context.as_ref().map(|c| c.job_id.clone()).unwrap_or_default();
+        tracing::Span::current().record("job_id", job_id.as_str());
+        let call = crate::grpc_robot::RobotCall {
+            store: self.store.clone(),
+            library: self.library.clone(),
+            guard: self.running.start(&job_id),
+        };
+        let rx = crate::grpc_robot::plan(req, call).await?;
+        Ok(Response::new(Box::pin(tokio_stream::wrappers::ReceiverStream::new(rx))))
+    }
+
+    async fn validate_robot_params(
+        &self,
+        request: Request<pb::RobotParams>,
+    ) -> Result<Response<depthmill_proto::types::v1::ValidateParamsResponse>, Status> {
+        Ok(Response::new(depthmill_proto::types::v1::ValidateParamsResponse {
+            violations: crate::grpc_robot::check(request.into_inner(), &self.library).into_iter().collect(),
+        }))
+    }
 
     #[tracing::instrument(skip_all, fields(job_id))]
     async fn plan_toolpaths(

@@ -79,6 +79,10 @@ enum Command {
         /// Repeat-safe submission: the same key returns the same job.
         #[arg(long)]
         idempotency_key: Option<String>,
+        /// Make the part by robot milling from the mesh (`"process": "robot"`; settings in the
+        /// options file's `robot` section).
+        #[arg(long)]
+        robot: bool,
         #[command(flatten)]
         server: client::Server,
     },
@@ -254,6 +258,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 z_max_mm,
                 units,
                 idempotency_key,
+                robot,
                 server,
             } => {
                 let submit = client::Submit {
@@ -266,6 +271,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                     z_max_mm,
                     units,
                     idempotency_key,
+                    robot,
                 };
                 let id = client::submit(&server, submit).await?;
                 crate::outln!("{id}");

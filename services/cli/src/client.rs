@@ -75,6 +75,8 @@ pub struct Submit {
     pub z_max_mm: Option<f64>,
     pub units: Option<String>,
     pub idempotency_key: Option<String>,
+    /// Sets `"process": "robot"`.
+    pub robot: bool,
 }
 
 /// Kind and media type of an input file, by extension; a PLY file is a mesh when its header
@@ -147,6 +149,9 @@ pub async fn submit(server: &Server, s: Submit) -> anyhow::Result<String> {
         input["units"] = serde_json::json!(u);
     }
     obj.insert("input".into(), input);
+    if s.robot {
+        obj.insert("process".into(), Value::String("robot".into()));
+    }
     let name = s
         .name
         .unwrap_or_else(|| s.file.file_stem().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default());

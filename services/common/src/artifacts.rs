@@ -298,6 +298,57 @@ impl ArtifactError {
     }
 }
 
+/// A mesh or point cloud artifact read for a stage, in millimetres.
+pub struct ReadGeometry {
+    pub geometry: depthmill_geometry::formats::Geometry,
+    /// How the unit was decided (`None`: no finite point to decide on).
+    pub units: Option<depthmill_geometry::UnitsDecision>,
+    /// The artifact as errors name it: `what <sha prefix> (<media type>)`.
+    pub name: String,
+}
+
+/// Reads the mesh or cloud artifact `sha` (STL, PLY, XYZ) on a blocking thread and scales it to
+/// millimetres: `units` is the request's wire unit (unspecified: the file's header, else its size),
+/// `units_field` the request field errors name for an unknown one, `what` the artifact's role in
+/// errors (`mesh`, `reference`). Unreadable content is `InvalidArgument` naming where.
+pub async fn read_geometry<S: ArtifactStore + ?Sized>(
+    store: &S,
+    sha: &str,
+    units: i32,
+    units_field: &str,
+    what: &str,
+    limits: &depthmill_geometry::formats::ReadLimits,
+) -> Result<ReadGeometry, tonic::Status> {
+    use depthmill_proto::ErrorCode;
+    let units = depthmill_proto::convert::units(units)
+        .map_err(|v| ErrorCode::InvalidArgument.status(format!("{units_field}: unknown unit {v}")))?;
+    let stat = store
+        .stat(sha)
+        .await
+        .map_err(grpc_status)?
+        .ok_or_else(|| ErrorCode::InvalidArgument.status(format!("{what}: no artifact {sha}")))?;
+    let path = store.local_file(sha).await.map_err(grpc_status)?;
+    let name = format!("{what} {} ({})", &sha[..12.min(sha.len())], stat.media_type);
+    let limits = limits.clone();
+    tokio::task::spawn_blocking(move || {
+        let file = std::fs::File::open(&path)
+            .map_err(|e| ErrorCode::Internal.status(format!("{name}: cannot open: {e}")))?;
+        let (mut geometry, _) = depthmill_geometry::formats::read_any_from(
+            std::io::BufReader::with_capacity(1 << 20, file),
+            &name,
+            Some(stat.size),
+            &limits,
+        )
+        .map_err(|e| ErrorCode::InvalidArgument.status(e.to_string()))?;
+        let head = depthmill_geometry::units::read_head(&path)
+            .map_err(|e| ErrorCode::Internal.status(format!("{name}: cannot read: {e}")))?;
+        let units = depthmill_geometry::units::normalise(&mut geometry, &head, units);
+        Ok(ReadGeometry { geometry, units, name })
+    })
+    .await
+    .map_err(|e| tonic::Status::internal(format!("reading the {what} failed: {e}")))?
+}
+
 /// The gRPC status a stage service answers when reading or writing an artifact fails: the
 /// caller's fault (unknown digest, bad digest, too large) as `InvalidArgument` with the reason; a
 /// full disk as `Unavailable` (the orchestrator retries); anything else logged with its cause

@@ -210,51 +210,64 @@ impl MachineServiceImpl {
     /// The original part's points (see [`crate::domain::part`]): sampled on a mesh, or a cloud
     /// thinned to [`MAX_REFERENCE_POINTS`], scaled to millimetres.
     async fn read_reference(&self, sha: &str, units: i32) -> Result<Reference, Status> {
-        use depthmill_geometry::formats::{Geometry, ReadLimits, read_any_from};
-        let units = depthmill_proto::convert::units(units)
-            .map_err(|v| ErrorCode::InvalidArgument.status(format!("reference_units: unknown unit {v}")))?;
-        let stat = self
-            .store
-            .stat(sha)
-            .await
-            .map_err(artifact_status)?
-            .ok_or_else(|| ErrorCode::InvalidArgument.status(format!("reference: no artifact {sha}")))?;
-        let path = self.store.local_file(sha).await.map_err(artifact_status)?;
-        let name = format!("reference {} ({})", &sha[..12.min(sha.len())], stat.media_type);
-        tokio::task::spawn_blocking(move || {
-            let file = std::fs::File::open(&path)
-                .map_err(|e| ErrorCode::Internal.status(format!("{name}: cannot open: {e}")))?;
-            let (mut geometry, _) = read_any_from(
-                BufReader::with_capacity(1 << 20, file),
-                &name,
-                Some(stat.size),
-                &ReadLimits::default(),
-            )
-            .map_err(|e| ErrorCode::InvalidArgument.status(e.to_string()))?;
-            let head = depthmill_geometry::units::read_head(&path)
-                .map_err(|e| ErrorCode::Internal.status(format!("{name}: cannot read: {e}")))?;
-            depthmill_geometry::units::normalise(&mut geometry, &head, units);
-            Ok(match geometry {
-                Geometry::Mesh(m) => {
-                    Reference { source: "mesh".into(), points: mesh_samples(&m, MAX_REFERENCE_POINTS) }
+        use depthmill_geometry::formats::{Geometry, ReadLimits};
+        let read = depthmill_common::artifacts::read_geometry(
+            self.store.as_ref(),
+            sha,
+            units,
+            "reference_units",
+            "reference",
+            &ReadLimits::default(),
+        )
+        .await?;
+        tokio::task::spawn_blocking(move || match read.geometry {
+            Geometry::Mesh(m) => {
+                Reference { source: "mesh".into(), points: mesh_samples(&m, MAX_REFERENCE_POINTS) }
+            }
+            Geometry::Cloud(c) => {
+                let stride = c.points.len().div_ceil(MAX_REFERENCE_POINTS).max(1);
+                Reference {
+                    source: "point cloud".into(),
+                    points: c.points.into_iter().step_by(stride).collect(),
                 }
-                Geometry::Cloud(c) => {
-                    let stride = c.points.len().div_ceil(MAX_REFERENCE_POINTS).max(1);
-                    Reference {
-                        source: "point cloud".into(),
-                        points: c.points.into_iter().step_by(stride).collect(),
-                    }
-                }
-            })
+            }
         })
         .await
-        .map_err(|e| Status::internal(format!("reading the reference failed: {e}")))?
+        .map_err(|e| Status::internal(format!("sampling the reference failed: {e}")))
     }
 }
+
+type RobotStream = Pin<Box<dyn tokio_stream::Stream<Item = Result<pb::ExecuteRobotUpdate, Status>> + Send>>;
 
 #[tonic::async_trait]
 impl pb::machine_service_server::MachineService for MachineServiceImpl {
     type ExecuteProgramStream = UpdateStream;
+    type ExecuteRobotStream = RobotStream;
+
+    #[tracing::instrument(skip_all, fields(job_id))]
+    async fn execute_robot(
+        &self,
+        request: Request<pb::ExecuteRobotRequest>,
+    ) -> Result<Response<Self::ExecuteRobotStream>, Status> {
+        let req = request.into_inner();
+        let job_id = req.context.as_ref().map(|c| c.job_id.clone()).unwrap_or_default();
+        tracing::Span::current().record("job_id", job_id.as_str());
+        let traj = req
+            .trajectory
+            .ok_or_else(|| ErrorCode::InvalidArgument.status("trajectory: an artifact is required"))?;
+        let bytes = self
+            .store
+            .read_all(&traj.sha256, crate::grpc_robot::MAX_TRAJECTORY_BYTES)
+            .await
+            .map_err(artifact_status)?;
+        let reference = match &req.reference {
+            Some(r) => Some(self.read_reference(&r.sha256, req.reference_units).await?),
+            None => None,
+        };
+        let guard = self.running.start(&job_id);
+        let rx = crate::grpc_robot::execute(bytes, reference, req.cell_mm, self.store.clone(), guard)?;
+        Ok(Response::new(Box::pin(tokio_stream::wrappers::ReceiverStream::new(rx))))
+    }
 
     #[tracing::instrument(skip_all, fields(job_id))]
     async fn execute_program(

@@ -229,8 +229,11 @@ impl App {
             ));
         }
         // A mesh is read now: a file that cannot be read or a part the machine cannot hold is
-        // refused before the job exists.
-        if let Some(size) = self.part_size_mm(&spec).await? {
+        // refused before the job exists (a robot job's reach is the CAM's to check: the arm's
+        // work space is not the mill's travel).
+        if let Some(size) = self.part_size_mm(&spec).await?
+            && !spec.is_robot()
+        {
             self.stages.check_part(&spec, size).await?;
         }
         let limit = self.limits.max_active_jobs_per_client;

@@ -11,8 +11,8 @@ use depthmill_proto::types::v1 as types;
 use crate::domain::spec::{
     AdaptiveMode, CellEstimator, Dialect, ExecuteParams, FaceChoice, FaceSpec, FillMethod, FillParams,
     Filters, Finishing, FinishingStrategy, InputKind, InputUnits, IntensityWindow, JobInput, Obstacle,
-    PlanParams, RadiusFilter, ReconstructParams, Rest, Roi, Roughing, RoughingDirection, ScanMode,
-    ScanParams, ScanPassSpec, StatisticalFilter, Stock,
+    PlanParams, Process, RadiusFilter, ReconstructParams, Rest, RobotParams, Roi, Roughing,
+    RoughingDirection, ScanMode, ScanParams, ScanPassSpec, StatisticalFilter, Stock,
 };
 use crate::domain::{Job, JobSpec, JobStatus, SpecError, Stage};
 use depthmill_proto::types::v1::Vec3;
@@ -279,6 +279,41 @@ pub fn execute_params_for_job(spec: &JobSpec) -> machine::ExecuteParams {
     p
 }
 
+/// A robot job's settings for the CAM service.
+pub fn robot_params(p: &RobotParams) -> cam::RobotParams {
+    cam::RobotParams {
+        tool: p.tool.clone(),
+        step_mm: p.step_mm,
+        radial_depth_mm: p.radial_depth_mm,
+        stock_margin_mm: p.stock_margin_mm,
+        part_at_mm: p.part_at_mm.map(vec3),
+        part_yaw_deg: p.part_yaw_deg,
+        feed_mm_min: p.feed_mm_min,
+        rpm: p.rpm,
+        max_tilt_deg: p.max_tilt_deg,
+        spindle_length_mm: p.spindle_length_mm,
+        spindle_mount_deg: p.spindle_mount_deg,
+        spindle_diameter_mm: p.spindle_diameter_mm,
+    }
+}
+
+fn robot_params_from_pb(p: cam::RobotParams) -> RobotParams {
+    RobotParams {
+        tool: p.tool,
+        step_mm: p.step_mm,
+        radial_depth_mm: p.radial_depth_mm,
+        stock_margin_mm: p.stock_margin_mm,
+        part_at_mm: p.part_at_mm.map(|v| [v.x, v.y, v.z]),
+        part_yaw_deg: p.part_yaw_deg,
+        feed_mm_min: p.feed_mm_min,
+        rpm: p.rpm,
+        max_tilt_deg: p.max_tilt_deg,
+        spindle_length_mm: p.spindle_length_mm,
+        spindle_mount_deg: p.spindle_mount_deg,
+        spindle_diameter_mm: p.spindle_diameter_mm,
+    }
+}
+
 /// The wire unit of a job's input (`auto` and none are both unspecified on the wire).
 pub fn input_units(u: Option<InputUnits>) -> types::LengthUnit {
     match u {
@@ -313,6 +348,12 @@ pub fn job_spec(s: &JobSpec) -> pb::JobSpec {
         reconstruct: s.reconstruct.as_ref().map(reconstruct_params),
         plan: s.plan.as_ref().map(plan_params),
         execute: s.execute.as_ref().map(execute_params),
+        process: match s.process {
+            None => pb::Process::Unspecified,
+            Some(Process::Mill) => pb::Process::Mill,
+            Some(Process::Robot) => pb::Process::Robot,
+        } as i32,
+        robot: s.robot.as_ref().map(robot_params),
     }
 }
 
@@ -361,6 +402,16 @@ pub fn job(j: &Job) -> pb::Job {
             scan_time_s: j.metrics.scan_time_s,
             scan_coverage_pct: j.metrics.scan_coverage_pct,
             scan_registration_rms_mm: j.metrics.scan_registration_rms_mm,
+            mean_leftover_mm: j.metrics.original_mean_leftover_mm,
+            robot_layers: j.metrics.robot_layers,
+            robot_positions: j.metrics.robot_positions,
+            robot_colliding_upright: j.metrics.robot_colliding_upright,
+            robot_tilted: j.metrics.robot_tilted,
+            robot_blocked: j.metrics.robot_blocked,
+            robot_unreachable_stretches: j.metrics.robot_unreachable_stretches,
+            robot_max_tilt_deg: j.metrics.robot_max_tilt_deg,
+            robot_removed_mm3: j.metrics.robot_removed_mm3,
+            robot_rapid_removed_mm3: j.metrics.robot_rapid_removed_mm3,
         }),
         spec: Some(job_spec(&j.spec)),
         created_at_ms: j.created_at_ms,
@@ -674,6 +725,12 @@ pub fn job_spec_from_pb(s: pb::JobSpec) -> Result<JobSpec, SpecError> {
         reconstruct,
         plan,
         execute,
+        process: match enum_value::<pb::Process>("process", s.process)? {
+            pb::Process::Unspecified => None,
+            pb::Process::Mill => Some(Process::Mill),
+            pb::Process::Robot => Some(Process::Robot),
+        },
+        robot: s.robot.map(robot_params_from_pb),
     })
 }
 
@@ -707,7 +764,18 @@ mod tests {
         );
         let spec: JobSpec = serde_json::from_str(&chosen).expect("parse");
         assert!(spec.reconstruct.as_ref().is_some_and(|r| r.face_choice.is_some()));
-        assert_eq!(job_spec_from_pb(job_spec(&spec)).expect("back"), spec);
+        assert_eq!(job_spec_from_pb(job_spec(&spec)).expect("back"), spec); // A robot job with every setting.
+        let robot: JobSpec = serde_json::from_value(serde_json::json!({
+            "name": "robot", "process": "robot",
+            "input": {"kind": "mesh", "artifact": "a".repeat(64), "units": "in"},
+            "robot": {"tool": "ball-6", "step_mm": 1.5, "radial_depth_mm": 2, "stock_margin_mm": 4,
+                      "part_at_mm": [400, -20, 5], "part_yaw_deg": 30, "feed_mm_min": 900, "rpm": 15000,
+                      "max_tilt_deg": 30, "spindle_length_mm": 120, "spindle_mount_deg": 45,
+                      "spindle_diameter_mm": 50},
+            "execute": {"cell_mm": 0.2}
+        }))
+        .expect("robot spec");
+        assert_eq!(job_spec_from_pb(job_spec(&robot)).expect("back"), robot);
     }
 
     #[test]

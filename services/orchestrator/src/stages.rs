@@ -420,7 +420,14 @@ impl StageRunner for GrpcStages {
                 .await;
             first_violation("cam", answer)?;
         }
-        if spec.execute.is_some() {
+        if let (true, Some(ch)) = (spec.is_robot(), &self.cam) {
+            let mut client = cam::cam_service_client::CamServiceClient::new(ch.calls.clone());
+            let params = convert::robot_params(&spec.robot.clone().unwrap_or_default());
+            let answer = client.validate_robot_params(self.request(params, CHECK_PARAMS_TIMEOUT)).await;
+            first_violation("cam", answer)?;
+        }
+        // A robot job's execute section is its dexel cell alone, checked with the spec.
+        if spec.execute.is_some() && !spec.is_robot() {
             self.ask_machine(spec, None).await?;
         }
         Ok(())
@@ -509,6 +516,37 @@ impl StageRunner for GrpcStages {
                         }
                     }
                 }
+                Stage::Plan if call.spec.is_robot() => {
+                    let msg = cam::PlanRobotRequest {
+                        context: context(call),
+                        mesh: Some(need(call, "mesh")?),
+                        units: convert::input_units(call.spec.input.units) as i32,
+                        params: Some(convert::robot_params(&call.spec.robot.clone().unwrap_or_default())),
+                    };
+                    let mut client = cam::cam_service_client::CamServiceClient::new(channel);
+                    let stream =
+                        client.plan_robot(self.request(msg, deadline)).await.map_err(status)?.into_inner();
+                    let r = drain(stage, stream, progress, |u| match u.update? {
+                        cam::plan_robot_update::Update::Progress(p) => Some(Err(p)),
+                        cam::plan_robot_update::Update::Result(r) => Some(Ok(r)),
+                    })
+                    .await?;
+                    put(&mut out, "gcode", r.gcode);
+                    put(&mut out, "joint_trajectory", r.joint_trajectory);
+                    put(&mut out, "plan_report", r.plan_report);
+                    out.metrics.insert("estimated_time_s".into(), r.estimated_time_s);
+                    for (k, v) in [
+                        ("robot_layers", r.layers),
+                        ("robot_positions", r.positions),
+                        ("robot_colliding_upright", r.colliding),
+                        ("robot_tilted", r.tilted),
+                        ("robot_blocked", r.blocked),
+                        ("robot_unreachable_stretches", r.unreachable_stretches),
+                    ] {
+                        out.metrics.insert(k.into(), v as f64);
+                    }
+                    out.metrics.insert("robot_max_tilt_deg".into(), r.max_tilt_deg);
+                }
                 Stage::Plan => {
                     let mut faces = Vec::new();
                     let mut i = 0;
@@ -556,6 +594,43 @@ impl StageRunner for GrpcStages {
                     out.metrics.insert("plan_max_gouge_mm".into(), r.max_gouge_mm);
                     out.metrics.insert("plan_max_leftover_mm".into(), r.max_leftover_mm);
                     out.metrics.insert("plan_mean_leftover_mm".into(), r.mean_leftover_mm);
+                }
+                Stage::Execute if call.spec.is_robot() => {
+                    let msg = machine::ExecuteRobotRequest {
+                        context: context(call),
+                        trajectory: Some(need(call, "joint_trajectory")?),
+                        reference: Some(need(call, "mesh")?),
+                        reference_units: convert::input_units(call.spec.input.units) as i32,
+                        cell_mm: call.spec.execute.as_ref().and_then(|e| e.cell_mm),
+                    };
+                    let mut client = machine::machine_service_client::MachineServiceClient::new(channel);
+                    let stream =
+                        client.execute_robot(self.request(msg, deadline)).await.map_err(status)?.into_inner();
+                    let r = drain(stage, stream, progress, |u| match u.update? {
+                        machine::execute_robot_update::Update::Progress(p) => Some(Err(p)),
+                        machine::execute_robot_update::Update::Result(r) => Some(Ok(r)),
+                    })
+                    .await?;
+                    put(&mut out, "machined_part", r.part_mesh);
+                    put(&mut out, "machined_part_view", r.part_view);
+                    put(&mut out, "machine_report", r.machine_report);
+                    out.metrics.insert("cycle_time_s".into(), r.cycle_time_s);
+                    out.metrics.insert("robot_removed_mm3".into(), r.removed_mm3);
+                    out.metrics.insert("robot_rapid_removed_mm3".into(), r.rapid_removed_mm3);
+                    if let Some(f) = r.against_part {
+                        // The robot's part is measured against the original mesh only: those
+                        // figures are the job's.
+                        out.metrics.insert("original_points".into(), f.points as f64);
+                        for (k, v) in [
+                            ("max_gouge_mm", f.max_gouge_mm),
+                            ("max_leftover_mm", f.max_leftover_mm),
+                            ("mean_leftover_mm", f.mean_leftover_mm),
+                            ("rms_deviation_mm", f.rms_deviation_mm),
+                        ] {
+                            out.metrics.insert(k.into(), v);
+                            out.metrics.insert(format!("original_{k}"), v);
+                        }
+                    }
                 }
                 Stage::Execute => {
                     let msg = machine::ExecuteProgramRequest {

@@ -2,7 +2,6 @@
 //! JSON report, progress streamed), `PlanScan`, `CancelStage`; the device services are in
 //! [`crate::grpc_devices`].
 
-use std::io::BufReader;
 use std::pin::Pin;
 use std::sync::Arc;
 
@@ -10,7 +9,7 @@ use depthmill_common::artifacts::{ArtifactStore, ObjectArtifactStore};
 use depthmill_common::stage::StageRegistry;
 use depthmill_geometry::Mesh;
 use depthmill_geometry::UnitsDecision;
-use depthmill_geometry::formats::{Geometry, PlyEncoding, ReadLimits, read_any_from, write_ply};
+use depthmill_geometry::formats::{Geometry, PlyEncoding, ReadLimits, write_ply};
 use depthmill_proto::ErrorCode;
 use depthmill_proto::scanning::v1 as pb;
 use depthmill_proto::types::v1::{
@@ -168,38 +167,24 @@ pub(crate) fn obstacle_from_wire(o: pb::ScanObstacle) -> Result<Obstacle, &'stat
     })
 }
 
-/// Reads the mesh artifact (on a blocking thread) and scales it to millimetres (`units`, wire
-/// value of the request).
+/// Reads the mesh artifact and scales it to millimetres (`units`, wire value of the request).
 async fn read_mesh(cell: &Cell, sha: &str, units: i32) -> Result<(Mesh, Option<UnitsDecision>), Status> {
-    let units = depthmill_proto::convert::units(units)
-        .map_err(|v| ErrorCode::InvalidArgument.status(format!("input.units: unknown unit {v}")))?;
-    let stat = cell
-        .store
-        .stat(sha)
-        .await
-        .map_err(depthmill_common::artifacts::grpc_status)?
-        .ok_or_else(|| ErrorCode::InvalidArgument.status(format!("mesh: no artifact {sha}")))?;
-    let path = cell.store.local_file(sha).await.map_err(depthmill_common::artifacts::grpc_status)?;
-    let name = format!("mesh {} ({})", &sha[..12.min(sha.len())], stat.media_type);
-    let limits = cell.limits.clone();
-    tokio::task::spawn_blocking(move || {
-        let file = std::fs::File::open(&path)
-            .map_err(|e| ErrorCode::Internal.status(format!("{name}: cannot open: {e}")))?;
-        let (mut geometry, _) =
-            read_any_from(BufReader::with_capacity(1 << 20, file), &name, Some(stat.size), &limits)
-                .map_err(|e| ErrorCode::InvalidArgument.status(e.to_string()))?;
-        let head = depthmill_geometry::units::read_head(&path)
-            .map_err(|e| ErrorCode::Internal.status(format!("{name}: cannot read: {e}")))?;
-        let decision = depthmill_geometry::units::normalise(&mut geometry, &head, units);
-        match geometry {
-            Geometry::Mesh(m) => Ok((m, decision)),
-            Geometry::Cloud(_) => Err(ErrorCode::InvalidArgument.status(format!(
-                "{name}: is a point cloud; the simulated scan needs a mesh (STL or PLY with faces)"
-            ))),
-        }
-    })
-    .await
-    .map_err(|e| Status::internal(format!("reading the mesh failed: {e}")))?
+    let read = depthmill_common::artifacts::read_geometry(
+        cell.store.as_ref(),
+        sha,
+        units,
+        "input.units",
+        "mesh",
+        &cell.limits,
+    )
+    .await?;
+    match read.geometry {
+        Geometry::Mesh(m) => Ok((m, read.units)),
+        Geometry::Cloud(_) => Err(ErrorCode::InvalidArgument.status(format!(
+            "{}: is a point cloud; the simulated scan needs a mesh (STL or PLY with faces)",
+            read.name
+        ))),
+    }
 }
 
 type UpdateStream = Pin<Box<dyn tokio_stream::Stream<Item = Result<pb::ScanPartUpdate, Status>> + Send>>;

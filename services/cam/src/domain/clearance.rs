@@ -590,6 +590,21 @@ pub struct ClearedPath {
 /// axes near the arm's wrist singularity); [`any_axis`] takes every one.
 pub type Accept<'a> = &'a (dyn Fn(&Point3<f64>, &Unit<Vector3<f64>>) -> bool + Sync);
 
+/// Asked by [`clear_path`] every [`STOP_EVERY`] positions with the positions checked so far and
+/// their number; `true` stops it with the error [`STOPPED`] (a cancelled job).
+pub type Stop<'a> = &'a (dyn Fn(usize, usize) -> bool + Sync);
+
+/// How often [`clear_path`] asks its [`Stop`], in positions.
+pub const STOP_EVERY: usize = 256;
+
+/// The error of a [`clear_path`] its [`Stop`] ended.
+pub const STOPPED: &str = "stopped on request";
+
+/// A [`Stop`] that never stops.
+pub fn never(_: usize, _: usize) -> bool {
+    false
+}
+
 /// Every axis is acceptable.
 pub fn any_axis(_: &Point3<f64>, _: &Unit<Vector3<f64>>) -> bool {
     true
@@ -669,6 +684,7 @@ pub fn clear_path(
     moves: &[([f64; 3], bool)],
     o: &TiltOptions,
     accept: Accept<'_>,
+    stop: Stop<'_>,
 ) -> Result<ClearedPath, String> {
     o.validate()?;
     // Positions: every move end, feed moves subdivided.
@@ -694,7 +710,10 @@ pub fn clear_path(
     let mut leans: Vec<Option<[f64; 2]>> = Vec::with_capacity(pts.len());
     // The previous position's axis while it leans (the chain breaks at a rapid).
     let mut prev_axis: Option<Unit<Vector3<f64>>> = None;
-    for &(p, rapid) in &pts {
+    for (i, &(p, rapid)) in pts.iter().enumerate() {
+        if i.is_multiple_of(STOP_EVERY) && stop(i, pts.len()) {
+            return Err(STOPPED.to_string());
+        }
         let tip = Point3::from(p);
         match collision(index, body, &tip, &Vector3::z_axis(), &mut scratch) {
             None => {
@@ -1018,7 +1037,8 @@ mod tests {
         let o = TiltOptions::default();
         // Along the wall at 3 mm, coming in from 40 mm away.
         let moves = [([40.0, -20.0, 10.0], true), ([3.0, -20.0, 10.0], false), ([3.0, 20.0, 10.0], false)];
-        let path = clear_path(&index, &body, [40.0, -20.0, 70.0], &moves, &o, &any_axis).expect("path");
+        let path =
+            clear_path(&index, &body, [40.0, -20.0, 70.0], &moves, &o, &any_axis, &never).expect("path");
         assert!(path.blocked.is_empty(), "{:?}", path.blocked);
         assert!(path.colliding > 0);
         let mut s = Scratch::default();
@@ -1057,8 +1077,9 @@ mod tests {
         let index = MeshIndex::new(&mesh);
         let body = ToolBody::new(&tool(), 0.01, None);
         let moves = [([0.0, -10.0, 5.0], false), ([0.0, 10.0, 5.0], false)];
-        let path = clear_path(&index, &body, [0.0, -10.0, 5.0], &moves, &TiltOptions::default(), &any_axis)
-            .expect("path");
+        let path =
+            clear_path(&index, &body, [0.0, -10.0, 5.0], &moves, &TiltOptions::default(), &any_axis, &never)
+                .expect("path");
         assert!(!path.blocked.is_empty());
         assert!(path.points.iter().all(|p| p.blocked));
         assert_eq!(path.blocked[0].part, "holder");
@@ -1076,7 +1097,7 @@ mod tests {
         let body = ToolBody::new(&tool(), 0.01, None);
         let o = TiltOptions::default();
         let moves = [([0.0, -60.0, 5.0], false), ([0.0, 60.0, 5.0], false)];
-        let path = clear_path(&index, &body, [0.0, -60.0, 5.0], &moves, &o, &any_axis).expect("path");
+        let path = clear_path(&index, &body, [0.0, -60.0, 5.0], &moves, &o, &any_axis, &never).expect("path");
         assert!(path.points.iter().any(|p| p.blocked));
         let lifted = path.lifted(&index, &body, 70.0, &o, &any_axis);
         assert!(lifted.points.iter().all(|p| !p.blocked));
@@ -1133,7 +1154,7 @@ mod tests {
         let index = MeshIndex::new(&block([0.0; 3], [1.0; 3]));
         let body = ToolBody::new(&tool(), 0.01, None);
         let o = TiltOptions { max_tilt_deg: 95.0, ..TiltOptions::default() };
-        let e = clear_path(&index, &body, [0.0; 3], &[], &o, &any_axis).expect_err("tilt");
+        let e = clear_path(&index, &body, [0.0; 3], &[], &o, &any_axis, &never).expect_err("tilt");
         assert!(e.contains("max_tilt_deg 95"), "{e}");
         let e = clear_path(
             &index,
@@ -1142,8 +1163,20 @@ mod tests {
             &[([f64::NAN, 0.0, 0.0], false)],
             &TiltOptions::default(),
             &any_axis,
+            &never,
         )
         .expect_err("nan");
         assert!(e.contains("move 1"), "{e}");
+        // A stop asked for ends the check at the next question.
+        let moves: Vec<([f64; 3], bool)> = (1..=600).map(|i| ([i as f64, 0.0, 5.0], false)).collect();
+        let asked = std::sync::atomic::AtomicUsize::new(0);
+        let stop = |done: usize, total: usize| {
+            assert!(done < total);
+            asked.fetch_add(1, std::sync::atomic::Ordering::Relaxed) == 1
+        };
+        let e = clear_path(&index, &body, [0.0, 0.0, 5.0], &moves, &TiltOptions::default(), &any_axis, &stop)
+            .expect_err("stopped");
+        assert_eq!(e, STOPPED);
+        assert_eq!(asked.load(std::sync::atomic::Ordering::Relaxed), 2);
     }
 }

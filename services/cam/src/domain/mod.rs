@@ -9,7 +9,8 @@
 //! layers (contours, holes, islands) for layer-by-layer milling, [`layer_passes`] the rings that
 //! cut a layer from the stock in to the part, [`clearance`] checks the tool, shank and holder
 //! against the mesh and tilts the tool where the upright one collides, and [`robot`] turns the
-//! checked path into a joint trajectory of the 6-axis arm with a spindle on its flange.
+//! checked path into a joint trajectory of the 6-axis arm with a spindle on its flange;
+//! [`robot_job`] holds a robot job's settings, defaults and report.
 
 pub mod cleanup;
 pub mod clearance;
@@ -26,6 +27,7 @@ pub mod plan;
 pub mod preview;
 pub mod rest;
 pub mod robot;
+pub mod robot_job;
 pub mod roughing;
 pub mod slice;
 pub mod tool;

@@ -95,6 +95,8 @@ pub enum RobotPlanError {
     Layers(PassError),
     #[error("tool clearance: {0}")]
     Clearance(String),
+    #[error("planning cancelled")]
+    Cancelled,
 }
 
 impl From<PassError> for RobotPlanError {
@@ -510,8 +512,27 @@ pub struct RobotPlan {
 /// ([`clear_path`]), lift over what no tilt clears, and solve the arm along it
 /// ([`robot_program`]).
 pub fn plan_robot(mesh: &Mesh, job: &RobotJob) -> Result<RobotPlan, RobotPlanError> {
+    plan_robot_watched(mesh, job, &|_, _| {}, &|| false)
+}
+
+/// Progress of a robot plan: the fraction done (0..=1) and what it is doing.
+pub type Progress<'a> = &'a (dyn Fn(f64, &str) + Sync);
+
+/// [`plan_robot`] reporting its progress and asking `cancelled` as it goes (between phases and
+/// every [`super::clearance::STOP_EVERY`] positions of the clearance check, the long part):
+/// [`RobotPlanError::Cancelled`] once it says so.
+pub fn plan_robot_watched(
+    mesh: &Mesh,
+    job: &RobotJob,
+    progress: Progress<'_>,
+    cancelled: &(dyn Fn() -> bool + Sync),
+) -> Result<RobotPlan, RobotPlanError> {
     job.cell.validate()?;
+    progress(0.0, "slicing the mesh into layers");
     let layers = mesh_program(mesh, &job.layers)?;
+    if cancelled() {
+        return Err(RobotPlanError::Cancelled);
+    }
     let index = MeshIndex::new(mesh);
     let spindle = Some((job.cell.spindle_diameter_mm, job.cell.spindle_length_mm));
     let body = ToolBody::new(&job.tool, job.tilt.gouge_tol_mm, spindle);
@@ -545,13 +566,26 @@ pub fn plan_robot(mesh: &Mesh, job: &RobotJob) -> Result<RobotPlan, RobotPlanErr
         let target = job.cell.target(&tip.coords.into(), &axis.into_inner().into(), spin);
         arm.ik_solutions(&target, &tilt_ik).is_ok_and(|s| !s.is_empty())
     };
-    let checked =
-        clear_path(&index, &body, start, &moves, &job.tilt, &accept).map_err(RobotPlanError::Clearance)?;
+    let stop = |done: usize, total: usize| {
+        progress(
+            0.1 + 0.8 * done as f64 / total.max(1) as f64,
+            &format!("checking the tool body at position {done} of {total}"),
+        );
+        cancelled()
+    };
+    progress(0.1, "checking the tool body against the mesh");
+    let checked = clear_path(&index, &body, start, &moves, &job.tilt, &accept, &stop)
+        .map_err(|e| if cancelled() { RobotPlanError::Cancelled } else { RobotPlanError::Clearance(e) })?;
     let path = checked.lifted(&index, &body, layers.clear_z_mm, &job.tilt, &accept);
+    if cancelled() {
+        return Err(RobotPlanError::Cancelled);
+    }
+    progress(0.9, "solving the arm's joints along the path");
     let mut robot = robot_program(&job.cell, &job.tool, &path, job.feed_mm_min, Some((config, spin)))?;
     let st = layers.options.stock;
     robot.stock_min_mm = [st[0], st[1], layers.z_range_mm[0]];
     robot.stock_max_mm = [st[2], st[3], layers.z_range_mm[1]];
+    progress(1.0, "robot program planned");
     Ok(RobotPlan { layers, path, robot })
 }
 

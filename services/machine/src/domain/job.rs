@@ -17,6 +17,7 @@
 use std::io::BufRead;
 use std::sync::Arc;
 
+use depthmill_geometry::nalgebra::Point3;
 use depthmill_geometry::{HeightMap, HeightMapMeta, ToolProfile, ToolSpec};
 use depthmill_report::plot::{Chart, Panel, Series};
 use serde::Serialize;
@@ -610,7 +611,10 @@ pub fn execute_faces(
         _ => None,
     };
     let meshes = match &dexel {
-        Some(stock) => Some(part_meshes(stock, opts.reference.as_deref(), measured.as_ref())?),
+        Some(stock) => Some(part_meshes(
+            stock,
+            opts.reference.as_deref().zip(measured.as_ref()).map(|(r, m)| (&r.points[..], &m.per_point[..])),
+        )?),
         None => None,
     };
     let cycle = run_report.cycle_time_s;
@@ -681,10 +685,12 @@ fn comparison_setup(setup: &SimSetup, policy: PolicyKind) -> SimSetup {
 
 /// The simulated part as STL (on the finest lattice within [`MAX_SURFACE_SAMPLES`]) and as the
 /// view mesh (within [`VIEW_SAMPLES`]) coloured by the deviation of the nearest measured point.
-fn part_meshes(
+/// The simulated part as binary STL and as a coarser view mesh (binary PLY) whose vertices carry
+/// the deviation of the nearest `measured` reference point (points on the original part and
+/// their deviations; NaN where not measured).
+pub fn part_meshes(
     stock: &super::dexel::DexelStock,
-    reference: Option<&Reference>,
-    measured: Option<&PartDeviation>,
+    measured: Option<(&[Point3<f64>], &[f32])>,
 ) -> Result<(PartMesh, Vec<u8>, Vec<u8>), ExecuteError> {
     let mesh_err = |e: super::dexel::DexelError| invalid("part mesh", "dexel stock", &e.to_string());
     let write_err =
@@ -696,11 +702,11 @@ fn part_meshes(
         .map_err(write_err)?;
     let view_step = stock.surface_step_mm(VIEW_SAMPLES);
     let view = stock.surface_mesh(view_step).map_err(mesh_err)?;
-    let values = match (reference, measured) {
-        (Some(r), Some(m)) => {
-            vertex_deviation(&view.vertices, &r.points, &m.per_point, (2.0 * view_step).max(0.5))
+    let values = match measured {
+        Some((points, per_point)) => {
+            vertex_deviation(&view.vertices, points, per_point, (2.0 * view_step).max(0.5))
         }
-        _ => vec![f32::NAN; view.vertices.len()],
+        None => vec![f32::NAN; view.vertices.len()],
     };
     let mut ply = Vec::new();
     depthmill_geometry::formats::write_mesh_ply(

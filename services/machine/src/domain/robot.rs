@@ -56,6 +56,8 @@ pub enum RobotRunError {
     Invalid { field: String, value: String, expected: String },
     #[error(transparent)]
     Dexel(#[from] DexelError),
+    #[error("the run was stopped on request")]
+    Stopped,
 }
 
 fn invalid(field: impl Into<String>, value: impl ToString, expected: impl Into<String>) -> RobotRunError {
@@ -155,11 +157,16 @@ pub struct MeshDeviation {
     pub max_gouge_mm: f64,
     pub max_gouge_at_mm: [f64; 3],
     pub max_leftover_mm: f64,
+    /// Signed mean (material left positive), and the mean material left (gouges count as 0).
     pub mean_mm: f64,
+    pub mean_leftover_mm: f64,
     pub rms_mm: f64,
     /// Share of the samples within ±0.1 mm and within ±1 mm of the surface.
     pub within_0_1_mm: f64,
     pub within_1_mm: f64,
+    /// Each reference point's deviation, in the order given (for the view mesh's colours).
+    #[serde(skip)]
+    pub per_point: Vec<f32>,
 }
 
 /// What a simulated robot run did.
@@ -200,6 +207,17 @@ pub fn run(
     opts: &RobotRunOptions,
     reference: Option<&[Point3<f64>]>,
 ) -> Result<(RobotRunReport, DexelStock), RobotRunError> {
+    run_watched(traj, opts, reference, &|_, _| false)
+}
+
+/// [`run`] asking `stop` with the steps done and their number before every step (progress for
+/// a caller that streams it); `true` ends it with [`RobotRunError::Stopped`].
+pub fn run_watched(
+    traj: &Trajectory,
+    opts: &RobotRunOptions,
+    reference: Option<&[Point3<f64>]>,
+    stop: &(dyn Fn(usize, usize) -> bool + Sync),
+) -> Result<(RobotRunReport, DexelStock), RobotRunError> {
     traj.validate()?;
     if !(opts.max_error_mm.is_finite() && opts.max_error_mm > 0.0) {
         return Err(invalid("max_error_mm", opts.max_error_mm, "a positive distance"));
@@ -220,7 +238,11 @@ pub fn run(
     let start_volume = stock.volume_mm3();
     let (mut removed, mut rapid_removed, mut steps) = (0.0, 0.0, 0);
     let mut rapid_cuts = Vec::new();
+    let total = traj.points.len().saturating_sub(1);
     for (i, w) in traj.points.windows(2).enumerate() {
+        if stop(i, total) {
+            return Err(RobotRunError::Stopped);
+        }
         let (a, b) = (&w[0], &w[1]);
         if a.q_deg == b.q_deg {
             continue;
@@ -251,9 +273,11 @@ pub fn run(
             max_gouge_at_mm: r[worst].coords.into(),
             max_leftover_mm: d.iter().fold(0.0f64, |m, v| m.max(*v)),
             mean_mm: d.iter().sum::<f64>() / n,
+            mean_leftover_mm: d.iter().map(|v| v.max(0.0)).sum::<f64>() / n,
             rms_mm: (d.iter().map(|v| v * v).sum::<f64>() / n).sqrt(),
             within_0_1_mm: within(0.1),
             within_1_mm: within(1.0),
+            per_point: d.iter().map(|&v| v as f32).collect(),
         }
     });
     let report = RobotRunReport {

@@ -210,6 +210,33 @@ pub struct JobMetrics {
     /// ... RMS deviation, mm.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub opened_rms_deviation_mm: Option<f64>,
+    /// A robot job (`"process": "robot"`): layers the mesh was sliced into.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub robot_layers: Option<f64>,
+    /// ... tool positions checked against the mesh.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub robot_positions: Option<f64>,
+    /// ... positions where the upright tool body (flutes, shank, holder, spindle) hits the part.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub robot_colliding_upright: Option<f64>,
+    /// ... positions cleared by tilting the tool.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub robot_tilted: Option<f64>,
+    /// ... positions no tilt clears (lifted over, left uncut).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub robot_blocked: Option<f64>,
+    /// ... stretches of the path the arm cannot follow (reach, joint limits, singularities).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub robot_unreachable_stretches: Option<f64>,
+    /// ... largest tilt of the tool from upright, degrees.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub robot_max_tilt_deg: Option<f64>,
+    /// ... material the simulated run removed, mm³.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub robot_removed_mm3: Option<f64>,
+    /// ... of it removed by rapid moves (a crash on a real cell), mm³.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub robot_rapid_removed_mm3: Option<f64>,
 }
 
 impl JobMetrics {
@@ -247,6 +274,15 @@ impl JobMetrics {
                 "opened_max_leftover_mm" => &mut self.opened_max_leftover_mm,
                 "opened_mean_leftover_mm" => &mut self.opened_mean_leftover_mm,
                 "opened_rms_deviation_mm" => &mut self.opened_rms_deviation_mm,
+                "robot_layers" => &mut self.robot_layers,
+                "robot_positions" => &mut self.robot_positions,
+                "robot_colliding_upright" => &mut self.robot_colliding_upright,
+                "robot_tilted" => &mut self.robot_tilted,
+                "robot_blocked" => &mut self.robot_blocked,
+                "robot_unreachable_stretches" => &mut self.robot_unreachable_stretches,
+                "robot_max_tilt_deg" => &mut self.robot_max_tilt_deg,
+                "robot_removed_mm3" => &mut self.robot_removed_mm3,
+                "robot_rapid_removed_mm3" => &mut self.robot_rapid_removed_mm3,
                 _ => continue,
             };
             *slot = Some(*v);

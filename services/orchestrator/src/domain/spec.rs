@@ -32,6 +32,72 @@ pub struct JobSpec {
     pub plan: Option<PlanParams>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub execute: Option<ExecuteParams>,
+    /// How the part is made (default `mill`): `robot` cuts a mesh input layer by layer with the
+    /// 6-axis arm holding a spindle (plan, execute and report stages; no scan).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub process: Option<Process>,
+    /// Robot milling settings (`"process": "robot"` only).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub robot: Option<RobotParams>,
+}
+
+/// How the part is made.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum Process {
+    /// Scan (a mesh input), reconstruct depth maps, plan and run a program on the mill.
+    Mill,
+    /// From a mesh: sliced into layers, each cut ring by ring from the stock in to the part by the
+    /// 6-axis arm with a spindle on its flange; the tool body checked against the mesh at every
+    /// position and tilted where the upright tool collides; the joint trajectory replayed on a
+    /// dexel stock and the part measured against the mesh.
+    Robot,
+}
+
+/// Robot milling settings (README "Robot milling"). Defaults: tool `flat-6`, layers 2 mm apart
+/// (at most the tool's flute length), radial depth the tool's radius, 5 mm of stock around the
+/// part, the part's box centred 420 mm in front of the robot's base with its bottom at Z 0, feed
+/// 600 mm/min, 12000 rpm, tilt up to 40°, a 150 mm x 60 mm spindle mounted at 90° across the
+/// flange.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct RobotParams {
+    /// Library tool name.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tool: Option<String>,
+    /// Distance between layers, mm.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub step_mm: Option<f64>,
+    /// Radial depth of cut between rings, mm.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub radial_depth_mm: Option<f64>,
+    /// Stock around the part in X and Y, mm.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stock_margin_mm: Option<f64>,
+    /// Where the part's origin stands in the robot's base frame, `[x, y, z]` mm.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub part_at_mm: Option<[f64; 3]>,
+    /// The part's turn about the base's Z axis, degrees.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub part_yaw_deg: Option<f64>,
+    /// Feed, mm/min.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub feed_mm_min: Option<f64>,
+    /// Spindle speed, rpm.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rpm: Option<f64>,
+    /// Largest tilt of the tool from upright, degrees (0 to 80).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_tilt_deg: Option<f64>,
+    /// Flange to spindle nose, mm.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub spindle_length_mm: Option<f64>,
+    /// Angle between the flange's axis and the spindle's, degrees (0 to 90).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub spindle_mount_deg: Option<f64>,
+    /// Spindle body diameter, mm (checked against the part like the holder).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub spindle_diameter_mm: Option<f64>,
 }
 
 /// What the job starts from. The kind decides the first stage.
@@ -630,9 +696,65 @@ impl JobSpec {
         })
     }
 
-    /// The stage this job starts at.
+    /// The stage this job starts at: a robot job plans from its mesh, other jobs start where
+    /// their input kind does.
     pub fn first_stage(&self) -> Stage {
-        self.input.kind.first_stage()
+        if self.is_robot() { Stage::Plan } else { self.input.kind.first_stage() }
+    }
+
+    /// A robot milling job (`"process": "robot"`).
+    pub fn is_robot(&self) -> bool {
+        self.process == Some(Process::Robot)
+    }
+
+    /// The robot job's rules: a mesh input, no scan, reconstruct or plan section (the robot
+    /// section plans), of `execute` only the dexel cell; and no robot section on a mill job.
+    fn validate_process(&self) -> Result<(), SpecError> {
+        if !self.is_robot() {
+            if self.robot.is_some() {
+                return Err(err("robot", "applies only to a job with \"process\": \"robot\""));
+            }
+            return Ok(());
+        }
+        if self.input.kind != InputKind::Mesh {
+            return Err(err(
+                "process",
+                format!(
+                    "a robot job cuts the part from its mesh: input.kind must be mesh, got {}",
+                    self.input.kind.as_str()
+                ),
+            ));
+        }
+        for (field, present) in [
+            ("scan", self.scan.is_some()),
+            ("reconstruct", self.reconstruct.is_some()),
+            ("plan", self.plan.is_some()),
+        ] {
+            if present {
+                return Err(err(
+                    field,
+                    "a robot job plans from the mesh with its robot section and never runs this stage: remove this section",
+                ));
+            }
+        }
+        if let Some(ex) = &self.execute {
+            let given = [
+                ("execute.machine", ex.machine.is_some()),
+                ("execute.adaptive", ex.adaptive.is_some()),
+                ("execute.material", ex.material.is_some()),
+                ("execute.stock_z_mm", ex.stock_z_mm.is_some()),
+                ("execute.clamp", ex.clamp.is_some()),
+                ("execute.compare", ex.compare.is_some()),
+                ("execute.dexel", ex.dexel.is_some()),
+            ];
+            if let Some((field, _)) = given.iter().find(|(_, p)| *p) {
+                return Err(err(
+                    field,
+                    "a robot job runs on the robot cell's dexel simulation: only execute.cell_mm applies",
+                ));
+            }
+        }
+        Ok(())
     }
 
     /// Checks values and that every section given is one the job will run.
@@ -641,6 +763,7 @@ impl JobSpec {
         if self.name.len() > 256 {
             return Err(err("name", format!("is {} characters, the limit is 256", self.name.len())));
         }
+        self.validate_process()?;
         let first = self.first_stage();
         let sections = [
             ("scan", Stage::Scan, self.scan.is_some()),
@@ -815,5 +938,55 @@ mod tests {
         assert!(spec.validate().is_ok(), "one dexel grid is a valid choice");
         let spec = parse(r#"{"input": {"kind": "gcode", "artifact": "abc"}}"#).expect("parse");
         assert_eq!(spec.validate().expect_err("digest").field, "input.artifact");
+    }
+
+    #[test]
+    fn a_robot_job_starts_at_the_plan_from_a_mesh_and_refuses_what_it_never_runs() {
+        let mesh = |extra: &str| {
+            format!(r#"{{"input": {{"kind": "mesh", "artifact": "{SHA}"}}, "process": "robot"{extra}}}"#)
+        };
+        let spec = parse(&mesh(
+            r#", "robot": {"tool": "flat-6", "step_mm": 1.5, "part_at_mm": [400, 0, 0]}, "execute": {"cell_mm": 0.2}"#,
+        ))
+        .expect("parse");
+        spec.validate().expect("valid");
+        assert_eq!(spec.first_stage(), Stage::Plan);
+        assert!(spec.is_robot());
+        let again = parse(&serde_json::to_string(&spec).expect("ser")).expect("reparse");
+        assert_eq!(spec, again);
+        let cases = [
+            (mesh(r#", "scan": {}"#), "scan"),
+            (mesh(r#", "reconstruct": {}"#), "reconstruct"),
+            (mesh(r#", "plan": {}"#), "plan"),
+            (mesh(r#", "execute": {"machine": "emco-f1"}"#), "execute.machine"),
+            (mesh(r#", "execute": {"adaptive": "off"}"#), "execute.adaptive"),
+            (
+                format!(r#"{{"input": {{"kind": "depth_map", "artifact": "{SHA}"}}, "process": "robot"}}"#),
+                "process",
+            ),
+            (format!(r#"{{"input": {{"kind": "mesh", "artifact": "{SHA}"}}, "robot": {{}}}}"#), "robot"),
+            (
+                format!(
+                    r#"{{"input": {{"kind": "mesh", "artifact": "{SHA}"}}, "process": "mill", "robot": {{}}}}"#
+                ),
+                "robot",
+            ),
+        ];
+        for (json, field) in cases {
+            let spec = parse(&json).expect("parse");
+            assert_eq!(spec.validate().expect_err(&json).field, field, "{json}");
+        }
+        assert!(parse(&mesh(r#", "robot": {"stepmm": 1}"#)).expect_err("unknown").contains("stepmm"));
+        assert!(
+            parse(&format!(r#"{{"input": {{"kind": "mesh", "artifact": "{SHA}"}}, "process": "lathe"}}"#))
+                .expect_err("unknown process")
+                .contains("lathe")
+        );
+        // A mill job is the default.
+        let mill =
+            parse(&format!(r#"{{"input": {{"kind": "mesh", "artifact": "{SHA}"}}, "process": "mill"}}"#))
+                .expect("parse");
+        mill.validate().expect("valid");
+        assert_eq!(mill.first_stage(), Stage::Scan);
     }
 }

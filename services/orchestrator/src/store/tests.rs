@@ -28,6 +28,8 @@ fn spec(name: &str) -> JobSpec {
         reconstruct: None,
         plan: None,
         execute: None,
+        process: None,
+        robot: None,
     }
 }
 

@@ -4,6 +4,7 @@
 mod faces;
 mod machine;
 pub(crate) mod part;
+mod robot;
 mod scan;
 pub(crate) mod solid;
 mod summary;
