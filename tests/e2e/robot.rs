@@ -146,3 +146,46 @@ async fn a_robot_job_cuts_a_mesh_on_the_arm_and_reports_it() -> anyhow::Result<(
     assert_eq!(done["status"], json!("succeeded"), "{done}");
     stack.shutdown().await
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_running_robot_plan_is_cancelled_and_a_part_out_of_reach_fails_naming_why() -> anyhow::Result<()> {
+    let stack = TestStack::start().await?;
+    let sha = stack.upload("model/stl", block_stl(20.0, 20.0, 60.0)).await?;
+    // 1 mm layers: a plan long enough to be stopped in the clearance check.
+    let body = json!({"input": {"kind": "mesh", "artifact": sha}, "process": "robot", "robot": {"step_mm": 1}});
+    let (status, job) = stack.post_job(&body, None).await?;
+    assert_eq!(status, 201, "{job}");
+    let id = job["id"].as_str().context("id")?.to_string();
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(120);
+    loop {
+        let j = stack.get_job(&id).await?;
+        if j["stage"] == json!("plan") && j["progress"].as_f64().unwrap_or(0.0) > 0.0 {
+            break;
+        }
+        anyhow::ensure!(j["status"] != json!("succeeded"), "the plan ended before it could be cancelled");
+        anyhow::ensure!(tokio::time::Instant::now() < deadline, "the plan never started: {j}");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    let asked = std::time::Instant::now();
+    let resp = stack.http.post(stack.url(&format!("/v1/jobs/{id}/cancel"))).send().await?;
+    assert!(resp.status().is_success());
+    let job = stack.wait_for_end(&id, Duration::from_secs(120)).await?;
+    assert_eq!(job["status"], json!("cancelled"), "{job}");
+    assert_eq!(job["error"]["stage"], json!("plan"), "{job}");
+    // The CAM service stopped the plan itself (the orchestrator's grace period is longer).
+    assert!(asked.elapsed() < Duration::from_secs(20), "cancelled after {:?}", asked.elapsed());
+
+    // A part placed beyond the arm's reach: the job fails in the plan, saying so.
+    let far = json!({"input": {"kind": "mesh", "artifact": sha}, "process": "robot",
+                     "robot": {"step_mm": 10, "part_at_mm": [3000, 0, 0]}});
+    let (status, job) = stack.post_job(&far, None).await?;
+    assert_eq!(status, 201, "{job}");
+    let id = job["id"].as_str().context("id")?.to_string();
+    let job = stack.wait_for_end(&id, Duration::from_secs(300)).await?;
+    assert_eq!(job["status"], json!("failed"), "{job}");
+    assert_eq!(job["error"]["code"], json!("invalid_argument"), "{job}");
+    assert_eq!(job["error"]["stage"], json!("plan"), "{job}");
+    let msg = job["error"]["message"].as_str().unwrap_or_default();
+    assert!(msg.contains("the arm reaches none"), "{msg}");
+    stack.shutdown().await
+}
