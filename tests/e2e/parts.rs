@@ -286,6 +286,7 @@ fn real_meshes_are_planned_for_the_robot_and_cut_in_simulation() -> anyhow::Resu
             (std::array::from_fn(|k| lo[k].min(p[k])), std::array::from_fn(|k| hi[k].max(p[k])))
         });
         RobotJob {
+            auto_place: false,
             layers: MeshProgramOptions::new(2.0, tool.radius_mm()),
             tilt: TiltOptions::default(),
             cell: RobotCell::viper_s650(Isometry3::translation(

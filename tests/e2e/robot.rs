@@ -152,7 +152,8 @@ async fn a_running_robot_plan_is_cancelled_and_a_part_out_of_reach_fails_naming_
     let stack = TestStack::start().await?;
     let sha = stack.upload("model/stl", block_stl(20.0, 20.0, 60.0)).await?;
     // 1 mm layers: a plan long enough to be stopped in the clearance check.
-    let body = json!({"input": {"kind": "mesh", "artifact": sha}, "process": "robot", "robot": {"step_mm": 1}});
+    let body =
+        json!({"input": {"kind": "mesh", "artifact": sha}, "process": "robot", "robot": {"step_mm": 1}});
     let (status, job) = stack.post_job(&body, None).await?;
     assert_eq!(status, 201, "{job}");
     let id = job["id"].as_str().context("id")?.to_string();

@@ -167,6 +167,7 @@ fn robot_programs_run_in_linuxcnc_rs274() -> anyhow::Result<()> {
     let mesh = depthmill_geometry::Mesh::cuboid(20.0, 20.0, 60.0);
     let tool = ToolLibrary::builtin()?.resolve("flat-6")?;
     let job = RobotJob {
+        auto_place: false,
         layers: MeshProgramOptions::new(10.0, tool.radius_mm()),
         tilt: TiltOptions::default(),
         cell: RobotCell::viper_s650(Isometry3::translation(410.0, -10.0, 0.0)),

@@ -34,6 +34,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mesh = sample_relief(0.5);
     let tool = Tool::from_spec(&"flat-6".parse()?)?;
     let job = RobotJob {
+        auto_place: false,
         layers: MeshProgramOptions::new(1.0, tool.radius_mm()),
         tilt: TiltOptions::default(),
         cell: RobotCell::viper_s650(Isometry3::translation(420.0, 0.0, 0.0)),

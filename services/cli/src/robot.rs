@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context as _, bail};
 use depthmill_cam::domain::robot::{plan_robot, robot_gcode};
-use depthmill_cam::domain::robot_job::{RobotSettings, robot_report};
+use depthmill_cam::domain::robot_job::{RobotSettings, robot_report, robot_warnings};
 
 /// Options of `depthmill plan --robot` (the job's `robot` section; defaults in
 /// `depthmill_cam::domain::robot_job`).
@@ -156,6 +156,9 @@ pub fn run(input: &Path, args: &RobotArgs, tools_dir: Option<&Path>, output: &Pa
         for d in defects.iter().take(3) {
             crate::outln!("  z {:.3} at ({:.3}, {:.3}): {}", d.z_mm, d.at[0], d.at[1], d.message);
         }
+    }
+    for (_, message) in robot_warnings(&plan, &topo).iter().filter(|(code, _)| *code == "placement") {
+        crate::outln!("note: {}: {message}", input.display());
     }
     let c = &plan.path;
     crate::outln!(

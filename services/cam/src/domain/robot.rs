@@ -495,6 +495,130 @@ pub struct RobotJob {
     pub tilt: TiltOptions,
     pub cell: RobotCell,
     pub feed_mm_min: f64,
+    /// The part's place was left to the planner: when the arm cannot reach every position of
+    /// the program at `cell.base_from_part`, other places are tried ([`choose_placement`]).
+    pub auto_place: bool,
+}
+
+/// Distances of the part's centre in front of the robot's base tried by [`choose_placement`],
+/// mm, in order of preference (the default first).
+pub const PLACE_DISTANCES_MM: [f64; 8] = [420.0, 380.0, 460.0, 340.0, 500.0, 300.0, 540.0, 260.0];
+/// Turns of the part about the base's Z axis tried, degrees.
+pub const PLACE_YAWS_DEG: [f64; 4] = [0.0, 90.0, -90.0, 180.0];
+/// Heights of the part's bottom above the base tried, mm.
+pub const PLACE_HEIGHTS_MM: [f64; 3] = [0.0, -100.0, 100.0];
+/// Positions a candidate place is first tried on (spread evenly over the program).
+pub const PLACE_SAMPLES: usize = 4096;
+
+/// Where [`choose_placement`] put the part and why.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct Placement {
+    /// The part's box centre this far in front of the base, mm, turned this much about Z,
+    /// degrees, its bottom this high, mm.
+    pub distance_mm: f64,
+    pub yaw_deg: f64,
+    pub height_mm: f64,
+    /// Upright program positions the arm reaches there, of all.
+    pub reached: usize,
+    pub positions: usize,
+    /// ... and at the default place.
+    pub reached_at_default: usize,
+    /// Places tried.
+    pub tried: usize,
+}
+
+/// The part's place in the base frame: its box (`lo`, `hi` in the part frame) centred
+/// `distance_mm` in front of the base, turned `yaw_deg` about Z, its bottom at `height_mm`.
+pub fn place(lo: [f64; 3], hi: [f64; 3], distance_mm: f64, yaw_deg: f64, height_mm: f64) -> Isometry3<f64> {
+    Isometry3::new(Vector3::new(distance_mm, 0.0, height_mm), Vector3::z() * yaw_deg.to_radians())
+        * Translation3::new(-0.5 * (lo[0] + hi[0]), -0.5 * (lo[1] + hi[1]), -lo[2])
+}
+
+/// Positions of `points` (tip, axis) the arm reaches at `cell`'s place in the branch and spin
+/// [`choose_branch`] picks there (in parallel); 0 when it picks none.
+fn reach_count(arm: &ArmModel, cell: &RobotCell, points: &[([f64; 3], [f64; 3])]) -> usize {
+    use rayon::prelude::*;
+    let Ok((config, spin)) = choose_branch(arm, cell, points, None) else { return 0 };
+    let ik = IkConfig::only(config);
+    points
+        .par_iter()
+        .filter(|(tip, axis)| {
+            arm.ik_solutions(&cell.target(tip, axis, spin), &ik).is_ok_and(|s| !s.is_empty())
+        })
+        .count()
+}
+
+/// Where to put a part whose place the job left open: the default place ([`PLACE_DISTANCES_MM`]
+/// first entry, no turn, bottom at the base's height) when the arm reaches every position of
+/// the upright program `points` there; else the first place, in the order of
+/// [`PLACE_DISTANCES_MM`] x [`PLACE_YAWS_DEG`] x [`PLACE_HEIGHTS_MM`], where it reaches every one
+/// (tried first on [`PLACE_SAMPLES`] spread positions, then on all); else the place reaching
+/// the most. `lo`/`hi` is the part's box. `None` when the default reaches everything.
+pub fn choose_placement(
+    arm: &ArmModel,
+    cell: &RobotCell,
+    points: &[([f64; 3], [f64; 3])],
+    lo: [f64; 3],
+    hi: [f64; 3],
+    cancelled: &(dyn Fn() -> bool + Sync),
+) -> Result<Option<(Isometry3<f64>, Placement)>, RobotPlanError> {
+    let at =
+        |d: f64, yaw: f64, h: f64| RobotCell { base_from_part: place(lo, hi, d, yaw, h), ..cell.clone() };
+    let n = points.len();
+    let default = reach_count(arm, &at(PLACE_DISTANCES_MM[0], 0.0, 0.0), points);
+    if default == n {
+        return Ok(None);
+    }
+    let step = n.div_ceil(PLACE_SAMPLES).max(1);
+    let sample: Vec<([f64; 3], [f64; 3])> = points.iter().step_by(step).copied().collect();
+    let mut best = (default, PLACE_DISTANCES_MM[0], 0.0, 0.0);
+    let mut tried = 1;
+    for h in PLACE_HEIGHTS_MM {
+        for yaw in PLACE_YAWS_DEG {
+            for d in PLACE_DISTANCES_MM {
+                if (d, yaw, h) == (PLACE_DISTANCES_MM[0], 0.0, 0.0) {
+                    continue;
+                }
+                if cancelled() {
+                    return Err(RobotPlanError::Cancelled);
+                }
+                tried += 1;
+                let c = at(d, yaw, h);
+                if reach_count(arm, &c, &sample) < sample.len() {
+                    continue;
+                }
+                let all = reach_count(arm, &c, points);
+                if all > best.0 {
+                    best = (all, d, yaw, h);
+                }
+                if all == n {
+                    break;
+                }
+            }
+            if best.0 == n {
+                break;
+            }
+        }
+        if best.0 == n {
+            break;
+        }
+    }
+    let (reached, d, yaw, h) = best;
+    if reached == default {
+        return Ok(None);
+    }
+    Ok(Some((
+        place(lo, hi, d, yaw, h),
+        Placement {
+            distance_mm: d,
+            yaw_deg: yaw,
+            height_mm: h,
+            reached,
+            positions: n,
+            reached_at_default: default,
+            tried,
+        },
+    )))
 }
 
 /// What [`plan_robot`] made.
@@ -505,6 +629,8 @@ pub struct RobotPlan {
     /// Every position checked and tilted, blocked stretches lifted over.
     pub path: ClearedPath,
     pub robot: RobotProgram,
+    /// Where the part was moved to when the arm could not reach all of it at the default place.
+    pub placement: Option<Placement>,
 }
 
 /// The whole robot plan of a mesh: slice and ring the layers ([`mesh_program`]), check the tool
@@ -554,7 +680,18 @@ pub fn plan_robot_watched(
     // within their limits (with the spindle off the flange's axis, the spin moves the wrist).
     let arm = job.cell.arm_for(&job.tool);
     let upright: Vec<([f64; 3], [f64; 3])> = moves.iter().map(|m| (m.0, [0.0, 0.0, 1.0])).collect();
-    let (config, spin) = choose_branch(&arm, &job.cell, &upright, None)?;
+    let mut cell = job.cell.clone();
+    let mut placement = None;
+    if job.auto_place {
+        progress(0.05, "checking the arm reaches the part where it stands");
+        let [x0, y0, x1, y1] = layers.options.stock;
+        let (lo, hi) = ([x0, y0, layers.z_range_mm[0]], [x1, y1, layers.z_range_mm[1]]);
+        if let Some((at, p)) = choose_placement(&arm, &cell, &upright, lo, hi, cancelled)? {
+            cell.base_from_part = at;
+            placement = Some(p);
+        }
+    }
+    let (config, spin) = choose_branch(&arm, &cell, &upright, None)?;
     let tilt_ik = IkConfig {
         singularity_thresholds: SingularityMargins {
             wrist_deg: TILT_WRIST_MARGIN_DEG,
@@ -563,7 +700,7 @@ pub fn plan_robot_watched(
         ..IkConfig::only(config)
     };
     let accept = |tip: &Point3<f64>, axis: &Unit<Vector3<f64>>| -> bool {
-        let target = job.cell.target(&tip.coords.into(), &axis.into_inner().into(), spin);
+        let target = cell.target(&tip.coords.into(), &axis.into_inner().into(), spin);
         arm.ik_solutions(&target, &tilt_ik).is_ok_and(|s| !s.is_empty())
     };
     let stop = |done: usize, total: usize| {
@@ -581,12 +718,12 @@ pub fn plan_robot_watched(
         return Err(RobotPlanError::Cancelled);
     }
     progress(0.9, "solving the arm's joints along the path");
-    let mut robot = robot_program(&job.cell, &job.tool, &path, job.feed_mm_min, Some((config, spin)))?;
+    let mut robot = robot_program(&cell, &job.tool, &path, job.feed_mm_min, Some((config, spin)))?;
     let st = layers.options.stock;
     robot.stock_min_mm = [st[0], st[1], layers.z_range_mm[0]];
     robot.stock_max_mm = [st[2], st[3], layers.z_range_mm[1]];
     progress(1.0, "robot program planned");
-    Ok(RobotPlan { layers, path, robot })
+    Ok(RobotPlan { layers, path, robot, placement })
 }
 
 /// The robot program as G-code (LinuxCNC's words): the tool tip in the part frame (X, Y, Z) and
@@ -686,6 +823,67 @@ mod tests {
                 .collect(),
             ..ClearedPath::default()
         }
+    }
+
+    /// The most positions the arm reaches at `cell` in any one branch and spin, every one of
+    /// the 8 x 12 tried (the slow reference of the placement's reach count, which takes the
+    /// branch and spin [`choose_branch`] picks on a sample).
+    fn most_in_one_branch(arm: &ArmModel, cell: &RobotCell, pts: &[([f64; 3], [f64; 3])]) -> usize {
+        use depthmill_geometry::arm::{Elbow, Shoulder, Wrist};
+        let mut best = 0;
+        for shoulder in [Shoulder::Front, Shoulder::Back] {
+            for elbow in [Elbow::Up, Elbow::Down] {
+                for wrist in [Wrist::NoFlip, Wrist::Flip] {
+                    let ik = IkConfig::only(Configuration { shoulder, elbow, wrist });
+                    for k in 0..12 {
+                        let spin = (k as f64 * 30.0).to_radians();
+                        let n = pts
+                            .iter()
+                            .filter(|(tip, axis)| {
+                                arm.ik_solutions(&cell.target(tip, axis, spin), &ik)
+                                    .is_ok_and(|s| !s.is_empty())
+                            })
+                            .count();
+                        best = best.max(n);
+                    }
+                }
+            }
+        }
+        best
+    }
+
+    #[test]
+    fn a_part_the_arm_cannot_reach_where_it_stands_by_default_is_placed_where_it_can() {
+        let arm = cell().arm_for(&tool());
+        // A bar 500 mm long along X, cut upright at its top (z 20) and bottom (z 0).
+        let (lo, hi) = ([-250.0, -10.0, 0.0], [250.0, 10.0, 20.0]);
+        let pts: Vec<([f64; 3], [f64; 3])> = (0..=50)
+            .flat_map(|i| [0.0, 20.0].map(|z| ([-250.0 + 10.0 * i as f64, 0.0, z], [0.0, 0.0, 1.0])))
+            .collect();
+        let at_default = RobotCell { base_from_part: place(lo, hi, 420.0, 0.0, 0.0), ..cell() };
+        let default = reach_count(&arm, &at_default, &pts);
+        assert!(default < pts.len(), "the bar's ends are out of reach in one branch by default");
+        assert!(default <= most_in_one_branch(&arm, &at_default, &pts));
+        let (at, p) = choose_placement(&arm, &cell(), &pts, lo, hi, &|| false).expect("plan").expect("moved");
+        assert_eq!((p.reached, p.positions, p.reached_at_default), (pts.len(), pts.len(), default));
+        assert!(p.tried > 1);
+        assert_eq!(at, place(lo, hi, p.distance_mm, p.yaw_deg, p.height_mm));
+        let moved = RobotCell { base_from_part: at, ..cell() };
+        assert_eq!(most_in_one_branch(&arm, &moved, &pts), pts.len());
+        assert_eq!(reach_count(&arm, &moved, &pts), pts.len());
+        // A small part the arm reaches where it stands stays there.
+        let small: Vec<([f64; 3], [f64; 3])> =
+            pts.iter().filter(|(t, _)| t[0].abs() <= 20.0).copied().collect();
+        let small_box = ([-20.0, -10.0, 0.0], [20.0, 10.0, 20.0]);
+        assert_eq!(
+            choose_placement(&arm, &cell(), &small, small_box.0, small_box.1, &|| false).expect("plan"),
+            None
+        );
+        // Asked to stop, it stops.
+        assert_eq!(
+            choose_placement(&arm, &cell(), &pts, lo, hi, &|| true).expect_err("cancelled"),
+            RobotPlanError::Cancelled
+        );
     }
 
     #[test]

@@ -150,6 +150,7 @@ impl RobotSettings {
             cell,
             feed_mm_min: self.feed(),
             tool,
+            auto_place: self.part_at_mm.is_none() && self.part_yaw_deg.is_none(),
         })
     }
 }
@@ -223,6 +224,7 @@ pub fn robot_report(
             "unreachable": r.unreachable.iter().take(LISTED).collect::<Vec<_>>(),
             "unreachable_stretches": r.unreachable.len(),
         },
+        "placement": plan.placement,
         "planning_s": planning_s,
     })
 }
@@ -232,6 +234,15 @@ pub fn robot_report(
 /// (lifted over) and stretches the arm cannot reach, each with where.
 pub fn robot_warnings(plan: &RobotPlan, topology: &Topology) -> Vec<(&'static str, String)> {
     let mut out = Vec::new();
+    if let Some(p) = &plan.placement {
+        out.push((
+            "placement",
+            format!(
+                "at the default place the arm reaches {} of the program's {} positions; the part was placed {:.0} mm in front of the base, turned {:.0}°, its bottom at {:.0} mm, where it reaches {} ({} places tried; set robot.part_at_mm to choose)",
+                p.reached_at_default, p.positions, p.distance_mm, p.yaw_deg, p.height_mm, p.reached, p.tried
+            ),
+        ));
+    }
     if !topology.is_closed_manifold() {
         out.push((
             "mesh_not_closed",
