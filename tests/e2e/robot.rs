@@ -7,7 +7,7 @@ use std::time::Duration;
 
 use anyhow::Context as _;
 use depthmill_geometry::Mesh;
-use depthmill_tests::TestStack;
+use depthmill_tests::{StackOptions, TestStack};
 use serde_json::{Value, json};
 
 /// A closed block `x` x `y` x `z` mm, corner at the origin, as binary STL.
@@ -24,7 +24,7 @@ fn metric(job: &Value, k: &str) -> anyhow::Result<f64> {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_robot_job_cuts_a_mesh_on_the_arm_and_reports_it() -> anyhow::Result<()> {
-    let stack = TestStack::start().await?;
+    let stack = TestStack::start_with(StackOptions { stage_deadline_s: 600.0, ..Default::default() }).await?;
     // A tall block: the holder and spindle hit it when the tool runs along its walls upright.
     let sha = stack.upload("model/stl", block_stl(20.0, 20.0, 60.0)).await?;
 
@@ -149,7 +149,7 @@ async fn a_robot_job_cuts_a_mesh_on_the_arm_and_reports_it() -> anyhow::Result<(
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_running_robot_plan_is_cancelled_and_a_part_out_of_reach_fails_naming_why() -> anyhow::Result<()> {
-    let stack = TestStack::start().await?;
+    let stack = TestStack::start_with(StackOptions { stage_deadline_s: 600.0, ..Default::default() }).await?;
     let sha = stack.upload("model/stl", block_stl(20.0, 20.0, 60.0)).await?;
     // 1 mm layers: a plan long enough to be stopped in the clearance check.
     let body =
