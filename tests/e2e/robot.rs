@@ -148,7 +148,8 @@ async fn a_robot_job_cuts_a_mesh_on_the_arm_and_reports_it() -> anyhow::Result<(
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_running_robot_plan_is_cancelled_and_a_part_out_of_reach_fails_naming_why() -> anyhow::Result<()> {
+async fn a_running_robot_plan_is_cancelled_and_parts_out_of_reach_fail_or_are_lifted_over()
+-> anyhow::Result<()> {
     let stack = TestStack::start_with(StackOptions { stage_deadline_s: 600.0, ..Default::default() }).await?;
     let sha = stack.upload("model/stl", block_stl(20.0, 20.0, 60.0)).await?;
     // 1 mm layers: a plan long enough to be stopped in the clearance check.
@@ -188,5 +189,28 @@ async fn a_running_robot_plan_is_cancelled_and_a_part_out_of_reach_fails_naming_
     assert_eq!(job["error"]["stage"], json!("plan"), "{job}");
     let msg = job["error"]["message"].as_str().unwrap_or_default();
     assert!(msg.contains("the arm reaches none"), "{msg}");
+
+    // A part at the edge of the arm's reach: the positions it cannot follow are lifted over,
+    // not cut by an arm that holds its joints and then sweeps the tool through the part to
+    // rejoin the path (which gouged this part 4.5 mm).
+    let edge_sha = stack.upload("model/stl", block_stl(40.0, 40.0, 20.0)).await?;
+    let edge = json!({"input": {"kind": "mesh", "artifact": edge_sha}, "process": "robot",
+                      "robot": {"step_mm": 5, "part_at_mm": [700, -20, 0]}, "execute": {"cell_mm": 0.3}});
+    let (status, job) = stack.post_job(&edge, None).await?;
+    assert_eq!(status, 201, "{job}");
+    let id = job["id"].as_str().context("id")?.to_string();
+    let job = stack.wait_for_end(&id, Duration::from_secs(300)).await?;
+    assert_eq!(job["status"], json!("succeeded"), "{job}");
+    assert!(metric(&job, "robot_blocked")? > 100.0, "{}", job["metrics"]);
+    assert_eq!(metric(&job, "robot_unreachable_stretches")?, 0.0, "{}", job["metrics"]);
+    let gouge = metric(&job, "max_gouge_mm")?;
+    assert!(gouge <= 0.3, "max gouge {gouge} mm at the edge of reach");
+    assert_eq!(metric(&job, "robot_rapid_removed_mm3")?, 0.0);
+    let plan_sha = job["artifacts"]["plan_report"]["sha256"].as_str().context("plan report")?;
+    let plan: Value =
+        stack.http.get(stack.url(&format!("/v1/artifacts/{plan_sha}"))).send().await?.json().await?;
+    let warned =
+        plan["warnings"].as_array().into_iter().flatten().any(|w| w["code"] == json!("out_of_reach"));
+    assert!(warned, "{}", plan["warnings"]);
     stack.shutdown().await
 }

@@ -848,6 +848,16 @@ impl ClearedPath {
             };
             OrientedPoint { tip, axis: [axis.x, axis.y, axis.z], ..*p }
         };
+        // `p` at `tip` turned upright when the upright tool fits there (else as it is).
+        let upright = |tip: [f64; 3], p: &OrientedPoint, scratch: &mut Scratch| -> OrientedPoint {
+            let at = Point3::from(tip);
+            let z = Vector3::z_axis();
+            if !collides(index, body, &at, &z, scratch) && accept(&at, &z) {
+                OrientedPoint { tip, axis: [0.0, 0.0, 1.0], ..*p }
+            } else {
+                OrientedPoint { tip, ..*p }
+            }
+        };
         let mut i = 0;
         while i < self.points.len() {
             let p = self.points[i];
@@ -875,6 +885,15 @@ impl ClearedPath {
                     }
                     out.points.push(q);
                 }
+                // Upright at the clearance height before going across: the way across then
+                // keeps one axis the machine takes at both ends, instead of turning from one
+                // lean to the next on the way (through axes nobody checked).
+                if let Some(top) = out.points.last().copied() {
+                    let up = upright(top.tip, &top, &mut scratch);
+                    if up.axis != top.axis {
+                        out.points.push(up);
+                    }
+                }
             }
             // Down along the next position's axis (the body slides along its own line, clear
             // of what it clears there), from where that line meets the clearance height.
@@ -882,7 +901,15 @@ impl ClearedPath {
             let reach = if a[2] > 1e-6 { (clear_z - next.tip[2]).max(0.0) / a[2] } else { 0.0 };
             let along = |t: f64| [next.tip[0] + a[0] * t, next.tip[1] + a[1] * t, next.tip[2] + a[2] * t];
             let over = OrientedPoint { rapid: true, ..next };
-            out.points.push(settle(along(reach), &over, &mut scratch));
+            let above = settle(along(reach), &over, &mut scratch);
+            // Across upright, then the turn to the next position's axis in place.
+            let across = upright(above.tip, &above, &mut scratch);
+            if across.axis != above.axis {
+                out.points.push(across);
+                out.points.push(OrientedPoint { rapid: false, ..above });
+            } else {
+                out.points.push(above);
+            }
             let n = (reach / o.sample_mm).ceil().max(1.0) as usize;
             for k in 1..n {
                 let tip = along(reach * (n - k) as f64 / n as f64);
@@ -1101,12 +1128,20 @@ mod tests {
         assert!(path.points.iter().any(|p| p.blocked));
         let lifted = path.lifted(&index, &body, 70.0, &o, &any_axis);
         assert!(lifted.points.iter().all(|p| !p.blocked));
-        // Up at feed, across at rapid.
-        let high: Vec<&OrientedPoint> =
-            lifted.points.iter().filter(|p| (p.tip[2] - 70.0).abs() < 1e-9).collect();
-        // One pair per lift (a turn too sharp to make in the slot lifts too).
-        assert!(high.len() >= 2 && high.len().is_multiple_of(2), "{high:?}");
-        assert!(high.chunks(2).all(|p| !p[0].rapid && p[1].rapid), "{high:?}");
+        // Up at feed, across upright at rapid (the turns from and back to the leans made in place
+        // at the clearance height), one crossing per lift (a turn too sharp to make in the slot
+        // lifts too).
+        let high = |p: &OrientedPoint| (p.tip[2] - 70.0).abs() < 1e-9;
+        let across: Vec<usize> = (1..lifted.points.len()).filter(|&i| lifted.points[i].rapid).collect();
+        assert!(!across.is_empty());
+        for &i in &across {
+            let (from, to) = (&lifted.points[i - 1], &lifted.points[i]);
+            assert!(high(from) && high(to) && !from.rapid, "{from:?} -> {to:?}");
+            assert_eq!((from.axis, to.axis), ([0.0, 0.0, 1.0], [0.0, 0.0, 1.0]), "{from:?} -> {to:?}");
+            let (before, after) = (&lifted.points[i - 2], &lifted.points[i + 1]);
+            assert_eq!((before.tip, after.tip), (from.tip, to.tip), "the turns are made in place");
+            assert!(!after.rapid);
+        }
         // Everything kept is clear, the descent included.
         let mut s = Scratch::default();
         for p in &lifted.points {

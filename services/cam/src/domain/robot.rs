@@ -51,6 +51,12 @@ use super::clearance::{
 use super::layer_passes::{MeshProgram, MeshProgramOptions, MoveKind, PassError, mesh_program};
 use super::tool::Tool;
 
+/// Rounds of lifting over cutting positions the arm cannot follow.
+pub const REACH_ROUNDS: usize = 3;
+
+/// What a position lifted over for the arm's reach (not a collision) lists as what hits.
+pub const OUT_OF_REACH: &str = "arm (out of reach)";
+
 /// Positions sampled to choose the branch and the spin.
 pub const CHOICE_SAMPLES: usize = 64;
 
@@ -711,14 +717,52 @@ pub fn plan_robot_watched(
         cancelled()
     };
     progress(0.1, "checking the tool body against the mesh");
-    let checked = clear_path(&index, &body, start, &moves, &job.tilt, &accept, &stop)
+    let mut checked = clear_path(&index, &body, start, &moves, &job.tilt, &accept, &stop)
         .map_err(|e| if cancelled() { RobotPlanError::Cancelled } else { RobotPlanError::Clearance(e) })?;
-    let path = checked.lifted(&index, &body, layers.clear_z_mm, &job.tilt, &accept);
+    let mut path = checked.lifted(&index, &body, layers.clear_z_mm, &job.tilt, &accept);
     if cancelled() {
         return Err(RobotPlanError::Cancelled);
     }
     progress(0.9, "solving the arm's joints along the path");
     let mut robot = robot_program(&cell, &job.tool, &path, job.feed_mm_min, Some((config, spin)))?;
+    // Cutting positions the arm cannot follow (and their neighbours, where the arm would leave
+    // and rejoin the path) are lifted over like those no tilt clears: holding the joints and
+    // then moving on would sweep the tool through the part.
+    for _ in 0..REACH_ROUNDS {
+        if robot.unreachable.is_empty() || cancelled() {
+            break;
+        }
+        let bits = |t: &[f64; 3]| t.map(f64::to_bits);
+        let at: std::collections::HashMap<[u64; 3], usize> =
+            checked.points.iter().enumerate().map(|(i, p)| (bits(&p.tip), i)).collect();
+        let mut newly = 0;
+        for st in &robot.unreachable {
+            let (lo, hi) = (st.from_point.saturating_sub(1), (st.to_point + 1).min(robot.points.len() - 1));
+            for jp in robot.points.get(lo..=hi).unwrap_or_default() {
+                if let Some(&i) = at.get(&bits(&jp.tip_mm))
+                    && !checked.points[i].blocked
+                {
+                    checked.points[i].blocked = true;
+                    checked.blocked.push(super::clearance::Blocked {
+                        at_mm: jp.tip_mm,
+                        part: OUT_OF_REACH,
+                        depth_mm: 0.0,
+                    });
+                    newly += 1;
+                }
+            }
+        }
+        if newly == 0 {
+            break;
+        }
+        let again = checked.lifted(&index, &body, layers.clear_z_mm, &job.tilt, &accept);
+        let r = robot_program(&cell, &job.tool, &again, job.feed_mm_min, Some((config, spin)))?;
+        let bad = |r: &RobotProgram| r.points.iter().filter(|p| !p.reachable).count();
+        if bad(&r) >= bad(&robot) {
+            break;
+        }
+        (path, robot) = (again, r);
+    }
     let st = layers.options.stock;
     robot.stock_min_mm = [st[0], st[1], layers.z_range_mm[0]];
     robot.stock_max_mm = [st[2], st[3], layers.z_range_mm[1]];

@@ -9,9 +9,9 @@ use depthmill_geometry::Mesh;
 use nalgebra::{Isometry3, Vector3};
 
 use super::CamError;
-use super::clearance::{ClearedPath, TiltOptions};
+use super::clearance::{Blocked, ClearedPath, TiltOptions};
 use super::layer_passes::MeshProgramOptions;
-use super::robot::{RobotCell, RobotJob, RobotPlan};
+use super::robot::{OUT_OF_REACH, RobotCell, RobotJob, RobotPlan};
 use super::slice::Topology;
 use super::tool::Tool;
 
@@ -289,17 +289,31 @@ pub fn robot_warnings(plan: &RobotPlan, topology: &Topology) -> Vec<(&'static st
             ),
         ));
     }
-    if let Some(b) = plan.path.blocked.first() {
+    let (reach, collide): (Vec<&Blocked>, Vec<&Blocked>) =
+        plan.path.blocked.iter().partition(|b| b.part == OUT_OF_REACH);
+    if let Some(b) = collide.first() {
         out.push((
             "blocked",
             format!(
                 "{} positions no tilt up to the limit clears (lifted over, left uncut), the first at ({:.2}, {:.2}, {:.2}) mm where the {} would enter the part {:.2} mm",
-                plan.path.blocked.len(),
+                collide.len(),
                 b.at_mm[0],
                 b.at_mm[1],
                 b.at_mm[2],
                 b.part,
                 b.depth_mm
+            ),
+        ));
+    }
+    if let Some(b) = reach.first() {
+        out.push((
+            "out_of_reach",
+            format!(
+                "{} cutting positions the arm cannot follow (lifted over, left uncut), the first at ({:.2}, {:.2}, {:.2}) mm",
+                reach.len(),
+                b.at_mm[0],
+                b.at_mm[1],
+                b.at_mm[2]
             ),
         ));
     }
