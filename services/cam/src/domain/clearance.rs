@@ -36,6 +36,7 @@
 
 use depthmill_geometry::Mesh;
 use nalgebra::{Point3, Unit, Vector3};
+use rayon::prelude::*;
 
 use super::tool::Tool;
 
@@ -614,32 +615,30 @@ pub fn any_axis(_: &Point3<f64>, _: &Unit<Vector3<f64>>) -> bool {
 /// compete on how little the axis turns from the previous position's.
 const AZIMUTH_SLACK_STEPS: usize = 2;
 
-/// The tilt (radians) and azimuth clearing `tip`: the smallest tilt, or, after a tilted
-/// position, the clearing axis nearest the previous one (`prev`) among tilts within
-/// [`AZIMUTH_SLACK_STEPS`] of the smallest, so the lean does not swap sides between neighbours.
-fn search_tilt(
+/// The leans that clear `tip`, as (tilt step, azimuth in radians): per azimuth (from 0, then
+/// outwards both ways) its smallest clearing tilt step, for the azimuths within
+/// [`AZIMUTH_SLACK_STEPS`] of the smallest of all. Empty when no tilt up to the limit clears.
+/// Does not depend on the previous position, so positions are searched in parallel.
+fn tilt_candidates(
     index: &MeshIndex,
     body: &ToolBody,
     tip: &Point3<f64>,
     o: &TiltOptions,
-    prev: Option<&Unit<Vector3<f64>>>,
     accept: Accept<'_>,
     scratch: &mut Scratch,
-) -> Option<(f64, f64)> {
+) -> Vec<(usize, f64)> {
     let step = o.step_deg.to_radians();
-    let max = o.max_tilt_deg.to_radians();
-    let steps = (max / step).floor() as usize;
+    let steps = (o.max_tilt_deg.to_radians() / step).floor() as usize;
     let n = o.azimuths;
     let d = std::f64::consts::TAU / n as f64;
-    // The previous lean's direction first, then outwards from it both ways.
-    let k0 = prev.filter(|a| a.x.hypot(a.y) > 1e-12).map_or(0, |a| (a.y.atan2(a.x) / d).round() as i64);
     let order = (0..n as i64).map(|i| {
         let off = if i % 2 == 1 { (i + 1) / 2 } else { -(i / 2) };
-        (k0 + off) as f64 * d
+        off as f64 * d
     });
     let mut found: Vec<(usize, f64)> = Vec::new();
     let mut kmin = usize::MAX;
     for phi in order {
+        // Once one azimuth clears, the others need not look past the slack above it.
         let limit = if kmin == usize::MAX { steps } else { (kmin + AZIMUTH_SLACK_STEPS).min(steps) };
         if let Some(k) = (1..=limit).find(|&k| {
             let axis = leaning_axis(k as f64 * step, phi);
@@ -649,16 +648,34 @@ fn search_tilt(
             found.push((k, phi));
         }
     }
+    found.retain(|&(k, _)| k <= kmin.saturating_add(AZIMUTH_SLACK_STEPS));
+    found
+}
+
+/// The tilt (radians) and azimuth clearing `tip` among its `candidates`
+/// ([`tilt_candidates`]): the smallest tilt, or, after a tilted position, the clearing axis
+/// nearest the previous one (`prev`), so the lean does not swap sides between neighbours; the
+/// tilt then bisected between the last colliding and the first clearing step.
+fn pick_tilt(
+    index: &MeshIndex,
+    body: &ToolBody,
+    tip: &Point3<f64>,
+    o: &TiltOptions,
+    prev: Option<&Unit<Vector3<f64>>>,
+    candidates: &[(usize, f64)],
+    accept: Accept<'_>,
+    scratch: &mut Scratch,
+) -> Option<(f64, f64)> {
+    let step = o.step_deg.to_radians();
     let turn = |k: usize, phi: f64| {
         prev.map_or(0.0, |a| a.dot(&leaning_axis(k as f64 * step, phi)).clamp(-1.0, 1.0).acos())
     };
-    let (k, phi) = found.into_iter().filter(|&(k, _)| k <= kmin + AZIMUTH_SLACK_STEPS).min_by(|a, b| {
+    let &(k, phi) = candidates.iter().min_by(|a, b| {
         let key = |&(k, phi): &(usize, f64)| if prev.is_some() { (turn(k, phi), k) } else { (0.0, k) };
         let (ta, ka) = key(a);
         let (tb, kb) = key(b);
         ta.total_cmp(&tb).then(ka.cmp(&kb))
     })?;
-    // Bisection between the last colliding and the first clearing step.
     let (mut lo, mut hi) = ((k - 1) as f64 * step, k as f64 * step);
     for _ in 0..3 {
         let mid = 0.5 * (lo + hi);
@@ -670,6 +687,79 @@ fn search_tilt(
         }
     }
     Some((hi, phi))
+}
+
+/// [`tilt_candidates`] then [`pick_tilt`]: the lean clearing `tip` after `prev`.
+#[cfg(test)]
+fn search_tilt(
+    index: &MeshIndex,
+    body: &ToolBody,
+    tip: &Point3<f64>,
+    o: &TiltOptions,
+    prev: Option<&Unit<Vector3<f64>>>,
+    accept: Accept<'_>,
+    scratch: &mut Scratch,
+) -> Option<(f64, f64)> {
+    let candidates = tilt_candidates(index, body, tip, o, accept, scratch);
+    pick_tilt(index, body, tip, o, prev, &candidates, accept, scratch)
+}
+
+/// Per position (tip, rapid) the lean `[tilt·cos φ, tilt·sin φ]` that clears it (zero where
+/// the upright tool does, `None` where no tilt does), how many collide upright, and the
+/// blocked ones. The upright checks and each colliding position's candidate leans are found in
+/// parallel, [`STOP_EVERY`] positions at a time between the `stop` questions; the choice among
+/// a position's candidates depends on the previous position's lean (none after a rapid), so it
+/// is made in order.
+fn first_leans(
+    index: &MeshIndex,
+    body: &ToolBody,
+    pts: &[([f64; 3], bool)],
+    o: &TiltOptions,
+    accept: Accept<'_>,
+    stop: Stop<'_>,
+) -> Result<(Vec<Option<[f64; 2]>>, usize, Vec<Blocked>), String> {
+    let mut found: Vec<Option<(Hit, Vec<(usize, f64)>)>> = Vec::with_capacity(pts.len());
+    for (c, chunk) in pts.chunks(STOP_EVERY).enumerate() {
+        if stop(c * STOP_EVERY, pts.len()) {
+            return Err(STOPPED.to_string());
+        }
+        found.par_extend(chunk.par_iter().map_init(Scratch::default, |scratch, &(p, _)| {
+            let tip = Point3::from(p);
+            collision(index, body, &tip, &Vector3::z_axis(), scratch)
+                .map(|hit| (hit, tilt_candidates(index, body, &tip, o, accept, scratch)))
+        }));
+    }
+    let mut scratch = Scratch::default();
+    let (mut colliding, mut blocked) = (0, Vec::new());
+    let mut leans: Vec<Option<[f64; 2]>> = Vec::with_capacity(pts.len());
+    let mut prev_axis: Option<Unit<Vector3<f64>>> = None;
+    for (&(p, rapid), f) in pts.iter().zip(&found) {
+        let tip = Point3::from(p);
+        match f {
+            None => {
+                leans.push(Some([0.0, 0.0]));
+                prev_axis = None;
+            }
+            Some((hit, candidates)) => {
+                colliding += 1;
+                match pick_tilt(index, body, &tip, o, prev_axis.as_ref(), candidates, accept, &mut scratch) {
+                    Some((tilt, phi)) => {
+                        prev_axis = Some(leaning_axis(tilt, phi));
+                        leans.push(Some([tilt * phi.cos(), tilt * phi.sin()]));
+                    }
+                    None => {
+                        blocked.push(Blocked { at_mm: p, part: hit.part, depth_mm: hit.depth_mm });
+                        leans.push(None);
+                        prev_axis = None;
+                    }
+                }
+            }
+        }
+        if rapid {
+            prev_axis = None;
+        }
+    }
+    Ok((leans, colliding, blocked))
 }
 
 /// Checks every position of a path (moves to `points`, each a rapid or a feed; feed moves
@@ -704,41 +794,9 @@ pub fn clear_path(
         pts.push((to, rapid));
         prev = to;
     }
+    let (mut leans, colliding, blocked) = first_leans(index, body, &pts, o, accept, stop)?;
     let mut scratch = Scratch::default();
-    let mut out = ClearedPath::default();
-    // Per position: the lean that clears it (zero when upright clears), or blocked.
-    let mut leans: Vec<Option<[f64; 2]>> = Vec::with_capacity(pts.len());
-    // The previous position's axis while it leans (the chain breaks at a rapid).
-    let mut prev_axis: Option<Unit<Vector3<f64>>> = None;
-    for (i, &(p, rapid)) in pts.iter().enumerate() {
-        if i.is_multiple_of(STOP_EVERY) && stop(i, pts.len()) {
-            return Err(STOPPED.to_string());
-        }
-        let tip = Point3::from(p);
-        match collision(index, body, &tip, &Vector3::z_axis(), &mut scratch) {
-            None => {
-                leans.push(Some([0.0, 0.0]));
-                prev_axis = None;
-            }
-            Some(hit) => {
-                out.colliding += 1;
-                match search_tilt(index, body, &tip, o, prev_axis.as_ref(), accept, &mut scratch) {
-                    Some((tilt, phi)) => {
-                        prev_axis = Some(leaning_axis(tilt, phi));
-                        leans.push(Some([tilt * phi.cos(), tilt * phi.sin()]));
-                    }
-                    None => {
-                        out.blocked.push(Blocked { at_mm: p, part: hit.part, depth_mm: hit.depth_mm });
-                        leans.push(None);
-                        prev_axis = None;
-                    }
-                }
-            }
-        }
-        if rapid {
-            prev_axis = None;
-        }
-    }
+    let mut out = ClearedPath { colliding, blocked, ..ClearedPath::default() };
     // Ramp the lean along each chain of feed positions, both ways.
     let rate = o.max_rate_deg_mm.to_radians();
     let dist = |i: usize, j: usize| (0..3).map(|k| (pts[i].0[k] - pts[j].0[k]).powi(2)).sum::<f64>().sqrt();
@@ -1111,6 +1169,74 @@ mod tests {
         assert!(path.points.iter().all(|p| p.blocked));
         assert_eq!(path.blocked[0].part, "holder");
         assert_eq!(path.blocked[0].at_mm, [0.0, -10.0, 5.0]);
+    }
+
+    /// Reference of [`first_leans`]: every position in order, upright check then the whole tilt
+    /// search after the previous position's lean.
+    fn first_leans_in_order(
+        index: &MeshIndex,
+        body: &ToolBody,
+        pts: &[([f64; 3], bool)],
+        o: &TiltOptions,
+    ) -> Vec<Option<[f64; 2]>> {
+        let mut s = Scratch::default();
+        let mut prev: Option<Unit<Vector3<f64>>> = None;
+        let mut out = Vec::new();
+        for &(p, rapid) in pts {
+            let tip = Point3::from(p);
+            let lean = if collision(index, body, &tip, &Vector3::z_axis(), &mut s).is_none() {
+                prev = None;
+                Some([0.0, 0.0])
+            } else {
+                match search_tilt(index, body, &tip, o, prev.as_ref(), &any_axis, &mut s) {
+                    Some((tilt, phi)) => {
+                        prev = Some(leaning_axis(tilt, phi));
+                        Some([tilt * phi.cos(), tilt * phi.sin()])
+                    }
+                    None => {
+                        prev = None;
+                        None
+                    }
+                }
+            };
+            if rapid {
+                prev = None;
+            }
+            out.push(lean);
+        }
+        out
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(16))]
+
+        /// The parallel search finds the leans the one-position-at-a-time search finds, along
+        /// random paths around random posts.
+        #[test]
+        fn leans_found_in_parallel_are_those_found_in_order(
+            posts in proptest::collection::vec((-30.0f64..30.0, -30.0f64..30.0, 10.0f64..60.0), 1..4),
+            path in proptest::collection::vec((-40.0f64..40.0, -40.0f64..40.0, 0.0f64..20.0, proptest::bool::weighted(0.1)), 2..40),
+        ) {
+            let mut mesh = block([posts[0].0, posts[0].1, 0.0], [posts[0].0 + 6.0, posts[0].1 + 6.0, posts[0].2]);
+            for p in &posts[1..] {
+                mesh = both(mesh, block([p.0, p.1, 0.0], [p.0 + 6.0, p.1 + 6.0, p.2]));
+            }
+            let index = MeshIndex::new(&mesh);
+            let body = ToolBody::new(&tool(), 0.01, None);
+            let o = TiltOptions::default();
+            let pts: Vec<([f64; 3], bool)> = path.iter().map(|&(x, y, z, r)| ([x, y, z], r)).collect();
+            let (fast, colliding, blocked) = first_leans(&index, &body, &pts, &o, &any_axis, &never).expect("leans");
+            let slow = first_leans_in_order(&index, &body, &pts, &o);
+            prop_assert_eq!(fast.len(), slow.len());
+            for (i, (f, s)) in fast.iter().zip(&slow).enumerate() {
+                match (f, s) {
+                    (Some(f), Some(s)) => prop_assert!((f[0] - s[0]).abs() < 1e-9 && (f[1] - s[1]).abs() < 1e-9, "position {}: {:?} vs {:?}", i, f, s),
+                    _ => prop_assert_eq!(f.is_none(), s.is_none(), "position {}", i),
+                }
+            }
+            prop_assert_eq!(blocked.len(), slow.iter().filter(|l| l.is_none()).count());
+            prop_assert!(colliding >= blocked.len());
+        }
     }
 
     #[test]
