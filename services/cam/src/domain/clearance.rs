@@ -657,13 +657,11 @@ fn tilt_candidates(
 /// nearest the previous one (`prev`), so the lean does not swap sides between neighbours; the
 /// tilt then bisected between the last colliding and the first clearing step.
 fn pick_tilt(
-    index: &MeshIndex,
-    body: &ToolBody,
+    (index, body, accept): (&MeshIndex, &ToolBody, Accept<'_>),
     tip: &Point3<f64>,
     o: &TiltOptions,
     prev: Option<&Unit<Vector3<f64>>>,
     candidates: &[(usize, f64)],
-    accept: Accept<'_>,
     scratch: &mut Scratch,
 ) -> Option<(f64, f64)> {
     let step = o.step_deg.to_radians();
@@ -701,7 +699,14 @@ fn search_tilt(
     scratch: &mut Scratch,
 ) -> Option<(f64, f64)> {
     let candidates = tilt_candidates(index, body, tip, o, accept, scratch);
-    pick_tilt(index, body, tip, o, prev, &candidates, accept, scratch)
+    pick_tilt((index, body, accept), tip, o, prev, &candidates, scratch)
+}
+
+/// What [`first_leans`] found.
+struct FirstLeans {
+    leans: Vec<Option<[f64; 2]>>,
+    colliding: usize,
+    blocked: Vec<Blocked>,
 }
 
 /// Per position (tip, rapid) the lean `[tilt·cos φ, tilt·sin φ]` that clears it (zero where
@@ -717,8 +722,10 @@ fn first_leans(
     o: &TiltOptions,
     accept: Accept<'_>,
     stop: Stop<'_>,
-) -> Result<(Vec<Option<[f64; 2]>>, usize, Vec<Blocked>), String> {
-    let mut found: Vec<Option<(Hit, Vec<(usize, f64)>)>> = Vec::with_capacity(pts.len());
+) -> Result<FirstLeans, String> {
+    // Per position: what the upright tool hits and the leans that clear it.
+    type Found = Option<(Hit, Vec<(usize, f64)>)>;
+    let mut found: Vec<Found> = Vec::with_capacity(pts.len());
     for (c, chunk) in pts.chunks(STOP_EVERY).enumerate() {
         if stop(c * STOP_EVERY, pts.len()) {
             return Err(STOPPED.to_string());
@@ -742,7 +749,8 @@ fn first_leans(
             }
             Some((hit, candidates)) => {
                 colliding += 1;
-                match pick_tilt(index, body, &tip, o, prev_axis.as_ref(), candidates, accept, &mut scratch) {
+                match pick_tilt((index, body, accept), &tip, o, prev_axis.as_ref(), candidates, &mut scratch)
+                {
                     Some((tilt, phi)) => {
                         prev_axis = Some(leaning_axis(tilt, phi));
                         leans.push(Some([tilt * phi.cos(), tilt * phi.sin()]));
@@ -759,7 +767,7 @@ fn first_leans(
             prev_axis = None;
         }
     }
-    Ok((leans, colliding, blocked))
+    Ok(FirstLeans { leans, colliding, blocked })
 }
 
 /// Checks every position of a path (moves to `points`, each a rapid or a feed; feed moves
@@ -794,7 +802,7 @@ pub fn clear_path(
         pts.push((to, rapid));
         prev = to;
     }
-    let (mut leans, colliding, blocked) = first_leans(index, body, &pts, o, accept, stop)?;
+    let FirstLeans { mut leans, colliding, blocked } = first_leans(index, body, &pts, o, accept, stop)?;
     let mut scratch = Scratch::default();
     let mut out = ClearedPath { colliding, blocked, ..ClearedPath::default() };
     // Ramp the lean along each chain of feed positions, both ways.
@@ -1225,7 +1233,8 @@ mod tests {
             let body = ToolBody::new(&tool(), 0.01, None);
             let o = TiltOptions::default();
             let pts: Vec<([f64; 3], bool)> = path.iter().map(|&(x, y, z, r)| ([x, y, z], r)).collect();
-            let (fast, colliding, blocked) = first_leans(&index, &body, &pts, &o, &any_axis, &never).expect("leans");
+            let FirstLeans { leans: fast, colliding, blocked } =
+                first_leans(&index, &body, &pts, &o, &any_axis, &never).expect("leans");
             let slow = first_leans_in_order(&index, &body, &pts, &o);
             prop_assert_eq!(fast.len(), slow.len());
             for (i, (f, s)) in fast.iter().zip(&slow).enumerate() {
