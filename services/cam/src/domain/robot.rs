@@ -709,11 +709,16 @@ pub fn plan_robot_watched(
         let target = cell.target(&tip.coords.into(), &axis.into_inner().into(), spin);
         arm.ik_solutions(&target, &tilt_ik).is_ok_and(|s| !s.is_empty())
     };
+    // Progress in whole percent of the check, each told once.
+    let told = std::sync::atomic::AtomicUsize::new(usize::MAX);
     let stop = |done: usize, total: usize| {
-        progress(
-            0.1 + 0.8 * done as f64 / total.max(1) as f64,
-            &format!("checking the tool body at position {done} of {total}"),
-        );
+        let pct = 100 * done / total.max(1);
+        if told.swap(pct, std::sync::atomic::Ordering::Relaxed) != pct {
+            progress(
+                0.1 + 0.8 * done as f64 / total.max(1) as f64,
+                &format!("checking the tool body at position {done} of {total}"),
+            );
+        }
         cancelled()
     };
     progress(0.1, "checking the tool body against the mesh");

@@ -41,6 +41,9 @@ pub struct JobSpec {
     pub robot: Option<RobotParams>,
 }
 
+/// Smallest dexel cell of a robot job's simulation, mm (the machine service's limit).
+pub const ROBOT_MIN_CELL_MM: f64 = 0.01;
+
 /// How the part is made.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
 #[serde(rename_all = "snake_case")]
@@ -753,6 +756,15 @@ impl JobSpec {
                     "a robot job runs on the robot cell's dexel simulation: only execute.cell_mm applies",
                 ));
             }
+            if let Some(c) = ex.cell_mm
+                && c.is_finite()
+                && c < ROBOT_MIN_CELL_MM
+            {
+                return Err(err(
+                    "execute.cell_mm",
+                    format!("a robot job's dexel cell must be at least {ROBOT_MIN_CELL_MM} mm, got {c}"),
+                ));
+            }
         }
         Ok(())
     }
@@ -960,6 +972,7 @@ mod tests {
             (mesh(r#", "plan": {}"#), "plan"),
             (mesh(r#", "execute": {"machine": "emco-f1"}"#), "execute.machine"),
             (mesh(r#", "execute": {"adaptive": "off"}"#), "execute.adaptive"),
+            (mesh(r#", "execute": {"cell_mm": 0.006}"#), "execute.cell_mm"),
             (
                 format!(r#"{{"input": {{"kind": "depth_map", "artifact": "{SHA}"}}, "process": "robot"}}"#),
                 "process",
