@@ -363,6 +363,32 @@ async fn the_console_shows_the_server_s_error_for_a_bad_file_and_asks_for_a_toke
     .await?;
     assert!(next_to.as_str().unwrap_or_default().contains("positive"), "{next_to}");
 
+    // A mesh may be made by the robot: its settings replace the scan, reconstruct and plan
+    // sections (the bad plan value above is no longer sent), of execute only the dexel cell
+    // stays, and the server's check of a robot setting lands next to that field.
+    c.find(Locator::Css("#f-process")).await?.send_keys("robot").await?;
+    let shown = c
+        .execute(
+            "const f = document.querySelector('#job-form');
+             const vis = (s) => !f.querySelector(`details[data-section=\"${s}\"]`).hidden;
+             return [vis('scan'), vis('reconstruct'), vis('plan'), vis('robot'), vis('execute'),
+                     [...f.querySelectorAll('details[data-section=\"execute\"] .field')].filter(e => !e.hidden).map(e => e.dataset.field)]",
+            vec![],
+        )
+        .await?;
+    assert_eq!(shown, json!([false, false, false, true, true, ["execute.cell_mm"]]), "{shown}");
+    c.find(Locator::Css("details[data-section=\"robot\"] > summary")).await?.click().await?;
+    c.find(Locator::Css("[data-field=\"robot.max_tilt_deg\"]:is(input)")).await?.send_keys("95").await?;
+    c.find(Locator::Css("#submit-job")).await?.click().await?;
+    let next_to = until(
+        &c,
+        "the robot field error",
+        Duration::from_secs(20),
+        "return document.querySelector('.field.invalid[data-field=\"robot.max_tilt_deg\"] .field-error')?.textContent",
+    )
+    .await?;
+    assert!(next_to.as_str().unwrap_or_default().contains("from 0 to 80"), "{next_to}");
+
     assert_eq!(console_errors(&c).await?, Vec::<String>::new(), "errors in the page");
     c.close().await?;
     drop(driver);

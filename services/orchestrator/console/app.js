@@ -867,6 +867,8 @@ function sectionForm(all, path, schema, catalogs, skip = []) {
 function collect(form) {
   const out = {};
   for (const el of form.querySelectorAll('[data-field]:is(input, select, textarea)')) {
+    // What the chosen process does not use is not sent.
+    if (el.closest('[hidden]')) continue;
     const raw = el.value.trim();
     if (raw === '') continue;
     let v = raw;
@@ -965,12 +967,35 @@ function jobForm(all, catalogs, file, kind, art) {
     inputFields.append(fieldFor(all, `input.${n}`, n, prop, catalogs));
   }
   if (inputFields.children.length) form.append(h('fieldset', { dataset: { section: 'input' } }, h('legend', { text: 'input' }), inputFields));
-  const sections = [['scan', 'ScanParams'], ['reconstruct', 'ReconstructParams'], ['plan', 'PlanParams'], ['execute', 'ExecuteParams']];
-  for (const [section, schemaName] of sections) {
-    if (STAGES.indexOf(section) < first || !all[schemaName]) continue;
-    form.append(h('details', { class: 'section', dataset: { section } }, h('summary', { text: `${section} (optional: defaults when left empty)` }),
-      sectionForm(all, section, all[schemaName], catalogs)));
+  // A mesh may be made by the robot instead of the mill: its own settings, no scan, reconstruct
+  // or plan section, of execute only the dexel cell.
+  const spec = resolve(all, all.JobSpec || {});
+  const robotOk = kind === 'mesh' && all.RobotParams && spec.properties && spec.properties.process;
+  let process = null;
+  if (robotOk) {
+    const box = fieldFor(all, 'process', 'process', spec.properties.process, catalogs);
+    process = $('select', box);
+    form.append(h('div', { class: 'fields' }, box));
   }
+  const bySection = {};
+  const sections = [['scan', 'ScanParams'], ['reconstruct', 'ReconstructParams'], ['plan', 'PlanParams'], ['robot', 'RobotParams'], ['execute', 'ExecuteParams']];
+  for (const [section, schemaName] of sections) {
+    if (section === 'robot' ? !robotOk : STAGES.indexOf(section) < first || !all[schemaName]) continue;
+    bySection[section] = h('details', { class: 'section', dataset: { section } }, h('summary', { text: `${section} (optional: defaults when left empty)` }),
+      sectionForm(all, section, all[schemaName], catalogs));
+    form.append(bySection[section]);
+  }
+  const applyProcess = () => {
+    const robot = process !== null && process.value === 'robot';
+    for (const s of ['scan', 'reconstruct', 'plan']) if (bySection[s]) bySection[s].hidden = robot;
+    if (bySection.robot) bySection.robot.hidden = !robot;
+    if (bySection.execute) {
+      for (const f of bySection.execute.querySelectorAll('.field')) f.hidden = robot && f.dataset.field !== 'execute.cell_mm';
+      for (const f of bySection.execute.querySelectorAll('fieldset')) f.hidden = robot;
+    }
+  };
+  if (process) process.addEventListener('change', applyProcess);
+  applyProcess();
   const general = h('p', { class: 'error', role: 'alert', id: 'form-error' });
   const submit = h('button', { type: 'submit', class: 'primary', id: 'submit-job', text: 'Submit job' });
   form.append(general, h('div', { class: 'row' }, submit, h('span', { class: 'muted small', text: `Input: ${kind.replace('_', ' ')} ${art.sha256.slice(0, 12)}…` })));
