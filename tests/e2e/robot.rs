@@ -98,6 +98,8 @@ async fn a_robot_job_cuts_a_mesh_on_the_arm_and_reports_it() -> anyhow::Result<(
     assert!(gouge <= 0.5, "max gouge {gouge} mm");
     assert_eq!(metric(&job, "original_max_gouge_mm")?, gouge);
     assert!(metric(&job, "cycle_time_s")? > 10.0);
+    // The replay takes the time the plan's timing gave the arm.
+    assert!((metric(&job, "estimated_time_s")? - metric(&job, "cycle_time_s")?).abs() < 1e-6);
 
     // The Cartesian program leans the tool (A/B words) and the report shows the robot's plan and run.
     let gcode_sha = job["artifacts"]["gcode"]["sha256"].as_str().context("gcode")?;

@@ -210,6 +210,16 @@ pub struct JobMetrics {
     /// ... RMS deviation, mm.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub opened_rms_deviation_mm: Option<f64>,
+    /// The CAM's estimate of the program's cycle time (a robot job: the arm's time), s.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub estimated_time_s: Option<f64>,
+    /// Material the simulated mill removed, mm³.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub removed_mm3: Option<f64>,
+    /// Cycle time under the other adaptive policy (feed-only when the job ran aco, and the
+    /// reverse), s.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub cycle_time_other_policy_s: Option<f64>,
     /// A robot job (`"process": "robot"`): layers the mesh was sliced into.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub robot_layers: Option<f64>,
@@ -274,6 +284,9 @@ impl JobMetrics {
                 "opened_max_leftover_mm" => &mut self.opened_max_leftover_mm,
                 "opened_mean_leftover_mm" => &mut self.opened_mean_leftover_mm,
                 "opened_rms_deviation_mm" => &mut self.opened_rms_deviation_mm,
+                "estimated_time_s" => &mut self.estimated_time_s,
+                "removed_mm3" => &mut self.removed_mm3,
+                "cycle_time_other_policy_s" => &mut self.cycle_time_other_policy_s,
                 "robot_layers" => &mut self.robot_layers,
                 "robot_positions" => &mut self.robot_positions,
                 "robot_colliding_upright" => &mut self.robot_colliding_upright,
