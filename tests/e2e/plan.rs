@@ -125,6 +125,12 @@ async fn a_planned_program_is_machined_and_measured_against_the_depth_map() -> a
     let plain = m["cycle_time_no_adaptive_s"].as_f64().unwrap_or(0.0);
     // Light cuts in aluminium: the loop raises the feed, the cycle is shorter than as programmed.
     assert!(cycle > 10.0 && plain > cycle, "{m}");
+    // The CAM's own figures are the job's too: its sweep of the program finds no gouge either,
+    // and it estimated a time.
+    let planned = m["plan_max_gouge_mm"].as_f64().unwrap_or(f64::NAN);
+    assert!(planned < 0.05, "planned gouge {planned}: {m}");
+    assert!(m["estimated_time_s"].as_f64().unwrap_or(0.0) > 0.0, "{m}");
+    assert!(m["removed_mm3"].as_f64().unwrap_or(0.0) > 0.0, "{m}");
     let report_sha = done["artifacts"]["machine_report"]["sha256"].as_str().expect("report");
     let report: Value =
         stack.http.get(stack.url(&format!("/v1/artifacts/{report_sha}"))).send().await?.json().await?;

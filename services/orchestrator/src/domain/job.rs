@@ -213,6 +213,14 @@ pub struct JobMetrics {
     /// The CAM's estimate of the program's cycle time (a robot job: the arm's time), s.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub estimated_time_s: Option<f64>,
+    /// The CAM's own sweep of the program over its stock model against the depth map (the part
+    /// opened by the tools): deepest gouge, most material left and its mean, mm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub plan_max_gouge_mm: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub plan_max_leftover_mm: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub plan_mean_leftover_mm: Option<f64>,
     /// Material the simulated mill removed, mm³.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub removed_mm3: Option<f64>,
@@ -285,6 +293,9 @@ impl JobMetrics {
                 "opened_mean_leftover_mm" => &mut self.opened_mean_leftover_mm,
                 "opened_rms_deviation_mm" => &mut self.opened_rms_deviation_mm,
                 "estimated_time_s" => &mut self.estimated_time_s,
+                "plan_max_gouge_mm" => &mut self.plan_max_gouge_mm,
+                "plan_max_leftover_mm" => &mut self.plan_max_leftover_mm,
+                "plan_mean_leftover_mm" => &mut self.plan_mean_leftover_mm,
                 "removed_mm3" => &mut self.removed_mm3,
                 "cycle_time_other_policy_s" => &mut self.cycle_time_other_policy_s,
                 "robot_layers" => &mut self.robot_layers,
