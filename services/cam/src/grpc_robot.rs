@@ -42,15 +42,12 @@ pub(crate) fn check(p: pb::RobotParams, library: &ToolLibrary) -> Option<FieldVi
         CamError::InvalidParameter { field, message } => FieldViolation { field, message },
         other => FieldViolation { field: "robot".into(), message: other.to_string() },
     };
+    // The ranges before the tool, so a bad value is named even with an unknown tool.
     if let Err(e) = s.check() {
         return Some(named(e));
     }
     match library.resolve(s.tool_name()) {
-        Ok(tool) => {
-            // The layer step against the flutes needs only the tool: any mesh will do.
-            let probe = Mesh::cuboid(10.0, 10.0, 10.0);
-            s.job(&probe, tool).err().map(named)
-        }
+        Ok(tool) => s.check_with(&tool).err().map(named),
         Err(e) => Some(FieldViolation { field: "robot.tool".into(), message: e.to_string() }),
     }
 }

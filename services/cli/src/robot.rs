@@ -138,27 +138,16 @@ pub fn run(input: &Path, args: &RobotArgs, tools_dir: Option<&Path>, output: &Pa
     std::fs::write(&joints, serde_json::to_vec(&plan.robot)?)
         .with_context(|| format!("writing {}", joints.display()))?;
     let report = robot_report(&plan, &topo, &input.display().to_string(), &tool.name, elapsed);
-    let defects: Vec<&depthmill_cam::domain::slice::Defect> =
-        plan.layers.layers.iter().flat_map(|l| &l.defects).collect();
-    let open_chains: usize = plan.layers.layers.iter().map(|l| l.open.len()).sum();
     let r = &plan.robot;
     let report_path = sibling("robot.json");
     std::fs::write(&report_path, serde_json::to_vec_pretty(&report)?)
         .with_context(|| format!("writing {}", report_path.display()))?;
-    if !defects.is_empty() || open_chains > 0 {
-        crate::outln!(
-            "warning: {}: {} layer defects (closed where the chain's ends meet), {} open chains (not cut); listed in {}",
-            input.display(),
-            defects.len(),
-            open_chains,
-            report_path.display()
-        );
-        for d in defects.iter().take(3) {
-            crate::outln!("  z {:.3} at ({:.3}, {:.3}): {}", d.z_mm, d.at[0], d.at[1], d.message);
+    // What the plan found (the open mesh was said before planning); the report lists it all.
+    for (code, message) in robot_warnings(&plan, &topo) {
+        if code != "mesh_not_closed" {
+            let kind = if code == "placement" { "note" } else { "warning" };
+            crate::outln!("{kind}: {}: {message} (see {})", input.display(), report_path.display());
         }
-    }
-    for (_, message) in robot_warnings(&plan, &topo).iter().filter(|(code, _)| *code == "placement") {
-        crate::outln!("note: {}: {message}", input.display());
     }
     let c = &plan.path;
     crate::outln!(

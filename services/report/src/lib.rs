@@ -248,7 +248,7 @@ impl<'a> Ctx<'a> {
     }
 
     fn first_stage(&self) -> Option<&'static str> {
-        if self.job["spec"]["process"].as_str() == Some("robot") {
+        if self.is_robot() {
             return Some("plan");
         }
         match self.job["spec"]["input"]["kind"].as_str()? {

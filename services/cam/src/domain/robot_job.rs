@@ -109,9 +109,8 @@ impl RobotSettings {
         self.rpm.unwrap_or(DEFAULT_RPM)
     }
 
-    /// The job of cutting `mesh` (millimetres) with `tool`: the checks of
-    /// [`RobotSettings::check`], then a layer step within the tool's flutes.
-    pub fn job(&self, mesh: &Mesh, tool: Tool) -> Result<RobotJob, CamError> {
+    /// [`RobotSettings::check`], then what needs the tool: a layer step within its flutes.
+    pub fn check_with(&self, tool: &Tool) -> Result<(), CamError> {
         self.check()?;
         let step = self.step_mm.unwrap_or(DEFAULT_STEP_MM);
         if step > tool.cutting_length_mm {
@@ -123,6 +122,13 @@ impl RobotSettings {
                 ),
             ));
         }
+        Ok(())
+    }
+
+    /// The job of cutting `mesh` (millimetres) with `tool`, after [`RobotSettings::check_with`].
+    pub fn job(&self, mesh: &Mesh, tool: Tool) -> Result<RobotJob, CamError> {
+        self.check_with(&tool)?;
+        let step = self.step_mm.unwrap_or(DEFAULT_STEP_MM);
         let bounds = mesh
             .bounds()
             .ok_or_else(|| CamError::param("input.artifact", "the mesh has no finite vertex"))?;
