@@ -2,6 +2,8 @@
 //!
 //! - [`robot`]: the Adept Viper s650 arm (its model, `depthmill_geometry::arm`, re-exported) and
 //!   its simulated motion controller.
+//! - [`calibration`]: the cell as it truly is (off its drawing by a profile of errors), what the
+//!   software believes, and the calibration from scans of the table top and a reference sphere.
 //! - [`latch`]: the encoder-latching device: positions of the robot and the table stored at
 //!   every scanner sync pulse, with latency and jitter.
 //! - [`scanner`]: the SLP-400 class laser line scanner cast at the part's mesh (own BVH):
@@ -13,6 +15,7 @@
 //!   execution (dynamic with latched poses, or stop-and-move), the registered cloud, the adaptive
 //!   rescan of the holes.
 
+pub mod calibration;
 pub mod latch;
 pub mod robot;
 pub mod scan;

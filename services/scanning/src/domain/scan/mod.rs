@@ -52,6 +52,8 @@ use serde::Serialize;
 pub use options::{PassSpec, ScanMode, ScanOptions};
 pub use plan::{Pass, ScanPlan, Station, plan_scan};
 
+use super::calibration::fit::{AlignmentMoments, CapturedFrame};
+use super::calibration::{CalibrationOptions, Cell, CellTruth, TableModel};
 use super::latch::{EncoderLatch, LatchConfig, LatchError, PositionSource};
 use super::robot::controller::{MotionController, RobotError};
 use super::scanner::{DropCounts, Floor, Scanner, ScannerError, ScannerSpec};
@@ -106,19 +108,33 @@ pub struct CellLayout {
     pub table_top_z_mm: f64,
     /// Radius of the table disc, mm.
     pub table_radius_mm: f64,
+    /// The table as calibrated (axis position and tilt, encoder zero, top runout); `None`: the
+    /// drawing above, a vertical axis and a square top.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub table: Option<TableModel>,
 }
 
 impl Default for CellLayout {
     /// Axis 500 mm from the robot's Z axis, a 400 mm disc (DESIGN §6), top 100 mm below the robot's
     /// base (an assumption: the arm stands on a pedestal beside the table).
     fn default() -> Self {
-        Self { table_axis_x_mm: 500.0, table_axis_y_mm: 0.0, table_top_z_mm: -100.0, table_radius_mm: 200.0 }
+        Self {
+            table_axis_x_mm: 500.0,
+            table_axis_y_mm: 0.0,
+            table_top_z_mm: -100.0,
+            table_radius_mm: 200.0,
+            table: None,
+        }
     }
 }
 
 impl CellLayout {
-    /// `world_from_table` at table angle `deg` (counter-clockwise seen from above).
+    /// `world_from_table` at table angle `deg` (counter-clockwise seen from above): the
+    /// calibrated table model when there is one, else the drawing.
     pub fn world_from_table(&self, deg: f64) -> Isometry3<f64> {
+        if let Some(t) = &self.table {
+            return t.world_from_table(deg);
+        }
         Isometry3::from_parts(
             Translation3::new(self.table_axis_x_mm, self.table_axis_y_mm, self.table_top_z_mm),
             UnitQuaternion::from_axis_angle(&Vector3::z_axis(), deg.to_radians()),
@@ -165,6 +181,24 @@ impl PartPlacement {
         }
         let table_from_part = Isometry3::translation(-0.5 * (min.x + max.x), -0.5 * (min.y + max.y), -min.z);
         Ok(Self { min, max, table_from_part })
+    }
+
+    /// A mesh given in the table's frame (the calibration's sphere on its post): the part frame is
+    /// the table frame.
+    pub fn in_table_frame(mesh: &Mesh) -> Result<Self, ScanError> {
+        let mut min = Point3::from(Vector3::repeat(f64::INFINITY));
+        let mut max = Point3::from(Vector3::repeat(f64::NEG_INFINITY));
+        for v in &mesh.vertices {
+            if !(v.x.is_finite() && v.y.is_finite() && v.z.is_finite()) {
+                return Err(ScanError::Mesh(format!("vertex ({}, {}, {}) is not finite", v.x, v.y, v.z)));
+            }
+            min = min.inf(v);
+            max = max.sup(v);
+        }
+        if mesh.triangles.is_empty() {
+            return Err(ScanError::Mesh("the mesh has no triangles".into()));
+        }
+        Ok(Self { min, max, table_from_part: Isometry3::identity() })
     }
 
     /// `world_from_part` at table angle `deg`.
@@ -284,6 +318,11 @@ pub struct ScanReport {
     pub registration_rms_mm: f64,
     /// Largest such distance, mm.
     pub registration_max_mm: f64,
+    /// RMS of that distance after the one rigid transform that best aligns the whole cloud
+    /// with the truth: how well the views agree with each other (the merge error), mm.
+    pub registration_merge_rms_mm: f64,
+    /// Whether the points were placed with a calibration of the cell (else with its drawing).
+    pub calibrated: bool,
     /// Coverage after the first scan.
     pub coverage_before_rescan: Option<CoverageSummary>,
     /// Coverage after the rescan.
@@ -379,12 +418,37 @@ pub struct ScanSession {
     silhouette: Option<silhouette::Silhouette>,
     /// Table points seen past the part within [`FREE_SPACE_MARGIN_MM`] of its footprint (part frame).
     free_space: Vec<Point3<f64>>,
+    /// The cell as it truly is (the physics); `layout` and `arm` hold what the software believes.
+    truth: CellTruth,
+    calibrated: bool,
+    /// Placed against true points, for the merge error.
+    moments: AlignmentMoments,
+    /// Calibration scans: every frame kept for the fit.
+    capture: Option<Capture>,
+}
+
+/// A calibration scan's frames.
+struct Capture {
+    opts: CalibrationOptions,
+    frames: Vec<CapturedFrame>,
 }
 
 impl ScanSession {
-    /// Checks the options, places the part, builds the scanner's ray-casting structure, powers and
-    /// homes the arm and powers the latch.
+    /// A scan on a cell exactly as drawn: [`ScanSession::with_cell`] with [`Cell::exact`].
     pub fn new(mesh: &Mesh, opts: ScanOptions, layout: CellLayout) -> Result<Self, ScanError> {
+        let cell = Cell::exact(&layout);
+        Self::with_cell(mesh, opts, layout, cell)
+    }
+
+    /// Checks the options, places the part, builds the scanner's ray-casting structure, powers and
+    /// homes the arm and powers the latch. The physics runs on `cell.truth`; points are placed
+    /// with its calibration (or the drawing when it has none).
+    pub fn with_cell(
+        mesh: &Mesh,
+        opts: ScanOptions,
+        layout: CellLayout,
+        cell: Cell,
+    ) -> Result<Self, ScanError> {
         let spec = ScannerSpec { line_rate_hz: opts.line_rate_hz, ..ScannerSpec::slp400() };
         opts.validate(&spec)?;
         let placement = PartPlacement::on_table(mesh, &layout)?;
@@ -397,11 +461,55 @@ impl ScanSession {
             ],
             radius_mm: layout.table_radius_mm,
         };
+        Self::build(mesh, opts, spec, layout, cell, placement, floor, None)
+    }
+
+    /// A calibration scan of `mesh` (the reference sphere, in the table's frame) on `cell`:
+    /// every frame is kept for [`ScanSession::finish_calibration`].
+    pub fn for_calibration(
+        mesh: &Mesh,
+        opts: ScanOptions,
+        layout: CellLayout,
+        cell: Cell,
+        calibration: CalibrationOptions,
+    ) -> Result<Self, ScanError> {
+        let spec = ScannerSpec { line_rate_hz: opts.line_rate_hz, ..ScannerSpec::slp400() };
+        opts.validate(&spec)?;
+        let placement = PartPlacement::in_table_frame(mesh)?;
+        let floor = Floor { z_mm: 0.0, center_xy_mm: [0.0, 0.0], radius_mm: layout.table_radius_mm };
+        let capture = Capture { opts: calibration, frames: Vec::new() };
+        Self::build(mesh, opts, spec, layout, cell, placement, floor, Some(capture))
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn build(
+        mesh: &Mesh,
+        opts: ScanOptions,
+        spec: ScannerSpec,
+        mut layout: CellLayout,
+        cell: Cell,
+        placement: PartPlacement,
+        floor: Floor,
+        capture: Option<Capture>,
+    ) -> Result<Self, ScanError> {
+        let belief = cell.belief(&layout);
+        if let Some(c) = &cell.calibration {
+            c.validate(&layout).map_err(|e| ScanError::InvalidOption {
+                field: "calibration".into(),
+                value: String::new(),
+                reason: e.to_string(),
+            })?;
+            layout.table = Some(c.table);
+        }
         let scanner = Scanner::new(spec, mesh, opts.seed)?.with_floor(floor);
         // At least two lines to a cell, so a cell between two lines is not taken for unseen.
-        let silhouette =
-            silhouette::Silhouette::of(mesh, opts.rescan_pixel_mm.max(2.0 * opts.line_spacing_mm));
-        let mut robot = MotionController::viper_s650();
+        let silhouette = if capture.is_some() {
+            None
+        } else {
+            silhouette::Silhouette::of(mesh, opts.rescan_pixel_mm.max(2.0 * opts.line_spacing_mm))
+        };
+        let model = ArmModel::viper_s650().with_tool(belief.flange_from_scanner());
+        let mut robot = MotionController::new(model, ArmModel::READY_DEG)?;
         robot.initialize(0.0)?;
         let t_s = robot.home(0.0, APPROACH_SPEED)?;
         let arm = robot.model().clone();
@@ -438,7 +546,22 @@ impl ScanSession {
             table_wait_s: 0.0,
             silhouette,
             free_space: Vec::new(),
+            truth: cell.truth,
+            calibrated: cell.calibration.is_some(),
+            moments: AlignmentMoments::default(),
+            capture,
         })
+    }
+
+    /// A calibration scan's frames so far (tests edit them to make degenerate data).
+    #[cfg(test)]
+    pub(crate) fn captured_frames(&self) -> Vec<CapturedFrame> {
+        self.capture.as_ref().map(|c| c.frames.clone()).unwrap_or_default()
+    }
+
+    /// The arm as the software believes it (the calibrated scanner mount).
+    pub fn arm(&self) -> &ArmModel {
+        &self.arm
     }
 
     /// The options.
@@ -517,7 +640,11 @@ impl ScanSession {
                 ScanMode::StopAndMove => self.stop_and_move_frames(pass, table_deg_measured)?,
             };
             let before = self.points.len();
-            self.acquire(&frames, table_deg_measured, pass.id);
+            let station_index = self
+                .capture
+                .as_ref()
+                .and_then(|c| c.opts.table_angles_deg.iter().position(|a| *a == station.table_deg));
+            self.acquire(&frames, table_deg_measured, pass.id, station_index);
             report.passes.push(PassReport {
                 id: pass.id,
                 length_mm: pass.length_mm,
@@ -556,7 +683,7 @@ impl ScanSession {
             for k in 0..n {
                 let tk = t0 + k as f64 * period;
                 let q = self.robot.read_position(tk)?;
-                let true_pose = self.arm.fk(&q);
+                let true_pose = self.truth.world_from_sensor(&q);
                 let mut src = StationSource { robot: &self.robot, table_deg };
                 let ev = self.latch.sync_pulse(&mut src, tk)?;
                 let super::latch::LatchEvent::Latch { pulse_s, values, .. } = ev else {
@@ -617,12 +744,11 @@ impl ScanSession {
             let arrive = if k == 0 { t } else { self.robot.move_pose(t, &target, STEP_SPEED)? + SETTLE_S };
             let tk = arrive.max(last + min_gap);
             let q = self.robot.read_position(tk)?;
-            let pose = self.arm.fk(&q);
             recs.push(FrameRec {
                 frame: self.next_frame,
                 pulse_s: tk,
-                true_pose: pose,
-                measured_pose: pose,
+                true_pose: self.truth.world_from_sensor(&q),
+                measured_pose: self.arm.fk(&q),
                 table_deg,
             });
             self.next_frame += 1;
@@ -633,13 +759,18 @@ impl ScanSession {
         Ok((recs, t - t_start))
     }
 
-    /// Ray casts the frames in parallel and appends their points, placed with the measured poses.
-    fn acquire(&mut self, frames: &[FrameRec], table_deg_true: f64, pass_id: u16) {
-        let part_from_world_true = self.placement.world_from_part(&self.layout, table_deg_true).inverse();
+    /// Ray casts the frames in parallel and appends their points, placed with the measured poses
+    /// and the believed table; the true sensor and table poses make the physics. A calibration
+    /// scan keeps every frame (station `station`) for the fit.
+    fn acquire(&mut self, frames: &[FrameRec], table_deg: f64, pass_id: u16, station: Option<usize>) {
+        let part_from_world_true =
+            (self.truth.table.world_from_table(table_deg) * self.placement.table_from_part).inverse();
         let scanner = &self.scanner;
         let seed = self.opts.seed;
         let placement = &self.placement;
         let layout = &self.layout;
+        let capturing = self.capture.is_some();
+        let tool_inv = self.arm.tool.inverse();
         let results: Vec<_> = frames
             .par_iter()
             .map(|f| {
@@ -648,14 +779,17 @@ impl ScanSession {
                 let profile = scanner.profile_seeded(&truth, f.frame, seed);
                 let mut sq = 0.0;
                 let mut mx: f64 = 0.0;
+                let mut moments = AlignmentMoments::default();
                 let pts: Vec<Point3<f64>> = profile
                     .points
                     .iter()
                     .map(|p| {
                         let q = placed * p;
-                        let e = (q - truth * p).norm_squared();
+                        let t = truth * p;
+                        let e = (q - t).norm_squared();
                         sq += e;
                         mx = mx.max(e);
+                        moments.add(&q, &t);
                         q
                     })
                     .collect();
@@ -672,10 +806,18 @@ impl ScanSession {
                     .map(|p| placed * p)
                     .filter(|q| q.x >= lo.x - m && q.x <= hi.x + m && q.y >= lo.y - m && q.y <= hi.y + m)
                     .collect();
-                (pts, profile.intensity, profile.dropped, sq, mx.sqrt(), floor)
+                let captured = capturing.then(|| CapturedFrame {
+                    station: station.unwrap_or(usize::MAX),
+                    table_deg: f.table_deg,
+                    world_from_flange: f.measured_pose * tool_inv,
+                    true_table_from_sensor: truth,
+                    sphere: profile.points.clone(),
+                    table: profile.floor.clone(),
+                });
+                (pts, profile.intensity, profile.dropped, sq, mx.sqrt(), floor, moments, captured)
             })
             .collect();
-        for (pts, inten, dropped, sq, mx, floor) in results {
+        for (pts, inten, dropped, sq, mx, floor, moments, captured) in results {
             self.free_space.extend(floor);
             self.pass.extend(std::iter::repeat_n(pass_id, pts.len()));
             self.points.extend(pts);
@@ -683,6 +825,10 @@ impl ScanSession {
             self.dropped.add(&dropped);
             self.err_sq += sq;
             self.err_max = self.err_max.max(mx);
+            self.moments.merge(&moments);
+            if let (Some(c), Some(frame)) = (self.capture.as_mut(), captured) {
+                c.frames.push(frame);
+            }
         }
     }
 
@@ -830,6 +976,39 @@ impl ScanSession {
         self.diagnostics.push(line);
     }
 
+    /// Fits the calibration to a calibration scan's frames ([`ScanSession::for_calibration`]):
+    /// the new calibration and its report (residuals, the registration before and after, and,
+    /// the cell being simulated, the result against its truth).
+    pub fn finish_calibration(
+        mut self,
+    ) -> Result<
+        (super::calibration::Calibration, super::calibration::CalibrationReport),
+        super::calibration::CalibrationError,
+    > {
+        let Some(capture) = self.capture.take() else {
+            return Err(super::calibration::CalibrationError::Scan(
+                "this session is not a calibration scan".into(),
+            ));
+        };
+        let previous = super::calibration::Calibration {
+            table: self.layout.table.unwrap_or_else(|| TableModel::nominal(&self.layout)),
+            scanner_mount: super::calibration::Offset::from_iso(
+                &(ArmModel::scanner_bracket().inverse() * self.arm.tool),
+            ),
+        };
+        let nominal_layout = CellLayout { table: None, ..self.layout };
+        let (cal, mut report) = super::calibration::fit::solve(
+            &capture.frames,
+            &capture.opts,
+            &nominal_layout,
+            &previous,
+            Some(&self.truth),
+        )?;
+        report.scan_time_s = self.t_s;
+        report.diagnostics = std::mem::take(&mut self.diagnostics);
+        Ok((cal, report))
+    }
+
     /// The registered cloud, the pass ids and the report.
     pub fn finish(mut self) -> ScanOutput {
         let n = self.points.len();
@@ -849,6 +1028,8 @@ impl ScanSession {
             dropped: self.dropped,
             registration_rms_mm: if n > 0 { (self.err_sq / n as f64).sqrt() } else { 0.0 },
             registration_max_mm: self.err_max,
+            registration_merge_rms_mm: self.moments.rms_after_alignment(),
+            calibrated: self.calibrated,
             coverage_before_rescan: self.coverage_before,
             coverage_after_rescan: self.coverage_after,
             rescan_targets: self.rescan_targets,
