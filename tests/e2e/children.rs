@@ -15,7 +15,7 @@ use serde::{Deserialize, Serialize};
 #[derive(Serialize, Deserialize)]
 pub enum Role {
     Orchestrator(Box<depthmill_orchestrator::Config>),
-    Scanning(depthmill_scanning::Config),
+    Scanning(Box<depthmill_scanning::Config>),
     Reconstruction(depthmill_reconstruction::Config),
     Cam(depthmill_cam::Config),
     Machine(depthmill_machine::Config),
@@ -57,7 +57,7 @@ fn child_process() -> anyhow::Result<()> {
             }
             Role::Scanning(config) => {
                 let listener = tokio::net::TcpListener::bind(config.grpc_addr).await?;
-                depthmill_scanning::serve(listener, config, std::future::pending()).await?;
+                depthmill_scanning::serve(listener, *config, std::future::pending()).await?;
             }
             Role::Reconstruction(config) => {
                 let listener = tokio::net::TcpListener::bind(config.grpc_addr).await?;

@@ -294,6 +294,7 @@ async fn cancel_reaches_the_instance_that_runs_the_stage() -> anyhow::Result<()>
         stage: depthmill_orchestrator::domain::Stage::Execute,
         spec: spec.clone(),
         artifacts: [("gcode".to_string(), program.clone())].into_iter().collect(),
+        calibration: None,
     };
     for round in 0..3 {
         // One call held on each instance.

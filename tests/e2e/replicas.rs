@@ -130,13 +130,13 @@ async fn replicas_and_instances_survive_sigkill() -> anyhow::Result<()> {
             let store = Some(bucket.clone());
             let token = Some("replica-test-token".to_string());
             let role = match kind {
-                "scanning" => Role::Scanning(depthmill_scanning::Config {
+                "scanning" => Role::Scanning(Box::new(depthmill_scanning::Config {
                     grpc_addr: addr,
                     artifacts_dir: cache,
                     artifact_store: store,
                     service_token: token,
                     ..Default::default()
-                }),
+                })),
                 "reconstruction" => Role::Reconstruction(depthmill_reconstruction::Config {
                     grpc_addr: addr,
                     artifacts_dir: cache,

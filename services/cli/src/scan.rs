@@ -10,6 +10,7 @@ use std::sync::Arc;
 use anyhow::{Context as _, bail};
 use depthmill_geometry::formats::{ReadLimits, read_mesh};
 use depthmill_scanning::devices::table::{SimulatedTable, TableClient};
+use depthmill_scanning::domain::calibration::{CalibrationOptions, Cell, CellErrors};
 use depthmill_scanning::domain::scan::{CellLayout, ScanOptions};
 use depthmill_scanning::domain::table::TableConfig;
 
@@ -62,20 +63,46 @@ pub async fn run(input: &Path, args: &ScanArgs, output: &Path) -> anyhow::Result
         b.set_message(m);
     });
     let started = std::time::Instant::now();
-    let result = depthmill_scanning::session::run_scan(
-        mesh,
-        opts,
-        CellLayout::default(),
+    // The simulated cell is off its drawing as a real one is: calibrate it, then scan.
+    let layout = CellLayout::default();
+    let errors = CellErrors::default();
+    let calibrated = depthmill_scanning::session::run_calibration(
+        Cell::new(&layout, &errors, None),
+        layout,
+        CalibrationOptions::default(),
         &mut table,
-        progress,
+        progress.clone(),
         tokio_util::sync::CancellationToken::new(),
     )
-    .await;
+    .await
+    .context("calibrating the cell");
+    let result = match calibrated {
+        Ok((cal, report)) => {
+            if let (Some(b), Some(a)) = (report.registration_before, report.registration_after) {
+                bar.println(format!(
+                    "cell calibrated in {:.1} s of simulated scanning: merge error {:.4} mm before, {:.4} mm after",
+                    report.scan_time_s, b.merge_rms_mm, a.merge_rms_mm
+                ));
+            }
+            depthmill_scanning::session::run_scan(
+                mesh,
+                opts,
+                layout,
+                Cell::new(&layout, &errors, Some(cal)),
+                &mut table,
+                progress,
+                tokio_util::sync::CancellationToken::new(),
+            )
+            .await
+            .context("scanning")
+        }
+        Err(e) => Err(e),
+    };
     bar.finish_and_clear();
     drop(table);
     stop.cancel();
     let _ = server.await;
-    let out = result.with_context(|| format!("scanning {}", input.display()))?;
+    let out = result.with_context(|| format!("{}", input.display()))?;
     let (out, bytes) = tokio::task::spawn_blocking(move || {
         let b = depthmill_scanning::encode_cloud(&out);
         (out, b)

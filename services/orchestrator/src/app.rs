@@ -28,6 +28,9 @@ pub struct ApiError {
     pub field: Option<String>,
 }
 
+/// Longest a calibration routine may take (table turns in real time, scans, fit).
+pub const CALIBRATION_DEADLINE: std::time::Duration = std::time::Duration::from_secs(600);
+
 impl ApiError {
     pub fn new(code: ErrorCode, message: impl Into<String>) -> Self {
         Self { code, message: message.into(), field: None }
@@ -563,6 +566,42 @@ impl App {
     /// Opens an artifact for download.
     pub async fn download(&self, sha256: &str) -> Result<(ArtifactRef, BlobReader), ApiError> {
         Ok(self.artifacts.open(sha256).await?)
+    }
+
+    /// Runs the scanning cell's calibration routine and stores the result as the next version
+    /// (the one in force from now on). `trigger`: `api` or `auto`.
+    pub async fn calibrate(
+        &self,
+        params: &crate::stages::CalibrationParams,
+        trigger: &str,
+    ) -> Result<crate::store::CalibrationRecord, ApiError> {
+        let current = self.store.latest_calibration().await?;
+        let id = format!("cal_{}", uuid::Uuid::now_v7().simple());
+        let run = self
+            .stages
+            .calibrate(&id, params, current.as_ref(), CALIBRATION_DEADLINE)
+            .await
+            .map_err(|e| ApiError::new(e.code, e.message))?;
+        let rec = crate::store::CalibrationRecord {
+            id,
+            version: 0,
+            created_at_ms: now_ms(),
+            trigger_kind: trigger.to_string(),
+            calibration_json: run.calibration_json,
+            report_json: run.report_json,
+        };
+        let stored = self.store.create_calibration(&rec).await?;
+        tracing::info!(id = %stored.id, version = stored.version, trigger, "cell calibration stored");
+        Ok(stored)
+    }
+
+    /// The calibration in force; when there is none yet, the cell is calibrated first (stored
+    /// with trigger `auto`).
+    pub async fn calibration_in_force(&self) -> Result<crate::store::CalibrationRecord, ApiError> {
+        match self.store.latest_calibration().await? {
+            Some(c) => Ok(c),
+            None => self.calibrate(&crate::stages::CalibrationParams::default(), "auto").await,
+        }
     }
 
     /// The CAM service's tool library.

@@ -402,6 +402,8 @@ pub fn job(j: &Job) -> pb::Job {
             scan_time_s: j.metrics.scan_time_s,
             scan_coverage_pct: j.metrics.scan_coverage_pct,
             scan_registration_rms_mm: j.metrics.scan_registration_rms_mm,
+            scan_registration_merge_rms_mm: j.metrics.scan_registration_merge_rms_mm,
+            scan_calibration_version: j.metrics.scan_calibration_version,
             mean_leftover_mm: j.metrics.original_mean_leftover_mm,
             robot_layers: j.metrics.robot_layers,
             robot_positions: j.metrics.robot_positions,

@@ -29,6 +29,120 @@ pub struct StageCall {
     pub spec: JobSpec,
     /// The job's artifacts so far: its input (under its kind's name) and earlier stages' outputs.
     pub artifacts: BTreeMap<String, ArtifactRef>,
+    /// The scanning cell's calibration in force (the scan stage places its points with it).
+    pub calibration: Option<crate::store::CalibrationRecord>,
+}
+
+/// The calibration routine's options (`POST /v1/calibrations`); unset fields take the defaults.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize, serde::Deserialize, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct CalibrationParams {
+    /// Table angles the reference sphere and the top are scanned at, degrees (default 0, 90, 180,
+    /// 270; at least 3 over at least 90°).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub table_angles_deg: Option<Vec<f64>>,
+    /// Radius of the reference sphere, mm (default 12.7).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sphere_radius_mm: Option<f64>,
+    /// Centre of the sphere in the table's frame, mm (default [100, 0, 32.7]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sphere_at_mm: Option<[f64; 3]>,
+    /// Distance between scanner lines, mm (default 0.5).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub line_spacing_mm: Option<f64>,
+    /// Noise seed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub seed: Option<u64>,
+}
+
+/// A calibration the scanning service made: its parameters and its report, JSON.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CalibrationRun {
+    pub calibration_json: String,
+    pub report_json: String,
+}
+
+/// The stored calibration's parameters (the scanning service's JSON form).
+#[derive(Debug, Clone, Copy, serde::Serialize, serde::Deserialize)]
+struct CalibrationJson {
+    table: TableJson,
+    scanner_mount: OffsetJson,
+}
+
+#[derive(Debug, Clone, Copy, serde::Serialize, serde::Deserialize)]
+struct TableJson {
+    axis_x_mm: f64,
+    axis_y_mm: f64,
+    top_z_mm: f64,
+    axis_tilt_x_deg: f64,
+    axis_tilt_y_deg: f64,
+    zero_deg: f64,
+    top_tilt_x_deg: f64,
+    top_tilt_y_deg: f64,
+}
+
+#[derive(Debug, Clone, Copy, serde::Serialize, serde::Deserialize)]
+struct OffsetJson {
+    translation_mm: [f64; 3],
+    rotation_deg: [f64; 3],
+}
+
+fn v3(v: [f64; 3]) -> Option<types::Vec3> {
+    Some(types::Vec3 { x: v[0], y: v[1], z: v[2] })
+}
+
+fn v3_of(v: Option<types::Vec3>) -> [f64; 3] {
+    v.map_or([0.0; 3], |v| [v.x, v.y, v.z])
+}
+
+/// A stored calibration on the wire.
+fn calibration_to_wire(rec: &crate::store::CalibrationRecord) -> Result<scan::CellCalibration, StageError> {
+    let c: CalibrationJson = serde_json::from_str(&rec.calibration_json).map_err(|e| {
+        StageError::new(ErrorCode::Internal, format!("stored calibration {} is corrupt: {e}", rec.id))
+    })?;
+    let t = c.table;
+    Ok(scan::CellCalibration {
+        id: rec.id.clone(),
+        version: u32::try_from(rec.version).unwrap_or(u32::MAX),
+        table: Some(scan::TableModel {
+            axis_x_mm: t.axis_x_mm,
+            axis_y_mm: t.axis_y_mm,
+            top_z_mm: t.top_z_mm,
+            axis_tilt_x_deg: t.axis_tilt_x_deg,
+            axis_tilt_y_deg: t.axis_tilt_y_deg,
+            zero_deg: t.zero_deg,
+            top_tilt_x_deg: t.top_tilt_x_deg,
+            top_tilt_y_deg: t.top_tilt_y_deg,
+        }),
+        scanner_mount: Some(scan::RigidOffset {
+            translation_mm: v3(c.scanner_mount.translation_mm),
+            rotation_deg: v3(c.scanner_mount.rotation_deg),
+        }),
+    })
+}
+
+/// A wire calibration as the stored JSON.
+fn calibration_json_of(c: &scan::CellCalibration) -> Result<String, StageError> {
+    let t = c.table.unwrap_or_default();
+    let m = c.scanner_mount.unwrap_or_default();
+    let j = CalibrationJson {
+        table: TableJson {
+            axis_x_mm: t.axis_x_mm,
+            axis_y_mm: t.axis_y_mm,
+            top_z_mm: t.top_z_mm,
+            axis_tilt_x_deg: t.axis_tilt_x_deg,
+            axis_tilt_y_deg: t.axis_tilt_y_deg,
+            zero_deg: t.zero_deg,
+            top_tilt_x_deg: t.top_tilt_x_deg,
+            top_tilt_y_deg: t.top_tilt_y_deg,
+        },
+        scanner_mount: OffsetJson {
+            translation_mm: v3_of(m.translation_mm),
+            rotation_deg: v3_of(m.rotation_deg),
+        },
+    };
+    serde_json::to_string(&j)
+        .map_err(|e| StageError::new(ErrorCode::Internal, format!("encoding the calibration: {e}")))
 }
 
 /// A failed stage call, classified.
@@ -100,6 +214,15 @@ pub trait StageRunner: Send + Sync + 'static {
     async fn list_materials(&self) -> Result<Vec<MaterialSummary>, StageError>;
     /// The machine service's profiles and the materials of its cutting model.
     async fn list_machines(&self) -> Result<(Vec<MachineSummary>, Vec<String>), StageError>;
+    /// Runs the scanning cell's calibration routine; `current` is the calibration in force (the
+    /// calibration scans are placed with it and the report compares).
+    async fn calibrate(
+        &self,
+        run_id: &str,
+        params: &CalibrationParams,
+        current: Option<&crate::store::CalibrationRecord>,
+        deadline: Duration,
+    ) -> Result<CalibrationRun, StageError>;
 }
 
 /// A work material, as `GET /v1/materials` lists it.
@@ -455,6 +578,7 @@ impl StageRunner for GrpcStages {
                         mesh: Some(need(call, "mesh")?),
                         params: Some(convert::scan_params(&call.spec.scan.clone().unwrap_or_default())),
                         units: convert::input_units(call.spec.input.units) as i32,
+                        calibration: call.calibration.as_ref().map(calibration_to_wire).transpose()?,
                     };
                     let mut client = scan::scanning_service_client::ScanningServiceClient::new(channel);
                     let stream =
@@ -472,6 +596,11 @@ impl StageRunner for GrpcStages {
                     out.metrics.insert("scan_time_s".into(), r.scan_time_s);
                     out.metrics.insert("scan_coverage_pct".into(), r.coverage_pct);
                     out.metrics.insert("scan_registration_rms_mm".into(), r.registration_rms_mm);
+                    out.metrics.insert("scan_registration_merge_rms_mm".into(), r.registration_merge_rms_mm);
+                    if r.calibration_version > 0 {
+                        out.metrics
+                            .insert("scan_calibration_version".into(), f64::from(r.calibration_version));
+                    }
                     if let Some(pct) = r.silhouette_coverage_pct {
                         out.metrics.insert("scan_silhouette_coverage_pct".into(), pct);
                     }
@@ -809,6 +938,42 @@ impl StageRunner for GrpcStages {
             })
             .collect();
         Ok((machines, answer.materials))
+    }
+
+    async fn calibrate(
+        &self,
+        run_id: &str,
+        params: &CalibrationParams,
+        current: Option<&crate::store::CalibrationRecord>,
+        deadline: Duration,
+    ) -> Result<CalibrationRun, StageError> {
+        let ch = self.channel_for(Stage::Scan)?;
+        let mut client = scan::scanning_service_client::ScanningServiceClient::new(ch);
+        let msg = scan::CalibrateCellRequest {
+            context: Some(types::StageContext { job_id: run_id.to_string(), attempt: 0 }),
+            params: Some(scan::CalibrationParams {
+                table_angles_deg: params.table_angles_deg.clone().unwrap_or_default(),
+                sphere_radius_mm: params.sphere_radius_mm,
+                sphere_at_mm: params.sphere_at_mm.and_then(v3),
+                line_spacing_mm: params.line_spacing_mm,
+                seed: params.seed,
+            }),
+            current: current.map(calibration_to_wire).transpose()?,
+        };
+        let stream = client
+            .calibrate_cell(self.request(msg, deadline))
+            .await
+            .map_err(|s| StageError::from_status(Stage::Scan, &s))?
+            .into_inner();
+        let r = drain(Stage::Scan, stream, &|_, _| {}, |u| match u.update? {
+            scan::calibrate_cell_update::Update::Progress(p) => Some(Err(p)),
+            scan::calibrate_cell_update::Update::Result(r) => Some(Ok(r)),
+        })
+        .await?;
+        let cal = r.calibration.ok_or_else(|| {
+            StageError::new(ErrorCode::Internal, "the scanning service returned no calibration")
+        })?;
+        Ok(CalibrationRun { calibration_json: calibration_json_of(&cal)?, report_json: r.report_json })
     }
 
     /// Asks every instance of the stage's service (only the one running the stage knows it):

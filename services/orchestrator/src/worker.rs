@@ -191,8 +191,31 @@ impl Worker {
             for r in &results {
                 artifacts.extend(r.outputs.artifacts.clone());
             }
-            let call =
-                StageCall { job_id: id.to_string(), attempt: 0, stage, spec: job.spec.clone(), artifacts };
+            // The scan places its points with the cell's calibration in force (made first when
+            // there is none).
+            let calibration = if stage == Stage::Scan {
+                match self.calibration_in_force(id).await? {
+                    Ok(c) => Some(c),
+                    Err(e) => {
+                        let error = JobError {
+                            code: e.code.as_str().into(),
+                            message: format!("calibrating the scanning cell before the scan: {}", e.message),
+                            stage,
+                        };
+                        return self.end(id, JobStatus::Failed, Some(error)).await;
+                    }
+                }
+            } else {
+                None
+            };
+            let call = StageCall {
+                job_id: id.to_string(),
+                attempt: 0,
+                stage,
+                spec: job.spec.clone(),
+                artifacts,
+                calibration,
+            };
             let started = now_ms();
             let outcome = if stage == Stage::Report {
                 let attempt = self.app.store.begin_attempt(id, &self.owner, stage, started).await?;
@@ -316,6 +339,28 @@ impl Worker {
                     return Ok(Some(Err(StageError::new(ErrorCode::Cancelled, format!("cancelled on request during the {stage} stage")))));
                 }
                 () = shutdown.cancelled() => return Ok(None),
+            }
+        }
+    }
+
+    /// The cell's calibration in force, made first when there is none, with `id`'s lease renewed
+    /// meanwhile (a calibration takes longer than a lease).
+    async fn calibration_in_force(
+        &self,
+        id: &str,
+    ) -> Result<Result<crate::store::CalibrationRecord, crate::app::ApiError>, StoreError> {
+        let work = self.app.calibration_in_force();
+        tokio::pin!(work);
+        let mut ticker = tokio::time::interval(secs(self.cfg.lease_s / 3.0));
+        loop {
+            tokio::select! {
+                r = &mut work => return Ok(r),
+                _ = ticker.tick() => {
+                    let lease = self.app.store.renew(id, &self.owner, now_ms(), self.lease_ms()).await?;
+                    if !lease.held {
+                        return Err(StoreError::LeaseLost { id: id.to_string() });
+                    }
+                }
             }
         }
     }

@@ -19,6 +19,7 @@ use tokio::sync::mpsc;
 use tonic::{Request, Response, Status};
 
 use crate::devices::table::TableClient;
+use crate::domain::calibration::{Calibration, CalibrationError, CalibrationOptions, Offset, TableModel};
 use crate::domain::scan::obstacles::Obstacle;
 use crate::domain::scan::{CellLayout, PassSpec, ScanError, ScanMode, ScanOptions, ScanSession};
 
@@ -31,6 +32,8 @@ pub(crate) struct Cell {
     /// Where the rotary table's controller listens.
     pub table_addr: String,
     pub layout: CellLayout,
+    /// How far the simulated cell truly is from its drawing.
+    pub errors: crate::domain::calibration::CellErrors,
     /// One scan at a time: the cell is one set of devices.
     pub busy: tokio::sync::Mutex<()>,
 }
@@ -167,6 +170,78 @@ pub(crate) fn obstacle_from_wire(o: pb::ScanObstacle) -> Result<Obstacle, &'stat
     })
 }
 
+fn vec3(v: Option<depthmill_proto::types::v1::Vec3>) -> [f64; 3] {
+    v.map_or([0.0; 3], |v| [v.x, v.y, v.z])
+}
+
+fn wire_vec3(v: [f64; 3]) -> Option<depthmill_proto::types::v1::Vec3> {
+    Some(depthmill_proto::types::v1::Vec3 { x: v[0], y: v[1], z: v[2] })
+}
+
+/// A wire calibration as the library's, checked against the cell (InvalidArgument naming the field).
+pub(crate) fn calibration_from_wire(
+    c: pb::CellCalibration,
+    layout: &CellLayout,
+) -> Result<(Calibration, String, u32), Status> {
+    let t = c.table.ok_or_else(|| ErrorCode::InvalidArgument.status("calibration.table: required"))?;
+    let m = c.scanner_mount.unwrap_or_default();
+    let cal = Calibration {
+        table: TableModel {
+            axis_x_mm: t.axis_x_mm,
+            axis_y_mm: t.axis_y_mm,
+            top_z_mm: t.top_z_mm,
+            axis_tilt_x_deg: t.axis_tilt_x_deg,
+            axis_tilt_y_deg: t.axis_tilt_y_deg,
+            zero_deg: t.zero_deg,
+            top_tilt_x_deg: t.top_tilt_x_deg,
+            top_tilt_y_deg: t.top_tilt_y_deg,
+        },
+        scanner_mount: Offset { translation_mm: vec3(m.translation_mm), rotation_deg: vec3(m.rotation_deg) },
+    };
+    cal.validate(layout).map_err(|e| ErrorCode::InvalidArgument.status(e.to_string()))?;
+    Ok((cal, c.id, c.version))
+}
+
+/// The library's calibration on the wire.
+pub(crate) fn calibration_to_wire(c: &Calibration, id: String, version: u32) -> pb::CellCalibration {
+    let t = &c.table;
+    pb::CellCalibration {
+        id,
+        version,
+        table: Some(pb::TableModel {
+            axis_x_mm: t.axis_x_mm,
+            axis_y_mm: t.axis_y_mm,
+            top_z_mm: t.top_z_mm,
+            axis_tilt_x_deg: t.axis_tilt_x_deg,
+            axis_tilt_y_deg: t.axis_tilt_y_deg,
+            zero_deg: t.zero_deg,
+            top_tilt_x_deg: t.top_tilt_x_deg,
+            top_tilt_y_deg: t.top_tilt_y_deg,
+        }),
+        scanner_mount: Some(pb::RigidOffset {
+            translation_mm: wire_vec3(c.scanner_mount.translation_mm),
+            rotation_deg: wire_vec3(c.scanner_mount.rotation_deg),
+        }),
+    }
+}
+
+/// Wire calibration options -> the library's (defaults for unset fields), checked.
+pub(crate) fn calibration_options(
+    p: pb::CalibrationParams,
+    layout: &CellLayout,
+) -> Result<CalibrationOptions, Status> {
+    let d = CalibrationOptions::default();
+    let o = CalibrationOptions {
+        table_angles_deg: if p.table_angles_deg.is_empty() { d.table_angles_deg } else { p.table_angles_deg },
+        sphere_radius_mm: p.sphere_radius_mm.unwrap_or(d.sphere_radius_mm),
+        sphere_at_mm: p.sphere_at_mm.map_or(d.sphere_at_mm, |v| [v.x, v.y, v.z]),
+        line_spacing_mm: p.line_spacing_mm.unwrap_or(d.line_spacing_mm),
+        seed: p.seed.unwrap_or(d.seed),
+    };
+    o.validate(layout).map_err(|e| ErrorCode::InvalidArgument.status(e.to_string()))?;
+    Ok(o)
+}
+
 /// Reads the mesh artifact and scales it to millimetres (`units`, wire value of the request).
 async fn read_mesh(cell: &Cell, sha: &str, units: i32) -> Result<(Mesh, Option<UnitsDecision>), Status> {
     let read = depthmill_common::artifacts::read_geometry(
@@ -185,6 +260,20 @@ async fn read_mesh(cell: &Cell, sha: &str, units: i32) -> Result<(Mesh, Option<U
             read.name
         ))),
     }
+}
+
+type CalibrateStream =
+    Pin<Box<dyn tokio_stream::Stream<Item = Result<pb::CalibrateCellUpdate, Status>> + Send>>;
+
+fn calibration_status(e: CalibrationError) -> Status {
+    let code = match &e {
+        CalibrationError::Invalid { .. } | CalibrationError::Degenerate(_) => ErrorCode::InvalidArgument,
+        CalibrationError::NoFit(_) => ErrorCode::InvalidArgument,
+        CalibrationError::Scan(m) if m.contains("cancelled") => ErrorCode::Cancelled,
+        CalibrationError::Scan(m) if m.contains("rotary table") => ErrorCode::Unavailable,
+        CalibrationError::Scan(_) => ErrorCode::Internal,
+    };
+    code.status(e.to_string())
 }
 
 type UpdateStream = Pin<Box<dyn tokio_stream::Stream<Item = Result<pb::ScanPartUpdate, Status>> + Send>>;
@@ -232,6 +321,7 @@ impl pb::scanning_service_server::ScanningService for ScanningServiceImpl {
             line_rate_hz: opts.line_rate_hz,
             ..Default::default()
         })?;
+        let calibration = req.calibration.map(|c| calibration_from_wire(c, &self.cell.layout)).transpose()?;
         let (mesh, units) = read_mesh(&self.cell, &mesh_ref.sha256, req.units).await?;
         let guard = self.running.start(&job_id);
         let (tx, rx) = mpsc::channel(64);
@@ -251,9 +341,21 @@ impl pb::scanning_service_server::ScanningService for ScanningServiceImpl {
                 let mut table = TableClient::connect(cell.table_addr.as_str())
                     .await
                     .map_err(|e| Status::from(ScanError::Table(format!("connecting to {}: {e}", cell.table_addr))))?;
-                let mut out =
-                    crate::session::run_scan(mesh, opts, cell.layout, &mut table, progress.clone(), token.clone())
-                        .await?;
+                let (cal, cal_id, cal_version) = match calibration {
+                    Some((c, id, v)) => (Some(c), id, v),
+                    None => (None, String::new(), 0),
+                };
+                let sim = crate::domain::calibration::Cell::new(&cell.layout, &cell.errors, cal);
+                let mut out = crate::session::run_scan(
+                    mesh,
+                    opts,
+                    cell.layout,
+                    sim,
+                    &mut table,
+                    progress.clone(),
+                    token.clone(),
+                )
+                .await?;
                 out.report.units = units;
                 progress(0.97, format!("writing {} points", out.cloud.points.len()));
                 let (out, ply) = tokio::task::spawn_blocking(move || {
@@ -325,6 +427,9 @@ impl pb::scanning_service_server::ScanningService for ScanningServiceImpl {
                     registration_rms_mm: r.registration_rms_mm,
                     silhouette_coverage_pct: r.silhouette.as_ref().map(|s| s.covered_pct),
                     free_space,
+                    registration_merge_rms_mm: r.registration_merge_rms_mm,
+                    calibration_id: cal_id,
+                    calibration_version: cal_version,
                 })
             }
             .await;
@@ -347,10 +452,12 @@ impl pb::scanning_service_server::ScanningService for ScanningServiceImpl {
         let mesh_ref =
             req.mesh.ok_or_else(|| ErrorCode::InvalidArgument.status("mesh: an artifact is required"))?;
         let opts = options(req.params.unwrap_or_default())?;
+        let calibration = req.calibration.map(|c| calibration_from_wire(c, &self.cell.layout)).transpose()?;
         let (mesh, _) = read_mesh(&self.cell, &mesh_ref.sha256, req.units).await?;
         let layout = self.cell.layout;
+        let sim = crate::domain::calibration::Cell::new(&layout, &self.cell.errors, calibration.map(|c| c.0));
         let (plan, frames) = tokio::task::spawn_blocking(move || {
-            let mut s = ScanSession::new(&mesh, opts, layout)?;
+            let mut s = ScanSession::with_cell(&mesh, opts, layout, sim)?;
             let plan = s.plan()?;
             let frames = plan.estimated_frames(s.options());
             Ok::<_, ScanError>((plan, frames))
@@ -364,6 +471,78 @@ impl pb::scanning_service_server::ScanningService for ScanningServiceImpl {
             estimated_frames: frames,
             plan_json: serde_json::to_string(&plan).unwrap_or_default(),
         }))
+    }
+
+    type CalibrateCellStream = CalibrateStream;
+
+    #[tracing::instrument(skip_all, fields(job_id))]
+    async fn calibrate_cell(
+        &self,
+        request: Request<pb::CalibrateCellRequest>,
+    ) -> Result<Response<Self::CalibrateCellStream>, Status> {
+        let req = request.into_inner();
+        let job_id = req.context.as_ref().map(|c| c.job_id.clone()).unwrap_or_default();
+        tracing::Span::current().record("job_id", job_id.as_str());
+        let layout = self.cell.layout;
+        let opts = calibration_options(req.params.unwrap_or_default(), &layout)?;
+        let current = req.current.map(|c| calibration_from_wire(c, &layout)).transpose()?.map(|c| c.0);
+        let guard = self.running.start(&job_id);
+        let (tx, rx) = mpsc::channel(64);
+        let cell = self.cell.clone();
+        tokio::spawn(async move {
+            let token = guard.token().clone();
+            let ptx = tx.clone();
+            let progress: crate::session::Progress = Arc::new(move |fraction, message| {
+                let p = Progress { fraction: fraction.clamp(0.0, 1.0), message };
+                let _ = ptx.try_send(Ok(pb::CalibrateCellUpdate {
+                    update: Some(pb::calibrate_cell_update::Update::Progress(p)),
+                }));
+            });
+            progress(0.0, "waiting for the cell".into());
+            let result = async {
+                let _cell_lock = tokio::select! {
+                    g = cell.busy.lock() => g,
+                    () = token.cancelled() => return Err(Status::from(ScanError::Cancelled)),
+                };
+                let mut table = TableClient::connect(cell.table_addr.as_str()).await.map_err(|e| {
+                    Status::from(ScanError::Table(format!("connecting to {}: {e}", cell.table_addr)))
+                })?;
+                let sim = crate::domain::calibration::Cell::new(&cell.layout, &cell.errors, current);
+                let (cal, report) = crate::session::run_calibration(
+                    sim,
+                    cell.layout,
+                    opts,
+                    &mut table,
+                    progress,
+                    token.clone(),
+                )
+                .await
+                .map_err(calibration_status)?;
+                let report_json = serde_json::to_string_pretty(&report)
+                    .map_err(|e| Status::internal(format!("encoding the calibration report failed: {e}")))?;
+                tracing::info!(
+                    merge_before_mm = report.registration_before.map_or(0.0, |r| r.merge_rms_mm),
+                    merge_after_mm = report.registration_after.map_or(0.0, |r| r.merge_rms_mm),
+                    "cell calibrated"
+                );
+                Ok(pb::CalibrateCellResult {
+                    calibration: Some(calibration_to_wire(&cal, String::new(), 0)),
+                    report_json,
+                    merge_rms_before_mm: report.registration_before.map_or(0.0, |r| r.merge_rms_mm),
+                    merge_rms_after_mm: report.registration_after.map_or(0.0, |r| r.merge_rms_mm),
+                })
+            }
+            .await;
+            if let Err(s) = &result {
+                tracing::info!(error = %s.message(), "calibration failed");
+            }
+            let msg = result.map(|r| pb::CalibrateCellUpdate {
+                update: Some(pb::calibrate_cell_update::Update::Result(r)),
+            });
+            let _ = tx.send(msg).await;
+            drop(guard);
+        });
+        Ok(Response::new(Box::pin(tokio_stream::wrappers::ReceiverStream::new(rx))))
     }
 
     async fn validate_params(

@@ -54,6 +54,11 @@ pub struct Config {
     /// network). Health, reflection and `/metrics` stay open.
     #[serde(default)]
     pub service_token: Option<String>,
+    /// How far the simulated cell truly is from its drawing (table axis, tilt, runout, encoder
+    /// zero, robot base, scanner mount, joint encoders); realistic amounts by default. The
+    /// software sees only the drawing or the calibration a request hands it.
+    #[serde(default)]
+    pub cell_errors: domain::calibration::CellErrors,
 }
 
 fn default_max_triangles() -> u64 {
@@ -77,6 +82,7 @@ impl Default for Config {
             table_addr: None,
             max_triangles: default_max_triangles(),
             service_token: None,
+            cell_errors: domain::calibration::CellErrors::default(),
         }
     }
 }
@@ -94,6 +100,8 @@ pub enum ScanServeError {
     Artifacts(#[from] depthmill_common::artifacts::ArtifactError),
     #[error("cannot start the simulated rotary table: {0}")]
     Table(String),
+    #[error("configuration: {0}")]
+    Config(String),
 }
 
 /// Serves the scanning service on `listener` until `shutdown` completes.
@@ -102,6 +110,7 @@ pub async fn serve(
     config: Config,
     shutdown: impl Future<Output = ()> + Send,
 ) -> Result<(), ScanServeError> {
+    config.cell_errors.validate().map_err(|e| ScanServeError::Config(e.to_string()))?;
     let options =
         depthmill_common::grpc::GrpcOptions { token: config.service_token.clone(), ..Default::default() };
     let store =
@@ -130,6 +139,7 @@ pub async fn serve(
         limits,
         table_addr: table_addr.clone(),
         layout: domain::scan::CellLayout::default(),
+        errors: config.cell_errors,
         busy: tokio::sync::Mutex::new(()),
     });
     let devices = grpc_devices::Devices::new(table_addr).map_err(|e| ScanServeError::Table(e.to_string()))?;

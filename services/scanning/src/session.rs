@@ -14,6 +14,9 @@ use tokio::io::{AsyncRead, AsyncWrite};
 use tokio_util::sync::CancellationToken;
 
 use crate::devices::table::TableClient;
+use crate::domain::calibration::{
+    Calibration, CalibrationError, CalibrationOptions, CalibrationReport, Cell,
+};
 use crate::domain::scan::{CellLayout, ScanError, ScanOptions, ScanOutput, ScanPlan, ScanSession};
 use crate::domain::table::model::shortest_delta_deg;
 
@@ -148,18 +151,54 @@ async fn run_plan<S: AsyncRead + AsyncWrite + Unpin>(
     Ok(session)
 }
 
-/// Scans `mesh` with `opts`: plan, stations, and the adaptive rescan when asked.
+/// Runs the calibration routine on `cell` (its calibration in force places the scans) and fits
+/// the new calibration; the table is indexed over its protocol as for a scan.
+pub async fn run_calibration<S: AsyncRead + AsyncWrite + Unpin>(
+    cell: Cell,
+    layout: CellLayout,
+    opts: CalibrationOptions,
+    table: &mut TableClient<S>,
+    progress: Progress,
+    cancel: CancellationToken,
+) -> Result<(Calibration, CalibrationReport), CalibrationError> {
+    let scan_err = |e: ScanError| CalibrationError::Scan(e.to_string());
+    progress(0.0, "planning the calibration scans".into());
+    let (session, plan) =
+        blocking(move || crate::domain::calibration::calibration_session(&cell, layout, &opts))
+            .await
+            .map_err(scan_err)??;
+    let terr = |e: crate::devices::table::TableError| CalibrationError::Scan(format!("rotary table: {e}"));
+    table.set_speed(TABLE_SPEED_DEG_S).await.map_err(terr)?;
+    table.set_accel(TABLE_ACCEL_DEG_S2).await.map_err(terr)?;
+    let session = run_plan(session, &plan, false, None, table, &progress, (0.0, 0.9), &cancel)
+        .await
+        .map_err(scan_err)?;
+    progress(0.9, "fitting the table and the scanner mount".into());
+    let (cal, report) = blocking(move || session.finish_calibration()).await.map_err(scan_err)??;
+    progress(
+        1.0,
+        format!(
+            "calibrated: merge error {:.4} mm",
+            report.registration_after.map_or(0.0, |r| r.merge_rms_mm)
+        ),
+    );
+    Ok((cal, report))
+}
+
+/// Scans `mesh` with `opts` on `cell` (the physics on its truth, the points placed with its
+/// calibration): plan, stations, and the adaptive rescan when asked.
 pub async fn run_scan<S: AsyncRead + AsyncWrite + Unpin>(
     mesh: Mesh,
     opts: ScanOptions,
     layout: CellLayout,
+    cell: Cell,
     table: &mut TableClient<S>,
     progress: Progress,
     cancel: CancellationToken,
 ) -> Result<ScanOutput, ScanError> {
     progress(0.0, format!("planning over a {}-triangle mesh", mesh.triangles.len()));
     let (session, plan) = blocking(move || {
-        let mut s = ScanSession::new(&mesh, opts, layout)?;
+        let mut s = ScanSession::with_cell(&mesh, opts, layout, cell)?;
         let plan = s.plan()?;
         Ok::<_, ScanError>((s, plan))
     })

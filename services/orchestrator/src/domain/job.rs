@@ -149,6 +149,13 @@ pub struct JobMetrics {
     /// Part of the mesh's top-view silhouette the scan has points in, %.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub scan_silhouette_coverage_pct: Option<f64>,
+    /// The registration error after the one rigid transform that best aligns the cloud with the
+    /// truth (how well the views agree: the merge error), mm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub scan_registration_merge_rms_mm: Option<f64>,
+    /// Version of the cell calibration the scan's points were placed with (`GET /v1/calibrations`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub scan_calibration_version: Option<f64>,
     /// The machined part against the original part (a mesh job; measured by the report stage on
     /// the stock's grid): deepest gouge, mm.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -273,6 +280,8 @@ impl JobMetrics {
                 "scan_coverage_pct" => &mut self.scan_coverage_pct,
                 "scan_registration_rms_mm" => &mut self.scan_registration_rms_mm,
                 "scan_silhouette_coverage_pct" => &mut self.scan_silhouette_coverage_pct,
+                "scan_registration_merge_rms_mm" => &mut self.scan_registration_merge_rms_mm,
+                "scan_calibration_version" => &mut self.scan_calibration_version,
                 "part_max_gouge_mm" => &mut self.part_max_gouge_mm,
                 "part_max_leftover_mm" => &mut self.part_max_leftover_mm,
                 "part_mean_leftover_mm" => &mut self.part_mean_leftover_mm,

@@ -2,6 +2,7 @@
 //! from the handlers (utoipa) at `/openapi.json` and Swagger UI at `/docs`.
 
 mod artifacts;
+mod calibrations;
 mod console;
 mod jobs;
 
@@ -58,7 +59,7 @@ impl IntoResponse for ApiError {
 #[derive(OpenApi)]
 #[openapi(
     info(title = "depthmill", description = "Scan-to-part jobs: upload a mesh, point cloud, depth map or G-code, submit a job, watch it, fetch its results."),
-    tags((name = "jobs", description = "Scan-to-part jobs"), (name = "artifacts", description = "Content-addressed files"), (name = "catalog", description = "What a job can name: tools, materials, machines, strategies"), (name = "ops", description = "Health and metrics")),
+    tags((name = "jobs", description = "Scan-to-part jobs"), (name = "artifacts", description = "Content-addressed files"), (name = "calibrations", description = "Calibrations of the scanning cell"), (name = "catalog", description = "What a job can name: tools, materials, machines, strategies"), (name = "ops", description = "Health and metrics")),
     components(schemas(ErrorBody, ErrorDetail))
 )]
 struct ApiDoc;
@@ -77,6 +78,8 @@ fn router_parts() -> (axum::Router<App>, utoipa::openapi::OpenApi) {
         .routes(routes!(jobs::job_report))
         .routes(routes!(artifacts::upload_artifact))
         .routes(routes!(artifacts::download_artifact))
+        .routes(routes!(calibrations::create_calibration, calibrations::list_calibrations))
+        .routes(routes!(calibrations::get_calibration))
         .routes(routes!(list_tools))
         .routes(routes!(list_materials))
         .routes(routes!(list_machines))

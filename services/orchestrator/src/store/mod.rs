@@ -28,6 +28,14 @@ macro_rules! token_columns {
 }
 use token_columns;
 
+/// The columns of `calibrations` a [`CalibrationRecord`] is read from.
+macro_rules! calibration_columns {
+    () => {
+        "id, version, created_at_ms, trigger_kind, calibration_json, report_json"
+    };
+}
+use calibration_columns;
+
 use crate::domain::{AttemptOutcome, Job, JobError, JobSpec, JobStatus, Stage, StageResult};
 
 /// Why the store could not do what was asked.
@@ -166,6 +174,22 @@ pub struct TokenRecord {
     pub revoked_at_ms: Option<i64>,
 }
 
+/// A stored calibration of the scanning cell (the newest is in force).
+#[derive(Debug, Clone, PartialEq, Eq, sqlx::FromRow)]
+pub struct CalibrationRecord {
+    /// Public handle (`cal_...`).
+    pub id: String,
+    /// 1, 2, ... in the order they were made.
+    pub version: i64,
+    pub created_at_ms: i64,
+    /// `api` (asked for) or `auto` (made before a scan when none was in force).
+    pub trigger_kind: String,
+    /// The parameters, JSON.
+    pub calibration_json: String,
+    /// The fit's report, JSON.
+    pub report_json: String,
+}
+
 /// Job persistence, and the API tokens that guard it.
 #[async_trait::async_trait]
 pub trait JobStore: Send + Sync + 'static {
@@ -249,4 +273,12 @@ pub trait JobStore: Send + Sync + 'static {
     async fn list_tokens(&self) -> Result<Vec<TokenRecord>, StoreError>;
     /// Revokes a token; `false` when there is no such token or it was already revoked.
     async fn revoke_token(&self, id: &str, now_ms: i64) -> Result<bool, StoreError>;
+    /// Stores a calibration as the next version (the record's `version` is ignored) and returns
+    /// it as stored.
+    async fn create_calibration(&self, rec: &CalibrationRecord) -> Result<CalibrationRecord, StoreError>;
+    async fn get_calibration(&self, id: &str) -> Result<Option<CalibrationRecord>, StoreError>;
+    /// The newest calibration: the one in force.
+    async fn latest_calibration(&self) -> Result<Option<CalibrationRecord>, StoreError>;
+    /// Calibrations newest first, at most `limit`.
+    async fn list_calibrations(&self, limit: u32) -> Result<Vec<CalibrationRecord>, StoreError>;
 }

@@ -16,7 +16,9 @@ use sqlx::SqlitePool;
 use sqlx::sqlite::{SqliteConnectOptions, SqliteJournalMode, SqlitePoolOptions, SqliteSynchronous};
 
 use super::rows::{self, AttemptRow, ClaimRow, JobRow, ResultRow, encode, job_columns};
-use super::{ClaimedJob, Created, JobPage, JobStore, LeaseState, NewJob, StoreError, TokenRecord};
+use super::{
+    CalibrationRecord, ClaimedJob, Created, JobPage, JobStore, LeaseState, NewJob, StoreError, TokenRecord,
+};
 use crate::domain::{AttemptOutcome, AttemptRecord, Job, JobError, JobStatus, Stage, StageResult};
 
 static MIGRATOR: sqlx::migrate::Migrator = sqlx::migrate!("../../migrations/sqlite");
@@ -521,5 +523,45 @@ impl JobStore for SqliteStore {
                 .await?
                 .rows_affected();
         Ok(revoked == 1)
+    }
+
+    async fn create_calibration(&self, rec: &CalibrationRecord) -> Result<CalibrationRecord, StoreError> {
+        let sql = concat!(
+            "INSERT INTO calibrations (id, version, created_at_ms, trigger_kind, calibration_json, report_json) \
+             SELECT ?1, COALESCE(MAX(version), 0) + 1, ?2, ?3, ?4, ?5 FROM calibrations \
+             RETURNING ",
+            super::calibration_columns!()
+        );
+        Ok(sqlx::query_as(sql)
+            .bind(&rec.id)
+            .bind(rec.created_at_ms)
+            .bind(&rec.trigger_kind)
+            .bind(&rec.calibration_json)
+            .bind(&rec.report_json)
+            .fetch_one(&self.writer)
+            .await?)
+    }
+
+    async fn get_calibration(&self, id: &str) -> Result<Option<CalibrationRecord>, StoreError> {
+        let sql = concat!("SELECT ", super::calibration_columns!(), " FROM calibrations WHERE id = ?1");
+        Ok(sqlx::query_as(sql).bind(id).fetch_optional(&self.reader).await?)
+    }
+
+    async fn latest_calibration(&self) -> Result<Option<CalibrationRecord>, StoreError> {
+        let sql = concat!(
+            "SELECT ",
+            super::calibration_columns!(),
+            " FROM calibrations ORDER BY version DESC LIMIT 1"
+        );
+        Ok(sqlx::query_as(sql).fetch_optional(&self.writer).await?)
+    }
+
+    async fn list_calibrations(&self, limit: u32) -> Result<Vec<CalibrationRecord>, StoreError> {
+        let sql = concat!(
+            "SELECT ",
+            super::calibration_columns!(),
+            " FROM calibrations ORDER BY version DESC LIMIT ?1"
+        );
+        Ok(sqlx::query_as(sql).bind(i64::from(limit)).fetch_all(&self.reader).await?)
     }
 }
