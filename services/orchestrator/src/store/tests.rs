@@ -96,6 +96,7 @@ suite!(
     a_job_reads_back_as_it_was_written,
     tokens_are_found_by_hash_listed_and_revoked_once,
     active_jobs_are_counted_per_client,
+    calibrations_are_versioned_in_order_and_the_newest_is_in_force,
 );
 
 fn result(stage: Stage) -> StageResult {
@@ -346,4 +347,29 @@ async fn an_unreachable_database_is_unavailable_not_internal() {
     // Nothing listens on port 1 of loopback.
     let Err(e) = open("postgres://postgres@127.0.0.1:1/depthmill").await else { panic!("connected") };
     assert!(e.is_unavailable(), "{e:?}");
+}
+
+async fn calibrations_are_versioned_in_order_and_the_newest_is_in_force(db: Db) {
+    let s = db.store().await;
+    assert!(s.latest_calibration().await.expect("latest").is_none());
+    let rec = |id: &str, at: i64| super::CalibrationRecord {
+        id: id.into(),
+        version: 99,
+        created_at_ms: at,
+        trigger_kind: "api".into(),
+        calibration_json: format!("{{\"id\":\"{id}\"}}"),
+        report_json: "{}".into(),
+    };
+    let a = s.create_calibration(&rec("cal_a", 10)).await.expect("first");
+    assert_eq!(a.version, 1, "the version is the store's, not the caller's");
+    let b = s.create_calibration(&rec("cal_b", 20)).await.expect("second");
+    assert_eq!(b.version, 2);
+    assert_eq!(s.latest_calibration().await.expect("latest"), Some(b.clone()));
+    assert_eq!(s.get_calibration("cal_a").await.expect("get"), Some(a.clone()));
+    assert!(s.get_calibration("cal_none").await.expect("get").is_none());
+    assert_eq!(s.list_calibrations(10).await.expect("list"), [b.clone(), a.clone()]);
+    assert_eq!(s.list_calibrations(1).await.expect("list"), [b]);
+    // The same id twice is refused and changes nothing.
+    assert!(s.create_calibration(&rec("cal_a", 30)).await.is_err());
+    assert_eq!(s.list_calibrations(10).await.expect("list").len(), 2);
 }
