@@ -43,6 +43,7 @@ pub mod face;
 pub mod formats;
 pub mod heightmap;
 pub mod heightmap_io;
+pub mod icp;
 pub mod mesh;
 pub mod mesh_raster;
 pub mod npy;
