@@ -26,8 +26,9 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 /// A step smaller than this (its translation plus its rotation at 100 correspondence distances,
-/// mm) with fitness and RMSE settled ends the iterations.
-const MIN_STEP_MM: f64 = 1e-5;
+/// mm: a micrometre, far under any scanner's noise) ends the iterations, as settled fitness and
+/// RMSE do.
+const MIN_STEP_MM: f64 = 1e-3;
 
 /// Why registration cannot run.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -307,16 +308,56 @@ pub(crate) fn step(a: &Matrix6<f64>, b: &Vector6<f64>) -> Result<Isometry3<f64>,
     ))
 }
 
-fn pass(source: &[Point3<f64>], target: &Target, t: &Isometry3<f64>, opts: &IcpOptions, it: u32) -> Sums {
+/// A source point's last nearest-neighbour search: where the point was, its nearest target
+/// point, and half the gap between the nearest and the second nearest distance. While the point
+/// stays within that half gap of where it was searched, its nearest neighbour cannot have
+/// changed (triangle inequality), so the search is skipped: exact, and most points move far less
+/// than that once the transform settles.
+#[derive(Clone, Copy)]
+struct Nearest {
+    at: Point3<f64>,
+    index: u32,
+    half_gap: f64,
+}
+
+const UNSEARCHED: Nearest =
+    Nearest { at: Point3::new(f64::NAN, f64::NAN, f64::NAN), index: 0, half_gap: -1.0 };
+
+impl Target {
+    /// Nearest target point of `p` (its index), reusing `cache` when `p` has not moved out of
+    /// its half gap.
+    fn nearest_cached(&self, p: &Point3<f64>, cache: &mut Nearest) -> usize {
+        if (p - cache.at).norm() < cache.half_gap {
+            return cache.index as usize;
+        }
+        let two = std::num::NonZero::new(2).unwrap_or(std::num::NonZero::<usize>::MIN);
+        let near = self.tree.query(&[p.x, p.y, p.z]).nearest_n::<SquaredEuclidean<f64>>(two).execute();
+        let (i, d1) = near.first().map_or((0, 0.0), |r| (r.item, r.distance.sqrt()));
+        let d2 = near.get(1).map_or(f64::INFINITY, |r| r.distance.sqrt());
+        *cache = Nearest { at: *p, index: i, half_gap: 0.5 * (d2 - d1) };
+        i as usize
+    }
+}
+
+fn pass(
+    source: &[Point3<f64>],
+    target: &Target,
+    t: &Isometry3<f64>,
+    opts: &IcpOptions,
+    it: u32,
+    cache: &mut [Nearest],
+) -> Sums {
     let kernel = opts.kernel.annealed(it, opts.max_correspondence_mm);
+    let max2 = opts.max_correspondence_mm * opts.max_correspondence_mm;
     source
         .par_iter()
-        .fold(Sums::zero, |s, p| {
+        .zip(cache.par_iter_mut())
+        .fold(Sums::zero, |s, (p, c)| {
             let p = t * p;
-            match target.nearest_within(&p, opts.max_correspondence_mm) {
-                Some((i, d2)) => s.add(contribution(&p, &target.points[i], &target.normals[i], d2, &kernel)),
-                None => s,
-            }
+            let i = target.nearest_cached(&p, c);
+            let q = &target.points[i];
+            let d2 = (p - q).norm_squared();
+            if d2 <= max2 { s.add(contribution(&p, q, &target.normals[i], d2, &kernel)) } else { s }
         })
         .reduce(Sums::zero, Sums::add)
 }
@@ -333,7 +374,60 @@ fn result_of(s: &Sums, source_len: usize, transform: Isometry3<f64>, iterations:
     }
 }
 
+/// Source points the coarse level works on at most (every `stride`-th point).
+const COARSE_POINTS: usize = 8000;
+/// The coarse level ends when its step falls under this, mm (same measure as [`MIN_STEP_MM`]).
+const COARSE_STEP_MM: f64 = 0.01;
+
+/// The stride of the coarse level for a source of `n` points (1: no coarse level).
+pub(crate) fn coarse_stride(n: usize) -> usize {
+    (n / COARSE_POINTS).max(1)
+}
+
+/// Iterations on one level from `t`, numbered from `first_it` (the kernel's graduation goes on
+/// across levels): the transform, the last result and the next iteration number.
+fn iterate(
+    source: &[Point3<f64>],
+    target: &Target,
+    mut t: Isometry3<f64>,
+    opts: &IcpOptions,
+    first_it: u32,
+    stop_step_mm: f64,
+) -> Result<(Isometry3<f64>, IcpResult, u32), IcpError> {
+    let mut cache = vec![UNSEARCHED; source.len()];
+    let mut s = pass(source, target, &t, opts, first_it, &mut cache);
+    let mut last = result_of(&s, source.len(), t, first_it);
+    let mut it = first_it;
+    for _ in 0..opts.max_iterations {
+        if s.n < 6 {
+            return Err(IcpError::Degenerate(format!(
+                "only {} source points have a target point within {} mm: the clouds do not overlap from this start",
+                s.n, opts.max_correspondence_mm
+            )));
+        }
+        it += 1;
+        let d = step(&s.a, &s.b)?;
+        t = d * t;
+        s = pass(source, target, &t, opts, it, &mut cache);
+        let now = result_of(&s, source.len(), t, it);
+        let df = (now.fitness - last.fitness).abs() / last.fitness.max(1e-300);
+        let dr = (now.inlier_rmse_mm - last.inlier_rmse_mm).abs() / last.inlier_rmse_mm.max(1e-300);
+        last = now;
+        // Near the optimum nearest neighbours switch back and forth and the RMSE jitters by a few
+        // parts per million: a settled transform ends it too.
+        let moved = d.translation.vector.norm() + d.rotation.angle() * opts.max_correspondence_mm * 100.0;
+        if (df < opts.relative_fitness && dr < opts.relative_rmse) || moved < stop_step_mm {
+            break;
+        }
+    }
+    Ok((t, last, it))
+}
+
 /// Registers `source` onto `target` from `init` (`target_from_source`); see the module doc.
+/// A large source is first registered by every `stride`-th point (at most [`COARSE_POINTS`])
+/// until the step is under [`COARSE_STEP_MM`], then by all of them: the far-moving first
+/// iterations, whose every point needs a new search, cost a fraction. `max_iterations` applies
+/// to each level.
 pub fn icp(
     source: &[Point3<f64>],
     target: &Target,
@@ -342,30 +436,15 @@ pub fn icp(
 ) -> Result<IcpResult, IcpError> {
     opts.validate()?;
     check_points("source", source, 6)?;
-    let mut t = *init;
-    let mut s = pass(source, target, &t, opts, 0);
-    let mut last = result_of(&s, source.len(), t, 0);
-    for it in 1..=opts.max_iterations {
-        if s.n < 6 {
-            return Err(IcpError::Degenerate(format!(
-                "only {} source points have a target point within {} mm: the clouds do not overlap from this start",
-                s.n, opts.max_correspondence_mm
-            )));
-        }
-        let d = step(&s.a, &s.b)?;
-        t = d * t;
-        s = pass(source, target, &t, opts, it);
-        let now = result_of(&s, source.len(), t, it);
-        let df = (now.fitness - last.fitness).abs() / last.fitness.max(1e-300);
-        let dr = (now.inlier_rmse_mm - last.inlier_rmse_mm).abs() / last.inlier_rmse_mm.max(1e-300);
-        last = now;
-        // The point-to-point RMSE is dominated by the sampling distance and barely moves while the
-        // transform still slides by tens of micrometres: the step must be small too.
-        let moved = d.translation.vector.norm() + d.rotation.angle() * opts.max_correspondence_mm * 100.0;
-        if df < opts.relative_fitness && dr < opts.relative_rmse && moved < MIN_STEP_MM {
-            break;
-        }
+    let stride = coarse_stride(source.len());
+    let (mut t, mut it) = (*init, 0);
+    if stride > 1 {
+        let coarse: Vec<Point3<f64>> = source.iter().step_by(stride).copied().collect();
+        let (tc, _, next) = iterate(&coarse, target, t, opts, 0, COARSE_STEP_MM)?;
+        t = tc;
+        it = next;
     }
+    let (_, last, _) = iterate(source, target, t, opts, it, MIN_STEP_MM)?;
     Ok(last)
 }
 

@@ -34,48 +34,58 @@ fn small_transform(rng: &mut StdRng, deg: f64, mm: f64) -> Isometry3<f64> {
 }
 
 /// The obviously right reference: brute-force nearest neighbours, sequential sums, the same
-/// normal equations and stopping rule.
+/// normal equations, levels and stopping rule.
 fn icp_reference(
     source: &[Point3<f64>],
     target: &Target,
     init: &Isometry3<f64>,
     opts: &IcpOptions,
 ) -> IcpResult {
-    let pass = |t: &Isometry3<f64>, it: u32| {
+    let pass = |pts: &[Point3<f64>], t: &Isometry3<f64>, it: u32| {
         let kernel = opts.kernel.annealed(it, opts.max_correspondence_mm);
         let mut s = Sums::zero();
-        for p in source {
+        for p in pts {
             let p = t * p;
             let mut best: Option<(usize, f64)> = None;
             for (i, q) in target.points().iter().enumerate() {
                 let d2 = (p - q).norm_squared();
-                if d2 <= opts.max_correspondence_mm.powi(2) && best.is_none_or(|(_, b)| d2 < b) {
+                if best.is_none_or(|(_, b)| d2 < b) {
                     best = Some((i, d2));
                 }
             }
-            if let Some((i, d2)) = best {
+            if let Some((i, d2)) = best.filter(|b| b.1 <= opts.max_correspondence_mm.powi(2)) {
                 s = s.add(contribution(&p, &target.points()[i], &target.normals()[i], d2, &kernel));
             }
         }
         s
     };
-    let mut t = *init;
-    let mut s = pass(&t, 0);
-    let mut last = result_of(&s, source.len(), t, 0);
-    for it in 1..=opts.max_iterations {
-        let d = step(&s.a, &s.b).unwrap();
-        t = d * t;
-        s = pass(&t, it);
-        let now = result_of(&s, source.len(), t, it);
-        let df = (now.fitness - last.fitness).abs() / last.fitness.max(1e-300);
-        let dr = (now.inlier_rmse_mm - last.inlier_rmse_mm).abs() / last.inlier_rmse_mm.max(1e-300);
-        last = now;
-        let moved = d.translation.vector.norm() + d.rotation.angle() * opts.max_correspondence_mm * 100.0;
-        if df < opts.relative_fitness && dr < opts.relative_rmse && moved < MIN_STEP_MM {
-            break;
+    let level = |pts: &[Point3<f64>], mut t: Isometry3<f64>, first: u32, stop: f64| {
+        let mut s = pass(pts, &t, first);
+        let mut last = result_of(&s, pts.len(), t, first);
+        let mut it = first;
+        for _ in 0..opts.max_iterations {
+            it += 1;
+            let d = step(&s.a, &s.b).unwrap();
+            t = d * t;
+            s = pass(pts, &t, it);
+            let now = result_of(&s, pts.len(), t, it);
+            let df = (now.fitness - last.fitness).abs() / last.fitness.max(1e-300);
+            let dr = (now.inlier_rmse_mm - last.inlier_rmse_mm).abs() / last.inlier_rmse_mm.max(1e-300);
+            last = now;
+            let moved = d.translation.vector.norm() + d.rotation.angle() * opts.max_correspondence_mm * 100.0;
+            if (df < opts.relative_fitness && dr < opts.relative_rmse) || moved < stop {
+                break;
+            }
         }
+        (t, last, it)
+    };
+    let stride = coarse_stride(source.len());
+    let (mut t, mut it) = (*init, 0);
+    if stride > 1 {
+        let coarse: Vec<Point3<f64>> = source.iter().step_by(stride).copied().collect();
+        (t, _, it) = level(&coarse, t, 0, COARSE_STEP_MM);
     }
-    last
+    level(source, t, it, MIN_STEP_MM).1
 }
 
 fn transform_error(a: &Isometry3<f64>, b: &Isometry3<f64>) -> (f64, f64) {
