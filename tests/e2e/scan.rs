@@ -414,5 +414,17 @@ async fn the_cell_is_calibrated_over_rest_versioned_and_used_by_the_next_scan() 
     let done = stack.wait_for_end(created["id"].as_str().expect("id"), Duration::from_secs(300)).await?;
     assert_eq!(done["status"], "succeeded", "{done}");
     assert_eq!(done["metrics"]["scan_calibration_version"].as_f64(), Some(2.0), "{done}");
+    // Its report names the calibration with its residuals and its before/after merge error.
+    let id = done["id"].as_str().unwrap_or_default();
+    let html = stack.http.get(stack.url(&format!("/v1/jobs/{id}/report"))).send().await?.text().await?;
+    for needle in [
+        "Cell calibration",
+        "version 2 (cal_",
+        "sphere fit RMS",
+        "merge error of its scans",
+        "Merge error (after the best rigid fit)",
+    ] {
+        assert!(html.contains(needle), "{needle} missing from the report");
+    }
     Ok(())
 }

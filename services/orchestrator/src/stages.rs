@@ -118,6 +118,7 @@ fn calibration_to_wire(rec: &crate::store::CalibrationRecord) -> Result<scan::Ce
             translation_mm: v3(c.scanner_mount.translation_mm),
             rotation_deg: v3(c.scanner_mount.rotation_deg),
         }),
+        report_json: rec.report_json.clone(),
     })
 }
 

@@ -371,6 +371,10 @@ fn a_scanned_job_shows_its_scan() {
     let report = serde_json::json!({
         "mode": "dynamic", "frames": 1200, "points": 480000, "scan_time_s": 31.5, "table_wait_s": 6.9,
         "registration_rms_mm": 0.0002, "registration_max_mm": 0.0007,
+        "registration_merge_rms_mm": 0.0135, "calibrated": true,
+        "calibration": {"id": "cal_x<y>", "version": 3, "sphere_rms_mm": 0.0332, "table_fit_rms_mm": 0.0023,
+                        "registration_before": {"merge_rms_mm": 1.5416}, "registration_after": {"merge_rms_mm": 0.0113},
+                        "truth": {"table_error_mm": 0.0214, "mount_error_mm": 0.0066}},
         "dropped": {"out_of_window": 1, "incidence": 2, "occluded": 3, "miss": 4},
         "coverage_before_rescan": {"pixel_mm": 0.5, "covered_pct": 97.5, "footprint_cells": 100, "holes": 3, "hole_area_mm2": 12.0},
         "coverage_after_rescan": {"pixel_mm": 0.5, "covered_pct": 99.1, "footprint_cells": 100, "holes": 1, "hole_area_mm2": 2.0},
@@ -391,6 +395,9 @@ fn a_scanned_job_shows_its_scan() {
     for needle in [
         "Registration error",
         "RMS 0.0002 mm",
+        "Merge error (after the best rigid fit)",
+        "RMS 0.0135 mm",
+        "version 3 (cal_x&lt;y&gt;): sphere fit RMS 0.0332 mm, table fit RMS 0.0023 mm; merge error of its scans 1.5416 mm before, 0.0113 mm after; against the simulated cell's truth: table 0.0214 mm, scanner mount 0.0066 mm",
         "97.50 % (3 holes",
         "99.10 % (1 holes",
         "rescan",

@@ -182,7 +182,7 @@ fn wire_vec3(v: [f64; 3]) -> Option<depthmill_proto::types::v1::Vec3> {
 pub(crate) fn calibration_from_wire(
     c: pb::CellCalibration,
     layout: &CellLayout,
-) -> Result<(Calibration, String, u32), Status> {
+) -> Result<(Calibration, String, u32, String), Status> {
     let t = c.table.ok_or_else(|| ErrorCode::InvalidArgument.status("calibration.table: required"))?;
     let m = c.scanner_mount.unwrap_or_default();
     let cal = Calibration {
@@ -199,7 +199,7 @@ pub(crate) fn calibration_from_wire(
         scanner_mount: Offset { translation_mm: vec3(m.translation_mm), rotation_deg: vec3(m.rotation_deg) },
     };
     cal.validate(layout).map_err(|e| ErrorCode::InvalidArgument.status(e.to_string()))?;
-    Ok((cal, c.id, c.version))
+    Ok((cal, c.id, c.version, c.report_json))
 }
 
 /// The library's calibration on the wire.
@@ -222,6 +222,7 @@ pub(crate) fn calibration_to_wire(c: &Calibration, id: String, version: u32) -> 
             translation_mm: wire_vec3(c.scanner_mount.translation_mm),
             rotation_deg: wire_vec3(c.scanner_mount.rotation_deg),
         }),
+        report_json: String::new(),
     }
 }
 
@@ -341,9 +342,9 @@ impl pb::scanning_service_server::ScanningService for ScanningServiceImpl {
                 let mut table = TableClient::connect(cell.table_addr.as_str())
                     .await
                     .map_err(|e| Status::from(ScanError::Table(format!("connecting to {}: {e}", cell.table_addr))))?;
-                let (cal, cal_id, cal_version) = match calibration {
-                    Some((c, id, v)) => (Some(c), id, v),
-                    None => (None, String::new(), 0),
+                let (cal, cal_id, cal_version, cal_report) = match calibration {
+                    Some((c, id, v, report)) => (Some(c), id, v, report),
+                    None => (None, String::new(), 0, String::new()),
                 };
                 let sim = crate::domain::calibration::Cell::new(&cell.layout, &cell.errors, cal);
                 let mut out = crate::session::run_scan(
@@ -357,6 +358,21 @@ impl pb::scanning_service_server::ScanningService for ScanningServiceImpl {
                 )
                 .await?;
                 out.report.units = units;
+                if let Some(c) = &cal {
+                    // The calibration in force and its own report's figures, for the job report.
+                    let report: serde_json::Value = serde_json::from_str(&cal_report).unwrap_or(serde_json::Value::Null);
+                    out.report.calibration = Some(serde_json::json!({
+                        "id": cal_id,
+                        "version": cal_version,
+                        "calibration": c,
+                        "sphere_rms_mm": report["sphere_rms_mm"],
+                        "table_fit_rms_mm": report["table_fit_rms_mm"],
+                        "registration_before": report["registration_before"],
+                        "registration_after": report["registration_after"],
+                        "truth": report["truth"],
+                        "scan_time_s": report["scan_time_s"],
+                    }));
+                }
                 progress(0.97, format!("writing {} points", out.cloud.points.len()));
                 let (out, ply) = tokio::task::spawn_blocking(move || {
                     let ply = encode_cloud(&out);

@@ -66,6 +66,37 @@ impl Ctx<'_> {
             return String::new();
         };
         let f = |v: &Value, d: usize| v.as_f64().map_or("—".to_string(), |x| format!("{x:.d$}"));
+        let calibration = |c: &Value| {
+            if !c.is_object() {
+                return if r["calibrated"] == Value::Bool(false) {
+                    "none: the points were placed with the cell's drawing".to_string()
+                } else {
+                    "—".to_string()
+                };
+            }
+            let mut s = format!(
+                "version {} ({}): sphere fit RMS {} mm, table fit RMS {} mm",
+                c["version"],
+                esc(c["id"].as_str().unwrap_or("?")),
+                f(&c["sphere_rms_mm"], 4),
+                f(&c["table_fit_rms_mm"], 4)
+            );
+            if c["registration_after"].is_object() {
+                s.push_str(&format!(
+                    "; merge error of its scans {} mm before, {} mm after",
+                    f(&c["registration_before"]["merge_rms_mm"], 4),
+                    f(&c["registration_after"]["merge_rms_mm"], 4)
+                ));
+            }
+            if c["truth"].is_object() {
+                s.push_str(&format!(
+                    "; against the simulated cell's truth: table {} mm, scanner mount {} mm",
+                    f(&c["truth"]["table_error_mm"], 4),
+                    f(&c["truth"]["mount_error_mm"], 4)
+                ));
+            }
+            s
+        };
         let cov = |v: &Value| {
             if v.is_object() {
                 format!(
@@ -98,6 +129,15 @@ impl Ctx<'_> {
                     f(&r["registration_max_mm"], 4)
                 ),
             ),
+            (
+                "Merge error (after the best rigid fit)".into(),
+                if r["registration_merge_rms_mm"].is_number() {
+                    format!("RMS {} mm", f(&r["registration_merge_rms_mm"], 4))
+                } else {
+                    "—".into()
+                },
+            ),
+            ("Cell calibration".into(), calibration(&r["calibration"])),
             (
                 "Rays without a point".into(),
                 format!(

@@ -323,6 +323,9 @@ pub struct ScanReport {
     pub registration_merge_rms_mm: f64,
     /// Whether the points were placed with a calibration of the cell (else with its drawing).
     pub calibrated: bool,
+    /// The calibration in force and its figures (set by the service that was handed it).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub calibration: Option<serde_json::Value>,
     /// Coverage after the first scan.
     pub coverage_before_rescan: Option<CoverageSummary>,
     /// Coverage after the rescan.
@@ -1030,6 +1033,7 @@ impl ScanSession {
             registration_max_mm: self.err_max,
             registration_merge_rms_mm: self.moments.rms_after_alignment(),
             calibrated: self.calibrated,
+            calibration: None,
             coverage_before_rescan: self.coverage_before,
             coverage_after_rescan: self.coverage_after,
             rescan_targets: self.rescan_targets,
