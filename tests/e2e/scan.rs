@@ -406,6 +406,22 @@ async fn the_cell_is_calibrated_over_rest_versioned_and_used_by_the_next_scan() 
     assert!(again["report"]["registration_before"]["merge_rms_mm"].as_f64().unwrap_or(1.0) < 0.07, "{again}");
     let list: serde_json::Value = stack.http.get(&url).send().await?.json().await?;
     assert_eq!(list["calibrations"][0]["version"], 2, "{list}");
+    // The same over gRPC: listed newest first, one by id, a bad option refused naming it.
+    use depthmill_proto::orchestrator::v1 as opb;
+    let mut grpc = stack.grpc().await?;
+    let listed = grpc.list_calibrations(opb::ListCalibrationsRequest { limit: 0 }).await?.into_inner();
+    assert_eq!(listed.calibrations.iter().map(|c| c.version).collect::<Vec<_>>(), [2, 1]);
+    let first = grpc.get_calibration(opb::GetCalibrationRequest { id: id.clone() }).await?.into_inner();
+    assert_eq!(first.version, 1);
+    assert!(first.report_json.contains("registration_after"), "{}", first.report_json);
+    let bad = grpc
+        .create_calibration(opb::CreateCalibrationRequest {
+            params_json: r#"{"sphere_radius_mm": 90}"#.into(),
+        })
+        .await
+        .expect_err("a 90 mm ball is refused");
+    assert_eq!(bad.code(), tonic::Code::InvalidArgument, "{bad:?}");
+    assert!(bad.message().contains("sphere_radius_mm"), "{}", bad.message());
 
     // The next scan job places its points with version 2.
     let sha = stack.upload("model/stl", dome_stl()).await?;

@@ -323,8 +323,10 @@ pub fn rest_scope(method: &axum::http::Method, path: &str) -> Option<Scope> {
 pub fn grpc_scope(path: &str) -> Option<Scope> {
     let method = path.strip_prefix("/depthmill.orchestrator.v1.OrchestratorService/")?;
     Some(match method {
-        "GetJob" | "ListJobs" | "WatchJob" | "DownloadArtifact" => Scope::Read,
-        "CreateJob" | "CancelJob" | "UploadArtifact" => Scope::Submit,
+        "GetJob" | "ListJobs" | "WatchJob" | "DownloadArtifact" | "GetCalibration" | "ListCalibrations" => {
+            Scope::Read
+        }
+        "CreateJob" | "CancelJob" | "UploadArtifact" | "CreateCalibration" => Scope::Submit,
         _ => Scope::Admin,
     })
 }

@@ -18,6 +18,17 @@ use crate::convert;
 
 pub(crate) const SERVICE_NAME: &str = "depthmill.orchestrator.v1.OrchestratorService";
 
+fn calibration_record(rec: crate::store::CalibrationRecord) -> pb::CellCalibrationRecord {
+    pb::CellCalibrationRecord {
+        id: rec.id,
+        version: rec.version,
+        created_at_ms: rec.created_at_ms,
+        trigger: rec.trigger_kind,
+        calibration_json: rec.calibration_json,
+        report_json: rec.report_json,
+    }
+}
+
 impl From<ApiError> for Status {
     fn from(e: ApiError) -> Self {
         let message = match &e.field {
@@ -102,6 +113,50 @@ impl OrchestratorService for Api {
         Ok(Response::new(pb::ListJobsResponse {
             jobs: page.jobs.iter().map(convert::job).collect(),
             next_cursor: page.next_cursor.map(|c| c.to_string()).unwrap_or_default(),
+        }))
+    }
+
+    async fn create_calibration(
+        &self,
+        request: Request<pb::CreateCalibrationRequest>,
+    ) -> Result<Response<pb::CellCalibrationRecord>, Status> {
+        let params = crate::http::parse_calibration_params(request.get_ref().params_json.as_bytes())?;
+        Ok(Response::new(calibration_record(self.app.calibrate(&params, "api").await?)))
+    }
+
+    async fn get_calibration(
+        &self,
+        request: Request<pb::GetCalibrationRequest>,
+    ) -> Result<Response<pb::CellCalibrationRecord>, Status> {
+        let id = &request.get_ref().id;
+        match self.app.store.get_calibration(id).await.map_err(ApiError::from)? {
+            Some(rec) => Ok(Response::new(calibration_record(rec))),
+            None => {
+                Err(ApiError::new(depthmill_proto::ErrorCode::NotFound, format!("no calibration {id}"))
+                    .into())
+            }
+        }
+    }
+
+    async fn list_calibrations(
+        &self,
+        request: Request<pb::ListCalibrationsRequest>,
+    ) -> Result<Response<pb::ListCalibrationsResponse>, Status> {
+        let limit = match request.get_ref().limit {
+            0 => 20,
+            l @ 1..=100 => l,
+            l => {
+                return Err(ApiError::field(
+                    depthmill_proto::ErrorCode::InvalidArgument,
+                    "limit",
+                    format!("limit = {l}: 1 to 100"),
+                )
+                .into());
+            }
+        };
+        let recs = self.app.store.list_calibrations(limit).await.map_err(ApiError::from)?;
+        Ok(Response::new(pb::ListCalibrationsResponse {
+            calibrations: recs.into_iter().map(calibration_record).collect(),
         }))
     }
 

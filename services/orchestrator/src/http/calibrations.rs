@@ -67,6 +67,18 @@ pub(crate) struct ListQuery {
     limit: Option<u32>,
 }
 
+/// The calibration routine's options from a JSON body (empty: the defaults), naming a bad field.
+pub fn parse_calibration_params(body: &[u8]) -> Result<CalibrationParams, ApiError> {
+    if body.iter().all(u8::is_ascii_whitespace) {
+        return Ok(CalibrationParams::default());
+    }
+    let de = &mut serde_json::Deserializer::from_slice(body);
+    serde_path_to_error::deserialize(de).map_err(|e| {
+        let path = e.path().to_string();
+        ApiError::field(ErrorCode::InvalidArgument, path, format!("calibration options: {}", e.inner()))
+    })
+}
+
 /// Calibrates the scanning cell: scans of the table top and the reference sphere at several
 /// table angles, the fit of the table and the scanner mount; stored as the next version, in
 /// force for every scan from now on. The body (optional) sets the routine's options; the
@@ -82,15 +94,7 @@ pub(crate) async fn create_calibration(
     State(app): State<App>,
     body: Bytes,
 ) -> Result<(StatusCode, Json<CalibrationView>), ApiError> {
-    let params: CalibrationParams = if body.iter().all(u8::is_ascii_whitespace) {
-        CalibrationParams::default()
-    } else {
-        let de = &mut serde_json::Deserializer::from_slice(&body);
-        serde_path_to_error::deserialize(de).map_err(|e| {
-            let path = e.path().to_string();
-            ApiError::field(ErrorCode::InvalidArgument, path, format!("calibration options: {}", e.inner()))
-        })?
-    };
+    let params = parse_calibration_params(&body)?;
     let rec = app.calibrate(&params, "api").await?;
     Ok((StatusCode::CREATED, Json(CalibrationView::of(rec)?)))
 }

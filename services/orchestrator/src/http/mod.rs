@@ -3,6 +3,8 @@
 
 mod artifacts;
 mod calibrations;
+
+pub use calibrations::parse_calibration_params;
 mod console;
 mod jobs;
 
