@@ -321,10 +321,12 @@ async fn drive(base: &str, part: Part, args: &DemoArgs, out: &Path) -> anyhow::R
         ));
     }
     s.push_str(&format!(
-        "scan: {} points, coverage {} %, registration RMS {} mm\n",
+        "scan: {} points, coverage {} %, registration RMS {} mm, merge RMS {} mm (cell calibration version {})\n",
         m["scan_points"].as_f64().map_or("-".to_string(), |v| format!("{v:.0}")),
         f("scan_coverage_pct"),
-        f("scan_registration_rms_mm")
+        f("scan_registration_rms_mm"),
+        f("scan_registration_merge_rms_mm"),
+        m["scan_calibration_version"].as_f64().map_or("-".to_string(), |v| format!("{v:.0}"))
     ));
     s.push_str(&format!(
         "part: depth-map coverage {} %, max gouge {} mm, max leftover {} mm, RMS deviation {} mm\n",
