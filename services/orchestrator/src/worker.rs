@@ -191,30 +191,14 @@ impl Worker {
             for r in &results {
                 artifacts.extend(r.outputs.artifacts.clone());
             }
-            // The scan places its points with the cell's calibration in force (made first when
-            // there is none).
-            let calibration = if stage == Stage::Scan {
-                match self.calibration_in_force(id).await? {
-                    Ok(c) => Some(c),
-                    Err(e) => {
-                        let error = JobError {
-                            code: e.code.as_str().into(),
-                            message: format!("calibrating the scanning cell before the scan: {}", e.message),
-                            stage,
-                        };
-                        return self.end(id, JobStatus::Failed, Some(error)).await;
-                    }
-                }
-            } else {
-                None
-            };
+            // The scan stage's attempts find the cell's calibration in force first.
             let call = StageCall {
                 job_id: id.to_string(),
                 attempt: 0,
                 stage,
                 spec: job.spec.clone(),
                 artifacts,
-                calibration,
+                calibration: None,
             };
             let started = now_ms();
             let outcome = if stage == Stage::Report {
@@ -288,9 +272,28 @@ impl Worker {
             let attempt = self.app.store.begin_attempt(&id, &self.owner, stage, now_ms()).await?;
             call.attempt = attempt;
             self.app.events.job_changed(&id);
-            let result = match self.attempt(&call, first, cancel, shutdown).await? {
-                Some(r) => r,
-                None => return Ok(None),
+            // The scan places its points with the cell's calibration in force, made first when
+            // there is none; a failure to get it is this attempt's failure (retried when transient).
+            let calibrated = if stage == Stage::Scan && call.calibration.is_none() {
+                match self.calibration_in_force(&id).await? {
+                    Ok(c) => {
+                        call.calibration = Some(c);
+                        Ok(())
+                    }
+                    Err(e) => Err(StageError::new(
+                        e.code,
+                        format!("calibrating the scanning cell before the scan: {}", e.message),
+                    )),
+                }
+            } else {
+                Ok(())
+            };
+            let result = match calibrated {
+                Err(e) => Err(e),
+                Ok(()) => match self.attempt(&call, first, cancel, shutdown).await? {
+                    Some(r) => r,
+                    None => return Ok(None),
+                },
             };
             let (outcome, delay) = match &result {
                 Ok(_) => (AttemptOutcome::Ok, None),
@@ -349,19 +352,22 @@ impl Worker {
         &self,
         id: &str,
     ) -> Result<Result<crate::store::CalibrationRecord, crate::app::ApiError>, StoreError> {
-        let work = self.app.calibration_in_force();
-        tokio::pin!(work);
-        let mut ticker = tokio::time::interval(secs(self.cfg.lease_s / 3.0));
-        loop {
-            tokio::select! {
-                r = &mut work => return Ok(r),
-                _ = ticker.tick() => {
-                    let lease = self.app.store.renew(id, &self.owner, now_ms(), self.lease_ms()).await?;
-                    if !lease.held {
-                        return Err(StoreError::LeaseLost { id: id.to_string() });
-                    }
+        // Both futures are polled together: a renewal waiting for a database connection must not
+        // stop the calibration, which may hold one, from going on (a renewal awaited inside a
+        // `select!` arm would).
+        let renewals = async {
+            let mut ticker = tokio::time::interval(secs(self.cfg.lease_s / 3.0));
+            loop {
+                ticker.tick().await;
+                let lease = self.app.store.renew(id, &self.owner, now_ms(), self.lease_ms()).await?;
+                if !lease.held {
+                    return Err(StoreError::LeaseLost { id: id.to_string() });
                 }
             }
+        };
+        tokio::select! {
+            r = self.app.calibration_in_force() => Ok(r),
+            e = renewals => e,
         }
     }
 

@@ -840,11 +840,11 @@ impl<'a> Machine<'a> {
                 // A rapid that touches material is a crash.
                 let tool = self.tool.map(|i| &self.setup.tools[i]);
                 if let Some(tool) = tool {
-                    let w = prof.work_offset;
-                    let (f, e) = (
-                        Point3::new(m.from.x - w.x_mm, m.from.y - w.y_mm, m.from.z - self.tlo_mm - w.z_mm),
-                        Point3::new(to.x - w.x_mm, to.y - w.y_mm, to.z - self.tlo_mm - w.z_mm),
-                    );
+                    // On whole motor steps, as the feed moves are cut: from exact positions a
+                    // grid cell on the rim of the tool the feed left standing (by a fraction of a
+                    // step) would read as a full column of material in the way.
+                    let (f, e) =
+                        (work_tip(prof, self.tlo_mm, m.from, true), work_tip(prof, self.tlo_mm, to, true));
                     let cut = stock.cut_line(&tool.profile, f, e)?;
                     // A rapid that shaves a sliver (left by the feed move's last partial
                     // revolution, or the steps' rounding) marks the part; one that engages the
