@@ -4,6 +4,9 @@
 //!   its simulated motion controller.
 //! - [`calibration`]: the cell as it truly is (off its drawing by a profile of errors), what the
 //!   software believes, and the calibration from scans of the table top and a reference sphere.
+//! - [`chain`]: seed 003, an area scanner in the mill's tool holder, the part on the A axis: the
+//!   scanner calibrated against the machine's axes from one calibration point, partial scans
+//!   placed by the kinematic chain alone.
 //! - [`latch`]: the encoder-latching device: positions of the robot and the table stored at
 //!   every scanner sync pulse, with latency and jitter.
 //! - [`scanner`]: the SLP-400 class laser line scanner cast at the part's mesh (own BVH):
@@ -16,6 +19,7 @@
 //!   rescan of the holes.
 
 pub mod calibration;
+pub mod chain;
 pub mod latch;
 pub mod robot;
 pub mod scan;
