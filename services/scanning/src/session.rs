@@ -21,9 +21,9 @@ use crate::domain::scan::{CellLayout, ScanError, ScanOptions, ScanOutput, ScanPl
 use crate::domain::table::model::shortest_delta_deg;
 
 /// Table speed for indexing, °/s (the controller's maximum).
-pub const TABLE_SPEED_DEG_S: f64 = 45.0;
+pub const TABLE_SPEED_DEG_S: f64 = crate::domain::scan::plan::TABLE_INDEX_SPEED_DEG_S;
 /// Table acceleration for indexing, °/s².
-pub const TABLE_ACCEL_DEG_S2: f64 = 200.0;
+pub const TABLE_ACCEL_DEG_S2: f64 = crate::domain::scan::plan::TABLE_INDEX_ACCEL_DEG_S2;
 /// Largest accepted difference between the settled encoder reading and the asked angle, degrees
 /// (two encoder counts).
 pub const TABLE_TOLERANCE_DEG: f64 = 0.0625;

@@ -217,7 +217,7 @@ pub fn calibration_session(
                 .map_err(|e| scan(&e))?;
         seed = p.q_end_deg;
         passes.push(p);
-        stations.push(Station { table_deg: deg, passes });
+        stations.push(Station { table_deg: deg, passes, table_offset_deg: 0.0 });
     }
     Ok((session, ScanPlan { stations, skipped: Vec::new() }))
 }

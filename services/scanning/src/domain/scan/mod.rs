@@ -50,7 +50,7 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 pub use options::{PassSpec, ScanMode, ScanOptions};
-pub use plan::{Pass, ScanPlan, Station, plan_scan};
+pub use plan::{Pass, ScanPlan, Station, TableMove, plan_scan, posture_score};
 
 use super::calibration::fit::{AlignmentMoments, CapturedFrame};
 use super::calibration::{CalibrationOptions, Cell, CellTruth, TableModel};
@@ -258,6 +258,10 @@ pub struct StationReport {
     pub passes: Vec<PassReport>,
     /// Rescan station (aimed at holes).
     pub rescan: bool,
+    /// How far the planner turned the table from the angle asked for, the seventh joint, degrees.
+    pub table_offset_deg: f64,
+    /// The table's index from the previous station (none before the first).
+    pub table_move: Option<plan::TableMove>,
 }
 
 /// What one pass did.
@@ -274,6 +278,12 @@ pub struct PassReport {
     pub path_deviation_mm: f64,
     pub min_dexterity: f64,
     pub min_clearance_mm: f64,
+    /// Smallest distances from the wrist, shoulder and elbow singularities along the pass.
+    pub min_margins: depthmill_geometry::arm::SingularityMargins,
+    /// Smallest distance of a joint from its limits along the pass, degrees.
+    pub min_limit_margin_deg: f64,
+    /// Posture score of the pass's worst pose, 0..1 (seed 002's criteria in one number).
+    pub quality: f64,
 }
 
 /// Coverage of the footprint by the cloud so far.
@@ -625,6 +635,15 @@ impl ScanSession {
             table_deg_measured,
             passes: Vec::with_capacity(station.passes.len()),
             rescan,
+            table_offset_deg: station.table_offset_deg,
+            table_move: self.stations.last().map(|s| {
+                plan::TableMove::between(
+                    s.table_deg_commanded,
+                    station.table_deg,
+                    plan::TABLE_INDEX_SPEED_DEG_S,
+                    plan::TABLE_INDEX_ACCEL_DEG_S2,
+                )
+            }),
         };
         for (i, pass) in station.passes.iter().enumerate() {
             if cancelled() {
@@ -658,6 +677,9 @@ impl ScanSession {
                 path_deviation_mm: pass.path_deviation_mm,
                 min_dexterity: pass.min_dexterity,
                 min_clearance_mm: pass.min_clearance_mm,
+                min_margins: pass.min_margins,
+                min_limit_margin_deg: pass.min_limit_margin_deg,
+                quality: pass.quality,
             });
             progress(i + 1, station.passes.len());
         }
@@ -951,7 +973,7 @@ impl ScanSession {
                 }
             }
             if !passes.is_empty() {
-                stations.push(Station { table_deg: deg, passes });
+                stations.push(Station { table_deg: deg, passes, table_offset_deg: 0.0 });
             }
         }
         ScanPlan { stations, skipped: Vec::new() }

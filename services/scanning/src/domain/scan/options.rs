@@ -79,6 +79,11 @@ pub struct ScanOptions {
     pub obstacles: Vec<super::obstacles::Obstacle>,
     /// Smallest distance the arm and the scanner keep from every obstacle, mm (default 10).
     pub obstacle_clearance_mm: f64,
+    /// The table as the seventh joint: on the automatic plan each station's angle may turn up to
+    /// this far from the one asked for when that reaches more passes or gives the arm a better
+    /// posture (dexterity, singularity and joint-limit distances), degrees; 0 keeps the angles
+    /// as asked (default 30).
+    pub table_search_deg: f64,
     /// Seed of the scanner's and the latch's noise.
     pub seed: u64,
     /// Upper bound on frames, a guard against options that would scan for hours (default 400 000).
@@ -108,6 +113,7 @@ impl Default for ScanOptions {
             passes: None,
             obstacles: Vec::new(),
             obstacle_clearance_mm: 10.0,
+            table_search_deg: 30.0,
             seed: 1,
             max_frames: 400_000,
         }
@@ -162,6 +168,7 @@ impl ScanOptions {
             finite_in("rescan_standoff_mm", s, spec.standoff_min_mm, spec.standoff_max_mm)?;
         }
         finite_in("obstacle_clearance_mm", self.obstacle_clearance_mm, 0.0, 500.0)?;
+        finite_in("table_search_deg", self.table_search_deg, 0.0, 90.0)?;
         if self.obstacles.len() > 16 {
             return Err(bad("obstacles", self.obstacles.len(), "at most 16 obstacles"));
         }

@@ -7,7 +7,7 @@ use serde::Serialize;
 use super::options::{ScanMode, ScanOptions};
 use super::{CellLayout, PartPlacement, ScanError};
 use crate::domain::scanner::ScannerSpec;
-use depthmill_geometry::arm::{ArmModel, IkConfig, JointLimit};
+use depthmill_geometry::arm::{ArmModel, IkConfig, JointLimit, SingularityMargins};
 
 /// One straight pass of the sensor at rest orientation.
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -34,6 +34,12 @@ pub struct Pass {
     pub min_dexterity: f64,
     /// Smallest distance of the arm and the scanner from the cell's obstacles along the pass, mm.
     pub min_clearance_mm: f64,
+    /// Smallest distances from the wrist, shoulder and elbow singularities along the pass.
+    pub min_margins: SingularityMargins,
+    /// Smallest distance of any joint from its limits along the pass, degrees.
+    pub min_limit_margin_deg: f64,
+    /// The posture score of the pass's worst pose, 0..1 ([`posture_score`]).
+    pub quality: f64,
 }
 
 /// The passes at one table angle.
@@ -42,6 +48,77 @@ pub struct Station {
     /// Commanded table angle, degrees.
     pub table_deg: f64,
     pub passes: Vec<Pass>,
+    /// The seventh joint: how far the planner turned the table from the angle asked for
+    /// (`table_deg` − asked) to give the arm a better posture, degrees (0: fixed).
+    pub table_offset_deg: f64,
+}
+
+/// The table's indexing speed, °/s (the controller's maximum), and acceleration, °/s².
+pub const TABLE_INDEX_SPEED_DEG_S: f64 = 45.0;
+pub const TABLE_INDEX_ACCEL_DEG_S2: f64 = 200.0;
+
+/// The table's index to a station from the previous one at the controller's speed and
+/// acceleration (a trapezoid, or a triangle on a short move).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct TableMove {
+    /// Shortest turn, degrees.
+    pub turn_deg: f64,
+    pub peak_speed_deg_s: f64,
+    pub peak_accel_deg_s2: f64,
+    pub time_s: f64,
+}
+
+impl TableMove {
+    pub fn between(from_deg: f64, to_deg: f64, speed_deg_s: f64, accel_deg_s2: f64) -> Self {
+        let turn = (to_deg - from_deg + 180.0).rem_euclid(360.0) - 180.0;
+        let d = turn.abs();
+        if d < 1e-12 {
+            return Self { turn_deg: turn, peak_speed_deg_s: 0.0, peak_accel_deg_s2: 0.0, time_s: 0.0 };
+        }
+        let (peak, time) = if d <= speed_deg_s * speed_deg_s / accel_deg_s2 {
+            let v = (d * accel_deg_s2).sqrt();
+            (v, 2.0 * v / accel_deg_s2)
+        } else {
+            (speed_deg_s, d / speed_deg_s + speed_deg_s / accel_deg_s2)
+        };
+        Self { turn_deg: turn, peak_speed_deg_s: peak, peak_accel_deg_s2: accel_deg_s2, time_s: time }
+    }
+}
+
+/// Where each posture criterion stops mattering: dexterity (mm³/rad³), the wrist and elbow
+/// margins (°), the shoulder margin (mm), the joint-limit margin (°).
+pub const POSTURE_REFERENCE: (f64, f64, f64, f64, f64) = (5.0e6, 30.0, 30.0, 150.0, 20.0);
+
+/// Seed 002's criteria for a pose in one number, 0 (singular, at a limit) to 1 (comfortable):
+/// the smallest of dexterity `sqrt(det(JᵀJ))`, the distances from the wrist, elbow and shoulder
+/// singularities and from the joint limits, each over the reference where it stops mattering.
+pub fn posture_score(arm: &ArmModel, q: &[f64; 6]) -> (f64, SingularityMargins, f64, f64) {
+    let (dex_ref, wrist_ref, elbow_ref, shoulder_ref, limit_ref) = POSTURE_REFERENCE;
+    let dex = arm.dexterity(q);
+    let m = arm.singularity_margins(q);
+    let limit = arm
+        .limits
+        .iter()
+        .zip(q)
+        .map(|(l, v)| (v - l.min_deg).min(l.max_deg - v))
+        .fold(f64::INFINITY, f64::min);
+    let score = [dex / dex_ref, m.wrist_deg / wrist_ref, m.elbow_deg / elbow_ref, m.shoulder_mm / shoulder_ref, limit / limit_ref]
+        .into_iter()
+        .fold(1.0_f64, f64::min)
+        .max(0.0);
+    (score, m, limit, dex)
+}
+
+/// Table offsets tried per station, nearest first: 0, +step, −step, ... within ±`search`.
+fn offsets(search_deg: f64) -> Vec<f64> {
+    const STEP_DEG: f64 = 5.0;
+    let n = (search_deg / STEP_DEG).floor() as i32;
+    let mut v = vec![0.0];
+    for k in 1..=n {
+        v.push(f64::from(k) * STEP_DEG);
+        v.push(-f64::from(k) * STEP_DEG);
+    }
+    v
 }
 
 /// The whole plan.
@@ -112,35 +189,71 @@ pub fn plan_scan(
     obstacles.extend(opts.obstacles.iter().cloned());
     let mut seed = ArmModel::HOME_DEG;
     let mut id: u16 = 0;
-    let mut stations = Vec::with_capacity(raw.len());
+    let mut stations: Vec<Station> = Vec::with_capacity(raw.len());
     let mut skipped = Vec::new();
     let mut first_error = None;
     let automatic = opts.passes.is_none();
+    // The seventh joint (seed 002): every automatic pass is a path in the part's frame, so the
+    // table may turn by up to `table_search_deg` from the station's angle, the path turning with
+    // it, when the arm then reaches the pass or holds a better worst posture along it. The same
+    // sensor path over the part either way: only the arm's posture and the table's moves change.
+    // Offsets are tried nearest the previous pass's first, so the table turns only for a gain.
+    let search = if automatic { opts.table_search_deg } else { 0.0 };
+    let mut offset = 0.0_f64;
     for (deg, lines) in raw {
-        let mut passes = Vec::with_capacity(lines.len());
+        let base = layout.world_from_table(deg);
+        let mut tries = offsets(search);
+        tries.sort_by(|a, b| (a - offset).abs().total_cmp(&(b - offset).abs()));
         for (a, b) in lines {
             let next = id.checked_add(1).ok_or_else(|| ScanError::InvalidOption {
                 field: "scan".into(),
                 value: "more than 65535 passes".into(),
                 reason: "a scan has at most 65535 passes (pass ids are 16-bit)".into(),
             })?;
-            match make_pass(arm, opts, &obstacles, next, deg, a, b, &seed) {
+            // (reached, posture in steps of 0.05), the pass or why not, the offset.
+            let mut best: Option<((bool, i64), Result<Pass, ScanError>, f64)> = None;
+            for &off in &tries {
+                let turn = layout.world_from_table(deg + off) * base.inverse();
+                let r = match make_pass(arm, opts, &obstacles, next, deg + off, turn * a, turn * b, &seed) {
+                    Ok(p) => Ok(p),
+                    // An automatic pass out of reach here may be reached at another angle; a
+                    // given pass out of reach is the user's error.
+                    Err(e @ ScanError::Unreachable { .. }) if automatic => Err(e),
+                    Err(e) => return Err(e),
+                };
+                let key = match &r {
+                    Ok(p) => (true, (p.quality * 20.0).floor() as i64),
+                    Err(_) => (false, 0),
+                };
+                let done = key == (true, 20);
+                if best.as_ref().is_none_or(|b| key > b.0) {
+                    best = Some((key, r, off));
+                }
+                if done {
+                    break;
+                }
+            }
+            let Some((_, r, off)) = best else { continue };
+            match r {
                 Ok(pass) => {
                     id = next;
                     seed = pass.q_end_deg;
-                    passes.push(pass);
+                    offset = off;
+                    let angle = deg + off;
+                    match stations.last_mut() {
+                        Some(st) if st.table_deg == angle && st.passes.last().is_some_and(|p| p.id + 1 == pass.id) => {
+                            st.passes.push(pass)
+                        }
+                        _ => stations.push(Station { table_deg: angle, passes: vec![pass], table_offset_deg: off }),
+                    }
                 }
-                // An automatic pass out of reach at this angle: the other angles bring that side
-                // nearer. A given pass out of reach is the user's error.
-                Err(e @ ScanError::Unreachable { .. }) if automatic => {
+                // An automatic pass out of reach at every angle tried: the other stations bring
+                // that side of the part nearer.
+                Err(e) => {
                     skipped.push(e.to_string());
                     first_error.get_or_insert(e);
                 }
-                Err(e) => return Err(e),
             }
-        }
-        if !passes.is_empty() {
-            stations.push(Station { table_deg: deg, passes });
         }
     }
     if stations.is_empty()
@@ -229,7 +342,18 @@ pub(crate) fn make_pass(
     // start (a straight stop-and-move pass visits them all), checking each on the way.
     let steps = ((length_mm / 20.0).ceil() as usize).max(1);
     let mut q = s.q_deg;
-    let mut min_dex = arm.dexterity(&q);
+    let (mut quality, mut min_margins, mut min_limit, mut min_dex) = posture_score(arm, &q);
+    let mut track = |q: &[f64; 6]| {
+        let (score, m, limit, dex) = posture_score(arm, q);
+        quality = quality.min(score);
+        min_margins = SingularityMargins {
+            wrist_deg: min_margins.wrist_deg.min(m.wrist_deg),
+            shoulder_mm: min_margins.shoulder_mm.min(m.shoulder_mm),
+            elbow_deg: min_margins.elbow_deg.min(m.elbow_deg),
+        };
+        min_limit = min_limit.min(limit);
+        min_dex = min_dex.min(dex);
+    };
     for k in 1..=steps {
         let t = k as f64 / steps as f64;
         let p = a + d * t;
@@ -244,7 +368,7 @@ pub(crate) fn make_pass(
         }
         q = sol.q_deg;
         check(&q, "middle", &p)?;
-        min_dex = min_dex.min(arm.dexterity(&q));
+        track(&q);
     }
     let path_deviation_mm =
         if opts.mode == ScanMode::Dynamic { joint_path_deviation(arm, &s.q_deg, &q, &a, &b) } else { 0.0 };
@@ -258,6 +382,9 @@ pub(crate) fn make_pass(
         path_deviation_mm,
         min_dexterity: min_dex,
         min_clearance_mm: min_clear,
+        min_margins,
+        min_limit_margin_deg: min_limit,
+        quality,
     })
 }
 
