@@ -172,10 +172,19 @@ pub struct IcpResult {
 }
 
 /// The cloud registered onto: points, normals and a k-d tree over the points.
+///
+/// The tree holds `f32` coordinates about the cloud's centre (half the memory, faster
+/// traversal); every answer is made exact in `f64` ([`Target::nearest_two`]): the `f32` search
+/// names the candidates, their distances are computed exactly, and where rounding could have
+/// swapped two neighbours the ball that must hold the true nearest is searched and settled in
+/// `f64`.
 pub struct Target {
     points: Vec<Point3<f64>>,
     normals: Vec<Vector3<f64>>,
-    tree: ImmutableKdTree<f64, 3>,
+    tree: ImmutableKdTree<f32, 3>,
+    origin: Vector3<f64>,
+    /// Largest distance of a point from `origin`, mm.
+    radius: f64,
 }
 
 fn check_points(which: &'static str, pts: &[Point3<f64>], min: usize) -> Result<(), IcpError> {
@@ -199,12 +208,12 @@ impl Target {
                 reason: "3 to 200",
             });
         }
-        let tree = build_tree(&points)?;
+        let (tree, origin, radius) = build_tree(&points)?;
         let k = std::num::NonZero::new(normal_k.min(points.len())).unwrap_or(std::num::NonZero::<usize>::MIN);
         let normals = points
             .par_iter()
             .map(|p| {
-                let near = tree.query(&[p.x, p.y, p.z]).nearest_n::<SquaredEuclidean<f64>>(k).execute();
+                let near = tree.query(&centred(p, &origin)).nearest_n::<SquaredEuclidean<f32>>(k).execute();
                 let n = near.len() as f64;
                 let c = near.iter().fold(Vector3::zeros(), |a, r| a + points[r.item as usize].coords) / n;
                 let cov = near.iter().fold(Matrix3::zeros(), |a, r| {
@@ -214,7 +223,7 @@ impl Target {
                 smallest_eigenvector(&cov)
             })
             .collect();
-        Ok(Self { points, normals, tree })
+        Ok(Self { points, normals, tree, origin, radius })
     }
 
     /// A target with given unit normals (one per point).
@@ -227,8 +236,8 @@ impl Target {
                 reason: "one normal per target point",
             });
         }
-        let tree = build_tree(&points)?;
-        Ok(Self { points, normals, tree })
+        let (tree, origin, radius) = build_tree(&points)?;
+        Ok(Self { points, normals, tree, origin, radius })
     }
 
     /// The points.
@@ -241,17 +250,89 @@ impl Target {
         &self.normals
     }
 
-    /// Nearest target point to `p` within `max` (mm): its index and squared distance.
+    /// Nearest target point to `p` within `max` (mm): its index and squared distance (exact).
     pub fn nearest_within(&self, p: &Point3<f64>, max: f64) -> Option<(usize, f64)> {
-        let r = self.tree.query(&[p.x, p.y, p.z]).nearest_one::<SquaredEuclidean<f64>>().execute();
-        (r.distance <= max * max).then_some((r.item as usize, r.distance))
+        match self.nearest_two(p, max) {
+            (Some(i), d1, _) if d1 <= max => Some((i, d1 * d1)),
+            _ => None,
+        }
+    }
+
+    /// Bound on how far an `f32` distance from `p` to a target point can be from the exact one,
+    /// mm: coordinates about the centre rounded to `f32` (relative 2⁻²⁴ each), the differences
+    /// and the sum of squares rounded again; with a factor 4 of margin.
+    fn rounding(&self, p: &Point3<f64>) -> f64 {
+        let u = f64::from(f32::EPSILON);
+        let q = (p.coords - self.origin).norm();
+        4.0 * u * (2.0 * (q + self.radius) + 1.0) + 1e-9
+    }
+
+    /// The exact nearest target point of `p` within `bound` mm (its index and distance) and a
+    /// lower bound on the distance of every other target point; `None` and a lower bound on the
+    /// nearest distance when no point lies within `bound`.
+    ///
+    /// The `f32` tree gives the two nearest candidates within `bound` by `f32` distance. With
+    /// `e1 <= e2` their exact distances and `ε` the rounding bound, every point not returned is
+    /// at least `L = e2 − 2ε` away (two returned) or `bound − ε` (fewer), so the first is the
+    /// exact nearest when `L > e1`. Otherwise every point within `e1 + 3ε` in `f32` holds the
+    /// exact nearest, and the candidates there are compared in `f64`.
+    pub fn nearest_two(&self, p: &Point3<f64>, bound: f64) -> (Option<usize>, f64, f64) {
+        let two = std::num::NonZero::new(2).unwrap_or(std::num::NonZero::<usize>::MIN);
+        let c = centred(p, &self.origin);
+        let eps = self.rounding(p);
+        let b2 = if bound.is_finite() { (bound * bound) as f32 } else { f32::INFINITY };
+        let near = self.tree.query(&c).nearest_n::<SquaredEuclidean<f32>>(two).within(b2).execute();
+        let exact = |i: u32| (p - self.points[i as usize]).norm();
+        let (mut e1, mut i1, mut e2) = (f64::INFINITY, u32::MAX, f64::INFINITY);
+        for r in &near {
+            let e = exact(r.item);
+            if e < e1 || (e == e1 && r.item < i1) {
+                (e2, e1, i1) = (e1, e, r.item);
+            } else if e < e2 {
+                e2 = e;
+            }
+        }
+        // `b2` rounded to f32 may sit below bound² by a relative 2⁻²⁴.
+        let outside = bound * (1.0 - 2.0 * f64::from(f32::EPSILON)) - eps;
+        let others = if near.len() >= 2 { e2 - 2.0 * eps } else { outside };
+        if i1 == u32::MAX {
+            return (None, outside.max(0.0), outside.max(0.0));
+        }
+        if others > e1 {
+            return (Some(i1 as usize), e1, others.min(e2));
+        }
+        let r = e1 + 3.0 * eps;
+        let ball = self
+            .tree
+            .query(&c)
+            .within::<SquaredEuclidean<f32>>((r * r) as f32 * (1.0 + 4.0 * f32::EPSILON))
+            .execute();
+        let mut all: Vec<(f64, u32)> = ball.iter().map(|r| (exact(r.item), r.item)).collect();
+        all.push((e1, i1));
+        all.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        all.dedup_by_key(|c| c.1);
+        let (d1, i) = all[0];
+        // Points outside the ball are at least `r − ε = e1 + 2ε` away.
+        let floor = e1 + 2.0 * eps;
+        let d2 = all.get(1).map_or(floor, |c| c.0.min(floor));
+        (Some(i as usize), d1, d2)
     }
 }
 
-fn build_tree(points: &[Point3<f64>]) -> Result<ImmutableKdTree<f64, 3>, IcpError> {
-    let coords: Vec<[f64; 3]> = points.iter().map(|p| [p.x, p.y, p.z]).collect();
-    ImmutableKdTree::new_from_slice(&coords)
-        .map_err(|e| IcpError::Degenerate(format!("building the k-d tree: {e:?}")))
+/// `p` about `origin`, in `f32`.
+fn centred(p: &Point3<f64>, origin: &Vector3<f64>) -> [f32; 3] {
+    let q = p.coords - origin;
+    [q.x as f32, q.y as f32, q.z as f32]
+}
+
+/// The `f32` tree about the points' centre, the centre and the largest distance from it.
+fn build_tree(points: &[Point3<f64>]) -> Result<(ImmutableKdTree<f32, 3>, Vector3<f64>, f64), IcpError> {
+    let origin = points.iter().fold(Vector3::zeros(), |a, p| a + p.coords) / points.len().max(1) as f64;
+    let radius = points.iter().map(|p| (p.coords - origin).norm()).fold(0.0, f64::max);
+    let coords: Vec<[f32; 3]> = points.iter().map(|p| centred(p, &origin)).collect();
+    let tree = ImmutableKdTree::new_from_slice(&coords)
+        .map_err(|e| IcpError::Degenerate(format!("building the k-d tree: {e:?}")))?;
+    Ok((tree, origin, radius))
 }
 
 fn smallest_eigenvector(cov: &Matrix3<f64>) -> Vector3<f64> {
@@ -320,22 +401,26 @@ struct Nearest {
     half_gap: f64,
 }
 
+/// No target point near enough.
+const NONE: u32 = u32::MAX;
+
 const UNSEARCHED: Nearest =
     Nearest { at: Point3::new(f64::NAN, f64::NAN, f64::NAN), index: 0, half_gap: -1.0 };
 
 impl Target {
-    /// Nearest target point of `p` (its index), reusing `cache` when `p` has not moved out of
-    /// its half gap.
-    fn nearest_cached(&self, p: &Point3<f64>, cache: &mut Nearest) -> usize {
+    /// Nearest target point of `p` (its index) when one may lie within `max` of it, reusing
+    /// `cache` when `p` has not moved out of its half gap. The search looks `2 max` around `p`;
+    /// a point with nothing there cannot gain a correspondence before it has moved by the
+    /// distance to the nearest target point less `max`, and is not searched again before.
+    fn nearest_cached(&self, p: &Point3<f64>, cache: &mut Nearest, max: f64) -> Option<usize> {
         if (p - cache.at).norm() < cache.half_gap {
-            return cache.index as usize;
+            return (cache.index != NONE).then_some(cache.index as usize);
         }
-        let two = std::num::NonZero::new(2).unwrap_or(std::num::NonZero::<usize>::MIN);
-        let near = self.tree.query(&[p.x, p.y, p.z]).nearest_n::<SquaredEuclidean<f64>>(two).execute();
-        let (i, d1) = near.first().map_or((0, 0.0), |r| (r.item, r.distance.sqrt()));
-        let d2 = near.get(1).map_or(f64::INFINITY, |r| r.distance.sqrt());
-        *cache = Nearest { at: *p, index: i, half_gap: 0.5 * (d2 - d1) };
-        i as usize
+        *cache = match self.nearest_two(p, 2.0 * max) {
+            (Some(i), d1, d2) => Nearest { at: *p, index: i as u32, half_gap: 0.5 * (d2 - d1) },
+            (None, at_least, _) => Nearest { at: *p, index: NONE, half_gap: at_least - max },
+        };
+        (cache.index != NONE).then_some(cache.index as usize)
     }
 }
 
@@ -354,7 +439,7 @@ fn pass(
         .zip(cache.par_iter_mut())
         .fold(Sums::zero, |s, (p, c)| {
             let p = t * p;
-            let i = target.nearest_cached(&p, c);
+            let Some(i) = target.nearest_cached(&p, c, opts.max_correspondence_mm) else { return s };
             let q = &target.points[i];
             let d2 = (p - q).norm_squared();
             if d2 <= max2 { s.add(contribution(&p, q, &target.normals[i], d2, &kernel)) } else { s }

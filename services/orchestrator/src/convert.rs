@@ -58,6 +58,7 @@ pub fn scan_params(p: &ScanParams) -> scan::ScanParams {
             .collect(),
         obstacle_clearance_mm: p.obstacle_clearance_mm,
         obstacles: p.obstacles.iter().flatten().map(obstacle_to_wire).collect(),
+        table_search_deg: p.table_search_deg,
     }
 }
 
@@ -494,6 +495,7 @@ pub fn job_spec_from_pb(s: pb::JobSpec) -> Result<JobSpec, SpecError> {
                 seed: p.seed,
                 max_frames: p.max_frames,
                 obstacle_clearance_mm: p.obstacle_clearance_mm,
+                table_search_deg: p.table_search_deg,
                 obstacles: if p.obstacles.is_empty() {
                     None
                 } else {

@@ -80,20 +80,20 @@ fn fit(mut m: Mesh, size: f64) -> Mesh {
 
 fn main() {
     let relief = depthmill_geometry::sample::sample_relief(0.5);
-    let mut parts: Vec<(String, Mesh)> = vec![
-        ("demo relief".into(), relief.clone()),
-    ];
+    let mut parts: Vec<(String, Mesh)> = vec![("demo relief".into(), relief.clone())];
     // The same relief larger: its far passes towards the edge of the arm's reach.
     for k in [2.0, 2.6] {
-        parts.push((format!("relief x{k}"), Mesh {
-            vertices: relief.vertices.iter().map(|v| Point3::from(v.coords * k)).collect(),
-            triangles: relief.triangles.clone(),
-        }));
+        parts.push((
+            format!("relief x{k}"),
+            Mesh {
+                vertices: relief.vertices.iter().map(|v| Point3::from(v.coords * k)).collect(),
+                triangles: relief.triangles.clone(),
+            },
+        ));
     }
     if let Ok(dir) = std::env::var("DEPTHMILL_PARTS_DIR") {
-        let mut files: Vec<_> = std::fs::read_dir(&dir)
-            .map(|d| d.flatten().map(|e| e.path()).collect())
-            .unwrap_or_default();
+        let mut files: Vec<_> =
+            std::fs::read_dir(&dir).map(|d| d.flatten().map(|e| e.path()).collect()).unwrap_or_default();
         files.sort();
         for f in files {
             let name = f.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
@@ -108,8 +108,21 @@ fn main() {
     }
     println!(
         "{:<28} {:<8} {:>5} {:>5} {:>7} {:>9} {:>7} {:>7} {:>8} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7}  offsets",
-        "part", "table", "pass", "skip", "worst", "dex", "wrist", "elbow", "shoulder", "limits", "cover%", "scan s",
-        "turn°", "table s", "peak°/s"
+        "part",
+        "table",
+        "pass",
+        "skip",
+        "worst",
+        "dex",
+        "wrist",
+        "elbow",
+        "shoulder",
+        "limits",
+        "cover%",
+        "scan s",
+        "turn°",
+        "table s",
+        "peak°/s"
     );
     for (name, mesh) in &parts {
         for (label, search) in [("fixed", 0.0), ("7-dof", 30.0)] {

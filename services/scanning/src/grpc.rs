@@ -123,6 +123,7 @@ pub(crate) fn options(p: pb::ScanParams) -> Result<ScanOptions, Status> {
         rescan_standoff_mm: p.rescan_standoff_mm.or(d.rescan_standoff_mm),
         seed: p.seed.unwrap_or(d.seed),
         max_frames: p.max_frames.unwrap_or(d.max_frames),
+        table_search_deg: p.table_search_deg.unwrap_or(d.table_search_deg),
         passes,
         ..d
     })

@@ -222,3 +222,64 @@ fn bad_input_is_refused_naming_it() {
     let e = icp(&far, &target, &id, &IcpOptions::default()).unwrap_err();
     assert!(e.to_string().contains("do not overlap"), "{e}");
 }
+
+#[test]
+fn the_f32_tree_answers_exactly_like_a_brute_force_search() {
+    let mut rng = StdRng::seed_from_u64(77);
+    for round in 0..4 {
+        // Far from the origin, with exact duplicates and points on a fine lattice (ties that
+        // rounding to f32 cannot order).
+        let base = Vector3::new(400.0, -250.0, 80.0) * f64::from(round);
+        let mut pts: Vec<Point3<f64>> = (0..3000)
+            .map(|_| {
+                Point3::from(
+                    base + Vector3::new(
+                        rng.random_range(-60.0..60.0),
+                        rng.random_range(-60.0..60.0),
+                        rng.random_range(-5.0..5.0),
+                    ),
+                )
+            })
+            .collect();
+        for k in 0..300u32 {
+            pts.push(pts[k as usize]);
+            let q =
+                Point3::from(base + Vector3::new(f64::from(k % 20) * 1e-5, f64::from(k / 20) * 1e-5, 0.0));
+            pts.push(q);
+        }
+        let target = Target::new(pts.clone(), 10).unwrap();
+        let queries = (0..2000).map(|_| {
+            Point3::from(
+                base + Vector3::new(
+                    rng.random_range(-70.0..70.0),
+                    rng.random_range(-70.0..70.0),
+                    rng.random_range(-8.0..8.0),
+                ),
+            )
+        });
+        let near_lattice = (0..200).map(|k| {
+            Point3::from(base + Vector3::new(f64::from(k % 20) * 1e-5 + 3e-6, f64::from(k / 20) * 1e-5, 1e-6))
+        });
+        for q in queries.chain(near_lattice) {
+            let mut d: Vec<f64> = pts.iter().map(|p| (q - p).norm()).collect();
+            let (bi, bd) =
+                d.iter().enumerate().min_by(|a, b| a.1.total_cmp(b.1)).map(|(i, v)| (i, *v)).unwrap();
+            d.sort_by(f64::total_cmp);
+            for bound in [f64::INFINITY, 2.0, 0.5, 1e-5] {
+                match target.nearest_two(&q, bound) {
+                    (Some(i), d1, d2) => {
+                        assert_eq!(d1, bd, "nearest distance at {q}");
+                        assert_eq!((q - pts[i]).norm(), bd, "index {i} vs {bi}");
+                        assert!(bd <= bound * (1.0 + 1e-6) + 1e-4, "found {bd} beyond {bound}");
+                        // Every other point (the second nearest, which may tie) is at least d2 away.
+                        assert!(d2 <= d[1] + 1e-15, "{d2} > second {}", d[1]);
+                    }
+                    (None, at_least, _) => {
+                        assert!(at_least <= bd, "nearest {bd} said to be at least {at_least}");
+                        assert!(bd > bound * (1.0 - 1e-6) - 1e-4, "{bd} within {bound} not found");
+                    }
+                }
+            }
+        }
+    }
+}

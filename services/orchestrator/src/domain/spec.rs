@@ -234,6 +234,10 @@ pub struct ScanParams {
     pub passes: Option<Vec<ScanPassSpec>>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub obstacle_clearance_mm: Option<f64>,
+    /// The table as the seventh joint: how far an automatic pass's table angle may turn from its
+    /// station's for a better arm posture, degrees (default 30; 0 keeps the angles as asked).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub table_search_deg: Option<f64>,
     /// Obstacles besides the table and the part, world frame: `{"shape": "box", "name",
     /// "min_mm", "max_mm"}`, `{"shape": "cylinder", "name", "center_mm": [x, y], "radius_mm",
     /// "z_min_mm", "z_max_mm"}` or `{"shape": "sphere", "name", "center_mm", "radius_mm"}`.

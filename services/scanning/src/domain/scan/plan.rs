@@ -102,10 +102,16 @@ pub fn posture_score(arm: &ArmModel, q: &[f64; 6]) -> (f64, SingularityMargins, 
         .zip(q)
         .map(|(l, v)| (v - l.min_deg).min(l.max_deg - v))
         .fold(f64::INFINITY, f64::min);
-    let score = [dex / dex_ref, m.wrist_deg / wrist_ref, m.elbow_deg / elbow_ref, m.shoulder_mm / shoulder_ref, limit / limit_ref]
-        .into_iter()
-        .fold(1.0_f64, f64::min)
-        .max(0.0);
+    let score = [
+        dex / dex_ref,
+        m.wrist_deg / wrist_ref,
+        m.elbow_deg / elbow_ref,
+        m.shoulder_mm / shoulder_ref,
+        limit / limit_ref,
+    ]
+    .into_iter()
+    .fold(1.0_f64, f64::min)
+    .max(0.0);
     (score, m, limit, dex)
 }
 
@@ -211,7 +217,8 @@ pub fn plan_scan(
                 reason: "a scan has at most 65535 passes (pass ids are 16-bit)".into(),
             })?;
             // (reached, posture in steps of 0.05), the pass or why not, the offset.
-            let mut best: Option<((bool, i64), Result<Pass, ScanError>, f64)> = None;
+            type Tried = ((bool, i64), Result<Pass, ScanError>, f64);
+            let mut best: Option<Tried> = None;
             for &off in &tries {
                 let turn = layout.world_from_table(deg + off) * base.inverse();
                 let r = match make_pass(arm, opts, &obstacles, next, deg + off, turn * a, turn * b, &seed) {
@@ -241,10 +248,17 @@ pub fn plan_scan(
                     offset = off;
                     let angle = deg + off;
                     match stations.last_mut() {
-                        Some(st) if st.table_deg == angle && st.passes.last().is_some_and(|p| p.id + 1 == pass.id) => {
+                        Some(st)
+                            if st.table_deg == angle
+                                && st.passes.last().is_some_and(|p| p.id + 1 == pass.id) =>
+                        {
                             st.passes.push(pass)
                         }
-                        _ => stations.push(Station { table_deg: angle, passes: vec![pass], table_offset_deg: off }),
+                        _ => stations.push(Station {
+                            table_deg: angle,
+                            passes: vec![pass],
+                            table_offset_deg: off,
+                        }),
                     }
                 }
                 // An automatic pass out of reach at every angle tried: the other stations bring
