@@ -380,6 +380,10 @@ fn a_scanned_job_shows_its_scan() {
         "coverage_after_rescan": {"pixel_mm": 0.5, "covered_pct": 99.1, "footprint_cells": 100, "holes": 1, "hole_area_mm2": 2.0},
         "stations": [{"table_deg_commanded": 0.0, "table_deg_measured": 0.0, "rescan": false,
                       "passes": [{"frames": 600, "points": 240000}, {"frames": 600, "points": 240000}]},
+                     {"table_deg_commanded": 110.0, "table_deg_measured": 110.0, "rescan": false, "table_offset_deg": 20.0,
+                      "table_move": {"turn_deg": 110.0, "peak_speed_deg_s": 45.0, "peak_accel_deg_s2": 200.0, "time_s": 2.67},
+                      "passes": [{"frames": 600, "points": 240000, "quality": 0.95, "min_dexterity": 1.85e7,
+                                  "min_margins": {"wrist_deg": 28.5, "elbow_deg": 40.2, "shoulder_mm": 450.0}}]},
                      {"table_deg_commanded": 45.0, "table_deg_measured": 45.0, "rescan": true, "passes": []}],
         "silhouette": {"pixel_mm": 0.5, "silhouette_cells": 4702, "seen_cells": 3471, "covered_pct": 73.82,
                        "unseen_area_mm2": 307.8,
@@ -407,6 +411,11 @@ fn a_scanned_job_shows_its_scan() {
         "Tool choice",
         "touches &lt;here&gt;",
         "chose roughing flat-6, finishing ball-6",
+        "turned for the arm",
+        "+20°",
+        "1.85e7",
+        "28.5° / 40.2° / 450 mm",
+        "110.0° at up to 45.0 °/s, 2.67 s",
     ] {
         assert!(out.html.contains(needle), "{needle} missing from the scan summary");
     }

@@ -200,6 +200,17 @@ impl Ctx<'_> {
                 let passes = st["passes"].as_array().cloned().unwrap_or_default();
                 let frames: u64 = passes.iter().filter_map(|p| p["frames"].as_u64()).sum();
                 let points: u64 = passes.iter().filter_map(|p| p["points"].as_u64()).sum();
+                // Seed 002's posture criteria, the worst pass of the station.
+                let worst = |get: &dyn Fn(&serde_json::Value) -> Option<f64>| {
+                    passes.iter().filter_map(get).reduce(f64::min)
+                };
+                let quality = worst(&|p| p["quality"].as_f64());
+                let dex = worst(&|p| p["min_dexterity"].as_f64());
+                let wrist = worst(&|p| p["min_margins"]["wrist_deg"].as_f64());
+                let elbow = worst(&|p| p["min_margins"]["elbow_deg"].as_f64());
+                let shoulder = worst(&|p| p["min_margins"]["shoulder_mm"].as_f64());
+                let opt = |v: Option<f64>, fmt: &dyn Fn(f64) -> String| v.map_or("—".to_string(), fmt);
+                let mv = &st["table_move"];
                 vec![
                     format!("{}°", f(&st["table_deg_commanded"], 1)),
                     format!("{}°", f(&st["table_deg_measured"], 4)),
@@ -207,13 +218,45 @@ impl Ctx<'_> {
                     passes.len().to_string(),
                     frames.to_string(),
                     points.to_string(),
+                    opt(st["table_offset_deg"].as_f64(), &|v| format!("{v:+.0}°")),
+                    opt(quality, &|v| format!("{v:.2}")),
+                    opt(dex, &|v| format!("{v:.2e}")),
+                    match (wrist, elbow, shoulder) {
+                        (Some(w), Some(e), Some(sh)) => format!("{w:.1}° / {e:.1}° / {sh:.0} mm"),
+                        _ => "—".into(),
+                    },
+                    if mv.is_object() {
+                        format!(
+                            "{}° at up to {} °/s, {} s",
+                            f(&mv["turn_deg"], 1),
+                            f(&mv["peak_speed_deg_s"], 1),
+                            f(&mv["time_s"], 2)
+                        )
+                    } else {
+                        "—".into()
+                    },
                 ]
             })
             .collect();
         let mut s = String::from("<h3>Scan</h3>");
         s.push_str(&kv_table(&rows));
         if !stations.is_empty() {
-            s.push_str(&table(&["table angle", "encoder", "kind", "passes", "frames", "points"], &stations));
+            s.push_str(&table(
+                &[
+                    "table angle",
+                    "encoder",
+                    "kind",
+                    "passes",
+                    "frames",
+                    "points",
+                    "turned for the arm",
+                    "worst posture",
+                    "min dexterity",
+                    "wrist / elbow / shoulder",
+                    "table index",
+                ],
+                &stations,
+            ));
         }
         s
     }
