@@ -366,3 +366,48 @@ fn a_mesh_is_planned_for_the_robot_with_the_holder_clear() -> anyhow::Result<()>
     assert!(stderr.contains("--part-at 1,2"), "{stderr}");
     Ok(())
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_part_scanned_on_the_mill_merges_by_the_chain_and_bad_options_are_named() -> anyhow::Result<()> {
+    let dir = tempfile::tempdir()?;
+    let (mut v, mut t) = (Vec::new(), Vec::new());
+    cuboid(&mut v, &mut t, [0.0, -15.0, -15.0], [50.0, 15.0, 15.0], false);
+    let mesh = dir.path().join("bar.stl");
+    {
+        let m = depthmill_geometry::Mesh::new(v, t)?;
+        let mut f = std::fs::File::create(&mesh)?;
+        depthmill_geometry::formats::write_stl(&mut f, &m, "bar")?;
+    }
+    let opts = dir.path().join("mill.json");
+    std::fs::write(&opts, r#"{"a_angles_deg": [0, 180]}"#)?;
+    let out = dir.path().join("bar.ply");
+    let (mesh_s, opts_s, out_s) =
+        (mesh.display().to_string(), opts.display().to_string(), out.display().to_string());
+    let (code, stdout, stderr) =
+        depthmill(&["scan", &mesh_s, "--on-machine", "--options", &opts_s, "-o", &out_s])?;
+    assert_eq!(code, 0, "{stdout}{stderr}");
+    assert!(stdout.contains("scanner calibrated against the machine"), "{stdout}");
+    assert!(stdout.contains("merge error without markers"), "{stdout}");
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("bar.scan.json"))?)?;
+    let merge = report["scan"]["registration"]["merge_rms_mm"].as_f64().context("merge")?;
+    let noise = report["scan"]["registration_truth"]["rms_mm"].as_f64().context("noise")?;
+    let drawing = report["scan"]["registration_drawing"]["merge_rms_mm"].as_f64().context("drawing")?;
+    assert!(merge <= 2.0 * noise && drawing > 10.0 * merge, "{merge} {noise} {drawing}");
+    assert_eq!(report["calibration"]["observations"].as_array().map(Vec::len), Some(13));
+    // The cloud: a binary PLY with a shot id per point.
+    let ply = std::fs::read(&out)?;
+    let head = String::from_utf8_lossy(&ply[..ply.len().min(400)]).into_owned();
+    assert!(head.contains("format binary_little_endian") && head.contains("property ushort pass"), "{head}");
+    let points = report["scan"]["points"].as_u64().context("points")?;
+    assert!(head.contains(&format!("element vertex {points}")) && points > 10_000, "{head}");
+    // A bad option is named, nothing is written.
+    std::fs::write(&opts, r#"{"a_angles_deg": [0], "standoff": 100}"#)?;
+    let out2 = dir.path().join("bad.ply").display().to_string();
+    let (code, stdout, stderr) =
+        depthmill(&["scan", &mesh_s, "--on-machine", "--options", &opts_s, "-o", &out2])?;
+    assert_eq!(code, 1, "{stdout}{stderr}");
+    assert!(stderr.contains("standoff") && stderr.contains("mill.json"), "{stderr}");
+    assert!(!std::path::Path::new(&out2).exists());
+    Ok(())
+}
