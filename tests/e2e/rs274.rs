@@ -119,9 +119,11 @@ fn cam_programs_run_in_linuxcnc_rs274() -> anyhow::Result<()> {
         let canon = dir.path().join("canon.txt");
         run_rs274_cli(&table, &program, &canon, &format!("{direction}/{strategy}/{dialect}"))?;
         let moves = std::fs::read_to_string(&canon)?;
+        let tail: String =
+            moves.lines().rev().take(20).collect::<Vec<_>>().into_iter().rev().collect::<Vec<_>>().join("\n");
         assert!(
             moves.contains("PROGRAM_END"),
-            "{direction}/{strategy}: the interpreter stopped early:\n{moves}"
+            "{direction}/{strategy}: the interpreter stopped early; its last moves:\n{tail}"
         );
         let feeds = moves.matches("STRAIGHT_FEED").count() + moves.matches("ARC_FEED").count();
         let blocks = out
