@@ -271,8 +271,8 @@ fn calibration_status(e: CalibrationError) -> Status {
     let code = match &e {
         CalibrationError::Invalid { .. } | CalibrationError::Degenerate(_) => ErrorCode::InvalidArgument,
         CalibrationError::NoFit(_) => ErrorCode::InvalidArgument,
-        CalibrationError::Scan(m) if m.contains("cancelled") => ErrorCode::Cancelled,
-        CalibrationError::Scan(m) if m.contains("rotary table") => ErrorCode::Unavailable,
+        CalibrationError::Cancelled => ErrorCode::Cancelled,
+        CalibrationError::Table(_) => ErrorCode::Unavailable,
         CalibrationError::Scan(_) => ErrorCode::Internal,
     };
     code.status(e.to_string())

@@ -161,13 +161,17 @@ pub async fn run_calibration<S: AsyncRead + AsyncWrite + Unpin>(
     progress: Progress,
     cancel: CancellationToken,
 ) -> Result<(Calibration, CalibrationReport), CalibrationError> {
-    let scan_err = |e: ScanError| CalibrationError::Scan(e.to_string());
+    let scan_err = |e: ScanError| match e {
+        ScanError::Cancelled => CalibrationError::Cancelled,
+        ScanError::Table(m) => CalibrationError::Table(m),
+        e => CalibrationError::Scan(e.to_string()),
+    };
     progress(0.0, "planning the calibration scans".into());
     let (session, plan) =
         blocking(move || crate::domain::calibration::calibration_session(&cell, layout, &opts))
             .await
             .map_err(scan_err)??;
-    let terr = |e: crate::devices::table::TableError| CalibrationError::Scan(format!("rotary table: {e}"));
+    let terr = |e: crate::devices::table::TableError| CalibrationError::Table(e.to_string());
     table.set_speed(TABLE_SPEED_DEG_S).await.map_err(terr)?;
     table.set_accel(TABLE_ACCEL_DEG_S2).await.map_err(terr)?;
     let session = run_plan(session, &plan, false, None, table, &progress, (0.0, 0.9), &cancel)

@@ -61,6 +61,11 @@ pub enum CalibrationError {
     NoFit(String),
     #[error("calibration scan: {0}")]
     Scan(String),
+    /// The rotary table did not answer or failed its move (a device fault, worth a retry).
+    #[error("calibration scan: rotary table: {0}")]
+    Table(String),
+    #[error("the calibration was cancelled")]
+    Cancelled,
 }
 
 fn invalid(field: &str, value: impl std::fmt::Display, reason: &str) -> CalibrationError {
