@@ -38,6 +38,24 @@ pub(crate) struct Cell {
     pub busy: tokio::sync::Mutex<()>,
 }
 
+impl Cell {
+    /// Waits for the cell (one scan or calibration at a time) unless `token` is cancelled first,
+    /// then connects to the rotary table's controller: the lock held for the run and the driver.
+    async fn claim(
+        &self,
+        token: &tokio_util::sync::CancellationToken,
+    ) -> Result<(tokio::sync::MutexGuard<'_, ()>, TableClient<tokio::net::TcpStream>), Status> {
+        let lock = tokio::select! {
+            g = self.busy.lock() => g,
+            () = token.cancelled() => return Err(Status::from(ScanError::Cancelled)),
+        };
+        let table = TableClient::connect(self.table_addr.as_str())
+            .await
+            .map_err(|e| Status::from(ScanError::Table(format!("connecting to {}: {e}", self.table_addr))))?;
+        Ok((lock, table))
+    }
+}
+
 struct ScanningServiceImpl {
     running: StageRegistry,
     cell: Arc<Cell>,
@@ -335,14 +353,8 @@ impl pb::scanning_service_server::ScanningService for ScanningServiceImpl {
                 let _ = ptx.try_send(Ok(progress_update(f.clamp(0.0, 1.0) * 0.95, m)));
             });
             progress(0.0, "waiting for the cell".into());
-            let result = async {
-                let _cell_lock = tokio::select! {
-                    g = cell.busy.lock() => g,
-                    () = token.cancelled() => return Err(Status::from(ScanError::Cancelled)),
-                };
-                let mut table = TableClient::connect(cell.table_addr.as_str())
-                    .await
-                    .map_err(|e| Status::from(ScanError::Table(format!("connecting to {}: {e}", cell.table_addr))))?;
+            let result: Result<_, Status> = async {
+                let (_cell_lock, mut table) = cell.claim(&token).await?;
                 let (cal, cal_id, cal_version, cal_report) = match calibration {
                     Some((c, id, v, report)) => (Some(c), id, v, report),
                     None => (None, String::new(), 0, String::new()),
@@ -516,14 +528,8 @@ impl pb::scanning_service_server::ScanningService for ScanningServiceImpl {
                 }));
             });
             progress(0.0, "waiting for the cell".into());
-            let result = async {
-                let _cell_lock = tokio::select! {
-                    g = cell.busy.lock() => g,
-                    () = token.cancelled() => return Err(Status::from(ScanError::Cancelled)),
-                };
-                let mut table = TableClient::connect(cell.table_addr.as_str()).await.map_err(|e| {
-                    Status::from(ScanError::Table(format!("connecting to {}: {e}", cell.table_addr)))
-                })?;
+            let result: Result<_, Status> = async {
+                let (_cell_lock, mut table) = cell.claim(&token).await?;
                 let sim = crate::domain::calibration::Cell::new(&cell.layout, &cell.errors, current);
                 let (cal, report) = crate::session::run_calibration(
                     sim,
