@@ -194,8 +194,8 @@ pub struct ChainTruthCheck {
     /// point and where it truly is on the rotor, mm: calibrated and drawn.
     pub placement_error_mm: f64,
     pub placement_error_before_mm: f64,
-    /// Angle between the fitted A axis and the true one, degrees, and the distance between the
-    /// lines at the calibration point, mm.
+    /// Angle between the fitted A axis and the true one, degrees, and how far the fitted axis's
+    /// point nearest the calibration point lies from the true axis, mm.
     pub a_axis_direction_error_deg: f64,
     pub a_axis_position_error_mm: f64,
 }
@@ -556,9 +556,12 @@ pub fn calibrate_chain(
         placement_error_mm: placement_error(cell, &calibration),
         placement_error_before_mm: placement_error(cell, previous),
         a_axis_direction_error_deg: dir.angle(&true_dir).to_degrees(),
-        a_axis_position_error_mm: (dist_to_line(&ball, &Point3::from(calibration.a_point_mm), &dir)
-            - dist_to_line(&ball, &Point3::from(exact.a_point_mm), &true_dir))
-        .abs(),
+        // The fitted axis's point nearest the calibration point, off the true axis.
+        a_axis_position_error_mm: {
+            let a = Point3::from(calibration.a_point_mm);
+            let foot = a + dir * (ball - a).dot(&dir);
+            dist_to_line(&foot, &Point3::from(exact.a_point_mm), &true_dir)
+        },
     };
     Ok(ChainCalibrationReport {
         scale_ppm: calibration.scale_ppm(),
