@@ -68,7 +68,7 @@ pub enum CalibrationError {
     Cancelled,
 }
 
-fn invalid(field: &str, value: impl std::fmt::Display, reason: &str) -> CalibrationError {
+pub(crate) fn invalid(field: &str, value: impl std::fmt::Display, reason: &str) -> CalibrationError {
     CalibrationError::Invalid { field: field.into(), value: value.to_string(), reason: reason.into() }
 }
 

@@ -39,11 +39,7 @@ pub use routine::{
     MachineCell, MachineScan, Observation, calibrate_chain, place_on_rotor, scan_on_machine,
 };
 
-use super::calibration::CalibrationError;
-
-fn invalid(field: &str, value: impl std::fmt::Display, reason: &str) -> CalibrationError {
-    CalibrationError::Invalid { field: field.into(), value: value.to_string(), reason: reason.into() }
-}
+use super::calibration::{CalibrationError, invalid};
 
 /// Positions of the mill's axes: X, Y, Z in mm (machine coordinates) and A in degrees.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]

@@ -276,33 +276,11 @@ fn calibration_recovers_the_miscalibrated_mill() {
 
 /// A block along the A axis, `x` from the faceplate, a square section about the axis.
 fn block(x0: f64, x1: f64, half: f64) -> Mesh {
-    let v = |x: f64, y: f64, z: f64| Point3::new(x, y, z);
-    let h = half;
-    let vertices = vec![
-        v(x0, -h, -h),
-        v(x1, -h, -h),
-        v(x1, h, -h),
-        v(x0, h, -h),
-        v(x0, -h, h),
-        v(x1, -h, h),
-        v(x1, h, h),
-        v(x0, h, h),
-    ];
-    let triangles = vec![
-        [0, 2, 1],
-        [0, 3, 2],
-        [4, 5, 6],
-        [4, 6, 7],
-        [0, 1, 5],
-        [0, 5, 4],
-        [2, 3, 7],
-        [2, 7, 6],
-        [1, 2, 6],
-        [1, 6, 5],
-        [0, 4, 7],
-        [0, 7, 3],
-    ];
-    Mesh { vertices, triangles }
+    let mut m = Mesh::cuboid(x1 - x0, 2.0 * half, 2.0 * half);
+    for v in &mut m.vertices {
+        *v += Vector3::new(x0, -half, -half);
+    }
+    m
 }
 
 #[test]
