@@ -192,6 +192,7 @@ fn options(p: pb::PlanParams) -> Result<PlanOptions, Status> {
                     step_over_mm: f.step_over_mm,
                     tolerance_mm: f.tolerance_mm,
                     arcs: f.arcs,
+                    pixel_model: f.pixel_model.clone(),
                 })
             })
             .transpose()?,

@@ -335,6 +335,18 @@ async fn drive(base: &str, part: Part, args: &DemoArgs, out: &Path) -> anyhow::R
         f("max_leftover_mm"),
         f("rms_deviation_mm")
     ));
+    if m["part_off_walls_mean_mm"].is_f64() {
+        let g = |k: &str| m[k].as_f64().map_or("-".to_string(), |v| format!("{v:+.4}"));
+        s.push_str(&format!(
+            "against the original part off the walls: mean {} mm, RMS {} mm, max gouge {} mm; against the part opened by the finest tool where it reaches: mean {} mm, RMS {} mm, max gouge {} mm\n",
+            g("part_off_walls_mean_mm"),
+            g("part_off_walls_rms_mm"),
+            g("part_off_walls_max_gouge_mm"),
+            g("part_opened_mean_mm"),
+            g("part_opened_rms_mm"),
+            g("part_opened_max_gouge_mm"),
+        ));
+    }
     s.push_str(&format!(
         "cycle time: {} s with the adaptive loop, {} s without\n",
         f("cycle_time_s"),

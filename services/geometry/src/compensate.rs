@@ -491,6 +491,30 @@ fn lanes(s: &[f32]) -> [f32; LANES] {
     a
 }
 
+/// The surface `tool` leaves of the part `map` at best: the map dilated by the tool into the
+/// surface its tip follows, then eroded back by the tool (material stays where the tool cannot
+/// reach into a concave corner or a narrow pocket; never below the map). `None` when the tool is
+/// smaller than a cell.
+pub fn opened(map: &HeightMap, tool: &ToolProfile) -> Option<HeightMap> {
+    let k = kernel(tool, map.pixel_mm(), PixelModel::Point);
+    if k.rows.is_empty() {
+        return None;
+    }
+    let tip = dilate(map, &k, map.z_min_mm() as f32);
+    let meta = *map.meta();
+    let neg: Vec<f32> = tip.iter().map(|z| -z).collect();
+    let neg_map = HeightMap::new(meta, neg).ok()?;
+    // Erosion = −dilation of the negated surface (the tool is symmetric); outside the map there
+    // is nothing to erode against.
+    let surface: Vec<f32> = dilate(&neg_map, &k, f32::NEG_INFINITY).into_iter().map(|z| -z).collect();
+    let data = surface
+        .iter()
+        .zip(map.data())
+        .map(|(&s, &t)| if t.is_finite() { s.max(t) } else { f32::NAN })
+        .collect();
+    HeightMap::new(meta, data).ok()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -24,6 +24,8 @@
 //!   [`formats::ReadLimits`], format sniffing, and the PLY and STL writers.
 //! - [`raster`]: point clouds to height maps (max-Z binning, enclosed-hole filling, coverage);
 //!   [`mesh_raster`]: a mesh's exact top surface at cell centres (z-buffer).
+//! - [`surface_fit`]: a cloud to a height map by a robust local quadric fit (the unbiased
+//!   finishing target).
 //! - [`sample`]: the generated sample part (a relief) of the demo, the tests and the benches.
 //! - [`pose`]: [`Pose`], [`XyzYpr`] (ZYX angles), [`Face::view_from_part`].
 //! - [`tool`]: [`ToolProfile`] (solid of revolution) and [`ToolSpec`] (`ball-6`, `v-6-90`, ...).
@@ -51,6 +53,7 @@ pub mod png_io;
 pub mod pose;
 pub mod raster;
 pub mod sample;
+pub mod surface_fit;
 pub mod tool;
 pub mod units;
 

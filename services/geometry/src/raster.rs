@@ -634,7 +634,7 @@ fn rasterize_keys(
 }
 
 /// The number of cells of a valid grid, as an index.
-fn checked_cells(grid: &HeightMapMeta) -> Result<usize> {
+pub(crate) fn checked_cells(grid: &HeightMapMeta) -> Result<usize> {
     grid.validate()?;
     Ok(usize::try_from(grid.cell_count()).map_err(|_| GeometryError::TooManyCells {
         width: u64::from(grid.width),
@@ -646,7 +646,7 @@ fn checked_cells(grid: &HeightMapMeta) -> Result<usize> {
 impl RasterStats {
     /// The stats of `points_in` points of which `binned` fell into a cell and `non_finite` were
     /// not finite (the rest fell outside).
-    fn of(points_in: usize, binned: usize, non_finite: usize) -> Self {
+    pub(crate) fn of(points_in: usize, binned: usize, non_finite: usize) -> Self {
         RasterStats {
             points_in,
             points_binned: binned,
@@ -705,19 +705,7 @@ pub fn try_rasterize_max(points: &[Point3<f64>], grid: &HeightMapMeta) -> Result
 /// parallel over cells.
 pub fn rasterize_median(points: &[Point3<f64>], grid: &HeightMapMeta) -> Result<(HeightMap, RasterStats)> {
     let cells = checked_cells(grid)?;
-    let bins = Binner::new(grid);
-    // Cell of every point (`bins.dummy` when it is not binned), in parallel blocks.
-    let mut index = vec![bins.dummy; points.len()];
-    let (binned, non_finite) = index
-        .par_chunks_mut(BLOCK)
-        .zip(points.par_chunks(BLOCK))
-        .map(|(out, block)| {
-            let (mut idx, mut key) = ([0u32; BLOCK], [0u32; BLOCK]);
-            let counts = locate_block(block, &bins, &mut idx, &mut key);
-            out.copy_from_slice(&idx[..block.len()]);
-            counts
-        })
-        .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
+    let (index, binned, non_finite) = cell_indices(points, grid);
     // Counting sort of the binned Z values by cell.
     let mut start = vec![0usize; cells + 1];
     for &i in &index {
@@ -748,6 +736,24 @@ pub fn rasterize_median(points: &[Point3<f64>], grid: &HeightMapMeta) -> Result<
     let data: Vec<f32> = runs.into_par_iter().map(median_of).collect();
     let stats = RasterStats::of(points.len(), binned, non_finite);
     Ok((HeightMap::new(*grid, data)?, stats))
+}
+
+/// The cell of every point, row-major (`row · width + col`, the cell [`raster_cell`] gives; the
+/// grid's cell count for a point not binned), with the counts of points binned and not finite.
+pub(crate) fn cell_indices(points: &[Point3<f64>], grid: &HeightMapMeta) -> (Vec<u32>, usize, usize) {
+    let bins = Binner::new(grid);
+    let mut index = vec![bins.dummy; points.len()];
+    let (binned, non_finite) = index
+        .par_chunks_mut(BLOCK)
+        .zip(points.par_chunks(BLOCK))
+        .map(|(out, block)| {
+            let (mut idx, mut key) = ([0u32; BLOCK], [0u32; BLOCK]);
+            let counts = locate_block(block, &bins, &mut idx, &mut key);
+            out.copy_from_slice(&idx[..block.len()]);
+            counts
+        })
+        .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
+    (index, binned, non_finite)
 }
 
 /// Median of finite values (reorders them); NaN for none.

@@ -180,6 +180,7 @@ pub fn reconstruct_params(p: &ReconstructParams) -> rec::ReconstructParams {
             Some(CellEstimator::Max) => rec::CellEstimator::Max,
             Some(CellEstimator::Median) => rec::CellEstimator::Median,
             Some(CellEstimator::MedianBilateral) => rec::CellEstimator::MedianBilateral,
+            Some(CellEstimator::Fit) => rec::CellEstimator::Fit,
         } as i32,
     }
 }
@@ -216,6 +217,7 @@ pub fn plan_params(p: &PlanParams) -> cam::PlanParams {
             step_over_mm: f.step_over_mm,
             tolerance_mm: f.tolerance_mm,
             arcs: f.arcs,
+            pixel_model: f.pixel_model.clone(),
         }),
         dialect: match p.dialect {
             None => cam::Dialect::Unspecified,
@@ -623,6 +625,7 @@ pub fn job_spec_from_pb(s: pb::JobSpec) -> Result<JobSpec, SpecError> {
                     rec::CellEstimator::Max => Some(CellEstimator::Max),
                     rec::CellEstimator::Median => Some(CellEstimator::Median),
                     rec::CellEstimator::MedianBilateral => Some(CellEstimator::MedianBilateral),
+                    rec::CellEstimator::Fit => Some(CellEstimator::Fit),
                 },
             })
         })
@@ -675,6 +678,7 @@ pub fn job_spec_from_pb(s: pb::JobSpec) -> Result<JobSpec, SpecError> {
                             step_over_mm: f.step_over_mm,
                             tolerance_mm: f.tolerance_mm,
                             arcs: f.arcs,
+                            pixel_model: f.pixel_model.clone(),
                         })
                     })
                     .transpose()?,

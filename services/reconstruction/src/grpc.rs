@@ -139,6 +139,7 @@ pub(crate) fn options(p: pb::ReconstructParams) -> Result<ReconstructOptions, St
             Ok(pb::CellEstimator::Max) => Some("max".into()),
             Ok(pb::CellEstimator::Median) => Some("median".into()),
             Ok(pb::CellEstimator::MedianBilateral) => Some("median_bilateral".into()),
+            Ok(pb::CellEstimator::Fit) => Some("fit".into()),
             Err(_) => {
                 return Err(ErrorCode::InvalidArgument
                     .status(format!("reconstruct.estimator: unknown value {}", p.estimator)));

@@ -111,7 +111,9 @@ pub struct ReportOutput {
     /// `part_max_gouge_mm`, `part_max_leftover_mm`, `part_mean_leftover_mm`, `part_mean_mm`
     /// (signed), `part_rms_mm` (the machined part against the original part, when the job
     /// started from its mesh), `part_off_walls_max_gouge_mm`, `part_off_walls_mean_mm`,
-    /// `part_off_walls_rms_mm` (the same without the cells next to walls) and `preview_max_below_mm`, `preview_max_above_mm`,
+    /// `part_off_walls_rms_mm` (the same without the cells next to walls), `part_opened_max_gouge_mm`,
+    /// `part_opened_mean_mm`, `part_opened_rms_mm`, `part_opened_cells` (off the walls where the
+    /// program's smallest tool reaches the part, against the part opened by that tool) and `preview_max_below_mm`, `preview_max_above_mm`,
     /// `preview_mean_mm`, `preview_rms_mm` (against the CAM's predicted surface, the part opened
     /// by the tools).
     pub figures: BTreeMap<String, f64>,

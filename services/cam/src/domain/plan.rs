@@ -105,6 +105,13 @@ pub struct FinishingOptions {
     pub tolerance_mm: Option<f64>,
     #[serde(default)]
     pub arcs: Option<bool>,
+    /// What a depth-map cell means to the finishing tool: `column` (default: a square column at
+    /// its height, never below it anywhere over the cell; on a slope the tool stands off by up to
+    /// the slope times half a pixel) or `point` (a sample of a continuous surface at the cell's
+    /// centre: no stand-off on slopes, for a fitted target such as `reconstruct.estimator: "fit"`;
+    /// between samples the tool may dip by the surface's bulge over a pixel).
+    #[serde(default)]
+    pub pixel_model: Option<String>,
 }
 
 /// One face to cut.
@@ -335,6 +342,8 @@ struct Settings {
     pattern: RoughingPattern,
     tolerance: f64,
     arcs: bool,
+    /// What a depth-map cell means to the finishing tool.
+    fin_model: PixelModel,
     fin_pattern: FinishingPattern,
     step_over: f64,
     rough_data: super::feeds::CuttingData,
@@ -461,6 +470,16 @@ fn settings(
     };
     let tolerance = positive("plan.finishing.tolerance_mm", fin.tolerance_mm, 0.01)?;
     let arcs = fin.arcs.unwrap_or(true);
+    let fin_model = match fin.pixel_model.as_deref().unwrap_or("column") {
+        "column" => PixelModel::Column,
+        "point" => PixelModel::Point,
+        other => {
+            return Err(CamError::param(
+                "plan.finishing.pixel_model",
+                format!("'{other}' is not column or point"),
+            ));
+        }
+    };
     let fin_pattern = match fin.strategy.as_deref().unwrap_or("raster_x") {
         "raster_x" => FinishingPattern::RasterX,
         "raster_y" => FinishingPattern::RasterY,
@@ -538,6 +557,7 @@ fn settings(
         pattern,
         tolerance,
         arcs,
+        fin_model,
         fin_pattern,
         step_over,
         rough_data,
@@ -663,6 +683,7 @@ fn plan_with(
         pattern,
         tolerance,
         arcs,
+        fin_model,
         fin_pattern,
         step_over,
         rough_data,
@@ -724,8 +745,10 @@ fn plan_with(
             )
         })?;
         let opts = CompensateOptions { pixel_model: PixelModel::Column, outside_z_mm: Some(floor) };
-        let tip =
-            steps.run("compensate", base + 0.25 * per_face, || compensate(map, &fin_tool.profile, &opts))?;
+        // The finishing target read as the job says (columns, or samples of a continuous surface).
+        let fin_opts = CompensateOptions { pixel_model: fin_model, ..opts };
+        let tip = steps
+            .run("compensate", base + 0.25 * per_face, || compensate(map, &fin_tool.profile, &fin_opts))?;
         let mut fin_path = steps.run("finishing", base + 0.4 * per_face, || {
             finishing(
                 &tip,
@@ -784,7 +807,7 @@ fn plan_with(
                     raster,
                     step_over,
                     safe_z,
-                    &opts,
+                    &fin_opts,
                     "",
                 )
             })?;
@@ -928,7 +951,7 @@ fn plan_with(
         gcode,
         report: PlanReport {
             dialect: options.dialect.clone().unwrap_or_else(|| "linuxcnc".into()),
-            pixel_model: PixelModel::Column,
+            pixel_model: fin_model,
             tolerance_mm: tolerance,
             material,
             faces: face_reports,
@@ -961,6 +984,52 @@ mod tests {
         let faces = [FaceInput { a_deg: None, map: slotted_plate(), roughing_map: None }];
         let library = ToolLibrary::builtin()?;
         plan(&faces, options, &library, &MachineLimits::emco_f1(), &|_, _| {}, &|| false)
+    }
+
+    #[test]
+    fn a_point_finishing_target_stands_off_a_slope_less_than_columns_and_a_bad_model_is_named() {
+        // A 20° slope on 0.25 mm cells, from 2 to 9 mm over 20 mm.
+        let n = 80u32;
+        let meta = HeightMapMeta { z_min_mm: 0.0, z_max_mm: 12.0, ..HeightMapMeta::new(n, n, 0.25) };
+        let slope = 20f64.to_radians().tan();
+        let data = (0..n * n).map(|i| (2.0 + slope * ((i % n) as f64 + 0.5) * 0.25) as f32).collect();
+        let map = HeightMap::new(meta, data).expect("valid map");
+        let library = ToolLibrary::builtin().expect("library");
+        let leftover = |model: &str| {
+            let options = PlanOptions {
+                stock: Some(StockOptions { z_mm: Some(12.0), ..Default::default() }),
+                finishing: Some(FinishingOptions {
+                    step_over_mm: Some(0.25),
+                    pixel_model: Some(model.into()),
+                    ..Default::default()
+                }),
+                ..Default::default()
+            };
+            let faces = [FaceInput { a_deg: None, map: map.clone(), roughing_map: None }];
+            let out = plan(&faces, &options, &library, &MachineLimits::emco_f1(), &|_, _| {}, &|| false)
+                .expect("planned");
+            assert_eq!(
+                out.report.pixel_model,
+                if model == "point" { PixelModel::Point } else { PixelModel::Column }
+            );
+            (out.preview.mean_leftover_mm, out.preview.max_gouge_mm)
+        };
+        let (column, column_gouge) = leftover("column");
+        let (point, point_gouge) = leftover("point");
+        // Columns stand off by up to the slope times half a pixel (0.045 mm here).
+        assert!(column > point + 0.02, "mean leftover: column {column}, point {point}");
+        assert!(column_gouge < 5e-3 && point_gouge < 5e-3, "gouges {column_gouge} {point_gouge}");
+        let bad = PlanOptions {
+            finishing: Some(FinishingOptions { pixel_model: Some("voxel".into()), ..Default::default() }),
+            ..Default::default()
+        };
+        match check_options(&bad, &library, &MachineLimits::emco_f1()) {
+            Err(CamError::InvalidParameter { field, message }) => {
+                assert_eq!(field, "plan.finishing.pixel_model");
+                assert!(message.contains("voxel"), "{message}");
+            }
+            other => panic!("{other:?}"),
+        }
     }
 
     #[test]

@@ -18,7 +18,7 @@
 //! [`depthmill_geometry::compensate`], the CAM service's kernel, does both). A point's leftover there is what exceeds the
 //! material the opening itself leaves above it; gouges are the same as against the part.
 
-use depthmill_geometry::compensate::{PixelModel, dilate, kernel};
+use depthmill_geometry::compensate::opened;
 use depthmill_geometry::{HeightMap, ToolProfile};
 use nalgebra::Point3;
 use rayon::prelude::*;
@@ -95,28 +95,6 @@ pub struct PartDeviation {
 pub struct MeasureFace<'a> {
     pub a_deg: f64,
     pub map: &'a HeightMap,
-}
-
-/// The opening of `map` by `tool` (see the module docs); `None` when the map is too small for
-/// the kernel to mean anything.
-pub fn opened(map: &HeightMap, tool: &ToolProfile) -> Option<HeightMap> {
-    let k = kernel(tool, map.pixel_mm(), PixelModel::Point);
-    if k.rows.is_empty() {
-        return None;
-    }
-    let tip = dilate(map, &k, map.z_min_mm() as f32);
-    let meta = *map.meta();
-    let neg: Vec<f32> = tip.iter().map(|z| -z).collect();
-    let neg_map = HeightMap::new(meta, neg).ok()?;
-    // Erosion = −dilation of the negated surface (the tool is symmetric); outside the map there
-    // is nothing to erode against.
-    let surface: Vec<f32> = dilate(&neg_map, &k, f32::NEG_INFINITY).into_iter().map(|z| -z).collect();
-    let data = surface
-        .iter()
-        .zip(map.data())
-        .map(|(&s, &t)| if t.is_finite() { s.max(t) } else { f32::NAN })
-        .collect();
-    HeightMap::new(meta, data).ok()
 }
 
 /// Measures `stock` against `reference` (see the module docs); `opening` names the tool the part

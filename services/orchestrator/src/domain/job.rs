@@ -182,6 +182,16 @@ pub struct JobMetrics {
     /// ... RMS deviation off the walls, mm.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub part_off_walls_rms_mm: Option<f64>,
+    /// ... off the walls where the program's smallest tool reaches the part, against the part
+    /// opened by that tool (the best surface it can leave): deepest gouge, mm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub part_opened_max_gouge_mm: Option<f64>,
+    /// ... signed mean deviation, mm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub part_opened_mean_mm: Option<f64>,
+    /// ... RMS deviation, mm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub part_opened_rms_mm: Option<f64>,
     /// The machined part against the CAM's predicted surface (the part opened by the tools): RMS, mm.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub preview_rms_mm: Option<f64>,
@@ -291,6 +301,9 @@ impl JobMetrics {
                 "part_off_walls_max_gouge_mm" => &mut self.part_off_walls_max_gouge_mm,
                 "part_off_walls_mean_mm" => &mut self.part_off_walls_mean_mm,
                 "part_off_walls_rms_mm" => &mut self.part_off_walls_rms_mm,
+                "part_opened_max_gouge_mm" => &mut self.part_opened_max_gouge_mm,
+                "part_opened_mean_mm" => &mut self.part_opened_mean_mm,
+                "part_opened_rms_mm" => &mut self.part_opened_rms_mm,
                 "original_points" => &mut self.original_points,
                 "original_max_gouge_mm" => &mut self.original_max_gouge_mm,
                 "original_max_leftover_mm" => &mut self.original_max_leftover_mm,

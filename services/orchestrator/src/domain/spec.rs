@@ -355,6 +355,9 @@ pub enum CellEstimator {
     /// The median, then an edge-preserving average of the neighbouring cells (a bilateral filter,
     /// σ one pixel across and 0.1 mm in height): the noise averaged down, steps and walls kept.
     MedianBilateral,
+    /// A robust local quadric fit of a few hundred points around each cell: the noise averaged an
+    /// order of magnitude down, curved surfaces kept, steps and convex edges kept.
+    Fit,
 }
 
 /// A face to cut from above: exactly one of a named view, an angle about the machine's A axis,
@@ -546,6 +549,11 @@ pub struct Finishing {
     pub tolerance_mm: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub arcs: Option<bool>,
+    /// What a depth-map cell means to the finishing tool: `column` (default: a square column at
+    /// its height; on a slope the tool stands off by up to the slope times half a pixel) or
+    /// `point` (a sample of a continuous surface at the cell's centre, for a fitted target).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pixel_model: Option<String>,
 }
 
 /// Finishing strategy.

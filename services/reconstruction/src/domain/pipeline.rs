@@ -37,6 +37,7 @@ use depthmill_geometry::raster::{
     CoverageStats, FillMethod, FillParams, FillReport, Roi, auto_z_range, coverage, fill_holes, grid_for_roi,
     rasterize_median, try_rasterize_max,
 };
+use depthmill_geometry::surface_fit::{FitParams, FitReport, rasterize_fit};
 
 /// Default pixel size, mm.
 pub const DEFAULT_PIXEL_MM: f64 = 0.1;
@@ -94,6 +95,11 @@ pub enum CellEstimator {
     /// of a few points per cell is averaged over a dozen cells while steps much taller than σ
     /// (walls, edges) keep their place. The roughing map still comes from the max.
     MedianBilateral,
+    /// A robust local quadric fit of a few hundred points around each cell
+    /// ([`depthmill_geometry::surface_fit`]): the noise averaged an order of magnitude down,
+    /// curved surfaces kept, steps and convex edges kept by weighting the other side out. The
+    /// roughing map still comes from the max.
+    Fit,
 }
 
 /// A face: exactly one of `view`, `a_deg` and `normal`; `origin` only with `normal`.
@@ -374,11 +380,12 @@ impl ReconstructOptions {
             None | Some("max") => CellEstimator::Max,
             Some("median") => CellEstimator::Median,
             Some("median_bilateral") => CellEstimator::MedianBilateral,
+            Some("fit") => CellEstimator::Fit,
             Some(other) => {
                 return Err(ReconError::param(
                     "reconstruct.estimator",
                     other,
-                    "expected max, median or median_bilateral",
+                    "expected max, median, median_bilateral or fit",
                 ));
             }
         };
@@ -431,6 +438,9 @@ pub struct FaceStats {
     /// Cells the scanner saw neither the part nor the table in, filled with the highest height
     /// around them (only with free-space evidence; see [`reconstruct_with_free_space`]).
     pub unseen_filled: usize,
+    /// What the `fit` estimator did (the noise it found, its windows).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub fit: Option<FitReport>,
     pub seconds: f64,
 }
 
@@ -790,6 +800,7 @@ fn cloud_face(
         )));
     }
     check_cancel(cancelled)?;
+    let mut fit = None;
     let (raw, upper) = match r.estimator {
         CellEstimator::Max => (max, None),
         // The same cells hold data in both (one binning rule).
@@ -799,10 +810,17 @@ fn cloud_face(
             let smooth = super::image_ops::bilateral(&median, grid.pixel_mm, BILATERAL_SIGMA_Z_MM)?;
             (smooth, Some(max))
         }
+        CellEstimator::Fit => {
+            let (fitted, _, report) = rasterize_fit(points, &grid, &FitParams::default())?;
+            fit = Some(report);
+            (fitted, Some(max))
+        }
     };
     check_cancel(cancelled)?;
     let counts = (raster.points_binned, raster.points_outside);
-    finish_face(raw, upper, free_cells.as_ref(), frame, r, counts, started, cancelled)
+    let mut out = finish_face(raw, upper, free_cells.as_ref(), frame, r, counts, started, cancelled)?;
+    out.stats.fit = fit;
+    Ok(out)
 }
 
 fn mesh_face(
@@ -889,6 +907,7 @@ fn finish_face(
         coverage,
         fill,
         unseen_filled,
+        fit: None,
         seconds: started.elapsed().as_secs_f64(),
     };
     Ok(FaceOutput { face: frame, raw, depth_map, coverage_map, roughing_map, stats })
@@ -959,6 +978,29 @@ mod tests {
         let v: Vec<f64> =
             m.data().iter().filter(|z| z.is_finite()).map(|&c| (f64::from(c) - z).powi(2)).collect();
         (v.iter().sum::<f64>() / v.len() as f64).sqrt()
+    }
+
+    #[test]
+    fn the_fit_target_averages_far_below_the_median_reports_its_noise_and_roughs_from_the_max() {
+        let median = face(Some("median"));
+        let fit = face(Some("fit"));
+        let max = face(None);
+        let (rm, rf) = (rms_about(&median.depth_map, 5.0), rms_about(&fit.depth_map, 5.0));
+        assert!(rf < rm / 1.8, "median RMS {rm}, fit RMS {rf}");
+        assert!((finite_mean(&fit.depth_map) - 5.0).abs() < 0.003, "{}", finite_mean(&fit.depth_map));
+        let report = fit.stats.fit.expect("the fit reports");
+        // Uniform noise of ±0.05 mm: σ = 0.1 / √12.
+        assert!(
+            report.noise_estimated && (report.noise_mm / (0.1 / 12f64.sqrt()) - 1.0).abs() < 0.2,
+            "{report:?}"
+        );
+        assert!(median.stats.fit.is_none());
+        let rough = fit.roughing_map.data();
+        for (&r, &hi) in rough.iter().zip(max.depth_map.data()) {
+            if hi.is_finite() {
+                assert!(r >= hi, "roughing {r} below the max {hi}");
+            }
+        }
     }
 
     #[test]

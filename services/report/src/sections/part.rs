@@ -2,6 +2,10 @@
 
 use crate::*;
 
+/// A cell counts as reached by the tool when the part opened by it stands at most this much over
+/// the part, mm.
+pub const REACH_TOLERANCE_MM: f64 = 0.01;
+
 impl Ctx<'_> {
     pub(crate) fn machined(&mut self) -> Result<String, ReportError> {
         let mut all = String::new();
@@ -165,6 +169,10 @@ impl Ctx<'_> {
             .or_else(|| self.job["spec"]["reconstruct"]["pixel_mm"].as_f64())
             .unwrap_or(0.25);
         let walls = wall_zone(&part, depth_pixel);
+        // The part opened by the program's smallest tool: the best surface it can leave.
+        let tool = self.smallest_tool();
+        let opened = tool.as_ref().and_then(|(_, t)| depthmill_geometry::compensate::opened(&part, t));
+        let (mut op_gouge, mut op_sum, mut op_sq, mut op_n) = (0.0f64, 0.0f64, 0.0f64, 0usize);
         let mut data = vec![f32::NAN; part.data().len()];
         let (mut gouge, mut left, mut sum_left, mut sum, mut sq, mut n) =
             (0.0f64, 0.0f64, 0.0f64, 0.0f64, 0.0f64, 0usize);
@@ -186,6 +194,16 @@ impl Ctx<'_> {
                 ow_sum += d;
                 ow_sq += d * d;
                 ow_n += 1;
+                // Where the tool reaches the part: the opening leaves no material over it.
+                if let Some(o) = opened.as_ref().and_then(|o| o.data().get(i)).filter(|o| o.is_finite())
+                    && f64::from(*o) - f64::from(*p) <= REACH_TOLERANCE_MM
+                {
+                    let d = f64::from(*z) - f64::from(*o);
+                    op_gouge = op_gouge.max(-d);
+                    op_sum += d;
+                    op_sq += d * d;
+                    op_n += 1;
+                }
             }
         }
         if ow_n > 0 {
@@ -194,6 +212,17 @@ impl Ctx<'_> {
                 ("part_off_walls_max_gouge_mm", ow_gouge),
                 ("part_off_walls_mean_mm", ow_sum / m),
                 ("part_off_walls_rms_mm", (ow_sq / m).sqrt()),
+            ] {
+                self.figures.insert(k.into(), v);
+            }
+        }
+        if op_n > 0 {
+            let m = op_n as f64;
+            for (k, v) in [
+                ("part_opened_max_gouge_mm", op_gouge),
+                ("part_opened_mean_mm", op_sum / m),
+                ("part_opened_rms_mm", (op_sq / m).sqrt()),
+                ("part_opened_cells", m),
             ] {
                 self.figures.insert(k.into(), v);
             }
@@ -251,8 +280,47 @@ impl Ctx<'_> {
                 },
             ),
         ];
+        let mut rows = rows;
+        if let Some((name, _)) = &tool {
+            rows.push((
+                format!("Against the part opened by {name}"),
+                if op_n > 0 {
+                    let m = op_n as f64;
+                    format!(
+                        "max gouge {op_gouge:.4} mm, mean {:+.4} mm, RMS {:.4} mm over {op_n} cells off the walls where {name} reaches the part (the opening leaves at most {} mm over it)",
+                        op_sum / m,
+                        (op_sq / m).sqrt(),
+                        fmt_num(REACH_TOLERANCE_MM)
+                    )
+                } else {
+                    format!("{name} reaches no cell off the walls")
+                },
+            ));
+        }
         body.push_str(&kv_table(&rows));
         Ok(body)
+    }
+
+    /// The program's smallest tool by radius, from its tool comments (`T2 ball-3: ...`).
+    fn smallest_tool(&self) -> Option<(String, depthmill_geometry::ToolProfile)> {
+        let parsed;
+        let program = match (self.digests.programs.get("gcode"), self.artifacts.get("gcode")) {
+            (Some(p), _) => p,
+            (None, Some(bytes)) => {
+                parsed = gcode::parse(std::str::from_utf8(bytes).ok()?);
+                &parsed
+            }
+            (None, None) => return None,
+        };
+        program
+            .ops
+            .iter()
+            .filter_map(|op| {
+                let name = op.label.split(':').next()?.split_whitespace().nth(1)?;
+                let tool = name.parse::<depthmill_geometry::ToolProfile>().ok()?;
+                Some((name.to_string(), tool))
+            })
+            .min_by(|a, b| a.1.radius_mm().total_cmp(&b.1.radius_mm()))
     }
 
     /// The machined part against the CAM's preview (`toolpath_preview`: the surface the program

@@ -1,0 +1,737 @@
+//! A point cloud to a height map by a robust local surface fit: each cell the height, at its
+//! centre, of a quadric fitted to the points around it, with the points of another surface
+//! (across a step, on a wall, an outlier) weighted out.
+//!
+//! Why: a cell's max is about two standard deviations of the scanner's noise above the surface,
+//! and even an unbiased per-cell estimate (the median) leaves the noise of a few points; a tool
+//! dilating the map takes the highest of those errors under its tip, so either is cut into the
+//! part as material left over the whole surface. Averaging a few hundred points brings the
+//! noise down by an order of magnitude; a quadric (not a plane) keeps curved surfaces where
+//! they are, and the robust weights keep steps and convex edges sharp.
+//!
+//! How, per map:
+//! 1. Every point is binned as [`crate::raster::rasterize_max`] bins it; a cell keeps its count and the mean of
+//!    its points (X, Y as offsets from its centre, Z).
+//! 2. The noise of one point, σ, unless given: per sampled cell, the residual of its mean against a
+//!    quadric fitted to the cells around it (itself left out), scaled by the variance it should
+//!    have; σ = 1.4826 × the median of those (steps and walls are a minority and do not move it).
+//! 3. Per cell with points: the window is the disk of the smallest radius `k` cells (1 to
+//!    `max_radius_mm`) holding `target_points` points; each cell in it is a sample at its mean
+//!    with weight `n · (1 − ρ²/R²)`, `R = (k + 1)` pixels. Nine planes are fitted (the whole disk
+//!    and its eight half-disks: east, west, north, south and the diagonals) and the one with the
+//!    least Tukey cost over the whole disk (each cell's residual in units of `σ/√n`, cut off at
+//!    4.685) chooses the side; that side's quadric (its plane when it has fewer than ten cells)
+//!    starts four rounds of iteratively reweighted least squares of a quadric over the whole disk
+//!    (a plane when fewer than eight cells keep weight, the weighted mean below three), the
+//!    cut-off 4, 2, 1 and 1 times the noise's. The cell's height
+//!    is the fit's value at its centre. On a step the half-disk on the cell's own side wins, so
+//!    the other level never enters; a lone cell of outliers is weighted out of its neighbours'
+//!    fits and gets theirs. A fit that keeps less than half its window's weight and disagrees
+//!    with the cell's own mean (a convex edge on a steep slope) gives way to that mean.
+//!
+//! Cells without points stay empty (NaN), as in the other rasterisers.
+
+use std::time::Instant;
+
+use nalgebra::{Matrix3, Matrix6, Point3, Vector3, Vector6};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use crate::heightmap::{HeightMap, HeightMapMeta};
+use crate::raster::{RasterError, RasterStats, cell_indices, checked_cells};
+
+/// Points a fit should hold, by default.
+pub const DEFAULT_TARGET_POINTS: u32 = 200;
+/// Largest window radius by default, mm.
+pub const DEFAULT_MAX_RADIUS_MM: f64 = 0.75;
+/// Per-point noise assumed when the map has too few cells to estimate it, mm.
+pub const FALLBACK_NOISE_MM: f64 = 0.035;
+/// Smallest noise the weights assume, mm: exact data must still tolerate a quadric's misfit.
+pub const MIN_NOISE_MM: f64 = 0.001;
+/// Tukey's biweight constant (95 % efficiency under Gaussian noise).
+const TUKEY: f64 = 4.685;
+/// Rounds of iteratively reweighted least squares, each with its cut-off widened this much: a
+/// start that misses the curvature keeps the cells it is near and tightens from there.
+const IRLS_WIDEN: [f64; 4] = [4.0, 2.0, 1.0, 1.0];
+/// Cells sampled for the noise estimate, at most.
+const NOISE_SAMPLES: usize = 50_000;
+/// Fewest cells the noise estimate uses; below, [`FALLBACK_NOISE_MM`].
+const NOISE_MIN_CELLS: usize = 30;
+
+/// Settings of [`rasterize_fit`].
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct FitParams {
+    /// Points a window grows to hold (up to `max_radius_mm`).
+    pub target_points: u32,
+    /// Largest window radius, mm (at least one pixel is always used).
+    pub max_radius_mm: f64,
+    /// Per-point noise (standard deviation), mm; estimated from the points when `None`.
+    pub noise_mm: Option<f64>,
+}
+
+impl Default for FitParams {
+    fn default() -> Self {
+        FitParams {
+            target_points: DEFAULT_TARGET_POINTS,
+            max_radius_mm: DEFAULT_MAX_RADIUS_MM,
+            noise_mm: None,
+        }
+    }
+}
+
+impl FitParams {
+    /// Checks the settings, naming the field at fault.
+    pub fn validate(&self) -> Result<(), RasterError> {
+        if self.target_points == 0 || self.target_points > 100_000 {
+            return Err(RasterError::param("target_points", self.target_points, "must be 1 to 100000"));
+        }
+        if !(self.max_radius_mm.is_finite() && self.max_radius_mm > 0.0 && self.max_radius_mm <= 50.0) {
+            return Err(RasterError::param(
+                "max_radius_mm",
+                self.max_radius_mm,
+                "must be above 0 and at most 50 mm",
+            ));
+        }
+        if let Some(s) = self.noise_mm
+            && !(s.is_finite() && s > 0.0 && s <= 10.0)
+        {
+            return Err(RasterError::param("noise_mm", s, "must be above 0 and at most 10 mm"));
+        }
+        Ok(())
+    }
+}
+
+/// What a fit did.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct FitReport {
+    /// Per-point noise the weights used, mm.
+    pub noise_mm: f64,
+    /// Whether it was estimated from the points (else given, or the fallback).
+    pub noise_estimated: bool,
+    /// Mean points and radius of the windows, mm.
+    pub mean_points: f64,
+    pub mean_radius_mm: f64,
+    /// Cells whose height came from a quadric, a plane, a weighted mean.
+    pub quadric_cells: usize,
+    pub plane_cells: usize,
+    pub mean_cells: usize,
+    /// Cells no fit kept half its window for and that disagree with it: their own mean.
+    pub own_cells: usize,
+    pub seconds: f64,
+}
+
+/// A cell's points: count, means (X, Y from the cell centre; Z from the map's reference) and the
+/// (co)variances of X and Y (a quadric's mean over the points is the quadric at their mean plus
+/// its second-order terms times these).
+#[derive(Debug, Clone, Copy, Default)]
+struct Cell {
+    n: u32,
+    dx: f32,
+    dy: f32,
+    z: f32,
+    vxx: f32,
+    vxy: f32,
+    vyy: f32,
+}
+
+/// One cell of a window: position from the window's centre in units of its radius, height from
+/// the centre cell's mean, its point count, spatial weight, and Tukey cut-off in height.
+#[derive(Debug, Clone, Copy)]
+struct Sample {
+    u: f64,
+    v: f64,
+    z: f64,
+    ws: f64,
+    cut: f64,
+    /// The (co)variances of the cell's points in window units: `uu, uv, vv`.
+    var: [f64; 3],
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Kind {
+    Quadric,
+    Plane,
+    Mean,
+    /// The cell's own mean: no fit describes it.
+    Own,
+}
+
+/// The map of `points` on `grid` by a robust local quadric fit (see the module docs).
+pub fn rasterize_fit(
+    points: &[Point3<f64>],
+    grid: &HeightMapMeta,
+    params: &FitParams,
+) -> Result<(HeightMap, RasterStats, FitReport), RasterError> {
+    let started = Instant::now();
+    params.validate()?;
+    let cells_n = checked_cells(grid)?;
+    let (index, binned, non_finite) = cell_indices(points, grid);
+    // A reference height near the points so cell means keep their precision in f32.
+    let z_ref = points.iter().map(|p| p.z).find(|z| z.is_finite()).unwrap_or(0.0);
+    let (w, h, p) = (grid.width as usize, grid.height as usize, grid.pixel_mm);
+    // Per cell: count, sums of x, y, z, xx, xy, yy (x, y from the cell's centre).
+    let mut sums = vec![(0u32, [0.0f64; 6]); cells_n];
+    for (&i, pt) in index.iter().zip(points) {
+        let Some((n, s)) = sums.get_mut(i as usize) else { continue };
+        let (c, r) = ((i as usize % w) as f64, (i as usize / w) as f64);
+        let x = pt.x - (grid.origin_x_mm + (c + 0.5) * p);
+        let y = pt.y - (grid.origin_y_mm + (r + 0.5) * p);
+        *n += 1;
+        for (acc, v) in s.iter_mut().zip([x, y, pt.z - z_ref, x * x, x * y, y * y]) {
+            *acc += v;
+        }
+    }
+    drop(index);
+    let cells: Vec<Cell> = sums
+        .iter()
+        .map(|&(n, s)| {
+            if n == 0 {
+                return Cell::default();
+            }
+            let k = f64::from(n);
+            let (mx, my) = (s[0] / k, s[1] / k);
+            Cell {
+                n,
+                dx: mx as f32,
+                dy: my as f32,
+                z: (s[2] / k) as f32,
+                vxx: (s[3] / k - mx * mx).max(0.0) as f32,
+                vxy: (s[4] / k - mx * my) as f32,
+                vyy: (s[5] / k - my * my).max(0.0) as f32,
+            }
+        })
+        .collect();
+    drop(sums);
+    let field =
+        Field { cells: &cells, w, h, pixel: p, kmax: ((params.max_radius_mm / p).floor() as usize).max(1) };
+    let (noise, estimated) = match params.noise_mm {
+        Some(s) => (s, false),
+        None => match field.estimate_noise(params.target_points) {
+            Some(s) => (s.max(MIN_NOISE_MM), true),
+            None => (FALLBACK_NOISE_MM, false),
+        },
+    };
+    let fitted: Vec<(f32, Option<(Kind, u32, usize)>)> = (0..cells_n)
+        .into_par_iter()
+        .map_init(Vec::new, |buf, i| {
+            let cell = cells[i];
+            if cell.n == 0 {
+                return (f32::NAN, None);
+            }
+            let (c, r) = (i % w, i / w);
+            let (z, kind, pts, k) = field.fit(c, r, params.target_points, noise, buf);
+            ((f64::from(cell.z) + z + z_ref) as f32, Some((kind, pts, k)))
+        })
+        .collect();
+    let mut report = FitReport { noise_mm: noise, noise_estimated: estimated, ..FitReport::default() };
+    let (mut n, mut pts, mut rad) = (0usize, 0u64, 0.0f64);
+    for (_, info) in &fitted {
+        let Some((kind, p_in, k)) = info else { continue };
+        n += 1;
+        pts += u64::from(*p_in);
+        rad += *k as f64 * p;
+        match kind {
+            Kind::Quadric => report.quadric_cells += 1,
+            Kind::Plane => report.plane_cells += 1,
+            Kind::Mean => report.mean_cells += 1,
+            Kind::Own => report.own_cells += 1,
+        }
+    }
+    if n > 0 {
+        report.mean_points = pts as f64 / n as f64;
+        report.mean_radius_mm = rad / n as f64;
+    }
+    let data: Vec<f32> = fitted.into_iter().map(|(z, _)| z).collect();
+    report.seconds = started.elapsed().as_secs_f64();
+    let stats = RasterStats::of(points.len(), binned, non_finite);
+    Ok((HeightMap::new(*grid, data)?, stats, report))
+}
+
+struct Field<'a> {
+    cells: &'a [Cell],
+    w: usize,
+    h: usize,
+    pixel: f64,
+    kmax: usize,
+}
+
+impl Field<'_> {
+    /// The smallest window radius (cells) around `(c, r)` holding `target` points, at most `kmax`.
+    fn radius(&self, c: usize, r: usize, target: u32) -> usize {
+        let mut total = 0u32;
+        for k in 0..=self.kmax {
+            // The ring at Chebyshev distance k inside the disk of radius k + 0.5.
+            let lim = (k as f64 + 0.5).powi(2);
+            let ki = k as isize;
+            for dr in -ki..=ki {
+                for dc in -ki..=ki {
+                    if dr.abs().max(dc.abs()) != ki {
+                        continue;
+                    }
+                    if let Some(cell) = self.at(c, r, dc, dr, lim) {
+                        total += cell.n;
+                    }
+                }
+            }
+            if k >= 1 && total >= target {
+                return k;
+            }
+        }
+        self.kmax
+    }
+
+    /// The cell at `(c + dc, r + dr)` when inside the map, within `(dc² + dr²) <= lim`, with points.
+    #[inline]
+    fn at(&self, c: usize, r: usize, dc: isize, dr: isize, lim: f64) -> Option<Cell> {
+        if (dc * dc + dr * dr) as f64 > lim {
+            return None;
+        }
+        let (cc, rr) = (c as isize + dc, r as isize + dr);
+        if cc < 0 || rr < 0 || cc >= self.w as isize || rr >= self.h as isize {
+            return None;
+        }
+        let cell = self.cells[rr as usize * self.w + cc as usize];
+        (cell.n > 0).then_some(cell)
+    }
+
+    /// The samples of the window of radius `k` around `(c, r)`, placed from the centre cell's
+    /// centre; `skip_centre` leaves the centre cell out. Heights from the centre cell's mean;
+    /// cut-offs for noise `sigma`. Returns the points in the window.
+    fn samples(
+        &self,
+        c: usize,
+        r: usize,
+        k: usize,
+        sigma: f64,
+        skip_centre: bool,
+        out: &mut Vec<Sample>,
+    ) -> u32 {
+        out.clear();
+        let centre = self.cells[r * self.w + c];
+        let big_r = (k as f64 + 1.0) * self.pixel;
+        let lim = (k as f64 + 0.5).powi(2);
+        let ki = k as isize;
+        let mut points = 0u32;
+        for dr in -ki..=ki {
+            for dc in -ki..=ki {
+                if skip_centre && dr == 0 && dc == 0 {
+                    continue;
+                }
+                let Some(cell) = self.at(c, r, dc, dr, lim) else { continue };
+                points += cell.n;
+                out.push(self.sample(cell, centre, dc, dr, big_r, sigma));
+            }
+        }
+        points
+    }
+
+    /// Cell `cell`, `(dc, dr)` cells from `centre`, as a sample of a window of radius `big_r` mm.
+    fn sample(&self, cell: Cell, centre: Cell, dc: isize, dr: isize, big_r: f64, sigma: f64) -> Sample {
+        let x = dc as f64 * self.pixel + f64::from(cell.dx);
+        let y = dr as f64 * self.pixel + f64::from(cell.dy);
+        let rho2 = (x * x + y * y) / (big_r * big_r);
+        let n = f64::from(cell.n);
+        let r2 = big_r * big_r;
+        Sample {
+            u: x / big_r,
+            v: y / big_r,
+            z: f64::from(cell.z) - f64::from(centre.z),
+            ws: n * (1.0 - rho2).max(0.05),
+            cut: TUKEY * sigma / n.sqrt(),
+            var: [f64::from(cell.vxx) / r2, f64::from(cell.vxy) / r2, f64::from(cell.vyy) / r2],
+        }
+    }
+
+    /// The height at the centre of cell `(c, r)` from its mean, the fit's kind, the points in the
+    /// window and its radius in cells.
+    fn fit(
+        &self,
+        c: usize,
+        r: usize,
+        target: u32,
+        sigma: f64,
+        buf: &mut Vec<Sample>,
+    ) -> (f64, Kind, u32, usize) {
+        let k = self.radius(c, r, target);
+        let points = self.samples(c, r, k, sigma, false, buf);
+        let samples = &buf[..];
+        // Starting planes: the whole disk and its eight half-disks.
+        let halves: [fn(f64, f64) -> bool; 9] = [
+            |_, _| true,
+            |u, _| u >= 0.0,
+            |u, _| u <= 0.0,
+            |_, v| v >= 0.0,
+            |_, v| v <= 0.0,
+            |u, v| u + v >= 0.0,
+            |u, v| u + v <= 0.0,
+            |u, v| u - v >= 0.0,
+            |u, v| u - v <= 0.0,
+        ];
+        // Each side's quadric when it has the cells for one, else its plane; the one with the
+        // least cost (at the first round's cut-off) starts.
+        let mut best: Option<(f64, Model)> = None;
+        for half in halves {
+            // (0, 0), the cell's centre, is on every half's edge.
+            let on_side = || samples.iter().filter(|s| half(s.u, s.v)).map(|s| (s, s.ws));
+            let model = match quadric(on_side()).filter(|_| on_side().count() >= 10) {
+                Some(q) => Model::Quadric(q),
+                None => match plane(on_side()) {
+                    Some(b) => Model::Plane(b),
+                    None => continue,
+                },
+            };
+            let cost: f64 =
+                samples.iter().map(|s| s.ws * rho(s.z - model.mean_over(s), s.cut * IRLS_WIDEN[0])).sum();
+            if best.is_none_or(|(b, _)| cost < b) {
+                best = Some((cost, model));
+            }
+        }
+        let Some((_, mut model)) = best else {
+            // A lone cell, or cells on a line: its own mean.
+            return (0.0, Kind::Mean, points, k);
+        };
+        for widen in IRLS_WIDEN {
+            let weighted = || {
+                samples.iter().filter_map(|s| {
+                    let wt = s.ws * tukey_weight(s.z - model.mean_over(s), s.cut * widen);
+                    (wt > 0.0).then_some((s, wt))
+                })
+            };
+            let kept = weighted().count();
+            model = if kept >= 8
+                && let Some(q) = quadric(weighted())
+            {
+                Model::Quadric(q)
+            } else if kept >= 3
+                && let Some(pl) = plane(weighted())
+            {
+                Model::Plane(pl)
+            } else {
+                match mean(weighted()) {
+                    Some(m) => Model::Mean(m),
+                    None => break,
+                }
+            };
+        }
+        // A fit that keeps less than half the window's weight does not describe the surface here
+        // (a convex edge on a steep slope, a thin ridge): the cell keeps its own mean unless the
+        // fit agrees with it. With most of the window kept, a centre cell the fit rejects is the
+        // outlier and takes the fit.
+        let total: f64 = samples.iter().map(|s| s.ws).sum();
+        let kept: f64 = samples.iter().map(|s| s.ws * tukey_weight(s.z - model.mean_over(s), s.cut)).sum();
+        if kept < 0.5 * total {
+            let centre = self.cells[r * self.w + c];
+            let own = self.sample(centre, centre, 0, 0, (k as f64 + 1.0) * self.pixel, sigma);
+            if model.mean_over(&own).abs() > own.cut {
+                return (0.0, Kind::Own, points, k);
+            }
+        }
+        (model.at(0.0, 0.0), model.kind(), points, k)
+    }
+
+    /// σ of one point from leave-one-out residuals of cell means (see the module docs).
+    fn estimate_noise(&self, target: u32) -> Option<f64> {
+        let with_points: Vec<usize> = (0..self.cells.len()).filter(|&i| self.cells[i].n > 0).collect();
+        if with_points.len() < NOISE_MIN_CELLS {
+            return None;
+        }
+        let stride = with_points.len().div_ceil(NOISE_SAMPLES).max(1);
+        let mut t: Vec<f64> = with_points
+            .par_iter()
+            .step_by(stride)
+            .map_init(Vec::new, |buf, &i| {
+                let (c, r) = (i % self.w, i / self.w);
+                let k = self.radius(c, r, target);
+                // Unit cut-offs: unweighted by residual.
+                self.samples(c, r, k, 1.0, true, buf);
+                let centre = self.cells[i];
+                let q = quadric(buf.iter().map(|s| (s, s.ws)))?;
+                let own = self.sample(centre, centre, 0, 0, (k as f64 + 1.0) * self.pixel, 1.0);
+                let res = -Model::Quadric(q).mean_over(&own);
+                // Variance of the residual in units of σ²: the centre mean's (1/n) plus the fit's
+                // prediction there, φᵀ A⁻¹ B A⁻¹ φ with A = Σ w φφᵀ, B = Σ (w²/n) φφᵀ (a cell
+                // mean's variance is σ²/n).
+                let (mut a, mut b) = (Matrix6::<f64>::zeros(), Matrix6::<f64>::zeros());
+                for s in buf.iter() {
+                    let phi = basis(s);
+                    let n = (TUKEY / s.cut).powi(2);
+                    a += phi * phi.transpose() * s.ws;
+                    b += phi * phi.transpose() * (s.ws * s.ws / n);
+                }
+                let a_inv = a.try_inverse()?;
+                let phi = basis(&own);
+                let var = 1.0 / f64::from(centre.n) + (phi.transpose() * a_inv * b * a_inv * phi)[(0, 0)];
+                Some(res.abs() / var.sqrt())
+            })
+            .flatten()
+            .collect();
+        if t.len() < NOISE_MIN_CELLS {
+            return None;
+        }
+        let mid = t.len() / 2;
+        let (_, m, _) = t.select_nth_unstable_by(mid, f64::total_cmp);
+        Some(1.4826 * *m)
+    }
+}
+
+#[derive(Debug, Clone, Copy)]
+enum Model {
+    Quadric(Vector6<f64>),
+    Plane(Vector3<f64>),
+    Mean(f64),
+}
+
+impl Model {
+    /// The model's mean over a sample's points (a quadric's second-order terms see their spread).
+    fn mean_over(&self, s: &Sample) -> f64 {
+        match self {
+            Model::Quadric(q) => self.at(s.u, s.v) + q[3] * s.var[0] + q[4] * s.var[1] + q[5] * s.var[2],
+            _ => self.at(s.u, s.v),
+        }
+    }
+
+    fn at(&self, u: f64, v: f64) -> f64 {
+        match self {
+            Model::Quadric(q) => q[0] + q[1] * u + q[2] * v + q[3] * u * u + q[4] * u * v + q[5] * v * v,
+            Model::Plane(b) => plane_at(b, u, v),
+            Model::Mean(m) => *m,
+        }
+    }
+
+    fn kind(&self) -> Kind {
+        match self {
+            Model::Quadric(_) => Kind::Quadric,
+            Model::Plane(_) => Kind::Plane,
+            Model::Mean(_) => Kind::Mean,
+        }
+    }
+}
+
+fn plane_at(b: &Vector3<f64>, u: f64, v: f64) -> f64 {
+    b[0] + b[1] * u + b[2] * v
+}
+
+/// Tukey's biweight loss, scaled to 1 at and beyond the cut-off.
+#[inline]
+fn rho(r: f64, cut: f64) -> f64 {
+    let t = r / cut;
+    if t.abs() >= 1.0 {
+        1.0
+    } else {
+        let a = 1.0 - t * t;
+        1.0 - a * a * a
+    }
+}
+
+/// Tukey's biweight weight.
+#[inline]
+fn tukey_weight(r: f64, cut: f64) -> f64 {
+    let t = r / cut;
+    if t.abs() >= 1.0 {
+        0.0
+    } else {
+        let a = 1.0 - t * t;
+        a * a
+    }
+}
+
+/// Weighted least-squares plane `z = b0 + b1 u + b2 v`; `None` when the samples do not fix one.
+fn plane<'a>(samples: impl Iterator<Item = (&'a Sample, f64)>) -> Option<Vector3<f64>> {
+    let (mut a, mut rhs) = (Matrix3::<f64>::zeros(), Vector3::<f64>::zeros());
+    for (s, w) in samples {
+        let phi = Vector3::new(1.0, s.u, s.v);
+        a += phi * phi.transpose() * w;
+        rhs += phi * (w * s.z);
+    }
+    solve3(a, rhs)
+}
+
+fn solve3(a: Matrix3<f64>, rhs: Vector3<f64>) -> Option<Vector3<f64>> {
+    let scale = a[(0, 0)];
+    if !(scale > 0.0) {
+        return None;
+    }
+    // A pivot far below the total weight: the samples lie on a line (or nearly: a spread under
+    // a tenth of the window across it).
+    let chol = a.cholesky()?;
+    let l = chol.l();
+    if (0..3).any(|i| l[(i, i)] * l[(i, i)] < 1e-2 * scale) {
+        return None;
+    }
+    Some(chol.solve(&rhs))
+}
+
+/// The quadric's terms for a sample: its mean over the cell's points, not its value at their mean.
+fn basis(s: &Sample) -> Vector6<f64> {
+    Vector6::new(1.0, s.u, s.v, s.u * s.u + s.var[0], s.u * s.v + s.var[1], s.v * s.v + s.var[2])
+}
+
+/// Weighted least-squares quadric; `None` when the samples do not fix one.
+fn quadric<'a>(samples: impl Iterator<Item = (&'a Sample, f64)>) -> Option<Vector6<f64>> {
+    let (mut a, mut rhs) = (Matrix6::<f64>::zeros(), Vector6::<f64>::zeros());
+    for (s, w) in samples {
+        let phi = basis(s);
+        a += phi * phi.transpose() * w;
+        rhs += phi * (w * s.z);
+    }
+    let scale = a[(0, 0)];
+    if !(scale > 0.0) {
+        return None;
+    }
+    let chol = a.cholesky()?;
+    let l = chol.l();
+    // Window coordinates are within ±1, so a pivot this small means a degenerate layout (cells
+    // on a line or two).
+    if (0..6).any(|i| l[(i, i)] * l[(i, i)] < 1e-4 * scale) {
+        return None;
+    }
+    Some(chol.solve(&rhs))
+}
+
+fn mean<'a>(samples: impl Iterator<Item = (&'a Sample, f64)>) -> Option<f64> {
+    let (mut sw, mut sz) = (0.0, 0.0);
+    for (s, w) in samples {
+        sw += w;
+        sz += w * s.z;
+    }
+    (sw > 0.0).then(|| sz / sw)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::rngs::StdRng;
+    use rand::{Rng, SeedableRng};
+
+    fn grid(n: u32, pixel: f64) -> HeightMapMeta {
+        HeightMapMeta::new(n, n, pixel)
+    }
+
+    /// `per_cell` points per cell on average, uniform over the grid, height `f(x, y)` plus noise.
+    fn cloud(
+        g: &HeightMapMeta,
+        per_cell: f64,
+        sigma: f64,
+        seed: u64,
+        f: impl Fn(f64, f64) -> f64,
+    ) -> Vec<Point3<f64>> {
+        let mut rng = StdRng::seed_from_u64(seed);
+        let (wx, wy) = (g.width_mm(), g.height_mm());
+        let n = (per_cell * f64::from(g.width) * f64::from(g.height)) as usize;
+        (0..n)
+            .map(|_| {
+                let x = g.origin_x_mm + rng.random::<f64>() * wx;
+                let y = g.origin_y_mm + rng.random::<f64>() * wy;
+                // Box-Muller.
+                let (a, b): (f64, f64) = (rng.random::<f64>().max(1e-300), rng.random());
+                let e = sigma * (-2.0 * a.ln()).sqrt() * (std::f64::consts::TAU * b).cos();
+                Point3::new(x, y, f(x, y) + e)
+            })
+            .collect()
+    }
+
+    /// Errors against `f` at the cell centres where `keep(x, y)`: (mean, RMS, max |e|).
+    fn errors(
+        map: &HeightMap,
+        keep: impl Fn(f64, f64) -> bool,
+        f: impl Fn(f64, f64) -> f64,
+    ) -> (f64, f64, f64) {
+        let m = *map.meta();
+        let (mut sum, mut sq, mut worst, mut n) = (0.0, 0.0, 0.0f64, 0usize);
+        for r in 0..m.height {
+            for c in 0..m.width {
+                let (x, y) = (
+                    m.origin_x_mm + (f64::from(c) + 0.5) * m.pixel_mm,
+                    m.origin_y_mm + (f64::from(r) + 0.5) * m.pixel_mm,
+                );
+                let Some(z) = map.get(c, r).filter(|z| z.is_finite()) else { continue };
+                if !keep(x, y) {
+                    continue;
+                }
+                let e = f64::from(z) - f(x, y);
+                sum += e;
+                sq += e * e;
+                worst = worst.max(e.abs());
+                n += 1;
+            }
+        }
+        assert!(n > 0, "no cell measured");
+        (sum / n as f64, (sq / n as f64).sqrt(), worst)
+    }
+
+    #[test]
+    fn exact_quadrics_come_back_exactly() {
+        let g = grid(40, 0.25);
+        let f = |x: f64, y: f64| 3.0 + 0.4 * x - 0.7 * y + 0.05 * x * x - 0.03 * x * y + 0.08 * y * y;
+        let pts = cloud(&g, 4.0, 0.0, 1, f);
+        let (map, stats, rep) = rasterize_fit(&pts, &g, &FitParams::default()).expect("fit");
+        assert_eq!(stats.points_binned, pts.len());
+        let (_, _, worst) = errors(&map, |_, _| true, f);
+        assert!(worst < 1e-4, "worst error {worst}");
+        assert!(rep.quadric_cells > rep.plane_cells + rep.mean_cells, "{rep:?}");
+    }
+
+    #[test]
+    fn noise_is_estimated_and_averaged_far_below_the_median() {
+        let g = grid(80, 0.25);
+        let sigma = 0.035;
+        let f = |x: f64, y: f64| 2.0 * (x * 0.3).sin() + 1.5 * (y * 0.2).cos();
+        let pts = cloud(&g, 10.0, sigma, 2, f);
+        let (map, _, rep) = rasterize_fit(&pts, &g, &FitParams::default()).expect("fit");
+        assert!(rep.noise_estimated);
+        assert!((rep.noise_mm / sigma - 1.0).abs() < 0.15, "estimated noise {} vs {sigma}", rep.noise_mm);
+        let inner = |x: f64, y: f64| x > 1.0 && y > 1.0 && x < 19.0 && y < 19.0;
+        let (mean, rms, _) = errors(&map, inner, f);
+        let (median, _) = crate::raster::rasterize_median(&pts, &g).expect("median");
+        let (_, rms_median, _) = errors(&median, inner, f);
+        assert!(mean.abs() < 0.002, "mean {mean}");
+        assert!(rms < sigma / 5.0 && rms < rms_median / 3.0, "fit RMS {rms}, median RMS {rms_median}");
+    }
+
+    #[test]
+    fn a_step_keeps_its_edge_and_an_outlier_cell_is_weighted_out() {
+        let g = grid(60, 0.1);
+        let sigma = 0.02;
+        // A 2 mm step along x = 3 mm, on a gentle slope.
+        let f = |x: f64, y: f64| 0.05 * y + if x < 3.0 { 2.0 } else { 0.0 };
+        let mut pts = cloud(&g, 4.0, sigma, 3, f);
+        // Every point of one cell 0.5 mm high.
+        for p in pts.iter_mut() {
+            if (p.x - 1.55).abs() < 0.05 && (p.y - 4.55).abs() < 0.05 {
+                p.z += 0.5;
+            }
+        }
+        let (map, _, _) = rasterize_fit(&pts, &g, &FitParams::default()).expect("fit");
+        // Off the cells the step crosses: every cell on its own level, within 4 σ/√(points).
+        let off = |x: f64, _: f64| (x - 3.0).abs() > 0.06;
+        let (mean, rms, worst) = errors(&map, off, f);
+        assert!(mean.abs() < 0.002 && rms < 0.006 && worst < 0.03, "mean {mean} RMS {rms} worst {worst}");
+        let outlier = map.get(15, 45).expect("cell");
+        assert!((f64::from(outlier) - f(1.55, 4.55)).abs() < 0.02, "outlier cell {outlier}");
+    }
+
+    #[test]
+    fn cells_without_points_stay_empty_and_bad_settings_are_named() {
+        let g = grid(20, 0.5);
+        let pts: Vec<Point3<f64>> =
+            cloud(&g, 6.0, 0.01, 4, |_, _| 1.0).into_iter().filter(|p| p.x > 5.0).collect();
+        let (map, _, rep) = rasterize_fit(&pts, &g, &FitParams::default()).expect("fit");
+        assert!(map.get(2, 10).is_some_and(|z| z.is_nan()));
+        assert!(map.get(15, 10).is_some_and(|z| (z - 1.0).abs() < 0.01));
+        assert!(rep.mean_points > 0.0);
+        for (p, name) in [
+            (FitParams { target_points: 0, ..FitParams::default() }, "target_points"),
+            (FitParams { max_radius_mm: f64::NAN, ..FitParams::default() }, "max_radius_mm"),
+            (FitParams { noise_mm: Some(-1.0), ..FitParams::default() }, "noise_mm"),
+        ] {
+            match rasterize_fit(&pts, &g, &p) {
+                Err(RasterError::InvalidParameter { field, .. }) => assert_eq!(field, name),
+                other => panic!("{name}: {other:?}"),
+            }
+        }
+        // Too few cells to estimate the noise: the fallback, said so.
+        let few: Vec<Point3<f64>> = pts.iter().take(20).copied().collect();
+        let (_, _, rep) = rasterize_fit(&few, &g, &FitParams::default()).expect("fit");
+        assert!(!rep.noise_estimated && rep.noise_mm == FALLBACK_NOISE_MM);
+    }
+}
