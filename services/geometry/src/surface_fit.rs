@@ -120,6 +120,9 @@ pub struct FitReport {
     pub seconds: f64,
 }
 
+/// How a cell was fitted: the kind of fit, the points in its window and the window's radius in cells.
+type FitInfo = (Kind, u32, usize);
+
 /// A cell's points: count, means (X, Y from the cell centre; Z from the map's reference) and the
 /// (co)variances of X and Y (a quadric's mean over the points is the quadric at their mean plus
 /// its second-order terms times these).
@@ -211,7 +214,7 @@ pub fn rasterize_fit(
             None => (FALLBACK_NOISE_MM, false),
         },
     };
-    let fitted: Vec<(f32, Option<(Kind, u32, usize)>)> = (0..cells_n)
+    let fitted: Vec<(f32, Option<FitInfo>)> = (0..cells_n)
         .into_par_iter()
         .map_init(Vec::new, |buf, i| {
             let cell = cells[i];
@@ -548,7 +551,7 @@ fn plane<'a>(samples: impl Iterator<Item = (&'a Sample, f64)>) -> Option<Vector3
 
 fn solve3(a: Matrix3<f64>, rhs: Vector3<f64>) -> Option<Vector3<f64>> {
     let scale = a[(0, 0)];
-    if !(scale > 0.0) {
+    if scale.is_nan() || scale <= 0.0 {
         return None;
     }
     // A pivot far below the total weight: the samples lie on a line (or nearly: a spread under
@@ -575,7 +578,7 @@ fn quadric<'a>(samples: impl Iterator<Item = (&'a Sample, f64)>) -> Option<Vecto
         rhs += phi * (w * s.z);
     }
     let scale = a[(0, 0)];
-    if !(scale > 0.0) {
+    if scale.is_nan() || scale <= 0.0 {
         return None;
     }
     let chol = a.cholesky()?;
