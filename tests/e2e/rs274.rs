@@ -101,6 +101,7 @@ fn cam_programs_run_in_linuxcnc_rs274() -> anyhow::Result<()> {
                 step_over_mm: Some(0.6),
                 tolerance_mm: Some(0.01),
                 arcs: Some(true),
+                pixel_model: None,
             }),
             dialect: Some(dialect.into()),
             // Rest finishing: ball-1 as T3 where ball-3 left the dome's foot.
