@@ -372,13 +372,22 @@ impl Field<'_> {
         ];
         // Each side's quadric when it has the cells for one, else its plane; the one with the
         // least cost (at the first round's cut-off) starts.
+        // Every sample's products once, added to the normal equations of each half it lies in
+        // ((0, 0), the cell's centre, is on every half's edge).
+        let mut normals = [Normal::ZERO; 9];
+        for s in samples {
+            let one = Normal::of(s, s.ws);
+            for (n, half) in normals.iter_mut().zip(halves) {
+                if half(s.u, s.v) {
+                    n.merge(&one);
+                }
+            }
+        }
         let mut best: Option<(f64, Model)> = None;
-        for half in halves {
-            // (0, 0), the cell's centre, is on every half's edge.
-            let on_side = || samples.iter().filter(|s| half(s.u, s.v)).map(|s| (s, s.ws));
-            let model = match quadric(on_side()).filter(|_| on_side().count() >= 10) {
+        for normal in &normals {
+            let model = match normal.quadric().filter(|_| normal.n >= 10) {
                 Some(q) => Model::Quadric(q),
-                None => match plane(on_side()) {
+                None => match normal.plane() {
                     Some(b) => Model::Plane(b),
                     None => continue,
                 },
@@ -394,26 +403,24 @@ impl Field<'_> {
             return (0.0, Kind::Mean, points, k);
         };
         for widen in IRLS_WIDEN {
-            let weighted = || {
-                samples.iter().filter_map(|s| {
-                    let wt = s.ws * tukey_weight(s.z - model.mean_over(s), s.cut * widen);
-                    (wt > 0.0).then_some((s, wt))
-                })
-            };
-            let kept = weighted().count();
-            model = if kept >= 8
-                && let Some(q) = quadric(weighted())
+            // One pass: the normal equations of the samples the current model keeps.
+            let normal = Normal::sum(samples.iter().filter_map(|s| {
+                let wt = s.ws * tukey_weight(s.z - model.mean_over(s), s.cut * widen);
+                (wt > 0.0).then_some((s, wt))
+            }));
+            model = if normal.n >= 8
+                && let Some(q) = normal.quadric()
             {
                 Model::Quadric(q)
-            } else if kept >= 3
-                && let Some(pl) = plane(weighted())
+            } else if normal.n >= 3
+                && let Some(pl) = normal.plane()
             {
                 Model::Plane(pl)
+            } else if normal.n > 0 && normal.a[0] > 0.0 {
+                // The weighted mean: the first basis term is 1.
+                Model::Mean(normal.b[0] / normal.a[0])
             } else {
-                match mean(weighted()) {
-                    Some(m) => Model::Mean(m),
-                    None => break,
-                }
+                break;
             };
         }
         // A fit that keeps less than half the window's weight does not describe the surface here
@@ -538,32 +545,6 @@ fn tukey_weight(r: f64, cut: f64) -> f64 {
     }
 }
 
-/// Weighted least-squares plane `z = b0 + b1 u + b2 v`; `None` when the samples do not fix one.
-fn plane<'a>(samples: impl Iterator<Item = (&'a Sample, f64)>) -> Option<Vector3<f64>> {
-    let (mut a, mut rhs) = (Matrix3::<f64>::zeros(), Vector3::<f64>::zeros());
-    for (s, w) in samples {
-        let phi = Vector3::new(1.0, s.u, s.v);
-        a += phi * phi.transpose() * w;
-        rhs += phi * (w * s.z);
-    }
-    solve3(a, rhs)
-}
-
-fn solve3(a: Matrix3<f64>, rhs: Vector3<f64>) -> Option<Vector3<f64>> {
-    let scale = a[(0, 0)];
-    if scale.is_nan() || scale <= 0.0 {
-        return None;
-    }
-    // A pivot far below the total weight: the samples lie on a line (or nearly: a spread under
-    // a tenth of the window across it).
-    let chol = a.cholesky()?;
-    let l = chol.l();
-    if (0..3).any(|i| l[(i, i)] * l[(i, i)] < 1e-2 * scale) {
-        return None;
-    }
-    Some(chol.solve(&rhs))
-}
-
 /// The quadric's terms for a sample: its mean over the cell's points, not its value at their mean.
 fn basis(s: &Sample) -> Vector6<f64> {
     Vector6::new(1.0, s.u, s.v, s.u * s.u + s.var[0], s.u * s.v + s.var[1], s.v * s.v + s.var[2])
@@ -571,33 +552,96 @@ fn basis(s: &Sample) -> Vector6<f64> {
 
 /// Weighted least-squares quadric; `None` when the samples do not fix one.
 fn quadric<'a>(samples: impl Iterator<Item = (&'a Sample, f64)>) -> Option<Vector6<f64>> {
-    let (mut a, mut rhs) = (Matrix6::<f64>::zeros(), Vector6::<f64>::zeros());
-    for (s, w) in samples {
-        let phi = basis(s);
-        a += phi * phi.transpose() * w;
-        rhs += phi * (w * s.z);
-    }
-    let scale = a[(0, 0)];
-    if scale.is_nan() || scale <= 0.0 {
-        return None;
-    }
-    let chol = a.cholesky()?;
-    let l = chol.l();
-    // Window coordinates are within ±1, so a pivot this small means a degenerate layout (cells
-    // on a line or two).
-    if (0..6).any(|i| l[(i, i)] * l[(i, i)] < 1e-4 * scale) {
-        return None;
-    }
-    Some(chol.solve(&rhs))
+    Normal::sum(samples).quadric()
 }
 
-fn mean<'a>(samples: impl Iterator<Item = (&'a Sample, f64)>) -> Option<f64> {
-    let (mut sw, mut sz) = (0.0, 0.0);
-    for (s, w) in samples {
-        sw += w;
-        sz += w * s.z;
+/// Normal equations of the weighted least-squares quadric over [`basis`]: the upper triangle of
+/// `Σ w φφᵀ` row by row, `Σ w φ z`, and the number of samples. The plane's are the leading 3 x 3
+/// (its terms are the quadric's first three).
+#[derive(Debug, Clone, Copy)]
+struct Normal {
+    a: [f64; 21],
+    b: [f64; 6],
+    n: usize,
+}
+
+impl Normal {
+    const ZERO: Normal = Normal { a: [0.0; 21], b: [0.0; 6], n: 0 };
+    /// Where row `i` of the upper triangle starts in `a`.
+    const ROW: [usize; 6] = [0, 6, 11, 15, 18, 20];
+
+    fn of(s: &Sample, w: f64) -> Normal {
+        let phi = basis(s);
+        let mut out = Normal { n: 1, ..Normal::ZERO };
+        let mut k = 0;
+        for i in 0..6 {
+            let wi = w * phi[i];
+            for j in i..6 {
+                out.a[k] = wi * phi[j];
+                k += 1;
+            }
+            out.b[i] = wi * s.z;
+        }
+        out
     }
-    (sw > 0.0).then(|| sz / sw)
+
+    fn merge(&mut self, o: &Normal) {
+        for (x, y) in self.a.iter_mut().zip(&o.a) {
+            *x += y;
+        }
+        for (x, y) in self.b.iter_mut().zip(&o.b) {
+            *x += y;
+        }
+        self.n += o.n;
+    }
+
+    fn sum<'a>(samples: impl Iterator<Item = (&'a Sample, f64)>) -> Normal {
+        let mut acc = Normal::ZERO;
+        for (s, w) in samples {
+            acc.merge(&Normal::of(s, w));
+        }
+        acc
+    }
+
+    fn at(&self, i: usize, j: usize) -> f64 {
+        let (i, j) = if i <= j { (i, j) } else { (j, i) };
+        self.a[Self::ROW[i] + j - i]
+    }
+
+    /// The weighted least-squares plane `z = b0 + b1 u + b2 v`; `None` when the samples do not
+    /// fix one.
+    fn plane(&self) -> Option<Vector3<f64>> {
+        let a = Matrix3::from_fn(|i, j| self.at(i, j));
+        let scale = a[(0, 0)];
+        if scale.is_nan() || scale <= 0.0 {
+            return None;
+        }
+        // A pivot far below the total weight: the samples lie on a line (or nearly: a spread
+        // under a tenth of the window across it).
+        let chol = a.cholesky()?;
+        let l = chol.l();
+        if (0..3).any(|i| l[(i, i)] * l[(i, i)] < 1e-2 * scale) {
+            return None;
+        }
+        Some(chol.solve(&Vector3::new(self.b[0], self.b[1], self.b[2])))
+    }
+
+    /// The weighted least-squares quadric; `None` when the samples do not fix one.
+    fn quadric(&self) -> Option<Vector6<f64>> {
+        let a = Matrix6::from_fn(|i, j| self.at(i, j));
+        let scale = a[(0, 0)];
+        if scale.is_nan() || scale <= 0.0 {
+            return None;
+        }
+        let chol = a.cholesky()?;
+        let l = chol.l();
+        // Window coordinates are within ±1, so a pivot this small means a degenerate layout
+        // (cells on a line or two).
+        if (0..6).any(|i| l[(i, i)] * l[(i, i)] < 1e-4 * scale) {
+            return None;
+        }
+        Some(chol.solve(&Vector6::from_column_slice(&self.b)))
+    }
 }
 
 #[cfg(test)]
