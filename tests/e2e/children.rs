@@ -152,8 +152,26 @@ impl Drop for Proc {
 /// The last 40 lines of a log.
 pub fn tail(path: &Path) -> String {
     let text = std::fs::read_to_string(path).unwrap_or_default();
+    // Backtrace frames bury the message: say why first (a panic and the lines after it, an
+    // error line), then the last lines that are not frames.
     let lines: Vec<&str> = text.lines().collect();
-    lines[lines.len().saturating_sub(40)..].join("\n")
+    let frame = |l: &str| {
+        let t = l.trim_start();
+        t.starts_with("at ") || t.split_once(':').is_some_and(|(n, _)| n.chars().all(|c| c.is_ascii_digit()))
+    };
+    let mut why = Vec::new();
+    for (i, l) in lines.iter().enumerate() {
+        if l.contains("panicked at") {
+            why.extend(lines[i..(i + 3).min(lines.len())].iter().copied());
+        } else if l.starts_with("Error") || l.contains(" ERROR ") {
+            why.push(l);
+        }
+    }
+    let rest: Vec<&str> = lines.iter().copied().filter(|l| !frame(l)).collect();
+    let mut out: Vec<&str> = why.into_iter().take(30).collect();
+    out.push("...");
+    out.extend(&rest[rest.len().saturating_sub(30)..]);
+    out.join("\n")
 }
 
 /// A loopback address nothing listens on now.

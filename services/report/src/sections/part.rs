@@ -259,7 +259,7 @@ impl Ctx<'_> {
                 &esc(&caption),
             )?);
         }
-        let rows = vec![
+        let mut rows = vec![
             ("Max gouge".to_string(), format!("{gouge:.4} mm")),
             ("Max leftover".to_string(), format!("{left:.4} mm")),
             ("Mean leftover".to_string(), format!("{:.4} mm", sum_left / nf)),
@@ -280,7 +280,6 @@ impl Ctx<'_> {
                 },
             ),
         ];
-        let mut rows = rows;
         if let Some((name, _)) = &tool {
             rows.push((
                 format!("Against the part opened by {name}"),
