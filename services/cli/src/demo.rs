@@ -338,13 +338,17 @@ async fn drive(base: &str, part: Part, args: &DemoArgs, out: &Path) -> anyhow::R
     if m["part_off_walls_mean_mm"].is_f64() {
         let g = |k: &str| m[k].as_f64().map_or("-".to_string(), |v| format!("{v:+.4}"));
         s.push_str(&format!(
-            "against the original part off the walls: mean {} mm, RMS {} mm, max gouge {} mm; against the part opened by the finest tool where it reaches: mean {} mm, RMS {} mm, max gouge {} mm\n",
+            "against the original part off the walls: mean {} mm, RMS {} mm, max gouge {} mm; against the part opened by the finest tool where it reaches: mean {} mm, RMS {} mm, max gouge {} mm{}\n",
             g("part_off_walls_mean_mm"),
             g("part_off_walls_rms_mm"),
             g("part_off_walls_max_gouge_mm"),
             g("part_opened_mean_mm"),
             g("part_opened_rms_mm"),
             g("part_opened_max_gouge_mm"),
+            match (m["part_opened_max_gouge_x_mm"].as_f64(), m["part_opened_max_gouge_y_mm"].as_f64()) {
+                (Some(x), Some(y)) => format!(" at ({x:.2}, {y:.2}) mm"),
+                _ => String::new(),
+            },
         ));
     }
     s.push_str(&format!(

@@ -113,7 +113,9 @@ pub struct ReportOutput {
     /// started from its mesh), `part_off_walls_max_gouge_mm`, `part_off_walls_mean_mm`,
     /// `part_off_walls_rms_mm` (the same without the cells next to walls), `part_opened_max_gouge_mm`,
     /// `part_opened_mean_mm`, `part_opened_rms_mm`, `part_opened_cells` (off the walls where the
-    /// program's smallest tool reaches the part, against the part opened by that tool) and `preview_max_below_mm`, `preview_max_above_mm`,
+    /// program's smallest tool reaches the part, against the part opened by that tool;
+    /// `part_opened_max_gouge_x_mm`, `part_opened_max_gouge_y_mm`: where the deepest of those
+    /// gouges is, in the depth map's frame, when there is one) and `preview_max_below_mm`, `preview_max_above_mm`,
     /// `preview_mean_mm`, `preview_rms_mm` (against the CAM's predicted surface, the part opened
     /// by the tools).
     pub figures: BTreeMap<String, f64>,

@@ -476,6 +476,27 @@ fn the_machined_part_is_compared_with_the_original_mesh() {
 }
 
 #[test]
+fn the_deepest_gouge_against_the_opened_part_is_located() {
+    // The dome machined exactly, except a 0.2 mm dent over 3 x 3 cells around (0.125, 0.125).
+    let mut arts = full_artifacts();
+    arts.insert("mesh".into(), dome_stl(&depthmill_geometry::Pose::identity()));
+    let m = meta(0.0, 10.0);
+    let stock = HeightMap::from_fn(m, |c, r| {
+        let (x, y) = m.cell_center(c, r);
+        let dent = if (59..=61).contains(&c) && (39..=41).contains(&r) { 0.2 } else { 0.0 };
+        (dome_z(x, y) - dent) as f32
+    })
+    .expect("map");
+    arts.insert("final_stock".to_string(), map_png(&stock, PngDepth::Bits16));
+    let job = job("a dent", "succeeded", &arts);
+    let out = render_ok(&job, &arts);
+    let gouge = out.figures["part_opened_max_gouge_mm"];
+    assert!((0.15..0.25).contains(&gouge), "gouge {gouge}");
+    let (x, y) = (out.figures["part_opened_max_gouge_x_mm"], out.figures["part_opened_max_gouge_y_mm"]);
+    assert!((x - 0.125).abs() <= P + 1e-9 && (y - 0.125).abs() <= P + 1e-9, "at ({x}, {y})");
+}
+
+#[test]
 fn a_part_turned_for_its_first_face_is_compared_turned_the_same_way() {
     // The dome seen with the part turned to A=30: the mesh is the dome turned back by -30° about
     // X, so that the report, turning it to the first face's view, finds the dome again.

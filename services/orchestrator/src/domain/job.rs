@@ -192,6 +192,12 @@ pub struct JobMetrics {
     /// ... RMS deviation, mm.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub part_opened_rms_mm: Option<f64>,
+    /// ... where the deepest of those gouges is: the centre of its cell in the depth map's
+    /// frame, mm (only when there is a gouge).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub part_opened_max_gouge_x_mm: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub part_opened_max_gouge_y_mm: Option<f64>,
     /// The machined part against the CAM's predicted surface (the part opened by the tools): RMS, mm.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub preview_rms_mm: Option<f64>,
@@ -304,6 +310,8 @@ impl JobMetrics {
                 "part_opened_max_gouge_mm" => &mut self.part_opened_max_gouge_mm,
                 "part_opened_mean_mm" => &mut self.part_opened_mean_mm,
                 "part_opened_rms_mm" => &mut self.part_opened_rms_mm,
+                "part_opened_max_gouge_x_mm" => &mut self.part_opened_max_gouge_x_mm,
+                "part_opened_max_gouge_y_mm" => &mut self.part_opened_max_gouge_y_mm,
                 "original_points" => &mut self.original_points,
                 "original_max_gouge_mm" => &mut self.original_max_gouge_mm,
                 "original_max_leftover_mm" => &mut self.original_max_leftover_mm,

@@ -173,6 +173,7 @@ impl Ctx<'_> {
         let tool = self.smallest_tool();
         let opened = tool.as_ref().and_then(|(_, t)| depthmill_geometry::compensate::opened(&part, t));
         let (mut op_gouge, mut op_sum, mut op_sq, mut op_n) = (0.0f64, 0.0f64, 0.0f64, 0usize);
+        let mut op_where: Option<usize> = None;
         let mut data = vec![f32::NAN; part.data().len()];
         let (mut gouge, mut left, mut sum_left, mut sum, mut sq, mut n) =
             (0.0f64, 0.0f64, 0.0f64, 0.0f64, 0.0f64, 0usize);
@@ -199,7 +200,10 @@ impl Ctx<'_> {
                     && f64::from(*o) - f64::from(*p) <= REACH_TOLERANCE_MM
                 {
                     let d = f64::from(*z) - f64::from(*o);
-                    op_gouge = op_gouge.max(-d);
+                    if -d > op_gouge {
+                        op_gouge = -d;
+                        op_where = Some(i);
+                    }
                     op_sum += d;
                     op_sq += d * d;
                     op_n += 1;
@@ -225,6 +229,14 @@ impl Ctx<'_> {
                 ("part_opened_cells", m),
             ] {
                 self.figures.insert(k.into(), v);
+            }
+            // Where the deepest gouge is (the centre of its cell, in the map's frame).
+            if let Some(i) = op_where {
+                let (c, r) = (i % meta.width as usize, i / meta.width as usize);
+                let x = meta.origin_x_mm + (c as f64 + 0.5) * meta.pixel_mm;
+                let y = meta.origin_y_mm + (r as f64 + 0.5) * meta.pixel_mm;
+                self.figures.insert("part_opened_max_gouge_x_mm".into(), x);
+                self.figures.insert("part_opened_max_gouge_y_mm".into(), y);
             }
         }
         if n == 0 {
