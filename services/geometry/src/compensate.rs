@@ -761,39 +761,6 @@ fn dilate_row_portable(
             continue;
         }
         // The maximum of the group's source rows over columns s..e of the padded row.
-        let fill = |m: &mut [f32], s: usize, e: usize| {
-            let mut dys = group.dys.iter();
-            if let Some(&first) = dys.next() {
-                m[s..e].copy_from_slice(&padded.row(y + i64::from(first))[s..e]);
-            }
-            for &dy in dys {
-                for (a, &b) in m[s..e].iter_mut().zip(&padded.row(y + i64::from(dy))[s..e]) {
-                    *a = fmax(*a, b);
-                }
-            }
-        };
-        // Only over the columns the tiles that need this group read (tiles left to right: their
-        // spans start and end further right each time, so `done` is all that is needed).
-        let spans = |m: &mut [f32], span: &dyn Fn(usize, usize, usize) -> (usize, usize)| {
-            // The union of the spans, one interval at a time.
-            let (mut s0, mut e0) = (0, 0);
-            for t in 0..tiles {
-                let (lo, end) = tile_range(t);
-                if lo < end {
-                    let (s, e) = span(t * LANES, lo, end);
-                    if s > e0 {
-                        if s0 < e0 {
-                            fill(m, s0, e0);
-                        }
-                        s0 = s;
-                    }
-                    e0 = e0.max(e);
-                }
-            }
-            if s0 < e0 {
-                fill(m, s0, e0);
-            }
-        };
         match &group.shape {
             Shape::Symmetric { half, flat } => {
                 let mut start = 0;
@@ -803,9 +770,11 @@ fn dilate_row_portable(
                         a < b && a <= *flat
                     });
                 if run_needed {
-                    fill(m, 0, padded.stride);
+                    fill_rows(m, padded, &group.dys, y, 0, padded.stride);
                 } else {
-                    spans(m, &|b, _, end| (pad + b + 1 - end, pad + b + LANES + end - 1));
+                    fill_spans(m, padded, &group.dys, y, tiles, tile_range, |b, _, end| {
+                        (pad + b + 1 - end, pad + b + LANES + end - 1)
+                    });
                 }
                 if *flat >= MIN_FLAT_RUN {
                     // Columns |dx| <= flat share the height half[0]: one running maximum.
@@ -838,7 +807,9 @@ fn dilate_row_portable(
             Shape::General { dx0, heights } => {
                 // pad + dx0 >= 0 by the choice of pad.
                 let at0 = (pad as i64 + i64::from(*dx0)) as usize;
-                spans(m, &|b, lo, end| (at0 + b + lo, at0 + b + end - 1 + LANES));
+                fill_spans(m, padded, &group.dys, y, tiles, tile_range, |b, lo, end| {
+                    (at0 + b + lo, at0 + b + end - 1 + LANES)
+                });
                 for (t, b) in (0..cols).step_by(LANES).enumerate() {
                     let (lo, end) = tile_range(t);
                     if lo >= end {
@@ -857,6 +828,52 @@ fn dilate_row_portable(
                 }
             }
         }
+    }
+}
+
+/// `m[s..e]` = the maximum of the padded rows `y + dy`, `dy` in `dys`, over columns `s..e`.
+#[inline(always)]
+fn fill_rows(m: &mut [f32], padded: &Padded, dys: &[i32], y: i64, s: usize, e: usize) {
+    let mut dys = dys.iter();
+    if let Some(&first) = dys.next() {
+        m[s..e].copy_from_slice(&padded.row(y + i64::from(first))[s..e]);
+    }
+    for &dy in dys {
+        for (a, &b) in m[s..e].iter_mut().zip(&padded.row(y + i64::from(dy))[s..e]) {
+            *a = fmax(*a, b);
+        }
+    }
+}
+
+/// [`fill_rows`] over the union of the columns the tiles with pairs left read: tile `t`'s
+/// range `tile_range(t)` reads `span(first column, first pair, end)`. Tiles go left to right and
+/// their spans start and end further right each time, so the union is built in one pass.
+#[inline(always)]
+fn fill_spans(
+    m: &mut [f32],
+    padded: &Padded,
+    dys: &[i32],
+    y: i64,
+    tiles: usize,
+    tile_range: impl Fn(usize) -> (usize, usize),
+    span: impl Fn(usize, usize, usize) -> (usize, usize),
+) {
+    let (mut s0, mut e0) = (0, 0);
+    for t in 0..tiles {
+        let (lo, end) = tile_range(t);
+        if lo < end {
+            let (s, e) = span(t * LANES, lo, end);
+            if s > e0 {
+                if s0 < e0 {
+                    fill_rows(m, padded, dys, y, s0, e0);
+                }
+                s0 = s;
+            }
+            e0 = e0.max(e);
+        }
+    }
+    if s0 < e0 {
+        fill_rows(m, padded, dys, y, s0, e0);
     }
 }
 
