@@ -595,6 +595,8 @@ struct Scratch {
     run: Vec<f32>,
     prefix: Vec<f32>,
     suffix: Vec<f32>,
+    /// Column spans of the row maximum still to build.
+    spans: Vec<(usize, usize)>,
 }
 
 impl Scratch {
@@ -605,6 +607,7 @@ impl Scratch {
             run: vec![0.0; cols],
             prefix: Vec::new(),
             suffix: Vec::new(),
+            spans: Vec::new(),
         }
     }
 }
@@ -749,7 +752,7 @@ fn dilate_row_portable(
     let pad = padded.pad;
     let cols = padded.cols;
     let ng = groups.len();
-    let Scratch { m, acc, run, prefix, suffix } = scratch;
+    let Scratch { m, acc, run, prefix, suffix, spans } = scratch;
     acc.fill(f32::NEG_INFINITY);
     for (gi, group) in groups.iter().enumerate() {
         let tile_range = |t: usize| {
@@ -772,7 +775,7 @@ fn dilate_row_portable(
                 if run_needed {
                     fill_rows(m, padded, &group.dys, y, 0, padded.stride);
                 } else {
-                    fill_spans(m, padded, &group.dys, y, tiles, tile_range, |b, _, end| {
+                    fill_spans(m, spans, padded, &group.dys, y, tiles, tile_range, |b, _, end| {
                         (pad + b + 1 - end, pad + b + LANES + end - 1)
                     });
                 }
@@ -807,7 +810,7 @@ fn dilate_row_portable(
             Shape::General { dx0, heights } => {
                 // pad + dx0 >= 0 by the choice of pad.
                 let at0 = (pad as i64 + i64::from(*dx0)) as usize;
-                fill_spans(m, padded, &group.dys, y, tiles, tile_range, |b, lo, end| {
+                fill_spans(m, spans, padded, &group.dys, y, tiles, tile_range, |b, lo, end| {
                     (at0 + b + lo, at0 + b + end - 1 + LANES)
                 });
                 for (t, b) in (0..cols).step_by(LANES).enumerate() {
@@ -846,11 +849,13 @@ fn fill_rows(m: &mut [f32], padded: &Padded, dys: &[i32], y: i64, s: usize, e: u
 }
 
 /// [`fill_rows`] over the union of the columns the tiles with pairs left read: tile `t`'s
-/// range `tile_range(t)` reads `span(first column, first pair, end)`. Tiles go left to right and
-/// their spans start and end further right each time, so the union is built in one pass.
+/// range `tile_range(t)` reads `span(first column, first pair, end)`. (Spans of kernels wider than
+/// a tile need not start in tile order, so they are sorted before they are merged.)
+#[allow(clippy::too_many_arguments)]
 #[inline(always)]
 fn fill_spans(
     m: &mut [f32],
+    spans: &mut Vec<(usize, usize)>,
     padded: &Padded,
     dys: &[i32],
     y: i64,
@@ -858,19 +863,23 @@ fn fill_spans(
     tile_range: impl Fn(usize) -> (usize, usize),
     span: impl Fn(usize, usize, usize) -> (usize, usize),
 ) {
-    let (mut s0, mut e0) = (0, 0);
+    spans.clear();
     for t in 0..tiles {
         let (lo, end) = tile_range(t);
         if lo < end {
-            let (s, e) = span(t * LANES, lo, end);
-            if s > e0 {
-                if s0 < e0 {
-                    fill_rows(m, padded, dys, y, s0, e0);
-                }
-                s0 = s;
-            }
-            e0 = e0.max(e);
+            spans.push(span(t * LANES, lo, end));
         }
+    }
+    spans.sort_unstable_by_key(|s| s.0);
+    let (mut s0, mut e0) = (0, 0);
+    for &(s, e) in spans.iter() {
+        if s > e0 {
+            if s0 < e0 {
+                fill_rows(m, padded, dys, y, s0, e0);
+            }
+            s0 = s;
+        }
+        e0 = e0.max(e);
     }
     if s0 < e0 {
         fill_rows(m, padded, dys, y, s0, e0);
@@ -1003,6 +1012,32 @@ mod tests {
         assert!(fast.iter().zip(&slow).all(|(a, b)| a.to_bits() == b.to_bits() || (*a == 0.0 && *b == 0.0)));
         let empty = Kernel { rows: vec![], half: 0 };
         assert!(dilate(&map, &empty, 0.0).iter().all(|z| *z == f32::NEG_INFINITY));
+    }
+
+    #[test]
+    fn kernels_wider_than_a_tile_match_the_reference_bit_for_bit() {
+        // A ball reaching 71 cells (more than a tile of 64 columns) over a plane on the left,
+        // where the bounds keep a few pairs for the first tile, and rough ground from column 140,
+        // which the second tile reaches: its columns start left of the first tile's.
+        let (w, h) = (260u32, 40u32);
+        let data = (0..w * h)
+            .map(|i| {
+                let (x, y) = (i % w, i / w);
+                let z = if x < 140 {
+                    0.0005 * f64::from(x) + 0.0002 * f64::from(y)
+                } else {
+                    f64::from((i * 7919) % 31) * 0.1
+                };
+                z as f32
+            })
+            .collect();
+        let map = map_of(w, h, 0.1, data);
+        let k = kernel(&ToolProfile::ball(14.0).expect("ball"), 0.1, PixelModel::Point);
+        assert!(k.half > LANES as i32);
+        let (fast, slow) = (dilate(&map, &k, -1.0), compensate_reference(&map, &k, -1.0));
+        for (i, (a, b)) in fast.iter().zip(&slow).enumerate() {
+            assert!(a.to_bits() == b.to_bits() || (*a == 0.0 && *b == 0.0), "cell {i}: {a} vs {b}");
+        }
     }
 
     #[test]
