@@ -227,6 +227,7 @@ struct BoundScratch {
     res: Vec<f64>,
     span: Vec<f64>,
     colmax: Vec<f64>,
+    ext: Vec<f64>,
 }
 
 /// Output rows sharing one set of [`Bounds`] per tile of [`LANES`] columns.
@@ -321,7 +322,7 @@ impl Bounds {
         ranges: &mut [(u32, u32)],
         scratch: &mut BoundScratch,
     ) -> bool {
-        let BoundScratch { res, span, colmax } = scratch;
+        let BoundScratch { res, span, colmax, ext } = scratch;
         let (ry, pad) = (self.ry as i64, padded.pad as i64);
         let (y0, y1, x0, valid) = (y0 as i64, y1 as i64, x0 as i64, valid as i64);
         let bs = BLOCK as i64;
@@ -430,22 +431,27 @@ impl Bounds {
                     // Inside a flat run (one running maximum) only whether any pair can matter
                     // counts: the run's last pair has the largest bound of the run.
                     let skip = if *flat >= MIN_FLAT_RUN { *flat } else { 0 };
-                    let (mut lo, mut hi) = (col(x0 - skip as i64), col(x0 + valid - 1 + skip as i64));
-                    let mut up = colmax[lo..=hi].iter().copied().fold(f64::NEG_INFINITY, f64::max);
-                    for (j, &h) in half.iter().enumerate().skip(skip) {
-                        let (l, r) = (col(x0 - j as i64), col(x0 + valid - 1 + j as i64));
-                        while lo > l {
-                            lo -= 1;
-                            up = up.max(colmax[lo]);
-                        }
-                        while hi < r {
-                            hi += 1;
-                            up = up.max(colmax[hi]);
-                        }
-                        if up + gx.abs() * j as f64 + tdy - f64::from(h) + base >= 0.0 {
-                            first = first.min(if j == skip { 0 } else { j as u32 });
-                            end = j as u32 + 1;
-                        }
+                    // ext[c]: the largest residual over block columns from c to the tile's own
+                    // (either side), so pair j's bound is that at its two ends.
+                    let (c0, c1) = (col(x0), col(x0 + valid - 1));
+                    ext.clear();
+                    ext.extend_from_slice(colmax);
+                    let mid = colmax[c0..=c1].iter().copied().fold(f64::NEG_INFINITY, f64::max);
+                    ext[c0..=c1].fill(mid);
+                    for c in (0..c0).rev() {
+                        ext[c] = ext[c].max(ext[c + 1]);
+                    }
+                    for c in c1 + 1..nc {
+                        ext[c] = ext[c].max(ext[c - 1]);
+                    }
+                    let keep = |j: usize| {
+                        let up = ext[col(x0 - j as i64)].max(ext[col(x0 + valid - 1 + j as i64)]);
+                        up + gx.abs() * j as f64 + tdy - f64::from(half[j]) + base >= 0.0
+                    };
+                    // The first pair kept from the front, the last from the back.
+                    if let Some(j) = (skip..half.len()).find(|&j| keep(j)) {
+                        first = if j == skip { 0 } else { j as u32 };
+                        end = (j..half.len()).rev().find(|&j| keep(j)).map_or(j, |l| l) as u32 + 1;
                     }
                 }
                 Shape::General { dx0, heights } => {
