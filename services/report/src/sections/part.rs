@@ -232,9 +232,8 @@ impl Ctx<'_> {
             }
             // Where the deepest gouge is (the centre of its cell, in the map's frame).
             if let Some(i) = op_where {
-                let (c, r) = (i % meta.width as usize, i / meta.width as usize);
-                let x = meta.origin_x_mm + (c as f64 + 0.5) * meta.pixel_mm;
-                let y = meta.origin_y_mm + (r as f64 + 0.5) * meta.pixel_mm;
+                let (x, y) =
+                    meta.cell_center((i % meta.width as usize) as u32, (i / meta.width as usize) as u32);
                 self.figures.insert("part_opened_max_gouge_x_mm".into(), x);
                 self.figures.insert("part_opened_max_gouge_y_mm".into(), y);
             }
