@@ -14,7 +14,8 @@
 //!
 //! Each is run on one rayon thread and on every thread; the figures are moves per second, the
 //! ratio to the seed's 19, and the memory the rays take. `DEXEL_MOVES` sets the moves per run
-//! (default 400).
+//! (default 400); `DEXEL_CASE=a` (or `b`) runs one case only and `DEXEL_THREADS=N` one thread
+//! count only, for a profiler.
 
 use std::time::Instant;
 
@@ -105,8 +106,17 @@ fn main() {
 
     let pool1 = rayon::ThreadPoolBuilder::new().num_threads(1).build().expect("pool");
     let mut rows = Vec::new();
+    // `DEXEL_CASE=a` or `b` runs one case only (for a profiler); `DEXEL_THREADS=1` one thread only.
+    let case = std::env::var("DEXEL_CASE").unwrap_or_default();
+    let thread_counts: Vec<usize> = match std::env::var("DEXEL_THREADS").ok().and_then(|v| v.parse().ok()) {
+        Some(n) => vec![n],
+        None => vec![1, cores],
+    };
     for (name, axis) in [("(a) 3-axis, tool along the rays", &vertical), ("(b) tool tilted 20°", &tilted)] {
-        for threads in [1, cores] {
+        if !case.is_empty() && !name.starts_with(&format!("({case})")) {
+            continue;
+        }
+        for &threads in &thread_counts {
             let mut stock = fresh.clone();
             let (secs, vol) = if threads == 1 {
                 pool1.install(|| run_dexel(&mut stock, &tool, &pts, axis))
@@ -126,7 +136,10 @@ fn main() {
 
     // The Z-map baseline on the same grid and moves (3-axis only).
     let zmap = Stock::block(Point3::origin(), SIDE_MM, SIDE_MM, LENGTH_MM, CELL_MM).expect("zmap");
-    for threads in [1, cores] {
+    for &threads in &thread_counts {
+        if case == "b" {
+            break;
+        }
         let mut z = zmap.clone();
         let t = Instant::now();
         let mut run = || {

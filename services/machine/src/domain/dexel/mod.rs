@@ -266,7 +266,8 @@ struct Tally {
     max_depth: f64,
     e_min: f64,
     e_max: f64,
-    rho_c: f64,
+    /// The largest squared radial distance of the material taken ahead of the tool.
+    rho_c2: f64,
     sectors: u64,
     axial: f64,
     any: bool,
@@ -282,7 +283,7 @@ impl Tally {
             max_depth: 0.0,
             e_min: f64::INFINITY,
             e_max: f64::NEG_INFINITY,
-            rho_c: 0.0,
+            rho_c2: 0.0,
             sectors: 0,
             axial: 0.0,
             any: false,
@@ -297,7 +298,7 @@ impl Tally {
         self.max_depth = self.max_depth.max(o.max_depth);
         self.e_min = self.e_min.min(o.e_min);
         self.e_max = self.e_max.max(o.e_max);
-        self.rho_c = self.rho_c.max(o.rho_c);
+        self.rho_c2 = self.rho_c2.max(o.rho_c2);
         self.sectors |= o.sectors;
         self.axial = self.axial.max(o.axial);
         self.any |= o.any;
@@ -322,8 +323,10 @@ impl EndView {
         let y = x - self.tip;
         let w = y.dot(&self.u);
         let perp = y - self.u * w;
-        let rho = perp.norm();
-        if rho > self.radius + self.half_cell {
+        // Squared: no square root per point (the largest is rooted once, in `to_cut`).
+        let rho2 = perp.norm_squared();
+        let reach = self.radius + self.half_cell;
+        if rho2 > reach * reach {
             return;
         }
         t.any = true;
@@ -334,7 +337,7 @@ impl EndView {
                     let e = perp.dot(&g);
                     t.e_min = t.e_min.min(e);
                     t.e_max = t.e_max.max(e);
-                    t.rho_c = t.rho_c.max(rho);
+                    t.rho_c2 = t.rho_c2.max(rho2);
                 }
             }
             None => {
@@ -502,6 +505,19 @@ impl DexelStock {
         to: &Point3<f64>,
         axis: &Unit<Vector3<f64>>,
     ) -> Result<Cut, DexelError> {
+        self.sweep_line(tool, from, to, axis, true)
+    }
+
+    /// [`cut_line`](Self::cut_line); `prune = false` visits every ray of the tool's box with
+    /// every piece and no bound (the reference the pruned sweep is tested against).
+    fn sweep_line(
+        &mut self,
+        tool: &ToolSolid,
+        from: &Point3<f64>,
+        to: &Point3<f64>,
+        axis: &Unit<Vector3<f64>>,
+        prune: bool,
+    ) -> Result<Cut, DexelError> {
         check_point("from", from)?;
         check_point("to", to)?;
         let f = AxisFrame::new(axis);
@@ -533,14 +549,11 @@ impl DexelStock {
             }
         }
         let hard = &self.hard;
+        let stock_extent = self.extent;
         let mut total = Tally::new();
         for (gi, g) in self.grids.iter_mut().enumerate() {
             let primary = gi == 0;
             let (a, b) = plane_axes(g.axis);
-            let (Some((i0, i1)), Some((j0, j1))) = (g.span(0, lo[a], hi[a]), g.span(1, lo[b], hi[b])) else {
-                continue;
-            };
-            let (tlo, thi) = (lo[g.axis] as f32, hi[g.axis] as f32);
             // Rays along the tool's axis (the Z grid of a 3-axis cut): the swept tool starts on
             // such a ray no nearer than the lowest tip plus the tool's lower surface at the ray's
             // distance from the tip's path (exact for a level move), so material that ends
@@ -566,42 +579,93 @@ impl DexelStock {
             let area = g.cell * g.cell;
             let ni = g.n[0];
             let geo = (g.axis, g.cell, g.origin);
-            // Each piece's swept core (its axis segment moved along the move) seen along the
-            // rays: a ray farther than the piece's radius from it misses the piece.
+            let k = g.axis;
+            // Each piece's swept core (its axis segment moved along the move; a ball's centre)
+            // seen along the rays: a ray farther than the piece's radius from it misses the
+            // piece, and so does a ray outside the piece's range along the rays. A piece whose
+            // range misses the stock's (the blank's box: the material only shrinks) is left out
+            // (the shank above a tilted ball's cut).
             let shadows: Vec<Shadow> = tool
                 .pieces()
                 .iter()
                 .map(|piece| {
-                    let (w0, w1, rho) = piece.bounds();
-                    let c = from + f.u * w0;
-                    let e = f.u * (w1 - w0);
-                    // The piece's range along the rays: its axis segment's ends at both ends of
-                    // the move, widened by a disc of its radius across the axis.
-                    let k = g.axis;
+                    let (c, e, rho, widen, ball) = match *piece {
+                        Piece::Sphere { c, r } => {
+                            let c = from + f.u * c;
+                            (c, Vector3::zeros(), r, r, Some((c[k], c[k] + v[k], r * r)))
+                        }
+                        _ => {
+                            let (w0, w1, rho) = piece.bounds();
+                            // The axis segment's ends widened by a disc of its radius across
+                            // the axis.
+                            let widen = rho * (1.0 - f.u[k] * f.u[k]).max(0.0).sqrt();
+                            (from + f.u * w0, f.u * (w1 - w0), rho, widen, None)
+                        }
+                    };
                     let ends = [c[k], c[k] + e[k], c[k] + v[k], c[k] + e[k] + v[k]];
-                    let widen = rho * (1.0 - f.u[k] * f.u[k]).max(0.0).sqrt() + 1e-6;
-                    let lo = ends.iter().copied().fold(f64::INFINITY, f64::min) - widen;
-                    let hi = ends.iter().copied().fold(f64::NEG_INFINITY, f64::max) + widen;
-                    Shadow::new([c[a], c[b]], [v[a], v[b]], [e[a], e[b]], rho + 1e-6, (lo, hi))
+                    let lo = ends.iter().copied().fold(f64::INFINITY, f64::min) - widen - 1e-6;
+                    let hi = ends.iter().copied().fold(f64::NEG_INFINITY, f64::max) + widen + 1e-6;
+                    let live = !prune || (hi >= stock_extent.0[k] && lo <= stock_extent.1[k]);
+                    Shadow::new([c[a], c[b]], [v[a], v[b]], [e[a], e[b]], rho + 1e-6, (lo, hi), ball, live)
                 })
                 .collect();
+            // The rays to visit: with the tool along them, the tool's box (rows clipped below to
+            // the tip path's capsule); otherwise the live pieces' shadows (rows clipped to their
+            // chords).
+            let (plo, phi, tlo, thi) = if axial.is_some() || !prune {
+                ([lo[a], lo[b]], [hi[a], hi[b]], lo[k], hi[k])
+            } else {
+                let (mut plo, mut phi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
+                let (mut tlo, mut thi) = (f64::INFINITY, f64::NEG_INFINITY);
+                for s in shadows.iter().filter(|s| s.live) {
+                    let (l, h) = s.bbox();
+                    for m in 0..2 {
+                        plo[m] = plo[m].min(l[m]);
+                        phi[m] = phi[m].max(h[m]);
+                    }
+                    tlo = tlo.min(s.range.0);
+                    thi = thi.max(s.range.1);
+                }
+                (plo, phi, tlo, thi)
+            };
+            let (Some((i0, i1)), Some((j0, j1))) = (g.span(0, plo[0], phi[0]), g.span(1, plo[1], phi[1]))
+            else {
+                continue;
+            };
+            let (tlo, thi) = (tlo as f32, thi as f32);
             let row = |j: usize, rays: &mut [Ray]| -> Tally {
                 let mut t = Tally::new();
                 let (axis, cell, origin) = geo;
                 // Rays along the tool's axis: only the row's chord of the capsule the tip's path
                 // sweeps with the tool's radius can meet the tool.
                 let (mut ri0, mut ri1) = (i0, i1);
-                if let Some((_, _, p0, e)) = axial {
-                    let yb = origin[1] + (j as f64 + 0.5) * cell;
-                    let Some((xl, xh)) = capsule_chord(p0, e, tool.radius_mm(), yb) else { return t };
-                    let Some((l, h)) = g_span(origin[0], cell, ni, xl, xh) else { return t };
-                    ri0 = ri0.max(l);
-                    ri1 = ri1.min(h);
-                    if ri0 > ri1 {
-                        return t;
-                    }
-                }
                 let yb = origin[1] + (j as f64 + 0.5) * cell;
+                // Each piece's chord of the row (empty for a piece left out), and the rays
+                // within any of them; with the tool along the rays, the tip path's capsule's.
+                let chords: SmallVec<[(f64, f64); 4]> = shadows
+                    .iter()
+                    .filter(|_| !level)
+                    .map(|s| match (prune, s.live) {
+                        (false, _) => (f64::NEG_INFINITY, f64::INFINITY),
+                        (true, true) => s.chord(yb).unwrap_or((f64::INFINITY, f64::NEG_INFINITY)),
+                        (true, false) => (f64::INFINITY, f64::NEG_INFINITY),
+                    })
+                    .collect();
+                let (xl, xh) = match axial {
+                    Some((_, _, p0, e)) => {
+                        let Some(c) = capsule_chord(p0, e, tool.radius_mm(), yb) else { return t };
+                        c
+                    }
+                    None => chords
+                        .iter()
+                        .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), c| (l.min(c.0), h.max(c.1))),
+                };
+                let Some((l, h)) = g_span(origin[0], cell, ni, xl, xh) else { return t };
+                ri0 = ri0.max(l);
+                ri1 = ri1.min(h);
+                if ri0 > ri1 {
+                    return t;
+                }
                 for (i, ray) in rays.iter_mut().enumerate().take(ri1 + 1).skip(ri0) {
                     let (first, last) = {
                         let sl = ray.as_slice();
@@ -626,9 +690,13 @@ impl DexelStock {
                         // The tool spans sgn·t >= tip_low + lower(d) on this ray: material that
                         // ends before a lower bound of that is untouched (most rays under a
                         // finishing tool, cut by the move before).
-                        let bound = tip_low + tool.lower_bound_d2(d2) - 1e-9;
-                        let reach = if sgn > 0.0 { f64::from(last[1]) } else { -f64::from(first[0]) };
-                        if reach <= bound {
+                        // Compared in f32 after rounding the bound (rounding is monotone): a
+                        // ray skipped is one whose exact interval, rounded as the subtraction
+                        // rounds it, would not reach the material.
+                        let bound = tip_low + tool.lower_bound_d2(d2) - 1e-9 - 1e-12 * tip_low.abs();
+                        let untouched =
+                            if sgn > 0.0 { last[1] <= bound as f32 } else { first[0] >= (-bound) as f32 };
+                        if prune && untouched {
                             continue;
                         }
                         if level {
@@ -650,9 +718,11 @@ impl DexelStock {
                         // one interval), then subtracted once each.
                         let mut rm: Option<RayMove> = None;
                         let (ray_lo, ray_hi) = (f64::from(first[0]), f64::from(last[1]));
-                        for (piece, shadow) in tool.pieces().iter().zip(&shadows) {
-                            if ray_hi < shadow.range.0 || ray_lo > shadow.range.1 || !shadow.near(o[a], o[b])
-                            {
+                        for ((piece, shadow), &(cl, ch)) in tool.pieces().iter().zip(&shadows).zip(&chords) {
+                            if xa < cl || xa > ch || ray_hi < shadow.range.0 || ray_lo > shadow.range.1 {
+                                continue;
+                            }
+                            if prune && !shadow.may_cut(xa, yb, first[0], last[1]) {
                                 continue;
                             }
                             let e = match *piece {
@@ -878,60 +948,100 @@ fn surface_along(g: &Grid, start: &Point3<f64>, dir: &Vector3<f64>, max_len: f64
 }
 
 /// A parallelogram `c + x·p + y·q` (`x, y ∈ [0, 1]`) of a grid's plane, grown by `r`: the
-/// shadow of a piece's swept axis segment along the rays.
+/// shadow of a piece's swept axis segment (a ball's swept centre) along the rays.
 #[derive(Debug, Clone, Copy)]
 struct Shadow {
     c: [f64; 2],
     p: [f64; 2],
     q: [f64; 2],
-    r2: f64,
-    /// 1 / det(p, q) when the parallelogram has an area, else 0 (only its edges count).
-    inv_det: f64,
-    /// 1 / |p|², 1 / |q|² (0 for a zero edge).
+    r: f64,
+    /// 1 / |p|² (0 for a zero edge).
     inv_pp: f64,
-    inv_qq: f64,
     /// The piece's range along the rays.
     range: (f64, f64),
+    /// For a ball: its centre's coordinate along the rays at both ends of the move, and r².
+    ball: Option<(f64, f64, f64)>,
+    /// Whether the range meets the stock's.
+    live: bool,
 }
 
 impl Shadow {
-    fn new(c: [f64; 2], p: [f64; 2], q: [f64; 2], r: f64, range: (f64, f64)) -> Self {
-        let det = p[0] * q[1] - p[1] * q[0];
-        let scale = (p[0].abs() + p[1].abs()) * (q[0].abs() + q[1].abs());
-        let inv = |x: f64| if x > 0.0 { 1.0 / x } else { 0.0 };
-        Shadow {
-            c,
-            p,
-            q,
-            r2: r * r,
-            inv_det: if det.abs() > 1e-12 * scale && scale > 0.0 { 1.0 / det } else { 0.0 },
-            inv_pp: inv(p[0] * p[0] + p[1] * p[1]),
-            inv_qq: inv(q[0] * q[0] + q[1] * q[1]),
-            range,
-        }
+    fn new(
+        c: [f64; 2],
+        p: [f64; 2],
+        q: [f64; 2],
+        r: f64,
+        range: (f64, f64),
+        ball: Option<(f64, f64, f64)>,
+        live: bool,
+    ) -> Self {
+        let pp = p[0] * p[0] + p[1] * p[1];
+        Shadow { c, p, q, r, inv_pp: if pp > 0.0 { 1.0 / pp } else { 0.0 }, range, ball, live }
     }
 
-    /// Whether the point is within `r` of the parallelogram (no division: the inverses are
-    /// kept).
-    fn near(&self, x: f64, y: f64) -> bool {
-        let d = [x - self.c[0], y - self.c[1]];
-        if self.inv_det != 0.0 {
-            let u = (d[0] * self.q[1] - d[1] * self.q[0]) * self.inv_det;
-            let w = (self.p[0] * d[1] - self.p[1] * d[0]) * self.inv_det;
-            if (0.0..=1.0).contains(&u) && (0.0..=1.0).contains(&w) {
-                return true;
+    /// The parallelogram's box grown by `r`.
+    fn bbox(&self) -> ([f64; 2], [f64; 2]) {
+        let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
+        for (x, y) in [(0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (1.0, 1.0)] {
+            for m in 0..2 {
+                let v = self.c[m] + x * self.p[m] + y * self.q[m];
+                lo[m] = lo[m].min(v - self.r);
+                hi[m] = hi[m].max(v + self.r);
             }
         }
-        let seg = |rel: [f64; 2], e: [f64; 2], inv_ee: f64| {
-            let t = ((rel[0] * e[0] + rel[1] * e[1]) * inv_ee).clamp(0.0, 1.0);
-            let (dx, dy) = (rel[0] - t * e[0], rel[1] - t * e[1]);
-            dx * dx + dy * dy <= self.r2
+        (lo, hi)
+    }
+
+    /// The chord of the row `y = yb` through the grown parallelogram (convex: the hull of its
+    /// grown edges' chords), or `None`.
+    fn chord(&self, yb: f64) -> Option<(f64, f64)> {
+        let (c, p, q) = (self.c, self.p, self.q);
+        let cp = [c[0] + p[0], c[1] + p[1]];
+        let cq = [c[0] + q[0], c[1] + q[1]];
+        let edges: &[([f64; 2], [f64; 2])] = if q == [0.0, 0.0] {
+            &[(c, p)]
+        } else if p == [0.0, 0.0] {
+            &[(c, q)]
+        } else {
+            &[(c, p), (c, q), (cp, q), (cq, p)]
         };
-        let (p, q) = (self.p, self.q);
-        seg(d, p, self.inv_pp)
-            || seg(d, q, self.inv_qq)
-            || seg([d[0] - p[0], d[1] - p[1]], q, self.inv_qq)
-            || seg([d[0] - q[0], d[1] - q[1]], p, self.inv_pp)
+        let mut out: Option<(f64, f64)> = None;
+        for &(o, e) in edges {
+            if let Some((l, h)) = capsule_chord(o, e, self.r, yb) {
+                out = Some(out.map_or((l, h), |(a, b)| (a.min(l), b.max(h))));
+            }
+        }
+        out
+    }
+
+    /// Whether the piece can meet material between `bottom` and `top` (the ray's first and last
+    /// ends) on the ray at `(x, y)`: for a ball, the swept ball's points on the ray lie within
+    /// `√(r² − δ²)` of its centre's range along the rays (`δ` the ray's distance from the
+    /// centre's path across them). Compared in `f32` against the ends after rounding the bound
+    /// to `f32` (rounding is monotone), so a ray skipped here is one the exact interval, rounded
+    /// as the subtraction rounds it, would not change. Other pieces: always `true`.
+    #[inline]
+    fn may_cut(&self, x: f64, y: f64, bottom: f32, top: f32) -> bool {
+        let Some((z0, z1, r2)) = self.ball else { return true };
+        let rel = [x - self.c[0], y - self.c[1]];
+        let s = ((rel[0] * self.p[0] + rel[1] * self.p[1]) * self.inv_pp).clamp(0.0, 1.0);
+        let (dx, dy) = (rel[0] - s * self.p[0], rel[1] - s * self.p[1]);
+        let d2 = dx * dx + dy * dy;
+        if d2 > r2 * (1.0 + 1e-9) {
+            return false;
+        }
+        let h2 = (r2 - d2).max(0.0);
+        // Slack for the rounding of the exact interval's computation.
+        let slack = 1e-9 + 1e-12 * (z0.abs() + z1.abs() + r2.sqrt());
+        let (zmin, zmax) = (z0.min(z1) - slack, z0.max(z1) + slack);
+        // Clear misses without a square root: `top <= zmin − half` and `bottom >= zmax + half`
+        // in f64 (then also after rounding to f32).
+        let (below, above) = (zmin - f64::from(top), f64::from(bottom) - zmax);
+        if (below >= 0.0 && below * below >= h2) || (above >= 0.0 && above * above >= h2) {
+            return false;
+        }
+        let half = h2.sqrt();
+        top > (zmin - half) as f32 && bottom < (zmax + half) as f32
     }
 }
 
@@ -981,12 +1091,13 @@ fn to_cut(t: &Tally, end: &EndView) -> Cut {
     let engagement_deg = if !t.any {
         0.0
     } else if end.fwd.is_some() {
-        if t.rho_c <= 0.0 || t.e_min > t.e_max {
+        let rho_c = t.rho_c2.sqrt();
+        if rho_c <= 0.0 || t.e_min > t.e_max {
             0.0
         } else {
             let p = end.half_cell;
-            let a = ((t.e_max + p) / t.rho_c).clamp(-1.0, 1.0).asin();
-            let b = ((t.e_min - p) / t.rho_c).clamp(-1.0, 1.0).asin();
+            let a = ((t.e_max + p) / rho_c).clamp(-1.0, 1.0).asin();
+            let b = ((t.e_min - p) / rho_c).clamp(-1.0, 1.0).asin();
             (a - b).to_degrees().clamp(0.0, 180.0)
         }
     } else {

@@ -86,6 +86,8 @@ pub struct ToolSolid {
     lower_by_d2: Vec<f64>,
     /// `LOWER_STEPS / R²`.
     steps_per_d2: f64,
+    /// A ball mill's radius: its lower surface is its sphere's, in closed form.
+    ball: Option<f64>,
 }
 
 /// Entries of [`ToolSolid::lower_bound_d2`]'s table.
@@ -107,7 +109,8 @@ impl ToolSolid {
         }
         let radius = profile.radius_mm();
         let mut pieces = Vec::new();
-        if let Some(ToolSpec::Ball { .. }) = profile.spec() {
+        let ball = matches!(profile.spec(), Some(ToolSpec::Ball { .. })).then_some(radius);
+        if ball.is_some() {
             pieces.push(Piece::Sphere { c: radius, r: radius });
             pieces.push(Piece::Frustum { h0: radius, h1: length_mm, r0: radius, r1: radius });
         } else {
@@ -126,6 +129,7 @@ impl ToolSolid {
             length: length_mm,
             lower_by_d2: Vec::new(),
             steps_per_d2: LOWER_STEPS as f64 / r2,
+            ball,
         };
         solid.lower_by_d2 = (0..=LOWER_STEPS)
             .map(|k| solid.lower((k as f64 * r2 / LOWER_STEPS as f64).sqrt()).unwrap_or(f64::INFINITY))
@@ -168,10 +172,15 @@ impl ToolSolid {
             .reduce(f64::min)
     }
 
-    /// A lower bound of [`lower`](Self::lower) at the squared distance `d2` (`≤ R²`), from a
-    /// table: no square root, no walk over the pieces.
+    /// A lower bound of [`lower`](Self::lower) at the squared distance `d2` (`≤ R²`): for a ball
+    /// mill its sphere's cap (one square root, within rounding of `lower`, so that a ray the
+    /// move before left on the same surface is seen as untouched), otherwise from a table (no
+    /// square root, no walk over the pieces).
     #[inline]
     pub fn lower_bound_d2(&self, d2: f64) -> f64 {
+        if let Some(r) = self.ball {
+            return r - (r * r - d2).max(0.0).sqrt();
+        }
         // Truncation is the floor here (the argument is not negative; NaN and negatives give 0),
         // and needs no call to libm's floor on the baseline x86-64 target.
         let k = ((d2 * self.steps_per_d2).max(0.0) as usize).min(LOWER_STEPS);
