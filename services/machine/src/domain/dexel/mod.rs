@@ -569,6 +569,11 @@ impl DexelStock {
             // covers, on a ray at distance d from the tip's path, the tool's intervals at d
             // (see `ToolSolid::intervals_at`): no closed form per piece needed.
             let level = axial.is_some() && v[g.axis].abs() < 1e-12;
+            // Rays across the tool's axis and a move across it too (the other grids of a 3-axis
+            // cut): a ray stays at one axial height `w`, where the tool is a disc of radius
+            // `radius_at(w)` (the pieces are concentric), so the swept tool on the ray is that
+            // disc's capsule along the move: one closed form per ray.
+            let across = along.abs() < 1e-12 && v.dot(&f.u).abs() < 1e-12;
             // 1 / |e|² of the tip's path across the rays (0 for a move along them: every ray
             // then measures from the start).
             let inv_ee = axial.map_or(0.0, |(_, _, _, e)| {
@@ -712,6 +717,16 @@ impl DexelStock {
                     let mut o = Point3::origin();
                     o[a] = xa;
                     o[b] = yb;
+                    if across {
+                        let w = (o - from).dot(&f.u);
+                        if let Some(e) = tool
+                            .radius_at(w)
+                            .and_then(|rho| sweep::capsule_extent(&o, &d, &(from + f.u * w), &v, rho))
+                        {
+                            ext.push(e);
+                        }
+                        swept = true;
+                    }
                     if !swept {
                         // The ray's interval in each piece's sweep, merged where they overlap
                         // (the pieces of a tool stack along its axis, so on most rays they make

@@ -216,6 +216,23 @@ impl ToolSolid {
             .collect()
     }
 
+    /// The radius of the tool's cross-section at axial height `w` (the largest of its pieces'
+    /// there), or `None` where no piece reaches. Every piece is of revolution about the axis, so
+    /// the section is a disc: a move across the axis sweeps it into a capsule in its plane.
+    pub fn radius_at(&self, w: f64) -> Option<f64> {
+        self.pieces
+            .iter()
+            .filter_map(|p| match *p {
+                Piece::Sphere { c, r } => {
+                    ((w - c).abs() <= r).then(|| (r * r - (w - c) * (w - c)).max(0.0).sqrt())
+                }
+                Piece::Frustum { h0, h1, r0, r1 } => {
+                    (w >= h0 && w <= h1).then(|| r0 + (r1 - r0) * (w - h0) / (h1 - h0))
+                }
+            })
+            .reduce(f64::max)
+    }
+
     /// Whether a tool-frame point (radial `rho`, axial `w`) is in the tool, within `tol`.
     pub fn contains(&self, rho: f64, w: f64, tol: f64) -> bool {
         self.pieces.iter().any(|p| p.contains(rho, w, tol))

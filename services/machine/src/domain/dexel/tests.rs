@@ -623,7 +623,9 @@ fn the_capsule_closed_form_matches_the_general_sweep_of_a_ball() {
 #[test]
 fn level_moves_along_the_rays_match_the_general_sweep_either_way_up() {
     // The axial shortcut (a level move with the tool parallel to a grid's rays, pointing either
-    // way along them) against the general closed form, forced by tilting the axis by 1e-7 rad.
+    // way along them) and the shortcut across the axis (the other two grids: the tool's disc at
+    // the ray's height swept into a capsule) against the general closed form, forced by tilting
+    // the axis by 1e-7 rad.
     let mut rng = StdRng::seed_from_u64(36);
     for profile in tools() {
         let solid = ToolSolid::new(&profile, 12.0).expect("solid");
@@ -646,15 +648,17 @@ fn level_moves_along_the_rays_match_the_general_sweep_either_way_up() {
                     b.volume_mm3
                 );
             }
-            let g = |s: &DexelStock| s.grids.iter().find(|g| g.axis == 2).cloned().expect("z grid");
-            let (gf, gg) = (g(&fast), g(&general));
-            for (rf, rg) in gf.rays.iter().zip(&gg.rays) {
-                assert_eq!(rf.len(), rg.len(), "{profile:?} {sgn}: {rf:?} against {rg:?}");
-                for (x, y) in rf.iter().zip(rg.iter()) {
-                    assert!(
-                        (x[0] - y[0]).abs() < 1e-4 && (x[1] - y[1]).abs() < 1e-4,
-                        "{profile:?} {sgn}: {rf:?} against {rg:?}"
-                    );
+            assert_eq!(fast.grids.len(), 3);
+            for (gf, gg) in fast.grids.iter().zip(&general.grids) {
+                let axis = gf.axis;
+                for (rf, rg) in gf.rays.iter().zip(&gg.rays) {
+                    assert_eq!(rf.len(), rg.len(), "{profile:?} {sgn} grid {axis}: {rf:?} against {rg:?}");
+                    for (x, y) in rf.iter().zip(rg.iter()) {
+                        assert!(
+                            (x[0] - y[0]).abs() < 1e-4 && (x[1] - y[1]).abs() < 1e-4,
+                            "{profile:?} {sgn} grid {axis}: {rf:?} against {rg:?}"
+                        );
+                    }
                 }
             }
         }
