@@ -122,6 +122,13 @@ async fn a_two_face_part_is_planned_with_the_a_axis_and_machined_on_both_faces()
     let metric = |k: &str| m[k].as_f64().unwrap_or_else(|| panic!("metric {k} missing: {m}"));
     assert!(metric("original_points") > 10_000.0, "{m}");
     assert!(metric("original_max_gouge_mm") < 0.15, "{m}");
+    // A multi-face job's headline figures are the original part's; the depth maps' keep `map_`.
+    for k in ["max_gouge_mm", "max_leftover_mm", "rms_deviation_mm"] {
+        assert_eq!(metric(k), metric(&format!("original_{k}")), "{k}: {m}");
+    }
+    for k in ["max_gouge_mm", "max_leftover_mm", "mean_leftover_mm", "rms_deviation_mm"] {
+        assert!(metric(&format!("map_{k}")).is_finite(), "{k}: {m}");
+    }
     assert_eq!(report["part"]["opened_by"], "ball-3", "{report}");
     assert!(metric("opened_max_gouge_mm") <= metric("original_max_gouge_mm") + 1e-12);
     assert!(metric("opened_mean_leftover_mm") <= metric("original_mean_leftover_mm") + 1e-12);

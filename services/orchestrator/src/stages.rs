@@ -763,12 +763,13 @@ impl StageRunner for GrpcStages {
                     }
                 }
                 Stage::Execute => {
+                    let multi_face = call.artifacts.contains_key("depth_map@1");
                     let msg = machine::ExecuteProgramRequest {
                         context: context(call),
                         gcode: Some(need(call, "gcode")?),
                         target_map: call.artifacts.get("depth_map").cloned().map(Into::into),
                         // Several faces: every face's map (the machine turns the A axis to each).
-                        face_maps: if call.artifacts.contains_key("depth_map@1") {
+                        face_maps: if multi_face {
                             (0..)
                                 .map_while(|i| {
                                     let key = if i == 0 {
@@ -839,11 +840,36 @@ impl StageRunner for GrpcStages {
                             out.metrics.insert("cycle_time_other_policy_s".into(), other);
                         }
                         out.metrics.insert("removed_mm3".into(), m.removed_mm3);
-                        for (k, v) in [
+                        let map_figures = [
                             ("max_gouge_mm", m.max_gouge_mm),
                             ("max_leftover_mm", m.max_leftover_mm),
                             ("mean_leftover_mm", m.mean_leftover_mm),
                             ("rms_deviation_mm", m.rms_deviation_mm),
+                        ];
+                        match (&m.against_part, multi_face) {
+                            // A multi-face part is measured against the original part: those
+                            // figures are the job's; the depth maps' (whose unseen cells hold
+                            // assumed heights) keep a `map_` prefix.
+                            (Some(f), true) => {
+                                for (k, v) in map_figures {
+                                    out.metrics.insert(format!("map_{k}"), v);
+                                }
+                                for (k, v) in [
+                                    ("max_gouge_mm", f.max_gouge_mm),
+                                    ("max_leftover_mm", f.max_leftover_mm),
+                                    ("mean_leftover_mm", f.mean_leftover_mm),
+                                    ("rms_deviation_mm", f.rms_deviation_mm),
+                                ] {
+                                    out.metrics.insert(k.into(), v);
+                                }
+                            }
+                            _ => {
+                                for (k, v) in map_figures {
+                                    out.metrics.insert(k.into(), v);
+                                }
+                            }
+                        }
+                        for (k, v) in [
                             ("cycle_time_s", m.cycle_time_s),
                             ("cycle_time_no_adaptive_s", m.cycle_time_no_adaptive_s),
                         ] {

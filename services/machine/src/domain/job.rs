@@ -749,8 +749,9 @@ fn combine_deviations(faces: &[FaceResult]) -> Option<Deviation> {
     })
 }
 
-/// Signed deviation `stock − target` on the target's grid (NaN where the target has no data),
-/// with its statistics. The stock is sampled at the nearest cell.
+/// Signed deviation `stock − target` on the target's grid (NaN where the target or the stock has
+/// no data: the stock has none where its blank never held material), with its statistics. The
+/// stock is sampled at the nearest cell.
 pub fn deviation(target: &HeightMap, stock: &HeightMap) -> Deviation {
     let meta = *target.meta();
     let mut data = vec![f32::NAN; target.data().len()];
@@ -759,7 +760,10 @@ pub fn deviation(target: &HeightMap, stock: &HeightMap) -> Deviation {
         for col in 0..meta.width {
             let Some(t) = target.get(col, row).filter(|t| t.is_finite()) else { continue };
             let (x, y) = meta.cell_center(col, row);
-            let Some(s) = stock.cell_of(x, y).and_then(|(c, r)| stock.get(c, r)) else { continue };
+            let Some(s) = stock.cell_of(x, y).and_then(|(c, r)| stock.get(c, r)).filter(|s| s.is_finite())
+            else {
+                continue;
+            };
             let d = f64::from(s) - f64::from(t);
             data[(row * meta.width + col) as usize] = d as f32;
             max_gouge = max_gouge.max(-d);

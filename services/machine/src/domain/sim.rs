@@ -481,11 +481,14 @@ impl<'a> Machine<'a> {
 
     /// Each face's final stock: the Z-map of a 3-axis part, or the one dexel stock seen from every
     /// face on the grid of its block (from 1 mm above the block's top; the block's bottom where
-    /// the view finds no material).
+    /// the view finds no material, and no value (NaN) where the blank itself had none along the
+    /// view: a face's block reaches beyond the material common to every face, and what a face's
+    /// map asks for there was never in the stock to be cut).
     pub fn face_maps(&self) -> Result<Vec<(f64, HeightMap)>, SimError> {
         let Some((dexel, _)) = &self.dexel else {
             return Ok(self.stocks.iter().map(|(a, s)| (*a, s.to_height_map())).collect());
         };
+        let blank = blank_of(self.setup);
         self.setup
             .faces
             .iter()
@@ -498,7 +501,19 @@ impl<'a> Machine<'a> {
                 meta.origin_y_mm = s.min_y_mm;
                 meta.z_min_mm = s.min_z_mm;
                 meta.z_max_mm = s.min_z_mm + s.z_mm;
-                let map = dexel.view_heights(&part_from_work(f.a_deg), &meta, s.min_z_mm + s.z_mm + 1.0)?;
+                let z_top = s.min_z_mm + s.z_mm + 1.0;
+                let part_from_view = part_from_work(f.a_deg);
+                let mut map = dexel.view_heights(&part_from_view, &meta, z_top)?;
+                let down = part_from_view * Vector3::new(0.0, 0.0, -1.0);
+                let depth = z_top - s.min_z_mm;
+                let width = meta.width as usize;
+                for (k, z) in map.data_mut().iter_mut().enumerate() {
+                    let (x, y) = meta.cell_center((k % width) as u32, (k / width) as u32);
+                    let start = part_from_view * Point3::new(x, y, z_top);
+                    if !blank.ray_extent(&start, &down).is_some_and(|(l, h)| h > 0.0 && l < depth) {
+                        *z = f32::NAN;
+                    }
+                }
                 Ok((f.a_deg, map))
             })
             .collect()
@@ -1120,8 +1135,8 @@ fn work_tip(prof: &MachineProfile, tlo_mm: f64, p: Pos, stepped: bool) -> Point3
     Point3::new(q(p.x) - w.x_mm, q(p.y) - w.y_mm, q(p.z - tlo_mm) - w.z_mm)
 }
 
-/// The one dexel stock of a multi-axis setup and its tools as solids (see the module docs).
-fn dexel_stock(setup: &SimSetup) -> Result<(DexelStock, Vec<ToolSolid>), SimError> {
+/// The blank of a multi-axis setup: the material common to every face's block.
+fn blank_of(setup: &SimSetup) -> Blank {
     // A face's map bounds the part from above and across in its view, not from below (its floor
     // is where its data ends): with several faces, each block reaches down through the A axis to
     // the far side of every block, so the blank is the bar their tops and sides bound.
@@ -1151,9 +1166,14 @@ fn dexel_stock(setup: &SimSetup) -> Result<(DexelStock, Vec<ToolSolid>), SimErro
             }
         })
         .collect();
+    Blank { boxes }
+}
+
+/// The one dexel stock of a multi-axis setup and its tools as solids (see the module docs).
+fn dexel_stock(setup: &SimSetup) -> Result<(DexelStock, Vec<ToolSolid>), SimError> {
     let cell = setup.faces.iter().map(|f| f.stock.cell_mm).fold(setup.stock.cell_mm, f64::min);
     let cells = setup.dexel.unwrap_or(DexelCells::tri(cell));
-    let mut stock = DexelStock::new(&Blank { boxes }, &cells)?;
+    let mut stock = DexelStock::new(&blank_of(setup), &cells)?;
     for inc in &setup.inclusions {
         stock.add_hard_sphere(HardSphere {
             center: Point3::from(inc.center),

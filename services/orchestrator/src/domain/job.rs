@@ -233,6 +233,19 @@ pub struct JobMetrics {
     /// ... RMS deviation, mm.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub opened_rms_deviation_mm: Option<f64>,
+    /// A multi-face part's stock seen from each face against that face's depth map, over every
+    /// face (the headline `max_gouge_mm`, ... are then the original part's): deepest gouge, mm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub map_max_gouge_mm: Option<f64>,
+    /// ... most material left, mm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub map_max_leftover_mm: Option<f64>,
+    /// ... mean material left (gouges count as 0), mm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub map_mean_leftover_mm: Option<f64>,
+    /// ... RMS deviation, mm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub map_rms_deviation_mm: Option<f64>,
     /// The CAM's estimate of the program's cycle time (a robot job: the arm's time), s.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub estimated_time_s: Option<f64>,
@@ -322,6 +335,10 @@ impl JobMetrics {
                 "opened_max_leftover_mm" => &mut self.opened_max_leftover_mm,
                 "opened_mean_leftover_mm" => &mut self.opened_mean_leftover_mm,
                 "opened_rms_deviation_mm" => &mut self.opened_rms_deviation_mm,
+                "map_max_gouge_mm" => &mut self.map_max_gouge_mm,
+                "map_max_leftover_mm" => &mut self.map_max_leftover_mm,
+                "map_mean_leftover_mm" => &mut self.map_mean_leftover_mm,
+                "map_rms_deviation_mm" => &mut self.map_rms_deviation_mm,
                 "estimated_time_s" => &mut self.estimated_time_s,
                 "plan_max_gouge_mm" => &mut self.plan_max_gouge_mm,
                 "plan_max_leftover_mm" => &mut self.plan_max_leftover_mm,

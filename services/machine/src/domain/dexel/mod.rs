@@ -182,6 +182,16 @@ impl Blank {
         }
         (!self.boxes.is_empty() && (0..3).all(|k| lo[k] < hi[k])).then_some((lo, hi))
     }
+
+    /// The `t` interval of the ray `o + t·d` inside every box (the blank is convex), or `None`.
+    pub fn ray_extent(&self, o: &Point3<f64>, d: &Vector3<f64>) -> Option<(f64, f64)> {
+        let mut iv = (f64::NEG_INFINITY, f64::INFINITY);
+        for b in &self.boxes {
+            let (l, h) = b.clip(o, d)?;
+            iv = (iv.0.max(l), iv.1.min(h));
+        }
+        (!self.boxes.is_empty() && iv.0 < iv.1).then_some(iv)
+    }
 }
 
 /// Cell size of each grid, by the axis its rays run along; `None` leaves that grid out.
@@ -420,13 +430,7 @@ impl DexelStock {
                     .into_par_iter()
                     .map(|k| {
                         let o = g.ray_origin(k % n[0], k / n[0]);
-                        let mut iv = (f64::NEG_INFINITY, f64::INFINITY);
-                        for b in &blank.boxes {
-                            match b.clip(&o, &d) {
-                                Some((l, h)) => iv = (iv.0.max(l), iv.1.min(h)),
-                                None => return Ray::new(),
-                            }
-                        }
+                        let Some(iv) = blank.ray_extent(&o, &d) else { return Ray::new() };
                         let (l, h) = (iv.0 as f32, iv.1 as f32);
                         if h - l > MIN_SEGMENT_MM { smallvec::smallvec![[l, h]] } else { Ray::new() }
                     })
