@@ -751,12 +751,7 @@ impl StageRunner for GrpcStages {
                         // The robot's part is measured against the original mesh only: those
                         // figures are the job's.
                         out.metrics.insert("original_points".into(), f.points as f64);
-                        for (k, v) in [
-                            ("max_gouge_mm", f.max_gouge_mm),
-                            ("max_leftover_mm", f.max_leftover_mm),
-                            ("mean_leftover_mm", f.mean_leftover_mm),
-                            ("rms_deviation_mm", f.rms_deviation_mm),
-                        ] {
+                        for (k, v) in part_figures(&f) {
                             out.metrics.insert(k.into(), v);
                             out.metrics.insert(format!("original_{k}"), v);
                         }
@@ -831,10 +826,9 @@ impl StageRunner for GrpcStages {
                         for (prefix, f) in [("original", &m.against_part), ("opened", &m.against_opened)] {
                             let Some(f) = f else { continue };
                             out.metrics.insert(format!("{prefix}_points"), f.points as f64);
-                            out.metrics.insert(format!("{prefix}_max_gouge_mm"), f.max_gouge_mm);
-                            out.metrics.insert(format!("{prefix}_max_leftover_mm"), f.max_leftover_mm);
-                            out.metrics.insert(format!("{prefix}_mean_leftover_mm"), f.mean_leftover_mm);
-                            out.metrics.insert(format!("{prefix}_rms_deviation_mm"), f.rms_deviation_mm);
+                            for (k, v) in part_figures(f) {
+                                out.metrics.insert(format!("{prefix}_{k}"), v);
+                            }
                         }
                         if let Some(other) = m.cycle_time_other_s {
                             out.metrics.insert("cycle_time_other_policy_s".into(), other);
@@ -854,12 +848,7 @@ impl StageRunner for GrpcStages {
                                 for (k, v) in map_figures {
                                     out.metrics.insert(format!("map_{k}"), v);
                                 }
-                                for (k, v) in [
-                                    ("max_gouge_mm", f.max_gouge_mm),
-                                    ("max_leftover_mm", f.max_leftover_mm),
-                                    ("mean_leftover_mm", f.mean_leftover_mm),
-                                    ("rms_deviation_mm", f.rms_deviation_mm),
-                                ] {
+                                for (k, v) in part_figures(f) {
                                     out.metrics.insert(k.into(), v);
                                 }
                             }
@@ -1070,6 +1059,16 @@ impl GrpcStages {
 
 fn unreachable_report() -> Result<(), StageError> {
     Err(StageError::new(ErrorCode::Internal, "the report stage runs in the orchestrator, not in a service"))
+}
+
+/// A part measured against a reference: its figures under the metric names they take.
+fn part_figures(f: &machine::PartFigures) -> [(&'static str, f64); 4] {
+    [
+        ("max_gouge_mm", f.max_gouge_mm),
+        ("max_leftover_mm", f.max_leftover_mm),
+        ("mean_leftover_mm", f.mean_leftover_mm),
+        ("rms_deviation_mm", f.rms_deviation_mm),
+    ]
 }
 
 #[cfg(test)]
