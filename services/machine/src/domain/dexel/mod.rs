@@ -749,6 +749,11 @@ impl DexelStock {
                                 Piece::Sphere { c, r } => {
                                     sweep::capsule_extent(&o, &d, &(from + f.u * c), &v, r)
                                 }
+                                // A cylinder seen along rays across its axis: see
+                                // `sweep::cylinder_across_extent`.
+                                Piece::Frustum { h0, h1, r0, r1 } if r0 == r1 && along.abs() < 1e-12 => {
+                                    sweep::cylinder_across_extent(&o, &d, from, &v, &f.u, (h0, h1), r0)
+                                }
                                 _ => {
                                     rm.get_or_insert_with(|| RayMove::new(&o, &d, from, &v, &f)).extent(piece)
                                 }

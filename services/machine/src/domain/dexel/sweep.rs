@@ -396,6 +396,41 @@ pub fn capsule_extent(
     (lo <= hi).then_some((lo, hi))
 }
 
+/// The `t` interval the ray `o + t·d` spends in the cylinder of radius `r` between axial heights
+/// `h0..h1` above the tip, the tip moving `from → from + v` with the axis `u` fixed, for a ray
+/// across the axis (`d ⊥ u`). The ray stays at one height `w` above the tip's start; at move
+/// fraction `s` the cylinder's section there is the disc of radius `r` about
+/// `from + u·w + s·v⊥` (`v⊥` the move across the axis), present while `h0 <= w − s·(v·u) <= h1`.
+/// Those discs make the capsule about the segment of centres over the `s` range where the
+/// section exists, so the interval is that capsule's chord: one closed form, equal to
+/// [`RayMove::extent`] of the piece (tested).
+pub fn cylinder_across_extent(
+    o: &Point3<f64>,
+    d: &Vector3<f64>,
+    from: &Point3<f64>,
+    v: &Vector3<f64>,
+    u: &Vector3<f64>,
+    (h0, h1): (f64, f64),
+    r: f64,
+) -> Option<(f64, f64)> {
+    let w = (o - from).dot(u);
+    let vu = v.dot(u);
+    let v_perp = v - u * vu;
+    let (s0, s1) = if vu.abs() < 1e-15 {
+        if w < h0 || w > h1 {
+            return None;
+        }
+        (0.0, 1.0)
+    } else {
+        let (a, b) = ((w - h1) / vu, (w - h0) / vu);
+        (a.min(b).max(0.0), a.max(b).min(1.0))
+    };
+    if s0 > s1 {
+        return None;
+    }
+    capsule_extent(o, d, &(from + u * w + v_perp * s0), &(v_perp * (s1 - s0)), r)
+}
+
 /// Candidate points `(t, s)` (at most 23 for five lines: kept on the stack).
 type Candidates = smallvec::SmallVec<[(f64, f64); 32]>;
 

@@ -621,6 +621,65 @@ fn the_capsule_closed_form_matches_the_general_sweep_of_a_ball() {
 }
 
 #[test]
+fn the_cylinder_closed_form_across_its_axis_matches_the_general_sweep() {
+    // Rays across the axis (the axis random in the plane across a grid's rays), moves of any
+    // direction (level, ramping, plunging along the axis, none), cylinders of random heights.
+    let mut rng = StdRng::seed_from_u64(37);
+    let mut hits = 0;
+    for _ in 0..5000 {
+        let k = rng.random_range(0..3usize);
+        let mut dvec = Vector3::zeros();
+        dvec[k] = 1.0;
+        let mut a = Vector3::new(
+            rng.random_range(-1.0..1.0),
+            rng.random_range(-1.0..1.0),
+            rng.random_range(-1.0..1.0),
+        );
+        a[k] = 0.0;
+        if a.norm() < 0.1 {
+            continue;
+        }
+        let axis = Unit::new_normalize(a);
+        let f = AxisFrame::new(&axis);
+        let p0 = Point3::new(
+            rng.random_range(-2.0..2.0),
+            rng.random_range(-2.0..2.0),
+            rng.random_range(-2.0..2.0),
+        );
+        let v = match rng.random_range(0..4) {
+            0 => Vector3::zeros(),
+            1 => f.u * rng.random_range(-2.0..2.0),
+            _ => Vector3::new(
+                rng.random_range(-3.0..3.0),
+                rng.random_range(-3.0..3.0),
+                rng.random_range(-3.0..3.0),
+            ),
+        };
+        let mut o = Point3::new(
+            rng.random_range(-4.0..4.0),
+            rng.random_range(-4.0..4.0),
+            rng.random_range(-4.0..4.0),
+        );
+        o[k] = 0.0;
+        let h0 = rng.random_range(0.0..1.5);
+        let (h1, r) = (h0 + rng.random_range(0.1..3.0), rng.random_range(0.2..2.0));
+        let piece = Piece::Frustum { h0, h1, r0: r, r1: r };
+        let general = RayMove::new(&o, &dvec, &p0, &v, &f).extent(&piece);
+        let closed = sweep::cylinder_across_extent(&o, &dvec, &p0, &v, &f.u, (h0, h1), r);
+        match (general, closed) {
+            (Some(g), Some(q)) => {
+                hits += 1;
+                assert!((g.0 - q.0).abs() < 1e-6 && (g.1 - q.1).abs() < 1e-6, "{g:?} against {q:?}");
+            }
+            (None, None) => {}
+            // Grazing rays: one form may keep a point interval the other rounds away.
+            (Some(g), None) | (None, Some(g)) => assert!(g.1 - g.0 < 1e-4, "{general:?} against {closed:?}"),
+        }
+    }
+    assert!(hits > 400, "{hits} rays met the cylinder");
+}
+
+#[test]
 fn level_moves_along_the_rays_match_the_general_sweep_either_way_up() {
     // The axial shortcut (a level move with the tool parallel to a grid's rays, pointing either
     // way along them) and the shortcut across the axis (the other two grids: the tool's disc at
@@ -634,11 +693,21 @@ fn level_moves_along_the_rays_match_the_general_sweep_either_way_up() {
             let tilted = Unit::new_normalize(Vector3::new(1e-7, 0.0, sgn));
             let mut fast = DexelStock::new(&block(10.0, 8.0, 6.0), &DexelCells::tri(0.2)).expect("dexel");
             let mut general = fast.clone();
-            for _ in 0..6 {
+            for _ in 0..10 {
                 // Tip 1 mm into the block from the side the tool comes from.
                 let z = if sgn > 0.0 { rng.random_range(4.5..5.5) } else { rng.random_range(0.5..1.5) };
+                // Level moves, and ramps and plunges (the closed form across the axis for a
+                // cylinder piece).
+                let dz = match rng.random_range(0..4) {
+                    0 | 1 => 0.0,
+                    _ => rng.random_range(-0.6..0.6),
+                };
                 let p0 = Point3::new(rng.random_range(1.0..9.0), rng.random_range(1.0..7.0), z);
-                let p1 = Point3::new(rng.random_range(1.0..9.0), rng.random_range(1.0..7.0), z);
+                let p1 = if rng.random_bool(0.15) {
+                    p0 + Vector3::new(0.0, 0.0, dz)
+                } else {
+                    Point3::new(rng.random_range(1.0..9.0), rng.random_range(1.0..7.0), z + dz)
+                };
                 let a = fast.cut_line(&solid, &p0, &p1, &exact_axis).expect("cut");
                 let b = general.cut_line(&solid, &p0, &p1, &tilted).expect("cut");
                 assert!(
