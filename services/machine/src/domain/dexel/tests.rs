@@ -569,53 +569,52 @@ fn the_lower_surface_table_bounds_it_from_below() {
     }
 }
 
+/// A vector with each coordinate uniform in `-half..half`.
+fn random_vector(rng: &mut StdRng, half: f64) -> Vector3<f64> {
+    Vector3::new(rng.random_range(-half..half), rng.random_range(-half..half), rng.random_range(-half..half))
+}
+
+/// A ray along a random grid axis `k` (its unit direction and its origin on the plane through 0).
+fn random_grid_ray(rng: &mut StdRng) -> (usize, Vector3<f64>, Point3<f64>) {
+    let k = rng.random_range(0..3usize);
+    let mut d = Vector3::zeros();
+    d[k] = 1.0;
+    let mut o = Point3::from(random_vector(rng, 4.0));
+    o[k] = 0.0;
+    (k, d, o)
+}
+
+/// A closed form's interval against the general one: equal within 1e-6 mm where both meet the
+/// ray (returns 1 then, to count the hits), or both missing it but for grazing rays, where one form
+/// may keep a point interval the other rounds away.
+fn same_extent(general: Option<(f64, f64)>, closed: Option<(f64, f64)>) -> usize {
+    match (general, closed) {
+        (Some(g), Some(q)) => {
+            assert!((g.0 - q.0).abs() < 1e-6 && (g.1 - q.1).abs() < 1e-6, "{g:?} against {q:?}");
+            1
+        }
+        (None, None) => 0,
+        (Some(g), None) | (None, Some(g)) => {
+            assert!(g.1 - g.0 < 1e-4, "{general:?} against {closed:?}");
+            0
+        }
+    }
+}
+
 #[test]
 fn the_capsule_closed_form_matches_the_general_sweep_of_a_ball() {
     let mut rng = StdRng::seed_from_u64(35);
     let mut hits = 0;
     for _ in 0..5000 {
-        let axis = Unit::new_normalize(Vector3::new(
-            rng.random_range(-1.0..1.0),
-            rng.random_range(-1.0..1.0),
-            rng.random_range(-1.0..1.0),
-        ));
+        let axis = Unit::new_normalize(random_vector(&mut rng, 1.0));
         let f = AxisFrame::new(&axis);
-        let p0 = Point3::new(
-            rng.random_range(-2.0..2.0),
-            rng.random_range(-2.0..2.0),
-            rng.random_range(-2.0..2.0),
-        );
-        let v = if rng.random_bool(0.1) {
-            Vector3::zeros()
-        } else {
-            Vector3::new(
-                rng.random_range(-3.0..3.0),
-                rng.random_range(-3.0..3.0),
-                rng.random_range(-3.0..3.0),
-            )
-        };
-        let k = rng.random_range(0..3usize);
-        let mut dvec = Vector3::zeros();
-        dvec[k] = 1.0;
-        let mut o = Point3::new(
-            rng.random_range(-4.0..4.0),
-            rng.random_range(-4.0..4.0),
-            rng.random_range(-4.0..4.0),
-        );
-        o[k] = 0.0;
+        let p0 = Point3::from(random_vector(&mut rng, 2.0));
+        let v = if rng.random_bool(0.1) { Vector3::zeros() } else { random_vector(&mut rng, 3.0) };
+        let (_, dvec, o) = random_grid_ray(&mut rng);
         let (c, r) = (rng.random_range(0.2..2.0), rng.random_range(0.2..2.0));
         let piece = Piece::Sphere { c, r };
         let general = RayMove::new(&o, &dvec, &p0, &v, &f).extent(&piece);
-        let closed = sweep::capsule_extent(&o, &dvec, &(p0 + f.u * c), &v, r);
-        match (general, closed) {
-            (Some(g), Some(q)) => {
-                hits += 1;
-                assert!((g.0 - q.0).abs() < 1e-6 && (g.1 - q.1).abs() < 1e-6, "{g:?} against {q:?}");
-            }
-            (None, None) => {}
-            // Grazing rays: one form may keep a point interval the other rounds away.
-            (Some(g), None) | (None, Some(g)) => assert!(g.1 - g.0 < 1e-4, "{general:?} against {closed:?}"),
-        }
+        hits += same_extent(general, sweep::capsule_extent(&o, &dvec, &(p0 + f.u * c), &v, r));
     }
     assert!(hits > 400, "{hits} rays met the capsule");
 }
@@ -627,54 +626,24 @@ fn the_cylinder_closed_form_across_its_axis_matches_the_general_sweep() {
     let mut rng = StdRng::seed_from_u64(37);
     let mut hits = 0;
     for _ in 0..5000 {
-        let k = rng.random_range(0..3usize);
-        let mut dvec = Vector3::zeros();
-        dvec[k] = 1.0;
-        let mut a = Vector3::new(
-            rng.random_range(-1.0..1.0),
-            rng.random_range(-1.0..1.0),
-            rng.random_range(-1.0..1.0),
-        );
+        let (k, dvec, o) = random_grid_ray(&mut rng);
+        let mut a = random_vector(&mut rng, 1.0);
         a[k] = 0.0;
         if a.norm() < 0.1 {
             continue;
         }
-        let axis = Unit::new_normalize(a);
-        let f = AxisFrame::new(&axis);
-        let p0 = Point3::new(
-            rng.random_range(-2.0..2.0),
-            rng.random_range(-2.0..2.0),
-            rng.random_range(-2.0..2.0),
-        );
+        let f = AxisFrame::new(&Unit::new_normalize(a));
+        let p0 = Point3::from(random_vector(&mut rng, 2.0));
         let v = match rng.random_range(0..4) {
             0 => Vector3::zeros(),
             1 => f.u * rng.random_range(-2.0..2.0),
-            _ => Vector3::new(
-                rng.random_range(-3.0..3.0),
-                rng.random_range(-3.0..3.0),
-                rng.random_range(-3.0..3.0),
-            ),
+            _ => random_vector(&mut rng, 3.0),
         };
-        let mut o = Point3::new(
-            rng.random_range(-4.0..4.0),
-            rng.random_range(-4.0..4.0),
-            rng.random_range(-4.0..4.0),
-        );
-        o[k] = 0.0;
         let h0 = rng.random_range(0.0..1.5);
         let (h1, r) = (h0 + rng.random_range(0.1..3.0), rng.random_range(0.2..2.0));
         let piece = Piece::Frustum { h0, h1, r0: r, r1: r };
         let general = RayMove::new(&o, &dvec, &p0, &v, &f).extent(&piece);
-        let closed = sweep::cylinder_across_extent(&o, &dvec, &p0, &v, &f.u, (h0, h1), r);
-        match (general, closed) {
-            (Some(g), Some(q)) => {
-                hits += 1;
-                assert!((g.0 - q.0).abs() < 1e-6 && (g.1 - q.1).abs() < 1e-6, "{g:?} against {q:?}");
-            }
-            (None, None) => {}
-            // Grazing rays: one form may keep a point interval the other rounds away.
-            (Some(g), None) | (None, Some(g)) => assert!(g.1 - g.0 < 1e-4, "{general:?} against {closed:?}"),
-        }
+        hits += same_extent(general, sweep::cylinder_across_extent(&o, &dvec, &p0, &v, &f.u, (h0, h1), r));
     }
     assert!(hits > 400, "{hits} rays met the cylinder");
 }
