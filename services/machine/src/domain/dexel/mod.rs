@@ -329,33 +329,64 @@ struct EndView {
 }
 
 impl EndView {
-    fn observe(&self, x: &Point3<f64>, t: &mut Tally) {
-        let y = x - self.tip;
-        let w = y.dot(&self.u);
-        let perp = y - self.u * w;
+    /// The view along the ray `o + x·d` (`d` a unit grid axis): every quantity [`Self::observe`]
+    /// needs is linear or quadratic in `x`, so each point costs a few scalar operations.
+    fn along(&self, o: &Point3<f64>, d: &Vector3<f64>) -> RayView {
+        let y0 = o - self.tip;
+        let (w0, dw) = (y0.dot(&self.u), d.dot(&self.u));
+        // The part across the axis: p0 + x·q.
+        let p0 = y0 - self.u * w0;
+        let q = d - self.u * dw;
+        let (a, b) = self.fwd.unwrap_or((self.e1, self.e2));
+        RayView {
+            w0,
+            dw,
+            pp: p0.norm_squared(),
+            pq: p0.dot(&q),
+            qq: q.norm_squared(),
+            a: (p0.dot(&a), q.dot(&a)),
+            b: (p0.dot(&b), q.dot(&b)),
+        }
+    }
+
+    /// Records removed material at `x` along the ray `r` views.
+    #[inline]
+    fn observe(&self, r: &RayView, x: f64, t: &mut Tally) {
         // Squared: no square root per point (the largest is rooted once, in `to_cut`).
-        let rho2 = perp.norm_squared();
+        let rho2 = (r.pp + x * (2.0 * r.pq + x * r.qq)).max(0.0);
         let reach = self.radius + self.half_cell;
         if rho2 > reach * reach {
             return;
         }
         t.any = true;
-        t.axial = t.axial.max(w);
-        match self.fwd {
-            Some((f, g)) => {
-                if perp.dot(&f) >= -self.half_cell {
-                    let e = perp.dot(&g);
-                    t.e_min = t.e_min.min(e);
-                    t.e_max = t.e_max.max(e);
-                    t.rho_c2 = t.rho_c2.max(rho2);
-                }
+        t.axial = t.axial.max(r.w0 + x * r.dw);
+        let (pa, pb) = (r.a.0 + x * r.a.1, r.b.0 + x * r.b.1);
+        if self.fwd.is_some() {
+            // Ahead of the tool (or level with it): the lateral extent of the engagement.
+            if pa >= -self.half_cell {
+                t.e_min = t.e_min.min(pb);
+                t.e_max = t.e_max.max(pb);
+                t.rho_c2 = t.rho_c2.max(rho2);
             }
-            None => {
-                let ang = perp.dot(&self.e2).atan2(perp.dot(&self.e1)).rem_euclid(2.0 * PI);
-                t.sectors |= 1 << ((ang.to_degrees() / 10.0) as u32).min(35);
-            }
+        } else {
+            let ang = pb.atan2(pa).rem_euclid(2.0 * PI);
+            t.sectors |= 1 << ((ang.to_degrees() / 10.0) as u32).min(35);
         }
     }
+}
+
+/// [`EndView`] along one ray: the axial height `w0 + x·dw`, the squared distance from the axis
+/// `pp + 2·pq·x + qq·x²`, and the coordinates across the axis along the travel and lateral
+/// directions (or `e1`, `e2` when the move does not travel across), each `(value at 0, slope)`.
+#[derive(Debug, Clone, Copy)]
+struct RayView {
+    w0: f64,
+    dw: f64,
+    pp: f64,
+    pq: f64,
+    qq: f64,
+    a: (f64, f64),
+    b: (f64, f64),
 }
 
 /// A hard inclusion: material inside the sphere weighs `factor`.
@@ -775,6 +806,7 @@ impl DexelStock {
                         ext = merged;
                     }
                     let mut changed = false;
+                    let mut view: Option<RayView> = None;
                     for (l, h) in ext {
                         subtract(ray, l as f32, h as f32, |sa, sb| {
                             changed = true;
@@ -796,10 +828,9 @@ impl DexelStock {
                                     }
                                 }
                             }
+                            let view = *view.get_or_insert_with(|| end.along(&o, &d));
                             for x in [sa, 0.5 * (sa + sb), sb] {
-                                let mut p = o;
-                                p[axis] = x;
-                                end.observe(&p, &mut t);
+                                end.observe(&view, x, &mut t);
                             }
                         });
                     }
@@ -1089,8 +1120,49 @@ fn capsule_chord(p0: [f64; 2], e: [f64; 2], r: f64, yb: f64) -> Option<(f64, f64
     Some((lo - 1e-9, hi + 1e-9))
 }
 
-/// Subtracts `[lo, hi]` from a ray, calling `removed(a, b)` for each piece of material taken.
+/// Subtracts `[lo, hi]` from a ray, calling `removed(a, b)` for each piece of material taken
+/// (in order). In place: the segments it overlaps give way to at most the two ends left
+/// standing, so a cut that trims a segment's end moves nothing and allocates nothing.
 fn subtract(ray: &mut Ray, lo: f32, hi: f32, mut removed: impl FnMut(f32, f32)) {
+    if lo.partial_cmp(&hi) != Some(std::cmp::Ordering::Less) {
+        return;
+    }
+    // The overlapped segments: `first..end` (sorted and disjoint: those ending after `lo` up to
+    // the first starting at or after `hi`).
+    let first = ray.partition_point(|s| s[1] <= lo);
+    let end = first + ray[first..].partition_point(|s| s[0] < hi);
+    if first == end {
+        return;
+    }
+    for s in &ray[first..end] {
+        removed(s[0].max(lo), s[1].min(hi));
+    }
+    let (head, tail) = (ray[first][0], ray[end - 1][1]);
+    let mut keep: SmallVec<[[f32; 2]; 2]> = SmallVec::new();
+    if lo - head > MIN_SEGMENT_MM {
+        keep.push([head, lo]);
+    }
+    if tail - hi > MIN_SEGMENT_MM {
+        keep.push([hi, tail]);
+    }
+    let (old, new) = (end - first, keep.len());
+    for (k, seg) in keep.iter().enumerate().take(old) {
+        ray[first + k] = *seg;
+    }
+    if new > old {
+        // One segment split in two.
+        ray.insert(first + old, keep[old]);
+    } else if new < old {
+        ray.drain(first + new..end);
+        if ray.spilled() && ray.len() <= 1 {
+            ray.shrink_to_fit();
+        }
+    }
+}
+
+/// [`subtract`] as a new list: the reference the in-place version is tested against.
+#[cfg(test)]
+fn subtract_rebuilt(ray: &mut Ray, lo: f32, hi: f32, mut removed: impl FnMut(f32, f32)) {
     if lo.partial_cmp(&hi) != Some(std::cmp::Ordering::Less) || !ray.iter().any(|s| s[1] > lo && s[0] < hi) {
         return;
     }

@@ -702,3 +702,114 @@ fn level_moves_along_the_rays_match_the_general_sweep_either_way_up() {
         }
     }
 }
+
+#[test]
+fn subtracting_in_place_matches_rebuilding_the_list() {
+    // Random rays of up to six segments (some spilled to the heap) and random cuts, many on a
+    // segment's end or within the smallest segment of one: the same segments left, the same
+    // pieces reported in the same order.
+    let mut rng = StdRng::seed_from_u64(29);
+    for _ in 0..20_000 {
+        let n = rng.random_range(0..7);
+        let mut ends: Vec<f32> = (0..2 * n).map(|_| rng.random_range(0..40) as f32 * 0.25).collect();
+        ends.sort_by(f32::total_cmp);
+        ends.dedup();
+        let mut ray = Ray::new();
+        for pair in ends.chunks_exact(2) {
+            ray.push([pair[0], pair[1]]);
+        }
+        let pick = |rng: &mut StdRng| match rng.random_range(0..3) {
+            0 => ends.get(rng.random_range(0..ends.len().max(1))).copied().unwrap_or(1.0),
+            1 => rng.random_range(0..40) as f32 * 0.25 + MIN_SEGMENT_MM * 0.5,
+            _ => rng.random_range(-1.0..11.0),
+        };
+        let (a, b) = (pick(&mut rng), pick(&mut rng));
+        let (lo, hi) = if rng.random_bool(0.9) { (a.min(b), a.max(b)) } else { (a, b) };
+        let (mut fast, mut slow) = (ray.clone(), ray.clone());
+        let (mut got, mut want) = (Vec::new(), Vec::new());
+        subtract(&mut fast, lo, hi, |x, y| got.push([x, y]));
+        subtract_rebuilt(&mut slow, lo, hi, |x, y| want.push([x, y]));
+        assert_eq!(fast.as_slice(), slow.as_slice(), "ray {ray:?} minus [{lo}, {hi}]");
+        assert_eq!(got, want, "ray {ray:?} minus [{lo}, {hi}]");
+        assert!(fast.len() > 1 || !fast.spilled(), "a ray of one segment is kept inline");
+    }
+}
+
+#[test]
+fn the_end_view_along_a_ray_reads_what_it_reads_at_each_point() {
+    // The per-ray linear and quadratic forms against the point-by-point reading: random tool
+    // poses, travel directions (or none), rays and points.
+    let mut rng = StdRng::seed_from_u64(31);
+    for case in 0..5000 {
+        let axis = Unit::new_normalize(random_vector(&mut rng, 1.0) + Vector3::new(0.0, 0.0, 1e-3));
+        let f = AxisFrame::new(&axis);
+        let fwd = (case % 3 != 0).then(|| {
+            let t = random_vector(&mut rng, 1.0);
+            let perp = (t - f.u * t.dot(&f.u)).normalize();
+            (perp, f.u.cross(&perp))
+        });
+        let end = EndView {
+            tip: Point3::from(random_vector(&mut rng, 5.0)),
+            u: f.u,
+            e1: f.e1,
+            e2: f.e2,
+            fwd,
+            radius: rng.random_range(0.5..4.0),
+            half_cell: 0.05,
+        };
+        // On the ray's plane through the origin, as the sweep's rays are.
+        let (_, d, o) = random_grid_ray(&mut rng);
+        let view = end.along(&o, &d);
+        let xs: Vec<f64> = (0..3).map(|_| rng.random_range(-6.0..6.0)).collect();
+        let mut fast = Tally::new();
+        for &x in &xs {
+            end.observe(&view, x, &mut fast);
+        }
+        // The reference: each point's offset from the tip, split along and across the axis.
+        let mut slow = Tally::new();
+        for &x in &xs {
+            let y = (o + d * x) - end.tip;
+            let w = y.dot(&end.u);
+            let perp = y - end.u * w;
+            let rho2 = perp.norm_squared();
+            let reach = end.radius + end.half_cell;
+            // Points within rounding of the reach are left out of the comparison.
+            if (rho2 - reach * reach).abs() < 1e-9 {
+                fast = Tally::new();
+                slow = Tally::new();
+                break;
+            }
+            if rho2 > reach * reach {
+                continue;
+            }
+            slow.any = true;
+            slow.axial = slow.axial.max(w);
+            match end.fwd {
+                Some((fw, g)) => {
+                    if perp.dot(&fw) >= -end.half_cell {
+                        slow.e_min = slow.e_min.min(perp.dot(&g));
+                        slow.e_max = slow.e_max.max(perp.dot(&g));
+                        slow.rho_c2 = slow.rho_c2.max(rho2);
+                    }
+                }
+                None => {
+                    let ang =
+                        perp.dot(&end.e2).atan2(perp.dot(&end.e1)).rem_euclid(2.0 * std::f64::consts::PI);
+                    slow.sectors |= 1 << ((ang.to_degrees() / 10.0) as u32).min(35);
+                }
+            }
+        }
+        assert_eq!(fast.any, slow.any, "case {case}");
+        for (a, b) in [
+            (fast.axial, slow.axial),
+            (fast.e_min, slow.e_min),
+            (fast.e_max, slow.e_max),
+            (fast.rho_c2, slow.rho_c2),
+        ] {
+            assert!(a == b || (a - b).abs() < 1e-9, "case {case}: {a} vs {b}");
+        }
+        // A point on a sector's edge may fall either side of it.
+        let diff = fast.sectors ^ slow.sectors;
+        assert!(diff.count_ones() <= 2, "case {case}: sectors {:b} vs {:b}", fast.sectors, slow.sectors);
+    }
+}
