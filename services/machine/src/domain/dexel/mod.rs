@@ -608,7 +608,8 @@ impl DexelStock {
             // cut): a ray stays at one axial height `w`, where the tool is a disc of radius
             // `radius_at(w)` (the pieces are concentric), so the swept tool on the ray is that
             // disc's capsule along the move: one closed form per ray.
-            let across = along.abs() < 1e-12 && v.dot(&f.u).abs() < 1e-12;
+            let across = (along.abs() < 1e-12 && v.dot(&f.u).abs() < 1e-12)
+                .then(|| sweep::AcrossMove::new(&f.u, &g.dir(), g.axis, &v));
             // 1 / |e|² of the tip's path across the rays (0 for a move along them: every ray
             // then measures from the start).
             let inv_ee = axial.map_or(0.0, |(_, _, _, e)| {
@@ -752,12 +753,8 @@ impl DexelStock {
                     let mut o = Point3::origin();
                     o[a] = xa;
                     o[b] = yb;
-                    if across {
-                        let w = (o - from).dot(&f.u);
-                        if let Some(e) = tool
-                            .radius_at(w)
-                            .and_then(|rho| sweep::capsule_extent(&o, &d, &(from + f.u * w), &v, rho))
-                        {
+                    if let Some(m) = &across {
+                        if let Some(e) = m.extent(tool, &o, from) {
                             ext.push(e);
                         }
                         swept = true;

@@ -431,6 +431,57 @@ pub fn cylinder_across_extent(
     capsule_extent(o, d, &(from + u * w + v_perp * s0), &(v_perp * (s1 - s0)), r)
 }
 
+/// A level move across the tool's axis seen along grid rays across it too (the X and Y grids of
+/// a 3-axis cut; the grids across the A axis's plane on a face turned about X): each ray lies in
+/// one plane across the axis, where the tool is a disc of radius
+/// [`ToolSolid::radius_at`] its height, swept into a 2-D capsule. The plane's coordinates are
+/// along the ray and along `n = u × d`; per ray only the height, the offset along `n` and one
+/// capsule chord remain (equal to [`capsule_extent`] of the disc, tested).
+#[derive(Debug, Clone, Copy)]
+pub struct AcrossMove {
+    u: Vector3<f64>,
+    n: Vector3<f64>,
+    /// The move along the rays and along `n`.
+    v: (f64, f64),
+    /// Its unit direction (0 for no move) and length.
+    unit: (f64, f64),
+    len: f64,
+    /// The rays' axis.
+    k: usize,
+}
+
+impl AcrossMove {
+    /// Rays along grid axis `k` (unit `d`), the tool's axis `u` across them, the move `v`
+    /// across `u`.
+    pub fn new(u: &Vector3<f64>, d: &Vector3<f64>, k: usize, v: &Vector3<f64>) -> Self {
+        let n = u.cross(d);
+        let (vd, vn) = (v.dot(d), v.dot(&n));
+        let len = vd.hypot(vn);
+        let unit = if len > 0.0 { (vd / len, vn / len) } else { (0.0, 0.0) };
+        AcrossMove { u: *u, n, v: (vd, vn), unit, len, k }
+    }
+
+    /// The interval along the ray through `o` (its coordinate along the rays 0) that the tool
+    /// with its tip moving from `from` sweeps, or `None`.
+    #[inline]
+    pub fn extent(&self, tool: &ToolSolid, o: &Point3<f64>, from: &Point3<f64>) -> Option<(f64, f64)> {
+        let r = o - from;
+        let rho = tool.radius_at(r.dot(&self.u))?;
+        // The ray is the line at `r·n` across, its points at `t − from[k]` along: the chord of
+        // the capsule from the origin along `v`.
+        let (lo, hi) = super::super::removal::capsule_x(
+            (0.0, 0.0),
+            self.v,
+            self.unit,
+            self.len,
+            r.dot(&self.n),
+            rho,
+            rho * rho,
+        )?;
+        Some((lo + from[self.k], hi + from[self.k]))
+    }
+}
+
 /// Candidate points `(t, s)` (at most 23 for five lines: kept on the stack).
 type Candidates = smallvec::SmallVec<[(f64, f64); 32]>;
 

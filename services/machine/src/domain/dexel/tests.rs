@@ -813,3 +813,36 @@ fn the_end_view_along_a_ray_reads_what_it_reads_at_each_point() {
         assert!(diff.count_ones() <= 2, "case {case}: sectors {:b} vs {:b}", fast.sectors, slow.sectors);
     }
 }
+
+#[test]
+fn the_disc_chord_across_the_axis_matches_the_capsule_in_space() {
+    // A level move across the tool's axis, rays across it too: the 2-D chord in the ray's plane
+    // against the 3-D capsule of the tool's section at the ray's height (random tools, axes in
+    // the plane across a grid's rays, moves across the axis or none).
+    let mut rng = StdRng::seed_from_u64(41);
+    let solids: Vec<ToolSolid> = tools().iter().map(|p| ToolSolid::new(p, 10.0).expect("solid")).collect();
+    let mut hits = 0;
+    for case in 0..20_000 {
+        let tool = &solids[case % solids.len()];
+        let (k, dvec, o) = random_grid_ray(&mut rng);
+        let mut a = random_vector(&mut rng, 1.0);
+        a[k] = 0.0;
+        if a.norm() < 0.1 {
+            continue;
+        }
+        let f = AxisFrame::new(&Unit::new_normalize(a));
+        let from = Point3::from(random_vector(&mut rng, 3.0));
+        let v = if case % 10 == 0 {
+            Vector3::zeros()
+        } else {
+            let t = random_vector(&mut rng, 3.0);
+            t - f.u * t.dot(&f.u)
+        };
+        let w = (o - from).dot(&f.u);
+        let space =
+            tool.radius_at(w).and_then(|rho| sweep::capsule_extent(&o, &dvec, &(from + f.u * w), &v, rho));
+        let plane = sweep::AcrossMove::new(&f.u, &dvec, k, &v).extent(tool, &o, &from);
+        hits += same_extent(space, plane);
+    }
+    assert!(hits > 2000, "{hits} rays met the tool");
+}
