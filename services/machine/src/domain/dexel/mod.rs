@@ -713,7 +713,7 @@ impl DexelStock {
                         let (Some(first), Some(last)) = (sl.first(), sl.last()) else { continue };
                         (*first, *last)
                     };
-                    if last[1] < tlo || first[0] > thi {
+                    if last[1] < tlo || first[0] > thi || (prune && !meets(ray, tlo, thi)) {
                         continue;
                     }
                     t.visited += 1;
@@ -767,6 +767,11 @@ impl DexelStock {
                         let (ray_lo, ray_hi) = (f64::from(first[0]), f64::from(last[1]));
                         for ((piece, shadow), &(cl, ch)) in tool.pieces().iter().zip(&shadows).zip(&chords) {
                             if xa < cl || xa > ch || ray_hi < shadow.range.0 || ray_lo > shadow.range.1 {
+                                continue;
+                            }
+                            // Material only outside the piece's range along the ray (the shank
+                            // passing between a relief's peaks): untouched.
+                            if prune && !meets(ray, shadow.range.0 as f32, shadow.range.1 as f32) {
                                 continue;
                             }
                             if prune && !shadow.may_cut(xa, yb, first[0], last[1]) {
@@ -1095,6 +1100,14 @@ impl Shadow {
         let half = h2.sqrt();
         top > (zmin - half) as f32 && bottom < (zmax + half) as f32
     }
+}
+
+/// Whether any of a ray's material reaches into `[lo, hi]` (ends included). A sweep whose
+/// interval on the ray lies within `[lo, hi]` (after rounding to `f32`, which is monotone) takes
+/// nothing from a ray this is `false` for.
+#[inline]
+fn meets(ray: &[[f32; 2]], lo: f32, hi: f32) -> bool {
+    ray.iter().any(|s| s[1] >= lo && s[0] <= hi)
 }
 
 /// Index range of the cell centres within `[lo, hi]` on a grid axis from `origin` in cells of
