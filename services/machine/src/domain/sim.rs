@@ -576,6 +576,9 @@ impl<'a> Machine<'a> {
     /// Ends the program: runs the last move to a stop.
     pub fn finish(&mut self, observe: Observer<'_>) -> Result<(), SimError> {
         self.flush(observe)?;
+        if let Some((stock, _)) = &mut self.dexel {
+            stock.flush()?;
+        }
         if let Some(row) = self.last_row {
             observe(&row);
         }
@@ -1006,7 +1009,10 @@ impl<'a> Machine<'a> {
         if straight {
             let r = part_from_table(p0.a, p0.c);
             let axis = Unit::new_normalize(r * Vector3::z());
-            return Ok(stock.cut_line(solid, &(r * q0), &(r * q1), &axis)?);
+            // The other grids take runs of pieces as one line within one motor step of them (the
+            // pieces' ends are already up to half a step off the commanded path in each axis).
+            let err = prof.step_mm.min(DEXEL_STEP_CELLS * stock.min_cell_mm());
+            return Ok(stock.cut_run(solid, &(r * q0), &(r * q1), &axis, err)?);
         }
         let pose = |s: f64| {
             let p = point_at(m, t0 + (t1 - t0) * s);

@@ -39,9 +39,15 @@
 //!
 //! The Z-map's [`Cut`]: the volume is measured on the primary grid (Z, else X, else Y) as the sum
 //! of the removed lengths times the cell area; the engagement and axial depth come from the
-//! removed segments of every grid, seen from the tool at the end of the move, with the same
-//! definitions as [`crate::domain::removal`] (front half, contact radius, half a cell of
-//! padding; 10° sectors for a plunge).
+//! primary grid's removed segments too (every grid holds the whole removed volume), seen from
+//! the tool at the end of the move, with the same definitions as [`crate::domain::removal`]
+//! (front half, contact radius, half a cell of padding; 10° sectors for a plunge).
+//!
+//! A simulation cuts in pieces of one spindle revolution, and only the primary grid's figures
+//! drive its loop: [`DexelStock::cut_run`] cuts the primary grid per piece and the other grids
+//! once per run of pieces that stay within a stated error of one straight line (a move's
+//! revolutions, a finishing pass's short segments along a flat stretch), which is where most of
+//! a 3-axis cut's work on the other grids went.
 
 pub mod surface;
 pub mod sweep;
@@ -404,6 +410,41 @@ pub struct DexelStock {
     hard: Vec<HardSphere>,
     /// The blank's bounding box (the material only shrinks).
     extent: ([f64; 3], [f64; 3]),
+    /// Straight cuts the grids after the primary have not taken yet ([`DexelStock::cut_run`]).
+    run: Option<Run>,
+}
+
+/// Consecutive straight cuts of one tool at one orientation, all within `max_error_mm` of the
+/// straight line from the first point to the last: the grids after the primary take that line
+/// as one cut.
+#[derive(Debug, Clone)]
+struct Run {
+    tool: ToolSolid,
+    axis: Unit<Vector3<f64>>,
+    max_error_mm: f64,
+    /// The tip's points, first to last.
+    points: Vec<Point3<f64>>,
+}
+
+/// Most points one [`Run`] gathers before its grids are cut.
+const RUN_POINTS: usize = 256;
+
+/// Which of a stock's grids a sweep cuts.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Grids {
+    All,
+    Primary,
+    Rest,
+}
+
+impl Grids {
+    fn has(self, gi: usize) -> bool {
+        match self {
+            Grids::All => true,
+            Grids::Primary => gi == 0,
+            Grids::Rest => gi > 0,
+        }
+    }
 }
 
 impl DexelStock {
@@ -469,7 +510,7 @@ impl DexelStock {
                 g
             })
             .collect();
-        Ok(DexelStock { grids, hard: Vec::new(), extent: (lo, hi) })
+        Ok(DexelStock { grids, hard: Vec::new(), extent: (lo, hi), run: None })
     }
 
     /// Makes the material inside a sphere weigh `factor` (a hard inclusion).
@@ -521,6 +562,7 @@ impl DexelStock {
 
     /// Whether `p` is material on every grid (each grid reads the ray of the cell `p` is in).
     pub fn contains(&self, p: &Point3<f64>) -> bool {
+        debug_assert!(self.is_flushed(), "contains before flush");
         self.grids.iter().all(|g| g.contains(p))
     }
 
@@ -540,7 +582,73 @@ impl DexelStock {
         to: &Point3<f64>,
         axis: &Unit<Vector3<f64>>,
     ) -> Result<Cut, DexelError> {
-        self.sweep_line(tool, from, to, axis, true)
+        self.sweep_line(tool, from, to, axis, true, Grids::All)
+    }
+
+    /// [`cut_line`](Self::cut_line) for the pieces of a path (one spindle revolution each, say):
+    /// the primary grid, which the cut's figures come from, is cut now and exactly; the other
+    /// grids take consecutive pieces of one tool at one orientation as one straight cut from
+    /// the first piece's start to the last one's end, as long as every point between stays
+    /// within `max_error_mm` of that line (so no tool point of their sweep strays farther from
+    /// the pieces' own). A piece that does not continue the run (another tool or orientation,
+    /// a gap, a bend beyond the error) cuts the run first. [`flush`](Self::flush) cuts what is
+    /// left; the stock's readers expect it done.
+    ///
+    /// Errors: a non-finite point, `max_error_mm` not finite and positive.
+    pub fn cut_run(
+        &mut self,
+        tool: &ToolSolid,
+        from: &Point3<f64>,
+        to: &Point3<f64>,
+        axis: &Unit<Vector3<f64>>,
+        max_error_mm: f64,
+    ) -> Result<Cut, DexelError> {
+        if !(max_error_mm.is_finite() && max_error_mm > 0.0) {
+            return Err(DexelError::Invalid {
+                field: "max_error_mm".into(),
+                value: max_error_mm,
+                expected: "a finite positive error",
+            });
+        }
+        let cut = self.sweep_line(tool, from, to, axis, true, Grids::Primary)?;
+        if self.grids.len() < 2 {
+            return Ok(cut);
+        }
+        let joins = self.run.as_ref().is_some_and(|r| {
+            r.points.len() < RUN_POINTS
+                && r.points.last() == Some(from)
+                && r.axis == *axis
+                && r.max_error_mm == max_error_mm
+                && r.tool.same_shape(tool)
+                && r.points.iter().all(|p| segment_distance(p, &r.points[0], to) <= max_error_mm)
+        });
+        if joins {
+            if let Some(r) = &mut self.run {
+                r.points.push(*to);
+            }
+        } else {
+            self.flush()?;
+            self.run = Some(Run { tool: tool.clone(), axis: *axis, max_error_mm, points: vec![*from, *to] });
+        }
+        Ok(cut)
+    }
+
+    /// Cuts the grids after the primary with the run [`cut_run`](Self::cut_run) gathered.
+    ///
+    /// Errors: a non-finite point (checked when the run's pieces came in, so not in practice).
+    pub fn flush(&mut self) -> Result<(), DexelError> {
+        if let Some(r) = self.run.take()
+            && let (Some(a), Some(b)) = (r.points.first(), r.points.last())
+        {
+            self.sweep_line(&r.tool, a, b, &r.axis, true, Grids::Rest)?;
+        }
+        Ok(())
+    }
+
+    /// Whether every cut has reached every grid ([`flush`](Self::flush) after
+    /// [`cut_run`](Self::cut_run)).
+    pub fn is_flushed(&self) -> bool {
+        self.run.is_none()
     }
 
     /// [`cut_line`](Self::cut_line); `prune = false` visits every ray of the tool's box with
@@ -552,6 +660,7 @@ impl DexelStock {
         to: &Point3<f64>,
         axis: &Unit<Vector3<f64>>,
         prune: bool,
+        which: Grids,
     ) -> Result<Cut, DexelError> {
         check_point("from", from)?;
         check_point("to", to)?;
@@ -586,7 +695,7 @@ impl DexelStock {
         let hard = &self.hard;
         let stock_extent = self.extent;
         let mut total = Tally::new();
-        for (gi, g) in self.grids.iter_mut().enumerate() {
+        for (gi, g) in self.grids.iter_mut().enumerate().filter(|(gi, _)| which.has(*gi)) {
             let primary = gi == 0;
             let (a, b) = plane_axes(g.axis);
             // Rays along the tool's axis (the Z grid of a 3-axis cut): the swept tool starts on
@@ -829,10 +938,12 @@ impl DexelStock {
                                         t.hard_extra += (s.factor - 1.0) * ov * area;
                                     }
                                 }
-                            }
-                            let view = *view.get_or_insert_with(|| end.along(&o, &d));
-                            for x in [sa, 0.5 * (sa + sb), sb] {
-                                end.observe(&view, x, &mut t);
+                                // The engagement, from the same grid (every grid holds the
+                                // whole removed volume).
+                                let view = *view.get_or_insert_with(|| end.along(&o, &d));
+                                for x in [sa, 0.5 * (sa + sb), sb] {
+                                    end.observe(&view, x, &mut t);
+                                }
                             }
                         });
                     }
@@ -943,6 +1054,7 @@ impl DexelStock {
         meta: &HeightMapMeta,
         z_top: f64,
     ) -> Result<HeightMap, DexelError> {
+        debug_assert!(self.is_flushed(), "view_heights before flush");
         let floor = meta.z_min_mm;
         let down = part_from_view * Vector3::new(0.0, 0.0, -1.0);
         let best = self.grids.iter().max_by(|a, b| down[a.axis].abs().total_cmp(&down[b.axis].abs()));
@@ -1100,6 +1212,14 @@ impl Shadow {
         let half = h2.sqrt();
         top > (zmin - half) as f32 && bottom < (zmax + half) as f32
     }
+}
+
+/// Distance from `p` to the segment `a → b`.
+fn segment_distance(p: &Point3<f64>, a: &Point3<f64>, b: &Point3<f64>) -> f64 {
+    let e = b - a;
+    let ee = e.norm_squared();
+    let s = if ee > 0.0 { ((p - a).dot(&e) / ee).clamp(0.0, 1.0) } else { 0.0 };
+    (p - (a + e * s)).norm()
 }
 
 /// Whether any of a ray's material reaches into `[lo, hi]` (ends included). A sweep whose

@@ -125,6 +125,7 @@ impl DexelStock {
     /// Distance from `p` to the simulated part's surface (see the module docs), `None` when it
     /// is farther than `max_mm`.
     pub fn surface_distance(&self, p: &Point3<f64>, max_mm: f64) -> Option<f64> {
+        debug_assert!(self.is_flushed(), "surface_distance before flush");
         // Every grid's own ray first: on a face across one grid's rays that grid finds the
         // surface at once, and the others' ring searches stop as soon as they cannot beat it
         // (a wall seen along the Z rays would otherwise be searched ring by ring out to its top).
@@ -160,6 +161,7 @@ impl DexelStock {
     /// through `p`, of the grid whose ray has its nearest dexel end nearest to `p`, to that end
     /// (see the module docs).
     pub fn signed_distance(&self, p: &Point3<f64>, cap: f64) -> f64 {
+        debug_assert!(self.is_flushed(), "signed_distance before flush");
         let mut best: Option<(bool, f64)> = None;
         for g in &self.grids {
             if let Some((g_in, g_d)) = g.axial(p)
@@ -196,6 +198,7 @@ impl DexelStock {
     /// Errors: a step that is not finite and positive, or a lattice of more than
     /// [`MAX_SURFACE_SAMPLES`] samples.
     pub fn surface_mesh(&self, step_mm: f64) -> Result<Mesh, DexelError> {
+        debug_assert!(self.is_flushed(), "surface_mesh before flush");
         let (lo, hi) = self.extent;
         let too_large =
             |samples: u64| DexelError::TooManySamples { step_mm, samples, limit: MAX_SURFACE_SAMPLES };

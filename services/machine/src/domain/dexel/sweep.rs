@@ -187,6 +187,11 @@ impl ToolSolid {
         self.lower_by_d2.get(k).copied().unwrap_or(f64::INFINITY)
     }
 
+    /// Whether `other` is the same solid (pieces and length).
+    pub fn same_shape(&self, other: &ToolSolid) -> bool {
+        self.length == other.length && self.pieces == other.pieces
+    }
+
     /// Each piece's axial interval `[w_lo, w_hi]` at radial distance `rho` (pieces that reach
     /// `rho`), in piece order. A piece's interval only shrinks as `rho` grows (every piece is
     /// convex and of revolution), so a level move's sweep seen along a ray parallel to the axis is
