@@ -107,6 +107,19 @@ pub enum DexelError {
     TooManySteps { angle_deg: f64, steps: f64, limit: usize },
 }
 
+/// A cut's error bound: finite and positive.
+fn check_error(max_error_mm: f64) -> Result<(), DexelError> {
+    if max_error_mm.is_finite() && max_error_mm > 0.0 {
+        Ok(())
+    } else {
+        Err(DexelError::Invalid {
+            field: "max_error_mm".into(),
+            value: max_error_mm,
+            expected: "a finite positive error",
+        })
+    }
+}
+
 fn check_point(field: &str, p: &Point3<f64>) -> Result<(), DexelError> {
     if p.iter().all(|v| v.is_finite() && v.abs() <= MAX_COORD_MM) {
         Ok(())
@@ -603,13 +616,7 @@ impl DexelStock {
         axis: &Unit<Vector3<f64>>,
         max_error_mm: f64,
     ) -> Result<Cut, DexelError> {
-        if !(max_error_mm.is_finite() && max_error_mm > 0.0) {
-            return Err(DexelError::Invalid {
-                field: "max_error_mm".into(),
-                value: max_error_mm,
-                expected: "a finite positive error",
-            });
-        }
+        check_error(max_error_mm)?;
         let cut = self.sweep_line(tool, from, to, axis, true, Grids::Primary)?;
         if self.grids.len() < 2 {
             return Ok(cut);
@@ -990,13 +997,7 @@ impl DexelStock {
         pose: &dyn Fn(f64) -> (Point3<f64>, Unit<Vector3<f64>>),
         max_error_mm: f64,
     ) -> Result<Cut, DexelError> {
-        if !(max_error_mm.is_finite() && max_error_mm > 0.0) {
-            return Err(DexelError::Invalid {
-                field: "max_error_mm".into(),
-                value: max_error_mm,
-                expected: "a finite positive error",
-            });
-        }
+        check_error(max_error_mm)?;
         let (p0, u0) = pose(0.0);
         let (p1, u1) = pose(1.0);
         check_point("from", &p0)?;
