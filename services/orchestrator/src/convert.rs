@@ -14,7 +14,7 @@ use crate::domain::spec::{
     PlanParams, Process, RadiusFilter, ReconstructParams, Rest, RobotParams, Roi, Roughing,
     RoughingDirection, ScanMode, ScanParams, ScanPassSpec, StatisticalFilter, Stock,
 };
-use crate::domain::{Job, JobSpec, JobStatus, SpecError, Stage};
+use crate::domain::{Job, JobMetrics, JobSpec, JobStatus, SpecError, Stage};
 use depthmill_proto::types::v1::Vec3;
 
 fn spec_err(field: &str, message: &str) -> SpecError {
@@ -380,6 +380,69 @@ pub fn status(s: JobStatus) -> pb::JobStatus {
     }
 }
 
+/// A job's metrics on the wire: every REST metric under its own name, but the original part's
+/// mean material left, which is `mean_leftover_mm`.
+pub fn job_metrics(m: &JobMetrics) -> pb::JobMetrics {
+    pb::JobMetrics {
+        coverage_pct: m.coverage_pct,
+        max_gouge_mm: m.max_gouge_mm,
+        max_leftover_mm: m.max_leftover_mm,
+        rms_deviation_mm: m.rms_deviation_mm,
+        cycle_time_s: m.cycle_time_s,
+        cycle_time_no_adaptive_s: m.cycle_time_no_adaptive_s,
+        scan_points: m.scan_points,
+        scan_time_s: m.scan_time_s,
+        scan_coverage_pct: m.scan_coverage_pct,
+        scan_registration_rms_mm: m.scan_registration_rms_mm,
+        scan_registration_merge_rms_mm: m.scan_registration_merge_rms_mm,
+        scan_calibration_version: m.scan_calibration_version,
+        mean_leftover_mm: m.original_mean_leftover_mm,
+        robot_layers: m.robot_layers,
+        robot_positions: m.robot_positions,
+        robot_colliding_upright: m.robot_colliding_upright,
+        robot_tilted: m.robot_tilted,
+        robot_blocked: m.robot_blocked,
+        robot_unreachable_stretches: m.robot_unreachable_stretches,
+        robot_max_tilt_deg: m.robot_max_tilt_deg,
+        robot_removed_mm3: m.robot_removed_mm3,
+        robot_rapid_removed_mm3: m.robot_rapid_removed_mm3,
+        estimated_time_s: m.estimated_time_s,
+        removed_mm3: m.removed_mm3,
+        cycle_time_other_policy_s: m.cycle_time_other_policy_s,
+        plan_max_gouge_mm: m.plan_max_gouge_mm,
+        plan_max_leftover_mm: m.plan_max_leftover_mm,
+        plan_mean_leftover_mm: m.plan_mean_leftover_mm,
+        scan_silhouette_coverage_pct: m.scan_silhouette_coverage_pct,
+        part_max_gouge_mm: m.part_max_gouge_mm,
+        part_max_leftover_mm: m.part_max_leftover_mm,
+        part_mean_leftover_mm: m.part_mean_leftover_mm,
+        part_mean_mm: m.part_mean_mm,
+        part_rms_mm: m.part_rms_mm,
+        part_off_walls_max_gouge_mm: m.part_off_walls_max_gouge_mm,
+        part_off_walls_mean_mm: m.part_off_walls_mean_mm,
+        part_off_walls_rms_mm: m.part_off_walls_rms_mm,
+        part_opened_max_gouge_mm: m.part_opened_max_gouge_mm,
+        part_opened_mean_mm: m.part_opened_mean_mm,
+        part_opened_rms_mm: m.part_opened_rms_mm,
+        part_opened_max_gouge_x_mm: m.part_opened_max_gouge_x_mm,
+        part_opened_max_gouge_y_mm: m.part_opened_max_gouge_y_mm,
+        preview_rms_mm: m.preview_rms_mm,
+        original_points: m.original_points,
+        original_max_gouge_mm: m.original_max_gouge_mm,
+        original_max_leftover_mm: m.original_max_leftover_mm,
+        original_rms_deviation_mm: m.original_rms_deviation_mm,
+        opened_points: m.opened_points,
+        opened_max_gouge_mm: m.opened_max_gouge_mm,
+        opened_max_leftover_mm: m.opened_max_leftover_mm,
+        opened_mean_leftover_mm: m.opened_mean_leftover_mm,
+        opened_rms_deviation_mm: m.opened_rms_deviation_mm,
+        map_max_gouge_mm: m.map_max_gouge_mm,
+        map_max_leftover_mm: m.map_max_leftover_mm,
+        map_mean_leftover_mm: m.map_mean_leftover_mm,
+        map_rms_deviation_mm: m.map_rms_deviation_mm,
+    }
+}
+
 pub fn job(j: &Job) -> pb::Job {
     pb::Job {
         id: j.id.clone(),
@@ -394,36 +457,7 @@ pub fn job(j: &Job) -> pb::Job {
         }),
         stage_timings_s: j.stage_timings_s.iter().map(|(k, v)| (k.clone(), *v)).collect(),
         artifacts: j.artifacts.iter().map(|(k, v)| (k.clone(), v.clone().into())).collect(),
-        metrics: Some(pb::JobMetrics {
-            coverage_pct: j.metrics.coverage_pct,
-            max_gouge_mm: j.metrics.max_gouge_mm,
-            max_leftover_mm: j.metrics.max_leftover_mm,
-            rms_deviation_mm: j.metrics.rms_deviation_mm,
-            cycle_time_s: j.metrics.cycle_time_s,
-            cycle_time_no_adaptive_s: j.metrics.cycle_time_no_adaptive_s,
-            scan_points: j.metrics.scan_points,
-            scan_time_s: j.metrics.scan_time_s,
-            scan_coverage_pct: j.metrics.scan_coverage_pct,
-            scan_registration_rms_mm: j.metrics.scan_registration_rms_mm,
-            scan_registration_merge_rms_mm: j.metrics.scan_registration_merge_rms_mm,
-            scan_calibration_version: j.metrics.scan_calibration_version,
-            mean_leftover_mm: j.metrics.original_mean_leftover_mm,
-            robot_layers: j.metrics.robot_layers,
-            robot_positions: j.metrics.robot_positions,
-            robot_colliding_upright: j.metrics.robot_colliding_upright,
-            robot_tilted: j.metrics.robot_tilted,
-            robot_blocked: j.metrics.robot_blocked,
-            robot_unreachable_stretches: j.metrics.robot_unreachable_stretches,
-            robot_max_tilt_deg: j.metrics.robot_max_tilt_deg,
-            robot_removed_mm3: j.metrics.robot_removed_mm3,
-            robot_rapid_removed_mm3: j.metrics.robot_rapid_removed_mm3,
-            estimated_time_s: j.metrics.estimated_time_s,
-            removed_mm3: j.metrics.removed_mm3,
-            cycle_time_other_policy_s: j.metrics.cycle_time_other_policy_s,
-            plan_max_gouge_mm: j.metrics.plan_max_gouge_mm,
-            plan_max_leftover_mm: j.metrics.plan_max_leftover_mm,
-            plan_mean_leftover_mm: j.metrics.plan_mean_leftover_mm,
-        }),
+        metrics: Some(job_metrics(&j.metrics)),
         spec: Some(job_spec(&j.spec)),
         created_at_ms: j.created_at_ms,
         updated_at_ms: j.updated_at_ms,
@@ -790,6 +824,31 @@ mod tests {
         }))
         .expect("robot spec");
         assert_eq!(job_spec_from_pb(job_spec(&robot)).expect("back"), robot);
+    }
+
+    #[test]
+    fn every_rest_metric_reaches_the_wire_under_its_name() {
+        // Every metric the REST job's schema lists, set to a value of its own, read back from the
+        // message's debug form by field name.
+        use utoipa::PartialSchema;
+        let utoipa::openapi::RefOr::T(utoipa::openapi::Schema::Object(schema)) = JobMetrics::schema() else {
+            panic!("the metrics' schema is an object");
+        };
+        let names: Vec<String> = schema.properties.keys().cloned().collect();
+        assert!(names.len() > 50, "{names:?}");
+        let json: serde_json::Map<String, serde_json::Value> =
+            names.iter().enumerate().map(|(i, n)| (n.clone(), serde_json::json!(i as f64 + 0.5))).collect();
+        let m: JobMetrics = serde_json::from_value(serde_json::Value::Object(json)).expect("metrics");
+        let wire = format!("{:?}", job_metrics(&m));
+        for (i, n) in names.iter().enumerate() {
+            let field = if n == "original_mean_leftover_mm" { "mean_leftover_mm" } else { n };
+            let want = format!(" {field}: Some({}),", i as f64 + 0.5);
+            assert!(
+                wire.contains(&want) || wire.contains(&want.replace(',', " }")),
+                "{n} is not on the wire: {wire}"
+            );
+        }
+        assert!(!wire.contains("None"), "a wire field without a REST metric: {wire}");
     }
 
     #[test]
