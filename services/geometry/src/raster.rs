@@ -1346,6 +1346,11 @@ fn hole_summary<'a>(
 pub const COVERAGE_MEASURED: f32 = 1.0;
 /// Coverage value of a filled cell.
 pub const COVERAGE_FILLED: f32 = 0.5;
+/// Coverage value of a cell no scan could see (hidden behind the part from every station) that
+/// the reconstruction filled with an assumed height (the highest seen around it): unlike a
+/// filled hole, nothing measured bounds it on every side, so a deviation there says nothing
+/// about the machining.
+pub const COVERAGE_ASSUMED: f32 = 0.25;
 /// Coverage value of a footprint cell still empty (a hole).
 pub const COVERAGE_HOLE: f32 = 0.0;
 

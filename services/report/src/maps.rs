@@ -173,6 +173,7 @@ pub fn shaded_image(map: &HeightMap, view: &View, lo: f64, hi: f64) -> RgbImage 
 pub enum CoverageClass {
     Measured,
     Filled,
+    Assumed,
     Hole,
     Outside,
 }
@@ -183,8 +184,11 @@ impl CoverageClass {
             CoverageClass::Outside
         } else if v > 0.75 {
             CoverageClass::Measured
-        } else if v > 0.25 {
+        } else if v > 0.375 {
             CoverageClass::Filled
+        } else if v > 0.125 {
+            // 0.25 (an 8-bit map reads 64/255).
+            CoverageClass::Assumed
         } else {
             CoverageClass::Hole
         }
@@ -194,6 +198,7 @@ impl CoverageClass {
         match self {
             CoverageClass::Measured => [44, 160, 44],
             CoverageClass::Filled => [255, 191, 0],
+            CoverageClass::Assumed => [148, 103, 189],
             CoverageClass::Hole => [214, 39, 40],
             CoverageClass::Outside => [226, 229, 235],
         }
@@ -203,24 +208,25 @@ impl CoverageClass {
         match self {
             CoverageClass::Measured => "measured",
             CoverageClass::Filled => "filled",
+            CoverageClass::Assumed => "assumed (never seen)",
             CoverageClass::Hole => "hole (not filled)",
             CoverageClass::Outside => "outside the part",
         }
     }
 }
 
-/// Cell counts per coverage class: measured, filled, hole, outside.
-pub fn coverage_counts(map: &HeightMap) -> [usize; 4] {
+/// Cell counts per coverage class: measured, filled, assumed, hole, outside.
+pub fn coverage_counts(map: &HeightMap) -> [usize; 5] {
     map.data()
         .par_iter()
         .fold(
-            || [0usize; 4],
+            || [0usize; 5],
             |mut a, &v| {
                 a[CoverageClass::of(v) as usize] += 1;
                 a
             },
         )
-        .reduce(|| [0; 4], |a, b| [a[0] + b[0], a[1] + b[1], a[2] + b[2], a[3] + b[3]])
+        .reduce(|| [0; 5], |a, b| std::array::from_fn(|k| a[k] + b[k]))
 }
 
 /// The coverage map in its class colours.

@@ -55,6 +55,8 @@ fn coverage_map() -> HeightMap {
             f32::NAN
         } else if (x - 3.0).powi(2) + (y - 2.0).powi(2) < 2.0 {
             0.0
+        } else if x > 11.0 {
+            0.25
         } else if x > 8.0 {
             0.5
         } else {
@@ -1103,4 +1105,23 @@ fn telemetry_statistics_cover_every_row_and_the_sample_is_bounded() {
     assert_eq!(small.feed_stat.max(), 136.0);
     assert_eq!(small.time_span, Some((0.0, 999.0 * 0.05)));
     assert_eq!(small.active, vec![("torque".to_string(), 334)]);
+}
+
+#[test]
+fn the_deviation_leaves_out_cells_the_scanner_never_saw() {
+    // The coverage map's assumed band (never seen, a height from around it): its deviation is
+    // left out of the picture, and the caption says how many cells.
+    let arts = full_artifacts();
+    let out = render_ok(&job("assumed", "succeeded", &arts), &arts);
+    let cov = coverage_map();
+    let dev = deviation_map();
+    let want = cov.data().iter().zip(dev.data()).filter(|(c, d)| **c == 0.25 && d.is_finite()).count();
+    assert!(want > 0);
+    let text = format!("Left out (grey): {} cells the scanner never saw", fmt_count(want));
+    assert!(out.html.contains(&text), "{text} not in the report");
+    // Without the coverage map nothing is left out.
+    let mut bare = full_artifacts();
+    bare.remove("coverage_map");
+    let out = render_ok(&job("bare", "succeeded", &bare), &bare);
+    assert!(!out.html.contains("Left out (grey)"));
 }

@@ -34,8 +34,8 @@ use depthmill_geometry::Mesh;
 use depthmill_geometry::formats::Geometry;
 use depthmill_geometry::mesh_raster::rasterize_mesh_with_stats;
 use depthmill_geometry::raster::{
-    CoverageStats, FillMethod, FillParams, FillReport, Roi, auto_z_range, coverage, fill_holes, grid_for_roi,
-    rasterize_median, try_rasterize_max,
+    COVERAGE_ASSUMED, CoverageStats, FillMethod, FillParams, FillReport, Roi, auto_z_range, coverage,
+    fill_holes, grid_for_roi, rasterize_median, try_rasterize_max,
 };
 use depthmill_geometry::surface_fit::{FitParams, FitReport, rasterize_fit};
 
@@ -412,7 +412,8 @@ pub struct FaceOutput {
     pub raw: HeightMap,
     /// The depth map: `raw` with enclosed holes filled.
     pub depth_map: HeightMap,
-    /// 1 measured, 0.5 filled, 0 hole, NaN outside the footprint; z range [0, 1].
+    /// 1 measured, 0.5 filled (a hole between measurements), 0.25 assumed (never seen, filled by
+    /// [`fill_unseen`]), 0 hole, NaN outside the footprint; z range [0, 1].
     pub coverage_map: HeightMap,
     /// Continuous over-approximation of `depth_map` for roughing.
     pub roughing_map: HeightMap,
@@ -874,9 +875,20 @@ fn finish_face(
         (raw.clone(), FillReport::default())
     };
     let free = free.map(|f| f.effective(&depth_map));
+    let empty_before: Vec<bool> = depth_map.data().iter().map(|z| !z.is_finite()).collect();
     let unseen_filled = free.as_deref().map_or(0, |f| fill_unseen(&mut depth_map, f));
     check_cancel(cancelled)?;
-    let (coverage_map, coverage) = coverage(&raw, &depth_map);
+    let (mut coverage_map, coverage) = coverage(&raw, &depth_map);
+    if unseen_filled > 0 {
+        // The cells only the unseen fill gave a height: assumed, not filled between measurements.
+        for ((c, &was_empty), z) in
+            coverage_map.data_mut().iter_mut().zip(&empty_before).zip(depth_map.data())
+        {
+            if was_empty && z.is_finite() {
+                *c = COVERAGE_ASSUMED;
+            }
+        }
+    }
     let mut roughing_map = match upper {
         None => continuous_over(&depth_map, r.roughing_factor)?,
         Some(mut upper) => {
@@ -1066,6 +1078,11 @@ mod tests {
         let turned = run(FaceOptions { a_deg: Some(10.0), ..Default::default() });
         assert!(turned.stats.unseen_filled > 0);
         assert!(turned.depth_map.data().iter().all(|z| z.is_finite()), "every empty cell is lidded");
+        // The coverage map marks exactly those cells as assumed, apart from filled holes.
+        let assumed =
+            |f: &FaceOutput| f.coverage_map.data().iter().filter(|&&c| c == COVERAGE_ASSUMED).count();
+        assert_eq!(assumed(&turned), turned.stats.unseen_filled);
+        assert_eq!(assumed(&up), 0);
         // The roughing map stays at or above the target.
         for (r, t) in turned.roughing_map.data().iter().zip(turned.depth_map.data()) {
             assert!(r >= t, "roughing {r} below target {t}");
@@ -1134,6 +1151,9 @@ mod tests {
         // The map covers the free space around the plateau (the table out to 6 mm).
         assert!(map.meta().origin_x_mm <= -5.5, "{:?}", map.meta());
         assert_eq!(out.faces[0].stats.unseen_filled, 4 * 40);
+        let cov = &out.faces[0].coverage_map;
+        let cov_at = |x: f64, y: f64| cov.cell_of(x, y).and_then(|(c, r)| cov.get(c, r)).unwrap_or(f32::NAN);
+        assert_eq!(cov_at(11.0, 10.0), COVERAGE_ASSUMED, "the unseen band is assumed, not measured");
         // The roughing map never dips below the target.
         let rough = out.faces[0].roughing_map.data();
         assert!(map.data().iter().zip(rough).all(|(z, r)| !z.is_finite() || *r >= *z));

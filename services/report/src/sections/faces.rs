@@ -189,13 +189,14 @@ impl Ctx<'_> {
         };
         let img = maps::coverage_image(map, &view);
         let counts = maps::coverage_counts(map);
-        let footprint = counts[0] + counts[1] + counts[2];
+        let footprint = counts[0] + counts[1] + counts[2] + counts[3];
         let pct = |n: usize| if footprint > 0 { n as f64 / footprint as f64 * 100.0 } else { 0.0 };
         let area = |n: usize| n as f64 * map.pixel_mm() * map.pixel_mm();
         let mut legend = String::from("<p>");
         for (k, c) in [
             maps::CoverageClass::Measured,
             maps::CoverageClass::Filled,
+            maps::CoverageClass::Assumed,
             maps::CoverageClass::Hole,
             maps::CoverageClass::Outside,
         ]
@@ -203,7 +204,7 @@ impl Ctx<'_> {
         .enumerate()
         {
             let col = c.color();
-            let share = if k < 3 { format!(" {:.1} %", pct(counts[k])) } else { String::new() };
+            let share = if k < 4 { format!(" {:.1} %", pct(counts[k])) } else { String::new() };
             let _ = write!(
                 legend,
                 r#"<span class="swatch" style="background:rgb({},{},{})"></span>{}{}"#,
@@ -226,8 +227,12 @@ impl Ctx<'_> {
                 format!("{} cells ({:.1} %)", fmt_count(counts[1]), pct(counts[1])),
             ),
             (
+                "Assumed, never seen (a height from around them)".into(),
+                format!("{} cells ({:.1} %)", fmt_count(counts[2]), pct(counts[2])),
+            ),
+            (
                 "Holes left".into(),
-                format!("{} cells, {} mm²", fmt_count(counts[2]), fmt_num(area(counts[2]))),
+                format!("{} cells, {} mm²", fmt_count(counts[3]), fmt_num(area(counts[3]))),
             ),
         ];
         if face == 0

@@ -64,7 +64,8 @@ impl Ctx<'_> {
             }
             match self.decode(&dkey) {
                 Err(e) => body.push_str(&missing(&e)),
-                Ok(d) => {
+                Ok(mut d) => {
+                    let unseen = self.leave_out_assumed(&mut d.map, suffix);
                     let map = &d.map;
                     match (maps::map_view(map), maps::deviation_range(map)) {
                         (Some(view), Some((range, lo, hi))) => {
@@ -83,6 +84,14 @@ impl Ctx<'_> {
                                 fmt_num(hi),
                                 fmt_num(range)
                             );
+                            let caption = if unseen > 0 {
+                                format!(
+                                    "{caption} Left out (grey): {} cells the scanner never saw, whose target height was assumed from around them.",
+                                    fmt_count(unseen)
+                                )
+                            } else {
+                                caption
+                            };
                             let caption =
                                 if faces.len() > 1 { format!("Face {}. {caption}", fi + 1) } else { caption };
                             let file = format!("{}.png", dkey.replace('@', "_face"));
@@ -109,6 +118,25 @@ impl Ctx<'_> {
         body.push_str(&self.against_part()?);
         body.push_str(&self.against_preview()?);
         Ok(section("deviation", "Deviation from the original part", &body))
+    }
+
+    /// Leaves out (NaN) the deviation of the cells the face's coverage map marks as assumed
+    /// (never seen by the scanner, given a height from around them): the target there is a
+    /// guess, so a "gouge" there says nothing about the machining. Returns how many; none when
+    /// the coverage map is missing or on another grid.
+    fn leave_out_assumed(&self, map: &mut HeightMap, suffix: &str) -> usize {
+        let Ok(c) = self.decode(&format!("coverage_map{suffix}")) else { return 0 };
+        if c.map.width() != map.width() || c.map.height() != map.height() {
+            return 0;
+        }
+        let mut n = 0;
+        for (z, &cv) in map.data_mut().iter_mut().zip(c.map.data()) {
+            if z.is_finite() && maps::CoverageClass::of(cv) == maps::CoverageClass::Assumed {
+                *z = f32::NAN;
+                n += 1;
+            }
+        }
+        n
     }
 
     /// The machined part against the original part itself, when the job started from its mesh
