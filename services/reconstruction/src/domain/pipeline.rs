@@ -875,11 +875,13 @@ fn finish_face(
         (raw.clone(), FillReport::default())
     };
     let free = free.map(|f| f.effective(&depth_map));
-    let empty_before: Vec<bool> = depth_map.data().iter().map(|z| !z.is_finite()).collect();
+    // The cells empty before the unseen fill (only when there is one).
+    let empty_before: Option<Vec<bool>> =
+        free.as_ref().map(|_| depth_map.data().iter().map(|z| !z.is_finite()).collect());
     let unseen_filled = free.as_deref().map_or(0, |f| fill_unseen(&mut depth_map, f));
     check_cancel(cancelled)?;
     let (mut coverage_map, coverage) = coverage(&raw, &depth_map);
-    if unseen_filled > 0 {
+    if let Some(empty_before) = empty_before.filter(|_| unseen_filled > 0) {
         // The cells only the unseen fill gave a height: assumed, not filled between measurements.
         for ((c, &was_empty), z) in
             coverage_map.data_mut().iter_mut().zip(&empty_before).zip(depth_map.data())

@@ -584,6 +584,14 @@ fn random_grid_ray(rng: &mut StdRng) -> (usize, Vector3<f64>, Point3<f64>) {
     (k, d, o)
 }
 
+/// A random tool axis across grid axis `k` (in the plane of the other two), or `None` when the
+/// draw is too short to normalise well.
+fn random_axis_across(rng: &mut StdRng, k: usize) -> Option<AxisFrame> {
+    let mut a = random_vector(rng, 1.0);
+    a[k] = 0.0;
+    (a.norm() >= 0.1).then(|| AxisFrame::new(&Unit::new_normalize(a)))
+}
+
 /// A closed form's interval against the general one: equal within 1e-6 mm where both meet the
 /// ray (returns 1 then, to count the hits), or both missing it but for grazing rays, where one form
 /// may keep a point interval the other rounds away.
@@ -627,12 +635,7 @@ fn the_cylinder_closed_form_across_its_axis_matches_the_general_sweep() {
     let mut hits = 0;
     for _ in 0..5000 {
         let (k, dvec, o) = random_grid_ray(&mut rng);
-        let mut a = random_vector(&mut rng, 1.0);
-        a[k] = 0.0;
-        if a.norm() < 0.1 {
-            continue;
-        }
-        let f = AxisFrame::new(&Unit::new_normalize(a));
+        let Some(f) = random_axis_across(&mut rng, k) else { continue };
         let p0 = Point3::from(random_vector(&mut rng, 2.0));
         let v = match rng.random_range(0..4) {
             0 => Vector3::zeros(),
@@ -825,12 +828,7 @@ fn the_disc_chord_across_the_axis_matches_the_capsule_in_space() {
     for case in 0..20_000 {
         let tool = &solids[case % solids.len()];
         let (k, dvec, o) = random_grid_ray(&mut rng);
-        let mut a = random_vector(&mut rng, 1.0);
-        a[k] = 0.0;
-        if a.norm() < 0.1 {
-            continue;
-        }
-        let f = AxisFrame::new(&Unit::new_normalize(a));
+        let Some(f) = random_axis_across(&mut rng, k) else { continue };
         let from = Point3::from(random_vector(&mut rng, 3.0));
         let v = if case % 10 == 0 {
             Vector3::zeros()
