@@ -109,7 +109,7 @@ async fn a_mesh_job_is_scanned_into_a_cloud_on_the_part_and_goes_on_to_reconstru
     assert_eq!(pass.len(), cloud.points.len());
     assert!(cloud.intensity.is_some());
     let (mut sq, mut n, mut max) = (0.0, 0usize, 0.0f64);
-    for p in cloud.points.iter().filter(|p| p.x.abs() < 14.0 && p.y.abs() < 14.0) {
+    for p in cloud.points.iter().map(|p| p.cast::<f64>()).filter(|p| p.x.abs() < 14.0 && p.y.abs() < 14.0) {
         // Vertical distance; the dome's flanks are gentle, so this bounds the normal distance.
         let d = p.z - dome(p.x, p.y);
         sq += d * d;

@@ -8,8 +8,9 @@ execute and report), waits for it, and reads the server's peak resident set (`Vm
 /proc/PID/status) before the submission (the idle stack) and after the job. Prints the cloud's size
 on disk, both peaks and their ratios to it (target: peak <= 2x the cloud's size).
 
-Usage: python3 services/cli/scripts/bench_serve_memory.py [--points N] [--keep]
-Needs numpy (`pip install numpy`). Builds `target/release/depthmill` first.
+Usage: python3 services/cli/scripts/bench_serve_memory.py [--points N] [--keep] [--bin PATH]
+Needs numpy (`pip install numpy`). Builds `target/release/depthmill` first, unless `--bin` names
+the binary to measure (another build, to compare two on the same cloud).
 """
 
 import argparse
@@ -67,8 +68,13 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--points", type=int, default=10_000_000)
     ap.add_argument("--keep", action="store_true", help="keep the temporary folder")
+    ap.add_argument("--bin", help="the depthmill binary to measure (default: build target/release/depthmill)")
     a = ap.parse_args()
-    subprocess.run(["cargo", "build", "--release", "--bin", "depthmill"], cwd=ROOT, check=True)
+    global BIN
+    if a.bin:
+        BIN = os.path.abspath(a.bin)
+    else:
+        subprocess.run(["cargo", "build", "--release", "--bin", "depthmill"], cwd=ROOT, check=True)
     tmp = tempfile.mkdtemp(prefix="depthmill-serve-memory-")
     try:
         cloud = os.path.join(tmp, "cloud.ply")

@@ -200,7 +200,7 @@ fn run_on_machine(input: &Path, args: &ScanArgs, output: &Path) -> anyhow::Resul
     let part = place_on_rotor(&mesh, 5.0);
     let (cloud, r) = scan_on_machine(&cell, &part, &cal.calibration, &opts)
         .map_err(|e| anyhow::anyhow!("{}: {e}", input.display()))?;
-    let pc = PointCloud::new(cloud.points, None, None).map_err(|e| anyhow::anyhow!("{e}"))?;
+    let pc = PointCloud::from_points(cloud.points);
     let file = std::fs::File::create(output).with_context(|| format!("writing {}", output.display()))?;
     let comments =
         vec![format!("scanned on the mill; chain calibration reference {}", cal.calibration.reference)];

@@ -1,4 +1,5 @@
-//! [`PointCloud`]: points in millimetres with optional per-point intensity and normals.
+//! [`PointCloud`]: points in millimetres with optional per-point intensity and normals, and
+//! [`CloudPoint`], what the rasterisers and filters read a point through.
 
 use nalgebra::{Isometry3, Point3, Vector3};
 use serde::{Deserialize, Serialize};
@@ -24,13 +25,46 @@ impl Aabb {
     }
 }
 
+/// A point the rasterisers, ROIs and filters can read: stored in single or double precision,
+/// always read as `f64` (exactly: every `f32` is an `f64`).
+pub trait CloudPoint: Copy + Send + Sync {
+    /// The point in double precision.
+    fn at(&self) -> Point3<f64>;
+}
+
+impl CloudPoint for Point3<f64> {
+    #[inline(always)]
+    fn at(&self) -> Point3<f64> {
+        *self
+    }
+}
+
+impl CloudPoint for Point3<f32> {
+    #[inline(always)]
+    fn at(&self) -> Point3<f64> {
+        Point3::new(f64::from(self.x), f64::from(self.y), f64::from(self.z))
+    }
+}
+
+/// A point in double precision rounded to the cloud's single precision (to nearest; beyond
+/// `f32`'s range a coordinate becomes infinite, and the point is then not finite).
+#[inline]
+pub fn single(p: &Point3<f64>) -> Point3<f32> {
+    Point3::new(p.x as f32, p.y as f32, p.z as f32)
+}
+
 /// A point cloud in millimetres, in whatever frame its producer documents.
+///
+/// Points are stored in single precision (`f32`: 24 bits of mantissa, under 0.031 µm of
+/// rounding for coordinates within ±1 m; the scanner's noise is about a thousand times that),
+/// like the float PLY files clouds come in, so a cloud takes no more memory than its file; all
+/// arithmetic on them is done in `f64` ([`CloudPoint::at`]).
 ///
 /// `intensity` and `normals`, when present, run parallel to `points` (same length; checked by
 /// [`PointCloud::new`] and [`PointCloud::validate`]). Normals are unit vectors or zero (unknown).
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct PointCloud {
-    pub points: Vec<Point3<f64>>,
+    pub points: Vec<Point3<f32>>,
     pub intensity: Option<Vec<f32>>,
     pub normals: Option<Vec<Vector3<f32>>>,
 }
@@ -38,7 +72,7 @@ pub struct PointCloud {
 impl PointCloud {
     /// A cloud with the given arrays, validated for equal lengths.
     pub fn new(
-        points: Vec<Point3<f64>>,
+        points: Vec<Point3<f32>>,
         intensity: Option<Vec<f32>>,
         normals: Option<Vec<Vector3<f32>>>,
     ) -> Result<Self> {
@@ -47,9 +81,13 @@ impl PointCloud {
         Ok(cloud)
     }
 
-    /// A cloud of bare points.
-    pub fn from_points(points: Vec<Point3<f64>>) -> Self {
-        PointCloud { points, intensity: None, normals: None }
+    /// A cloud of bare points given in double precision (rounded, see [`single`]).
+    pub fn from_points(points: impl IntoIterator<Item = Point3<f64>>) -> Self {
+        PointCloud {
+            points: points.into_iter().map(|p| single(&p)).collect(),
+            intensity: None,
+            normals: None,
+        }
     }
 
     /// Checks that the parallel arrays have one entry per point.
@@ -72,25 +110,33 @@ impl PointCloud {
         self.points.is_empty()
     }
 
-    /// Bounding box of the points with all-finite coordinates, or `None` if there are none.
-    pub fn bounds(&self) -> Option<Aabb> {
-        let mut it = self.points.iter().filter(|p| p.coords.iter().all(|c| c.is_finite()));
-        let first = *it.next()?;
-        Some(it.fold(Aabb { min: first, max: first }, |b, p| Aabb { min: b.min.inf(p), max: b.max.sup(p) }))
+    /// The points in double precision.
+    pub fn points_f64(&self) -> Vec<Point3<f64>> {
+        self.points.iter().map(CloudPoint::at).collect()
     }
 
-    /// Multiplies every coordinate by `factor` (a change of units); normals are unchanged.
+    /// Bounding box of the points with all-finite coordinates, or `None` if there are none.
+    pub fn bounds(&self) -> Option<Aabb> {
+        let mut it =
+            self.points.iter().map(CloudPoint::at).filter(|p| p.coords.iter().all(|c| c.is_finite()));
+        let first = it.next()?;
+        Some(it.fold(Aabb { min: first, max: first }, |b, p| Aabb { min: b.min.inf(&p), max: b.max.sup(&p) }))
+    }
+
+    /// Multiplies every coordinate by `factor` (a change of units; computed in `f64`, then
+    /// rounded); normals are unchanged.
     pub fn scale(&mut self, factor: f64) {
         for p in &mut self.points {
-            p.coords *= factor;
+            *p = single(&(p.at() * factor));
         }
     }
 
-    /// Maps every point by `iso` (`p ↦ iso · p`) and rotates the normals by its rotation, in place.
-    /// Use it to change frames: with `iso = b_from_a`, a cloud in frame `a` ends up in frame `b`.
+    /// Maps every point by `iso` (`p ↦ iso · p`, computed in `f64`, then rounded) and rotates the
+    /// normals by its rotation, in place. Use it to change frames: with `iso = b_from_a`, a cloud
+    /// in frame `a` ends up in frame `b`.
     pub fn transform(&mut self, iso: &Isometry3<f64>) {
         for p in &mut self.points {
-            *p = iso * *p;
+            *p = single(&(iso * p.at()));
         }
         if let Some(normals) = &mut self.normals {
             let rot = iso.rotation.to_rotation_matrix().matrix().cast::<f32>();
@@ -130,7 +176,7 @@ mod tests {
 
     #[test]
     fn validate_parallel_lengths() {
-        let pts = vec![Point3::origin(), Point3::new(1.0, 2.0, 3.0)];
+        let pts = vec![Point3::origin(), Point3::new(1.0f32, 2.0, 3.0)];
         assert!(PointCloud::new(pts.clone(), Some(vec![1.0, 2.0]), None).is_ok());
         let e = PointCloud::new(pts.clone(), None, Some(vec![Vector3::z()])).expect_err("normals");
         assert_eq!(e.to_string(), "point cloud normals has 1 entries but the cloud has 2 points");
@@ -141,7 +187,7 @@ mod tests {
     #[test]
     fn bounds_and_transform() {
         let mut cloud = PointCloud::new(
-            vec![Point3::new(1.0, 0.0, 0.0), Point3::new(0.0, 2.0, -1.0), Point3::new(f64::NAN, 0.0, 0.0)],
+            vec![Point3::new(1.0, 0.0, 0.0), Point3::new(0.0, 2.0, -1.0), Point3::new(f32::NAN, 0.0, 0.0)],
             None,
             Some(vec![Vector3::x(), Vector3::y(), Vector3::z()]),
         )
@@ -155,8 +201,8 @@ mod tests {
             UnitQuaternion::from_axis_angle(&Vector3::z_axis(), FRAC_PI_2),
         );
         cloud.transform(&iso);
-        assert!((cloud.points[0] - Point3::new(10.0, 1.0, 0.0)).norm() < 1e-12);
-        assert!((cloud.points[1] - Point3::new(8.0, 0.0, -1.0)).norm() < 1e-12);
+        assert!((cloud.points[0].at() - Point3::new(10.0, 1.0, 0.0)).norm() < 1e-6);
+        assert!((cloud.points[1].at() - Point3::new(8.0, 0.0, -1.0)).norm() < 1e-6);
         let n = cloud.normals.as_ref().expect("normals");
         assert!((n[0] - Vector3::y()).norm() < 1e-6 && (n[1] + Vector3::x()).norm() < 1e-6);
         assert_eq!(PointCloud::default().bounds(), None);

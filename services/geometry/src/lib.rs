@@ -19,7 +19,7 @@
 //! - [`png_io`]: 8/16-bit grayscale PNG with `depthmill:` text metadata; quantisation.
 //! - [`npy`]: NumPy `.npy` arrays plus the `MAP.npy.json` sidecar.
 //! - [`heightmap_io`]: [`HeightMap::read`]/[`HeightMap::write`] by extension, [`HeightMapFormat`].
-//! - [`cloud`]: [`PointCloud`] and [`Aabb`]; [`mesh`]: [`Mesh`], an indexed triangle mesh.
+//! - [`cloud`]: [`PointCloud`] (single-precision points, read through [`CloudPoint`]) and [`Aabb`]; [`mesh`]: [`Mesh`], an indexed triangle mesh.
 //! - [`formats`]: streaming readers of XYZ, PLY (ascii and binary) and STL (ascii and binary) with
 //!   [`formats::ReadLimits`], format sniffing, and the PLY and STL writers.
 //! - [`raster`]: point clouds to height maps (max-Z binning, enclosed-hole filling, coverage);
@@ -58,7 +58,7 @@ pub mod tool;
 pub mod units;
 
 pub use artifact::{ArtifactRef, MediaType};
-pub use cloud::{Aabb, PointCloud};
+pub use cloud::{Aabb, CloudPoint, PointCloud};
 pub use error::GeometryError;
 pub use face::Face;
 pub use formats::FormatError;

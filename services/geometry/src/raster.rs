@@ -114,8 +114,7 @@
 use std::f64::consts::SQRT_2;
 use std::fmt;
 
-use crate::{HeightMap, HeightMapMeta, MAX_CELLS};
-use nalgebra::Point3;
+use crate::{CloudPoint, HeightMap, HeightMapMeta, MAX_CELLS};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -201,7 +200,7 @@ impl Roi {
     /// The XY bounding box of the points with three finite coordinates, grown by `margin_mm` on
     /// every side (a negative or non-finite margin counts as 0), its max moved up by one ulp so the
     /// highest points lie inside the half-open ROI. `None` without such points.
-    pub fn around(points: &[Point3<f64>], margin_mm: f64) -> Option<Roi> {
+    pub fn around<P: CloudPoint>(points: &[P], margin_mm: f64) -> Option<Roi> {
         let empty = (f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY);
         let (x0, y0, x1, y1) = points
             .par_iter()
@@ -209,6 +208,7 @@ impl Roi {
             .fold(
                 || empty,
                 |(x0, y0, x1, y1), p| {
+                    let p = p.at();
                     if p.x.is_finite() && p.y.is_finite() && p.z.is_finite() {
                         (x0.min(p.x), y0.min(p.y), x1.max(p.x), y1.max(p.y))
                     } else {
@@ -421,14 +421,15 @@ type Counts = (usize, usize);
 
 /// Cell index (or `bins.dummy`) and key of every point of `block` (at most [`BLOCK`] points).
 #[inline(always)]
-fn locate_block(
-    block: &[Point3<f64>],
+fn locate_block<P: CloudPoint>(
+    block: &[P],
     bins: &Binner,
     idx: &mut [u32; BLOCK],
     key: &mut [u32; BLOCK],
 ) -> Counts {
     let mut binned = 0usize;
     for ((p, i), k) in block.iter().zip(idx.iter_mut()).zip(key.iter_mut()) {
+        let p = p.at();
         let z = p.z as f32;
         // Non-finite X or Y land outside by themselves; the Z test is false for NaN and infinities.
         let (c, r) = (bins.x.cell(p.x), bins.y.cell(p.y));
@@ -443,6 +444,7 @@ fn locate_block(
     let mut non_finite = 0usize;
     if binned < block.len() {
         for (p, &i) in block.iter().zip(idx.iter()) {
+            let p = p.at();
             let finite = p.x.is_finite() && p.y.is_finite() && (p.z as f32).is_finite();
             non_finite += usize::from(i == bins.dummy && !finite);
         }
@@ -451,7 +453,7 @@ fn locate_block(
 }
 
 /// Bins `points` into `keys` (one entry per cell plus the dummy at the end) by max.
-fn bin_direct(points: &[Point3<f64>], bins: &Binner, keys: &mut [u32]) -> Counts {
+fn bin_direct<P: CloudPoint>(points: &[P], bins: &Binner, keys: &mut [u32]) -> Counts {
     let (mut idx, mut key) = ([0u32; BLOCK], [0u32; BLOCK]);
     let mut counts = (0, 0);
     for block in points.chunks(BLOCK) {
@@ -468,7 +470,7 @@ fn bin_direct(points: &[Point3<f64>], bins: &Binner, keys: &mut [u32]) -> Counts
 
 /// Appends `(index << 32) | key` of every binned point of `points` to the bucket of its band
 /// (`index >> shift`).
-fn bin_partition(points: &[Point3<f64>], bins: &Binner, shift: u32, buckets: &mut [Vec<u64>]) -> Counts {
+fn bin_partition<P: CloudPoint>(points: &[P], bins: &Binner, shift: u32, buckets: &mut [Vec<u64>]) -> Counts {
     let (mut idx, mut key) = ([0u32; BLOCK], [0u32; BLOCK]);
     let mut counts = (0, 0);
     for block in points.chunks(BLOCK) {
@@ -514,7 +516,7 @@ const PARTITION_ROUND: usize = 1 << 12;
 
 /// Whether consecutive points mostly fall within a few rows of each other (scan order): checked on
 /// 64 windows of 32 consecutive points spread over the cloud.
-fn is_local(points: &[Point3<f64>], bins: &Binner) -> bool {
+fn is_local<P: CloudPoint>(points: &[P], bins: &Binner) -> bool {
     let (mut idx, mut key) = ([0u32; BLOCK], [0u32; BLOCK]);
     let (mut near, mut pairs) = (0usize, 0usize);
     let reach = (bins.width_f * 4.0).min(f64::from(u32::MAX)) as u32;
@@ -532,7 +534,7 @@ fn is_local(points: &[Point3<f64>], bins: &Binner) -> bool {
     2 * near >= pairs
 }
 
-fn choose_strategy(points: &[Point3<f64>], bins: &Binner, cells: usize) -> Strategy {
+fn choose_strategy<P: CloudPoint>(points: &[P], bins: &Binner, cells: usize) -> Strategy {
     let threads = rayon::current_num_threads().max(1);
     if threads == 1 || points.len() < SERIAL_POINTS {
         Strategy::Serial
@@ -547,8 +549,8 @@ fn choose_strategy(points: &[Point3<f64>], bins: &Binner, cells: usize) -> Strat
 }
 
 /// The bits of the f32 max per cell (`cells + 1` entries, the last one the dummy) and the counts.
-fn rasterize_keys(
-    points: &[Point3<f64>],
+fn rasterize_keys<P: CloudPoint>(
+    points: &[P],
     bins: &Binner,
     cells: usize,
     strategy: Strategy,
@@ -656,8 +658,8 @@ impl RasterStats {
     }
 }
 
-fn rasterize_with(
-    points: &[Point3<f64>],
+fn rasterize_with<P: CloudPoint>(
+    points: &[P],
     grid: &HeightMapMeta,
     strategy: Option<Strategy>,
 ) -> Result<(HeightMap, RasterStats)> {
@@ -680,7 +682,7 @@ fn rasterize_with(
 ///
 /// If `grid` fails [`HeightMapMeta::validate`] (grids from [`grid_for_roi`] never do); use
 /// [`try_rasterize_max`] for a `Result`.
-pub fn rasterize_max(points: &[Point3<f64>], grid: &HeightMapMeta) -> (HeightMap, RasterStats) {
+pub fn rasterize_max<P: CloudPoint>(points: &[P], grid: &HeightMapMeta) -> (HeightMap, RasterStats) {
     match rasterize_with(points, grid, None) {
         Ok(out) => out,
         Err(e) => panic!("rasterize_max needs a valid grid: {e}"),
@@ -688,7 +690,10 @@ pub fn rasterize_max(points: &[Point3<f64>], grid: &HeightMapMeta) -> (HeightMap
 }
 
 /// [`rasterize_max`] returning an error for an invalid grid instead of panicking.
-pub fn try_rasterize_max(points: &[Point3<f64>], grid: &HeightMapMeta) -> Result<(HeightMap, RasterStats)> {
+pub fn try_rasterize_max<P: CloudPoint>(
+    points: &[P],
+    grid: &HeightMapMeta,
+) -> Result<(HeightMap, RasterStats)> {
     rasterize_with(points, grid, None)
 }
 
@@ -703,7 +708,10 @@ pub fn try_rasterize_max(points: &[Point3<f64>], grid: &HeightMapMeta) -> Result
 /// Cost: one pass to locate every point, a counting sort of the Z values by cell
 /// (`O(points + cells)` memory: 4 bytes a point and 8 a cell) and a selection per cell, in
 /// parallel over cells.
-pub fn rasterize_median(points: &[Point3<f64>], grid: &HeightMapMeta) -> Result<(HeightMap, RasterStats)> {
+pub fn rasterize_median<P: CloudPoint>(
+    points: &[P],
+    grid: &HeightMapMeta,
+) -> Result<(HeightMap, RasterStats)> {
     let cells = checked_cells(grid)?;
     let (index, binned, non_finite) = cell_indices(points, grid);
     // Counting sort of the binned Z values by cell.
@@ -720,7 +728,7 @@ pub fn rasterize_median(points: &[Point3<f64>], grid: &HeightMapMeta) -> Result<
     let mut z = vec![0f32; binned];
     for (&i, p) in index.iter().zip(points) {
         if let Some(at) = next.get_mut(i as usize).filter(|_| (i as usize) < cells) {
-            z[*at] = p.z as f32;
+            z[*at] = p.at().z as f32;
             *at += 1;
         }
     }
@@ -740,7 +748,7 @@ pub fn rasterize_median(points: &[Point3<f64>], grid: &HeightMapMeta) -> Result<
 
 /// The cell of every point, row-major (`row · width + col`, the cell [`raster_cell`] gives; the
 /// grid's cell count for a point not binned), with the counts of points binned and not finite.
-pub(crate) fn cell_indices(points: &[Point3<f64>], grid: &HeightMapMeta) -> (Vec<u32>, usize, usize) {
+pub(crate) fn cell_indices<P: CloudPoint>(points: &[P], grid: &HeightMapMeta) -> (Vec<u32>, usize, usize) {
     let bins = Binner::new(grid);
     let mut index = vec![bins.dummy; points.len()];
     let (binned, non_finite) = index
@@ -1430,6 +1438,7 @@ pub fn coverage(raw: &HeightMap, filled: &HeightMap) -> (HeightMap, CoverageStat
 #[cfg(test)]
 mod tests {
     use super::*;
+    use nalgebra::Point3;
     use rand::rngs::StdRng;
     use rand::{Rng, SeedableRng};
 
@@ -1763,7 +1772,7 @@ mod tests {
             assert_eq!(stats.non_finite, 2);
         }
         assert_eq!(Roi::around(&[Point3::new(f64::NAN, 0.0, 0.0)], 1.0), None);
-        assert_eq!(Roi::around(&[], 1.0), None);
+        assert_eq!(Roi::around::<Point3<f64>>(&[], 1.0), None);
         let one = Roi::around(&[Point3::new(1.0, 1.0, 1.0)], 0.0).expect("one point");
         assert!(one.validate().is_ok());
         assert_eq!(grid_for_roi(&one, 0.1).map(|g| (g.width, g.height)).expect("grid"), (1, 1));

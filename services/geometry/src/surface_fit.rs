@@ -33,10 +33,11 @@
 
 use std::time::Instant;
 
-use nalgebra::{Matrix3, Matrix6, Point3, Vector3, Vector6};
+use nalgebra::{Matrix3, Matrix6, Vector3, Vector6};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+use crate::CloudPoint;
 use crate::heightmap::{HeightMap, HeightMapMeta};
 use crate::raster::{RasterError, RasterStats, cell_indices, checked_cells};
 
@@ -160,8 +161,8 @@ enum Kind {
 }
 
 /// The map of `points` on `grid` by a robust local quadric fit (see the module docs).
-pub fn rasterize_fit(
-    points: &[Point3<f64>],
+pub fn rasterize_fit<P: CloudPoint>(
+    points: &[P],
     grid: &HeightMapMeta,
     params: &FitParams,
 ) -> Result<(HeightMap, RasterStats, FitReport), RasterError> {
@@ -170,12 +171,13 @@ pub fn rasterize_fit(
     let cells_n = checked_cells(grid)?;
     let (index, binned, non_finite) = cell_indices(points, grid);
     // A reference height near the points so cell means keep their precision in f32.
-    let z_ref = points.iter().map(|p| p.z).find(|z| z.is_finite()).unwrap_or(0.0);
+    let z_ref = points.iter().map(|p| p.at().z).find(|z| z.is_finite()).unwrap_or(0.0);
     let (w, h, p) = (grid.width as usize, grid.height as usize, grid.pixel_mm);
     // Per cell: count, sums of x, y, z, xx, xy, yy (x, y from the cell's centre).
     let mut sums = vec![(0u32, [0.0f64; 6]); cells_n];
     for (&i, pt) in index.iter().zip(points) {
         let Some((n, s)) = sums.get_mut(i as usize) else { continue };
+        let pt = pt.at();
         let (c, r) = ((i as usize % w) as f64, (i as usize / w) as f64);
         let x = pt.x - (grid.origin_x_mm + (c + 0.5) * p);
         let y = pt.y - (grid.origin_y_mm + (r + 0.5) * p);
@@ -647,6 +649,7 @@ impl Normal {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use nalgebra::Point3;
     use rand::rngs::StdRng;
     use rand::{Rng, SeedableRng};
 

@@ -16,7 +16,7 @@ use std::sync::{Arc, Mutex};
 
 use depthmill_common::artifacts::{ArtifactError, ArtifactStore, ObjectArtifactStore};
 use depthmill_common::stage::StageRegistry;
-use depthmill_geometry::{HeightMap, PngDepth};
+use depthmill_geometry::{CloudPoint, HeightMap, PngDepth};
 use depthmill_proto::ErrorCode;
 use depthmill_proto::machine::v1 as pb;
 use depthmill_proto::types::v1 as pb_types;
@@ -228,7 +228,7 @@ impl MachineServiceImpl {
                 let stride = c.points.len().div_ceil(MAX_REFERENCE_POINTS).max(1);
                 Reference {
                     source: "point cloud".into(),
-                    points: c.points.into_iter().step_by(stride).collect(),
+                    points: c.points.iter().step_by(stride).map(CloudPoint::at).collect(),
                 }
             }
         })

@@ -131,7 +131,7 @@ fn scan_like_cloud(n: usize, seed: u64) -> PointCloud {
 /// 100 mm segment), `duplicates` (the surface with every tenth point moved to one spot).
 fn other_cloud(shape: &str, n: usize, seed: u64) -> BoxResult<PointCloud> {
     let mut rng = StdRng::seed_from_u64(seed);
-    let points = match shape {
+    let points: Vec<Point3<f64>> = match shape {
         "cube" => (0..n)
             .map(|_| Point3::new(rng.random::<f64>(), rng.random::<f64>(), rng.random::<f64>()) * 100.0)
             .collect(),
@@ -146,7 +146,7 @@ fn other_cloud(shape: &str, n: usize, seed: u64) -> BoxResult<PointCloud> {
             for p in c.points.iter_mut().step_by(10) {
                 *p = Point3::new(20.0, 20.0, 0.0);
             }
-            c.points
+            c.points_f64()
         }
         other => return Err(format!("unknown --shape {other} (surface, cube, line, duplicates)").into()),
     };
@@ -204,7 +204,8 @@ fn write_cloud_npy(path: &Path, cloud: &PointCloud) -> BoxResult<()> {
     let mut w = BufWriter::new(std::fs::File::create(path)?);
     w.write_all(&npy_header("<f8", &format!("({}, 3)", cloud.len())))?;
     for p in &cloud.points {
-        for c in [p.x, p.y, p.z] {
+        // The cloud's single-precision coordinates, widened exactly.
+        for c in [p.x, p.y, p.z].map(f64::from) {
             w.write_all(&c.to_le_bytes())?;
         }
     }
@@ -248,7 +249,7 @@ fn read_cloud_npy(path: &Path) -> BoxResult<PointCloud> {
         .into());
     }
     let f = |c: &[u8]| f64::from_le_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]]);
-    let points =
+    let points: Vec<Point3<f64>> =
         data.chunks_exact(24).map(|p| Point3::new(f(&p[0..8]), f(&p[8..16]), f(&p[16..24]))).collect();
     Ok(PointCloud::from_points(points))
 }

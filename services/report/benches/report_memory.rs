@@ -35,13 +35,10 @@ fn peak_rss_mb() -> f64 {
 
 fn write_cloud(path: &Path, n: usize) -> std::io::Result<()> {
     let side = (n as f64).sqrt().ceil() as usize;
-    let points = (0..n)
-        .map(|i| {
-            let (x, y) = ((i % side) as f64 * 0.05, (i / side) as f64 * 0.05);
-            Point3::new(x, y, 5.0 + (x * 0.2).sin() * (y * 0.3).cos())
-        })
-        .collect();
-    let cloud = PointCloud::from_points(points);
+    let cloud = PointCloud::from_points((0..n).map(|i| {
+        let (x, y) = ((i % side) as f64 * 0.05, (i / side) as f64 * 0.05);
+        Point3::new(x, y, 5.0 + (x * 0.2).sin() * (y * 0.3).cos())
+    }));
     let mut w = BufWriter::new(File::create(path)?);
     write_ply(&mut w, &cloud, None, PlyEncoding::BinaryLittleEndian, &[]).map_err(std::io::Error::other)?;
     w.flush()

@@ -8,7 +8,7 @@
 
 use std::io::{BufReader, Cursor};
 
-use depthmill_geometry::PointCloud;
+use depthmill_geometry::{CloudPoint, PointCloud};
 
 use super::raster::{ColorMap, RgbImage, VIRIDIS};
 
@@ -32,9 +32,10 @@ pub struct CloudView {
     pub drawn: usize,
 }
 
-fn robust_bounds(points: &[depthmill_geometry::nalgebra::Point3<f64>], axis: usize) -> Option<(f64, f64)> {
+fn robust_bounds(points: &[depthmill_geometry::nalgebra::Point3<f32>], axis: usize) -> Option<(f64, f64)> {
     let step = (points.len() / 100_000).max(1);
-    let mut v: Vec<f64> = points.iter().step_by(step).map(|p| p[axis]).filter(|x| x.is_finite()).collect();
+    let mut v: Vec<f64> =
+        points.iter().step_by(step).map(|p| f64::from(p[axis])).filter(|x| x.is_finite()).collect();
     if v.is_empty() {
         return None;
     }
@@ -71,6 +72,7 @@ fn splat(
     let r = ((spacing_px * 0.6).round() as i64).clamp(0, 6);
     let mut drawn = 0usize;
     for p in pts {
+        let p = p.at();
         let u = (p[h_axis] - h0) * s;
         let v = (v1 - p[v_axis]) * s;
         if !(u >= 0.0 && v >= 0.0 && u < w as f64 && v < h as f64) {

@@ -42,7 +42,7 @@ use std::fs::File;
 use std::io::{self, BufRead, BufReader, Cursor, Read};
 use std::path::Path;
 
-use crate::PointCloud;
+use crate::cloud::{CloudPoint, PointCloud};
 use nalgebra::{Point3, Vector3};
 
 use crate::mesh::Mesh;
@@ -616,8 +616,23 @@ pub(crate) fn parse_f32(tok: &[u8]) -> Option<f32> {
 // The cloud being built.
 
 /// Parallel arrays of a cloud under construction, applying the non-finite rule on push.
+/// A sink's points: single precision for a cloud, double for a mesh's vertices.
+pub(crate) enum SinkPoints {
+    Single(Vec<Point3<f32>>),
+    Double(Vec<Point3<f64>>),
+}
+
+impl SinkPoints {
+    fn len(&self) -> usize {
+        match self {
+            SinkPoints::Single(v) => v.len(),
+            SinkPoints::Double(v) => v.len(),
+        }
+    }
+}
+
 pub(crate) struct CloudSink {
-    pub(crate) points: Vec<Point3<f64>>,
+    pub(crate) points: SinkPoints,
     pub(crate) intensity: Option<Vec<f32>>,
     pub(crate) normals: Option<Vec<Vector3<f32>>>,
     pub(crate) pass: Option<Vec<u16>>,
@@ -636,7 +651,8 @@ pub(crate) struct CloudSink {
 }
 
 impl CloudSink {
-    /// An empty sink with the given arrays, reserving `reserve` points.
+    /// An empty sink with the given arrays, reserving `reserve` points. `track_dropped` is for
+    /// a mesh's vertices: they are kept in double precision, with the indices of those dropped.
     pub(crate) fn new(
         intensity: bool,
         normals: bool,
@@ -645,7 +661,11 @@ impl CloudSink {
         reserve: usize,
     ) -> Self {
         CloudSink {
-            points: Vec::with_capacity(reserve),
+            points: if track_dropped {
+                SinkPoints::Double(Vec::with_capacity(reserve))
+            } else {
+                SinkPoints::Single(Vec::with_capacity(reserve))
+            },
             intensity: intensity.then(|| Vec::with_capacity(reserve)),
             normals: normals.then(|| Vec::with_capacity(reserve)),
             pass: pass.then(|| Vec::with_capacity(reserve)),
@@ -676,7 +696,10 @@ impl CloudSink {
                 i % 2 == 1
             });
         }
-        odd_out(&mut self.points);
+        match &mut self.points {
+            SinkPoints::Single(v) => odd_out(v),
+            SinkPoints::Double(v) => odd_out(v),
+        }
         if let Some(v) = &mut self.intensity {
             odd_out(v);
         }
@@ -689,13 +712,20 @@ impl CloudSink {
         self.stride_mask = self.stride_mask * 2 + 1;
     }
 
-    /// Adds one point; the arrays the sink does not have ignore their argument.
+    /// Adds one point; the arrays the sink does not have ignore their argument. A cloud's point
+    /// is rounded to single precision first: one beyond its range (about 3.4e38) counts as not
+    /// finite.
     #[inline(always)]
     pub(crate) fn push(&mut self, p: [f64; 3], intensity: f32, normal: [f32; 3], pass: u16) {
         let index = self.seen;
         self.seen += 1;
         let intensity_ok = self.intensity.is_none() || intensity.is_finite();
-        if !(p[0].is_finite() && p[1].is_finite() && p[2].is_finite() && intensity_ok) {
+        let single = Point3::new(p[0] as f32, p[1] as f32, p[2] as f32);
+        let finite = match self.points {
+            SinkPoints::Single(_) => single.x.is_finite() && single.y.is_finite() && single.z.is_finite(),
+            SinkPoints::Double(_) => p[0].is_finite() && p[1].is_finite() && p[2].is_finite(),
+        };
+        if !(finite && intensity_ok) {
             self.dropped += 1;
             if let Some(d) = &mut self.dropped_at {
                 d.push(index);
@@ -707,7 +737,10 @@ impl CloudSink {
         if k & self.stride_mask != 0 {
             return;
         }
-        self.points.push(Point3::new(p[0], p[1], p[2]));
+        match &mut self.points {
+            SinkPoints::Single(v) => v.push(single),
+            SinkPoints::Double(v) => v.push(Point3::new(p[0], p[1], p[2])),
+        }
         if let Some(v) = &mut self.intensity {
             v.push(intensity);
         }
@@ -730,7 +763,19 @@ impl CloudSink {
 
     /// The cloud and the pass ids.
     pub(crate) fn into_cloud(self) -> (PointCloud, Option<Vec<u16>>) {
-        (PointCloud { points: self.points, intensity: self.intensity, normals: self.normals }, self.pass)
+        let points = match self.points {
+            SinkPoints::Single(v) => v,
+            SinkPoints::Double(v) => v.iter().map(crate::cloud::single).collect(),
+        };
+        (PointCloud { points, intensity: self.intensity, normals: self.normals }, self.pass)
+    }
+
+    /// A mesh's vertices, in double precision.
+    pub(crate) fn into_vertices(self) -> Vec<Point3<f64>> {
+        match self.points {
+            SinkPoints::Single(v) => v.iter().map(CloudPoint::at).collect(),
+            SinkPoints::Double(v) => v,
+        }
     }
 }
 
@@ -978,7 +1023,7 @@ mod tests {
             let expected: Vec<[f64; 3]> = finite.iter().copied().step_by(stride).collect();
             let inputs: Vec<Vec<u8>> = {
                 let text: String = all.iter().map(|p| format!("{} {} {}\n", p[0], p[1], p[2])).collect();
-                let cloud = PointCloud::from_points(all.iter().map(|p| Point3::new(p[0], p[1], p[2])).collect());
+                let cloud = PointCloud::from_points(all.iter().map(|p| Point3::new(p[0], p[1], p[2])));
                 let enc = [PlyEncoding::Ascii, PlyEncoding::BinaryLittleEndian, PlyEncoding::BinaryBigEndian][encoding];
                 let mut ply_bytes = Vec::new();
                 ply::write_ply(&mut ply_bytes, &cloud, None, enc, &[]).expect("write");
@@ -991,7 +1036,7 @@ mod tests {
                 let size = Some(input.len() as u64);
                 let (c, stats) = sample_cloud_from(Cursor::new(input), "sample", size, &ReadLimits::default(), keep)
                     .expect("sample");
-                let got: Vec<[f64; 3]> = c.points.iter().map(|p| [p.x, p.y, p.z]).collect();
+                let got: Vec<[f64; 3]> = c.points.iter().map(|p| [p.x, p.y, p.z].map(f64::from)).collect();
                 proptest::prop_assert_eq!(stats.points, finite.len() as u64);
                 proptest::prop_assert!(got.len() < keep.max(2));
                 // PLY stores f32 coordinates when it writes a cloud of f64: compare loosely.

@@ -136,7 +136,7 @@ pub fn write_ply<W: Write>(
     for (i, p) in cloud.points.iter().enumerate() {
         let mut floats = [0f32; 7];
         let mut nf = 3;
-        floats[..3].copy_from_slice(&[p.x as f32, p.y as f32, p.z as f32]);
+        floats[..3].copy_from_slice(&[p.x, p.y, p.z]);
         if let Some(v) = &cloud.intensity {
             floats[nf] = v[i];
             nf += 1;
@@ -719,15 +719,17 @@ pub(crate) fn read_ply_src<R: BufRead>(
     stats.points = sink.len();
     stats.dropped_non_finite = sink.dropped;
     let dropped_at = sink.dropped_at.take().unwrap_or_default();
-    let (cloud, pass) = sink.into_cloud();
-    let geometry = if mesh {
+    let (geometry, pass) = if mesh {
+        let pass = sink.pass.take();
+        let vertices = sink.into_vertices();
         let mut tris = faces.tris;
-        let dropped = finish_triangles(&cloud.points, &mut tris, &dropped_at, vertex.count);
+        let dropped = finish_triangles(&vertices, &mut tris, &dropped_at, vertex.count);
         stats.triangles = tris.len() as u64;
         stats.dropped_triangles = dropped + faces.short;
-        Geometry::Mesh(Mesh { vertices: cloud.points, triangles: tris })
+        (Geometry::Mesh(Mesh { vertices, triangles: tris }), pass)
     } else {
-        Geometry::Cloud(cloud)
+        let (cloud, pass) = sink.into_cloud();
+        (Geometry::Cloud(cloud), pass)
     };
     Ok(PlyOutput { geometry, pass, stats })
 }
@@ -1219,9 +1221,9 @@ mod tests {
         let points = (0..n)
             .map(|_| {
                 Point3::new(
-                    f64::from(rng.random_range(-500.0f32..500.0)),
-                    f64::from(rng.random_range(-500.0f32..500.0)),
-                    f64::from(rng.random::<f32>() * 1e-3),
+                    rng.random_range(-500.0f32..500.0),
+                    rng.random_range(-500.0f32..500.0),
+                    rng.random::<f32>() * 1e-3,
                 )
             })
             .collect();
@@ -1346,7 +1348,12 @@ mod tests {
         let ascii_body =
             format!("{} {} {}\n{} {} {}\n", vals[0], vals[1], vals[2], vals[3], vals[4], vals[5]);
         let ascii = ply("ascii", header, ascii_body.as_bytes());
-        let want = vec![Point3::new(vals[0], vals[1], vals[2]), Point3::new(vals[3], vals[4], vals[5])];
+        // A cloud keeps them in single precision, rounded to nearest.
+        let want: Vec<Point3<f32>> =
+            [Point3::new(vals[0], vals[1], vals[2]), Point3::new(vals[3], vals[4], vals[5])]
+                .iter()
+                .map(crate::cloud::single)
+                .collect();
         for bytes in [le, be, ascii] {
             let (c, _) = read_cloud(&bytes);
             assert_eq!(c.points, want);
@@ -1537,8 +1544,8 @@ mod tests {
         let cloud = PointCloud {
             points: vec![
                 Point3::new(1.0, 2.0, 3.0),
-                Point3::new(f64::NAN, 0.0, 0.0),
-                Point3::new(0.0, f64::INFINITY, 0.0),
+                Point3::new(f32::NAN, 0.0, 0.0),
+                Point3::new(0.0, f32::INFINITY, 0.0),
                 Point3::new(4.0, 5.0, 6.0),
                 Point3::new(7.0, 8.0, 9.0),
             ],
@@ -1887,8 +1894,9 @@ mod tests {
         for seed in 0..300 {
             let r = random_ply(seed);
             let (c, s) = read_cloud(&r.bytes);
-            let got: Vec<[f64; 3]> = c.points.iter().map(|p| [p.x, p.y, p.z]).collect();
-            assert_eq!(got, r.points, "seed {seed}");
+            let got: Vec<[f32; 3]> = c.points.iter().map(|p| [p.x, p.y, p.z]).collect();
+            let want: Vec<[f32; 3]> = r.points.iter().map(|p| p.map(|v| v as f32)).collect();
+            assert_eq!(got, want, "seed {seed}");
             assert_eq!(c.intensity, r.intensity, "seed {seed}");
             assert_eq!(
                 c.normals,

@@ -339,8 +339,9 @@ mod tests {
         fn matches_the_reference(text in file()) {
             let (cloud, stats) = read(&text).expect("generated files are valid");
             let (pts, extra, dropped) = reference(&text).expect("reference");
-            let got: Vec<[f64; 3]> = cloud.points.iter().map(|p| [p.x, p.y, p.z]).collect();
-            prop_assert_eq!(got, pts);
+            let got: Vec<[f32; 3]> = cloud.points.iter().map(|p| [p.x, p.y, p.z]).collect();
+            let want: Vec<[f32; 3]> = pts.iter().map(|p| p.map(|v| v as f32)).collect();
+            prop_assert_eq!(got, want);
             prop_assert_eq!(stats.dropped_non_finite, dropped);
             for (i, e) in extra.iter().enumerate() {
                 match e.len() {

@@ -31,7 +31,7 @@
 use std::collections::HashMap;
 
 use depthmill_geometry::raster::{Roi, grid_for_roi, raster_cell, try_rasterize_max};
-use depthmill_geometry::{Face, HeightMap, Mesh, PointCloud};
+use depthmill_geometry::{CloudPoint, Face, HeightMap, Mesh, PointCloud};
 use nalgebra::{Point3, Vector3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -163,7 +163,7 @@ impl SurfaceSamples {
     /// Samples of a point cloud: one point per `cell_mm` voxel, and a cap under the footprint
     /// seen from above (+Z), at the lowest height of the cloud.
     pub fn from_cloud(cloud: &PointCloud, cell_mm: f64) -> Result<SurfaceSamples> {
-        let finite: Vec<Point3<f64>> =
+        let finite: Vec<Point3<f32>> =
             cloud.points.iter().copied().filter(|p| p.coords.iter().all(|c| c.is_finite())).collect();
         let Some(roi) = Roi::around(&finite, cell_mm) else {
             return Err(ReconError::Empty("face choice: no finite points".into()));
@@ -172,7 +172,7 @@ impl SurfaceSamples {
         let cell = sampling_cell(cell_mm, 4.0 * roi.width_mm() * roi.height_mm());
         let keep = voxel_keep_mask(&finite, cell)?;
         let points: Vec<Point3<f64>> =
-            finite.iter().zip(&keep).filter(|(_, k)| **k).map(|(p, _)| *p).collect();
+            finite.iter().zip(&keep).filter(|(_, k)| **k).map(|(p, _)| p.at()).collect();
         let z_min = points.iter().map(|p| p.z).fold(f64::INFINITY, f64::min);
         let grid = grid_for_roi(&roi, cell)?;
         let (top, _) = try_rasterize_max(&points, &grid)?;

@@ -2,8 +2,11 @@
 //! three beacons define, and rigid user transforms.
 //!
 //! Every filter takes the cloud by value and returns the filtered cloud (intensity and normals
-//! follow their points, see [`retain`]) with a [`FilterReport`] of points kept and removed. Order
-//! of the surviving points is always their original order. An empty cloud is fine (report 0/0).
+//! follow their points, see [`retain`]) with a [`FilterReport`] of points kept and removed. The
+//! surviving points keep their original order, except after [`statistical_outlier_removal`],
+//! which works in place and leaves them grouped by grid cell. An empty cloud is fine (report 0/0).
+//! Points are the cloud's single-precision ones; every distance is computed in `f64` from them
+//! (exactly what Open3D computes from a float PLY it reads into doubles).
 //!
 //! # Conventions
 //!
@@ -57,8 +60,16 @@
 //!   block is at least that far), then sorted. When at least `k` survive they are provably the
 //!   `k` nearest of the whole cloud. Queries that fail get a second chance on the 5 × 5 × 5
 //!   block; the rest (isolated points) and the queries of overfull blocks (heaps of duplicates)
-//!   go to a bounding-volume hierarchy over the points in 3-D Morton order (leaves of at most
-//!   24 points, nearest-child-first search with box pruning), built only when needed.
+//!   go to a bounding-volume hierarchy over the grid's own point order (a node is a run of cells
+//!   with a common key prefix, a box; leaves of at most 24 points, nearest-child-first search
+//!   with box pruning; no copy of the points), built only when needed.
+//!
+//! [`statistical_outlier_mask`] sorts a copy of the usable points (with their indices) and returns
+//! the mask in point order, for Open3D's bit-for-bit rule. [`statistical_outlier_removal`] sorts
+//! the cloud itself instead (an in-place MSD radix sort of the points and their attributes by cell
+//! key), stores the means in single precision and measures a point again exactly when its rounded
+//! mean cannot tell which side of the threshold it lies on: beside the cloud it holds the grid's
+//! cells (16 bytes each, about one per three points) and 4 bytes a point.
 //!
 //! Only distances are kept, never neighbour identities, so ties need no tie-break: the multiset of
 //! the `k` smallest distances is unique and the result is deterministic, bit for bit the same as
@@ -86,8 +97,8 @@ use std::cmp::Ordering;
 use std::collections::BinaryHeap;
 use std::ops::Range;
 
-use depthmill_geometry::PointCloud;
 use depthmill_geometry::pose::rotation_from_ypr_deg;
+use depthmill_geometry::{CloudPoint, PointCloud};
 use nalgebra::{
     Isometry3, Matrix3, Matrix4, Point3, Rotation3, Translation3, UnitQuaternion, Vector3, Vector4,
 };
@@ -116,18 +127,26 @@ impl FilterReport {
 ///
 /// Order is preserved. A point without a `keep` entry (when `keep` is shorter than the cloud) is
 /// dropped; extra entries are ignored.
-pub fn retain(mut cloud: PointCloud, keep: &[bool]) -> PointCloud {
-    fn retain_vec<T>(v: &mut Vec<T>, keep: &[bool]) {
-        let mut it = keep.iter();
+pub fn retain(cloud: PointCloud, keep: &[bool]) -> PointCloud {
+    retain_where(cloud, |i| keep.get(i).copied().unwrap_or(false))
+}
+
+/// Keeps point `i` (with its intensity/normals) where `keep(i)`, in order, in place.
+fn retain_where(mut cloud: PointCloud, keep: impl Fn(usize) -> bool) -> PointCloud {
+    fn retain_vec<T>(v: &mut Vec<T>, keep: &impl Fn(usize) -> bool) {
+        let mut i = 0usize;
         // Vec::retain visits every element exactly once, in order.
-        v.retain(|_| it.next().copied().unwrap_or(false));
+        v.retain(|_| {
+            i += 1;
+            keep(i - 1)
+        });
     }
-    retain_vec(&mut cloud.points, keep);
-    if let Some(i) = &mut cloud.intensity {
-        retain_vec(i, keep);
+    retain_vec(&mut cloud.points, &keep);
+    if let Some(v) = &mut cloud.intensity {
+        retain_vec(v, &keep);
     }
-    if let Some(n) = &mut cloud.normals {
-        retain_vec(n, keep);
+    if let Some(v) = &mut cloud.normals {
+        retain_vec(v, &keep);
     }
     cloud
 }
@@ -167,14 +186,37 @@ fn check_k(k: usize) -> Result<()> {
     Ok(())
 }
 
+/// Most points the neighbour search takes (its cell starts are 32-bit).
+const MAX_GRID_POINTS: usize = u32::MAX as usize;
+
+fn check_size(points: usize, field: &str) -> Result<()> {
+    if points > MAX_GRID_POINTS {
+        return Err(ReconError::param(field, points, format!("at most {MAX_GRID_POINTS} points")));
+    }
+    Ok(())
+}
+
+fn check_sor(k: usize, n_sigma: f64) -> Result<()> {
+    check_k(k)?;
+    if !(n_sigma.is_finite() && n_sigma > 0.0) {
+        return Err(ReconError::param(
+            "reconstruct.filters.statistical.n_sigma",
+            n_sigma,
+            "must be finite and positive",
+        ));
+    }
+    Ok(())
+}
+
 /// Mean distance from each point to its `k` nearest usable points, the point itself included
 /// (distance 0), summed in ascending order; `NaN` for points that are not usable. With fewer than
 /// `k` usable points, the mean is over all of them. This is the `d_i` of
 /// [`statistical_outlier_mask`] (see the module docs).
 ///
 /// Errors: `reconstruct.filters.statistical.k` when `k = 0`.
-pub fn knn_mean_distances(points: &[Point3<f64>], k: usize) -> Result<Vec<f64>> {
+pub fn knn_mean_distances(points: &[Point3<f32>], k: usize) -> Result<Vec<f64>> {
     check_k(k)?;
+    check_size(points.len(), "reconstruct.filters.statistical")?;
     Ok(knn_means(points, k))
 }
 
@@ -184,15 +226,9 @@ pub fn knn_mean_distances(points: &[Point3<f64>], k: usize) -> Result<Vec<f64>> 
 ///
 /// Errors: `reconstruct.filters.statistical.k` when `k = 0`; `reconstruct.filters.statistical.n_sigma`
 /// when `n_sigma` is not finite and positive.
-pub fn statistical_outlier_mask(points: &[Point3<f64>], k: usize, n_sigma: f64) -> Result<Vec<bool>> {
-    check_k(k)?;
-    if !(n_sigma.is_finite() && n_sigma > 0.0) {
-        return Err(ReconError::param(
-            "reconstruct.filters.statistical.n_sigma",
-            n_sigma,
-            "must be finite and positive",
-        ));
-    }
+pub fn statistical_outlier_mask(points: &[Point3<f32>], k: usize, n_sigma: f64) -> Result<Vec<bool>> {
+    check_sor(k, n_sigma)?;
+    check_size(points.len(), "reconstruct.filters.statistical")?;
     let means = knn_means(points, k);
     Ok(sor_mask_from_means(&means, n_sigma))
 }
@@ -220,17 +256,89 @@ fn sor_mask_from_means(means: &[f64], n_sigma: f64) -> Vec<bool> {
     means.iter().map(|&d| !d.is_nan() && (d < threshold || d <= mean)).collect()
 }
 
-/// Statistical outlier removal (report name `statistical`): [`statistical_outlier_mask`] applied
-/// with [`retain`].
+/// Statistical outlier removal (report name `statistical`): the rule of
+/// [`statistical_outlier_mask`], done in place.
+///
+/// Beside the cloud it needs 4 bytes a point (the sort keys, then the means) and the grid's cells
+/// (16 bytes each, about one per three points), where the mask needs a sorted copy with indices:
+/// the cloud is sorted by grid cell (its attributes with it), the
+/// mean distances are kept in single precision (a point whose mean lies within rounding of the
+/// threshold is measured again exactly), and the survivors are compacted. So the survivors come
+/// out grouped by grid cell, not in their original order, and `μ` and `σ` are summed in that
+/// order (merged per chunk of cells, Chan et al.): the kept set is the mask's unless a mean lies
+/// within the last bit of the threshold.
 pub fn statistical_outlier_removal(
     cloud: PointCloud,
     k: usize,
     n_sigma: f64,
 ) -> Result<(PointCloud, FilterReport)> {
+    sor_in_place(cloud, k, n_sigma, SINGLE_SLACK)
+}
+
+/// Relative half-width of the interval a mean rounded to `f32` may have come from (half an ulp
+/// is at most 2^-24 of the value; twice that for margin).
+const SINGLE_SLACK: f64 = 1.0 / (1u64 << 23) as f64;
+
+/// Leaf size of the hierarchy the in-place removal builds for its fallback queries (fewer,
+/// larger leaves: a smaller tree).
+const LEAF_MAX_IN_PLACE: usize = 256;
+
+/// [`statistical_outlier_removal`] with the relative slack within which a stored mean is
+/// measured again exactly (tests force every point through the exact path with a large one).
+fn sor_in_place(
+    mut cloud: PointCloud,
+    k: usize,
+    n_sigma: f64,
+    slack: f64,
+) -> Result<(PointCloud, FilterReport)> {
     cloud.validate()?;
-    let keep = statistical_outlier_mask(&cloud.points, k, n_sigma)?;
-    let report = FilterReport::from_mask("statistical", &keep);
-    Ok((retain(cloud, &keep), report))
+    check_sor(k, n_sigma)?;
+    check_size(cloud.len(), "reconstruct.filters.statistical")?;
+    let n = cloud.len();
+    let Some(bbox) = UsableBox::of(&cloud.points) else {
+        let report = FilterReport { filter: "statistical", kept: 0, removed: n };
+        return Ok((retain(cloud, &[]), report));
+    };
+    let k = k.min(bbox.count);
+    let h = knn_cell_size(&cloud.points, &bbox, k);
+    let grid = Grid::build_in_place(&mut cloud, &bbox, h, true);
+    let mut means = vec![0f32; grid.xyz.len()];
+    let (_, moments) = grid_knn(&grid, k, LEAF_MAX_IN_PLACE, &mut means, |d| d as f32);
+    // The decisions overwrite the means (1 keep, 0 drop): no second array.
+    if moments.n < 2 {
+        means.fill(1.0);
+    } else {
+        let mean = moments.mean;
+        let threshold = mean + n_sigma * (moments.m2 / (moments.n - 1) as f64).sqrt();
+        let rule = |d: f64| d < threshold || d <= mean;
+        // Some(decision) when the stored mean settles it, None when it must be measured again.
+        let sure = |m: f32| {
+            let m = f64::from(m);
+            let e = m.abs() * slack;
+            if rule(m + e) {
+                Some(true)
+            } else if !rule(m - e) {
+                Some(false)
+            } else {
+                None
+            }
+        };
+        let unsure: Vec<usize> = (0..means.len()).filter(|&s| sure(means[s]).is_none()).collect();
+        means.par_iter_mut().for_each(|m| *m = if sure(*m) == Some(true) { 1.0 } else { 0.0 });
+        if !unsure.is_empty() {
+            // A few points (about one in a few million): their blocks, grown until they hold the
+            // k nearest for sure.
+            let exact: Vec<bool> = unsure.par_iter().map(|&s| rule(ring_knn(&grid, s, k))).collect();
+            for (&s, e) in unsure.iter().zip(exact) {
+                means[s] = if e { 1.0 } else { 0.0 };
+            }
+        }
+    }
+    let Grid { xyz, .. } = grid;
+    cloud.points = xyz;
+    let kept = means.iter().filter(|&&m| m == 1.0).count();
+    let report = FilterReport { filter: "statistical", kept, removed: n - kept };
+    Ok((retain_where(cloud, |i| means[i] == 1.0), report))
 }
 
 /// Which points radius outlier removal keeps: `true` iff the point is usable and at least
@@ -239,7 +347,7 @@ pub fn statistical_outlier_removal(
 /// Errors: `reconstruct.filters.radius.radius_mm` when the radius is not finite and positive;
 /// `reconstruct.filters.radius.min_neighbours` when it is 0 (that would keep every point).
 pub fn radius_outlier_mask(
-    points: &[Point3<f64>],
+    points: &[Point3<f32>],
     radius_mm: f64,
     min_neighbours: usize,
 ) -> Result<Vec<bool>> {
@@ -257,6 +365,7 @@ pub fn radius_outlier_mask(
             "must be at least 1 (0 keeps every point)",
         ));
     }
+    check_size(points.len(), "reconstruct.filters.radius")?;
     let Some(bbox) = UsableBox::of(points) else {
         return Ok(vec![false; points.len()]);
     };
@@ -269,11 +378,11 @@ pub fn radius_outlier_mask(
     let chunks = grid.chunks();
     let slices = split_by_chunks(&mut keep_sorted, &grid, &chunks);
     chunks.into_par_iter().zip(slices).for_each(|(cells, out)| {
-        let base = grid.starts[cells.start];
+        let base = grid.start(cells.start);
         let mut ranges = Vec::with_capacity(9);
         for c in cells {
             grid.block_ranges(c, 1, &mut ranges);
-            for s in grid.starts[c]..grid.starts[c + 1] {
+            for s in grid.start(c)..grid.start(c + 1) {
                 let q = &grid.xyz[s];
                 let mut count = 0usize;
                 'search: for r in &ranges {
@@ -327,23 +436,23 @@ fn voxel_of(p: &Point3<f64>, voxel: f64) -> Option<[i64; 3]> {
 
 /// The point of `members` (indices into `points`, ascending) nearest the members' centroid; the
 /// first one on ties. The centroid is `p₀ + Σ(pᵢ − p₀)/m`, summed in index order.
-fn nearest_to_centroid(
-    points: &[Point3<f64>],
+fn nearest_to_centroid<P: CloudPoint>(
+    points: &[P],
     members: impl Iterator<Item = usize> + Clone,
 ) -> Option<usize> {
     let mut it = members.clone();
     let first = it.next()?;
-    let p0 = points[first];
+    let p0 = points[first].at();
     let mut sum = Vector3::zeros();
     let mut m = 0usize;
     for i in members.clone() {
-        sum += points[i] - p0;
+        sum += points[i].at() - p0;
         m += 1;
     }
     let centroid = p0 + sum / m as f64;
     let mut best = (first, f64::INFINITY);
     for i in members {
-        let d = (points[i] - centroid).norm_squared();
+        let d = (points[i].at() - centroid).norm_squared();
         if d < best.1 {
             best = (i, d);
         }
@@ -356,7 +465,7 @@ fn nearest_to_centroid(
 ///
 /// Errors: `reconstruct.filters.voxel_mm` when the voxel is not finite and positive, or so small
 /// that a point lies more than 2^53 voxels from the origin.
-pub fn voxel_keep_mask(points: &[Point3<f64>], voxel_mm: f64) -> Result<Vec<bool>> {
+pub fn voxel_keep_mask<P: CloudPoint>(points: &[P], voxel_mm: f64) -> Result<Vec<bool>> {
     if !(voxel_mm.is_finite() && voxel_mm > 0.0) {
         return Err(ReconError::param(
             "reconstruct.filters.voxel_mm",
@@ -367,11 +476,11 @@ pub fn voxel_keep_mask(points: &[Point3<f64>], voxel_mm: f64) -> Result<Vec<bool
     let mut pairs: Vec<([i64; 3], usize)> = points
         .par_iter()
         .enumerate()
-        .filter(|(_, p)| usable(p))
-        .map(|(i, p)| voxel_of(p, voxel_mm).map(|v| (v, i)).ok_or(i))
+        .filter(|(_, p)| usable(*p))
+        .map(|(i, p)| voxel_of(&p.at(), voxel_mm).map(|v| (v, i)).ok_or(i))
         .collect::<std::result::Result<_, usize>>()
         .map_err(|i| {
-            let p = points[i];
+            let p = points[i].at();
             ReconError::param(
                 "reconstruct.filters.voxel_mm",
                 voxel_mm,
@@ -415,17 +524,29 @@ pub fn voxel_decimate(cloud: PointCloud, voxel_mm: f64) -> Result<(PointCloud, F
 // Neighbour search: usable box, grid, k-best buffers, bounding-volume hierarchy.
 // ---------------------------------------------------------------------------------------------
 
-fn usable(p: &Point3<f64>) -> bool {
+fn usable<P: CloudPoint>(p: &P) -> bool {
+    let p = p.at();
     p.x.is_finite() && p.y.is_finite() && p.z.is_finite()
 }
 
-/// Squared distance, accumulated x, y, z in that order (as Open3D's nanoflann adaptor does).
+/// A cloud's point, as the neighbour search stores it.
+type Xyz = Point3<f32>;
+
+/// Squared distance in `f64` (the cloud's `f32` coordinates widened exactly, as Open3D reads a
+/// float PLY into doubles), accumulated x, y, z in that order (as Open3D's nanoflann adaptor
+/// does).
 #[inline(always)]
-fn dist2(a: &[f64; 3], b: &[f64; 3]) -> f64 {
-    let dx = a[0] - b[0];
-    let dy = a[1] - b[1];
-    let dz = a[2] - b[2];
+fn dist2(a: &Xyz, b: &Xyz) -> f64 {
+    let dx = f64::from(a.x) - f64::from(b.x);
+    let dy = f64::from(a.y) - f64::from(b.y);
+    let dz = f64::from(a.z) - f64::from(b.z);
     dx * dx + dy * dy + dz * dz
+}
+
+/// `p` widened to `f64`.
+#[inline(always)]
+fn wide(p: &Xyz) -> [f64; 3] {
+    [f64::from(p.x), f64::from(p.y), f64::from(p.z)]
 }
 
 /// Most cells along one axis (so the mixed-radix cell key stays below 2^60).
@@ -446,12 +567,13 @@ struct UsableBox {
 }
 
 impl UsableBox {
-    fn of(points: &[Point3<f64>]) -> Option<Self> {
+    fn of(points: &[Point3<f32>]) -> Option<Self> {
         let empty = || ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3], 0usize);
         let (lo, hi, count) = points
             .par_iter()
-            .filter(|p| usable(p))
+            .filter(|p| usable(*p))
             .fold(empty, |(mut lo, mut hi, n), p| {
+                let p = p.at();
                 for a in 0..3 {
                     lo[a] = lo[a].min(p[a]);
                     hi[a] = hi[a].max(p[a]);
@@ -563,12 +685,12 @@ fn radix_sort_bits(items: &mut Vec<u64>, shift0: u32, bits: u32) {
 
 /// Reorders `pts` by recursive median splits along the widest axis, splitting at multiples of
 /// [`LEAF`] from the start, so that every run of [`LEAF`] points is a compact kd-tree leaf.
-fn kd_order(pts: &mut [([f64; 3], usize)]) {
+fn kd_order(pts: &mut [(Xyz, usize)]) {
     if pts.len() <= LEAF {
         return;
     }
-    let mut lo = [f64::INFINITY; 3];
-    let mut hi = [f64::NEG_INFINITY; 3];
+    let mut lo = [f32::INFINITY; 3];
+    let mut hi = [f32::NEG_INFINITY; 3];
     for (p, _) in pts.iter() {
         for a in 0..3 {
             lo[a] = lo[a].min(p[a]);
@@ -593,24 +715,250 @@ struct Grid {
     tol: f64,
     /// Key ([`cell_key`]) of every occupied cell, ascending.
     keys: Vec<u64>,
-    /// `xyz[starts[c]..starts[c + 1]]` are cell `c`'s points; `starts.len() == keys.len() + 1`.
-    starts: Vec<usize>,
+    /// `xyz[starts[c]..starts[c + 1]]` are cell `c`'s points; `starts.len() == keys.len() + 1`
+    /// (32 bits: a grid holds at most [`MAX_GRID_POINTS`]).
+    starts: Vec<u32>,
     /// Usable points grouped by cell.
-    xyz: Vec<[f64; 3]>,
+    xyz: Vec<Xyz>,
     /// Original index of `xyz[s]`.
     order: Vec<usize>,
 }
 
+/// A radix-sortable key.
+trait RadixKey: Copy + Ord + Send + Sync {
+    fn bits(self) -> u64;
+}
+
+impl RadixKey for u32 {
+    #[inline(always)]
+    fn bits(self) -> u64 {
+        u64::from(self)
+    }
+}
+
+impl RadixKey for u64 {
+    #[inline(always)]
+    fn bits(self) -> u64 {
+        self
+    }
+}
+
+/// A cloud's parallel arrays with a key per point, sorted together by [`flag_sort`].
+struct Lanes<'a, K> {
+    keys: &'a mut [K],
+    pts: &'a mut [Xyz],
+    intensity: Option<&'a mut [f32]>,
+    normals: Option<&'a mut [Vector3<f32>]>,
+}
+
+/// `v` split at `mid`, each half optional like `v`.
+fn split_opt<T>(v: Option<&mut [T]>, mid: usize) -> (Option<&mut [T]>, Option<&mut [T]>) {
+    match v {
+        Some(v) => {
+            let (a, b) = v.split_at_mut(mid);
+            (Some(a), Some(b))
+        }
+        None => (None, None),
+    }
+}
+
+impl<'a, K: RadixKey> Lanes<'a, K> {
+    #[inline(always)]
+    fn swap(&mut self, i: usize, j: usize) {
+        self.keys.swap(i, j);
+        self.pts.swap(i, j);
+        if let Some(v) = self.intensity.as_deref_mut() {
+            v.swap(i, j);
+        }
+        if let Some(v) = self.normals.as_deref_mut() {
+            v.swap(i, j);
+        }
+    }
+
+    fn split_at(self, mid: usize) -> (Self, Self) {
+        let (ka, kb) = self.keys.split_at_mut(mid);
+        let (pa, pb) = self.pts.split_at_mut(mid);
+        let (ia, ib) = split_opt(self.intensity, mid);
+        let (na, nb) = split_opt(self.normals, mid);
+        (
+            Lanes { keys: ka, pts: pa, intensity: ia, normals: na },
+            Lanes { keys: kb, pts: pb, intensity: ib, normals: nb },
+        )
+    }
+}
+
+/// Buckets of at most this many points are finished by insertion sort.
+const FLAG_SMALL: usize = 48;
+/// Buckets of at least this many points have their sub-buckets sorted in parallel.
+const FLAG_PARALLEL: usize = 1 << 15;
+
+/// In-place MSD radix sort (American flag sort, 8-bit digits) of `lanes` by key, from the digit
+/// at bit `shift` (a multiple of 8) down; every swap moves all lanes. Not stable.
+fn flag_sort<K: RadixKey>(mut lanes: Lanes<'_, K>, shift: u32) {
+    let n = lanes.keys.len();
+    if n <= FLAG_SMALL {
+        for i in 1..n {
+            let mut j = i;
+            while j > 0 && lanes.keys[j - 1] > lanes.keys[j] {
+                lanes.swap(j - 1, j);
+                j -= 1;
+            }
+        }
+        return;
+    }
+    let digit = |k: K| ((k.bits() >> shift) & 0xFF) as usize;
+    let mut count = [0usize; 256];
+    for &k in lanes.keys.iter() {
+        count[digit(k)] += 1;
+    }
+    let mut start = [0usize; 257];
+    for b in 0..256 {
+        start[b + 1] = start[b] + count[b];
+    }
+    if !count.contains(&n) {
+        // Each swap puts one point into its bucket for good.
+        let mut next = start;
+        for b in 0..256 {
+            while next[b] < start[b + 1] {
+                let i = next[b];
+                let d = digit(lanes.keys[i]);
+                if d == b {
+                    next[b] += 1;
+                } else {
+                    lanes.swap(i, next[d]);
+                    next[d] += 1;
+                }
+            }
+        }
+    }
+    if shift == 0 {
+        return;
+    }
+    let mut buckets = Vec::new();
+    let mut rest = lanes;
+    for &c in &count {
+        let (mine, tail) = rest.split_at(c);
+        rest = tail;
+        if c > 1 {
+            buckets.push(mine);
+        }
+    }
+    if n >= FLAG_PARALLEL {
+        buckets.into_par_iter().for_each(|b| flag_sort(b, shift - 8));
+    } else {
+        for b in buckets {
+            flag_sort(b, shift - 8);
+        }
+    }
+}
+
+/// The bit of the highest 8-bit digit of keys below `limit`.
+fn top_shift(limit: u64) -> u32 {
+    let bits = 64 - limit.leading_zeros();
+    (bits.max(1) - 1) / 8 * 8
+}
+
 impl Grid {
-    /// The grid of edge `h`; with `kd_cells`, cells of more than [`LEAF`] points are put in
-    /// [`kd_order`] (for [`Bvh`] leaves).
-    fn build(points: &[Point3<f64>], bbox: &UsableBox, h: f64, kd_cells: bool) -> Grid {
+    /// [`Grid::build`] on the cloud's own arrays: the points (and their attributes) are sorted in
+    /// place and moved into the grid, unusable points dropped; no copy and no index (`order` is
+    /// empty). The cloud's `points` are left empty: put `xyz` back.
+    fn build_in_place(cloud: &mut PointCloud, bbox: &UsableBox, h: f64, kd_cells: bool) -> Grid {
         let h = if h.is_finite() && h > 0.0 { h } else { 1.0 };
         let inv_h = 1.0 / h;
         let dims = grid_dims(bbox, inv_h);
         let origin = bbox.lo;
         let zbits = z_bits(dims[2]);
-        let key_of = |p: &Point3<f64>| cell_key(cell_of(&[p.x, p.y, p.z], &origin, inv_h, &dims), zbits);
+        let key_limit =
+            cell_key([dims[0].next_power_of_two() - 1, dims[1].next_power_of_two() - 1, 0], zbits)
+                + (1 << zbits);
+        let key_of = |p: &Xyz| {
+            if usable(p) { cell_key(cell_of(&wide(p), &origin, inv_h, &dims), zbits) } else { key_limit }
+        };
+        let mut pts = std::mem::take(&mut cloud.points);
+        let count = bbox.count;
+        // Cell runs from the sorted keys.
+        fn runs<K: RadixKey>(keys: &[K], count: usize) -> (Vec<u64>, Vec<u32>) {
+            // Counted first, so the arrays take no more than they hold.
+            let cells_n = keys[..count].windows(2).filter(|w| w[0] != w[1]).count() + usize::from(count > 0);
+            let (mut cells, mut starts) = (Vec::with_capacity(cells_n), Vec::with_capacity(cells_n + 1));
+            for (s, &k) in keys[..count].iter().enumerate() {
+                if cells.last() != Some(&k.bits()) {
+                    cells.push(k.bits());
+                    starts.push(s as u32);
+                }
+            }
+            starts.push(count as u32);
+            (cells, starts)
+        }
+        let (keys, starts) = if key_limit < 1 << 32 {
+            let mut keys: Vec<u32> = pts.par_iter().map(|p| key_of(p) as u32).collect();
+            let lanes = Lanes {
+                keys: &mut keys,
+                pts: &mut pts,
+                intensity: cloud.intensity.as_deref_mut(),
+                normals: cloud.normals.as_deref_mut(),
+            };
+            flag_sort(lanes, top_shift(key_limit));
+            runs(&keys, count)
+        } else {
+            let mut keys: Vec<u64> = pts.par_iter().map(key_of).collect();
+            let lanes = Lanes {
+                keys: &mut keys,
+                pts: &mut pts,
+                intensity: cloud.intensity.as_deref_mut(),
+                normals: cloud.normals.as_deref_mut(),
+            };
+            flag_sort(lanes, top_shift(key_limit));
+            runs(&keys, count)
+        };
+        pts.truncate(count);
+        if let Some(v) = &mut cloud.intensity {
+            v.truncate(count);
+        }
+        if let Some(v) = &mut cloud.normals {
+            v.truncate(count);
+        }
+        if kd_cells {
+            let big: Vec<Range<usize>> = (0..keys.len())
+                .map(|c| starts[c] as usize..starts[c + 1] as usize)
+                .filter(|r| r.len() > LEAF)
+                .collect();
+            let intensity = split_ranges_opt(cloud.intensity.as_deref_mut(), &big);
+            let normals = split_ranges_opt(cloud.normals.as_deref_mut(), &big);
+            split_ranges_mut(&mut pts, &big).into_par_iter().zip(intensity).zip(normals).for_each(
+                |((xyz, intensity), normals)| {
+                    let mut order: Vec<(Xyz, usize)> = xyz.iter().copied().zip(0..).collect();
+                    kd_order(&mut order);
+                    for (x, (p, _)) in xyz.iter_mut().zip(&order) {
+                        *x = *p;
+                    }
+                    if let Some(v) = intensity {
+                        let was = v.to_vec();
+                        for (x, &(_, i)) in v.iter_mut().zip(&order) {
+                            *x = was[i];
+                        }
+                    }
+                    if let Some(v) = normals {
+                        let was = v.to_vec();
+                        for (x, &(_, i)) in v.iter_mut().zip(&order) {
+                            *x = was[i];
+                        }
+                    }
+                },
+            );
+        }
+        Grid { origin, h, dims, zbits, tol: bbox.tol, keys, starts, xyz: pts, order: Vec::new() }
+    }
+
+    /// The grid of edge `h`; with `kd_cells`, cells of more than [`LEAF`] points are put in
+    /// [`kd_order`] (for [`Bvh`] leaves).
+    fn build(points: &[Point3<f32>], bbox: &UsableBox, h: f64, kd_cells: bool) -> Grid {
+        let h = if h.is_finite() && h > 0.0 { h } else { 1.0 };
+        let inv_h = 1.0 / h;
+        let dims = grid_dims(bbox, inv_h);
+        let origin = bbox.lo;
+        let zbits = z_bits(dims[2]);
+        let key_of = |p: &Point3<f32>| cell_key(cell_of(&wide(p), &origin, inv_h, &dims), zbits);
         // Every key is below this (all-ones x and y bits, then z).
         let key_limit =
             cell_key([dims[0].next_power_of_two() - 1, dims[1].next_power_of_two() - 1, 0], zbits)
@@ -620,7 +968,7 @@ impl Grid {
         let mut add_cell = |s: usize, key: u64| {
             if keys.last() != Some(&key) {
                 keys.push(key);
-                starts.push(s);
+                starts.push(s as u32);
             }
         };
         // Original indices sorted by (cell key, index).
@@ -641,30 +989,25 @@ impl Grid {
             let mut pairs: Vec<(u64, usize)> = points
                 .par_iter()
                 .enumerate()
-                .filter(|(_, p)| usable(p))
+                .filter(|(_, p)| usable(*p))
                 .map(|(i, p)| (key_of(p), i))
                 .collect();
             pairs.par_sort_unstable();
             pairs.iter().enumerate().for_each(|(s, &(key, _))| add_cell(s, key));
             pairs.into_par_iter().map(|(_, i)| i).collect()
         };
-        starts.push(order.len());
-        let mut xyz: Vec<[f64; 3]> = order
-            .par_iter()
-            .map(|&i| {
-                let p = &points[i];
-                [p.x, p.y, p.z]
-            })
-            .collect();
+        starts.push(order.len() as u32);
+        let mut xyz: Vec<Xyz> = order.par_iter().map(|&i| points[i]).collect();
         if kd_cells {
-            let big: Vec<Range<usize>> =
-                (0..keys.len()).map(|c| starts[c]..starts[c + 1]).filter(|r| r.len() > LEAF).collect();
+            let big: Vec<Range<usize>> = (0..keys.len())
+                .map(|c| starts[c] as usize..starts[c + 1] as usize)
+                .filter(|r| r.len() > LEAF)
+                .collect();
             split_ranges_mut(&mut xyz, &big)
                 .into_par_iter()
                 .zip(split_ranges_mut(&mut order, &big))
                 .for_each(|(xyz, order)| {
-                    let mut pts: Vec<([f64; 3], usize)> =
-                        xyz.iter().copied().zip(order.iter().copied()).collect();
+                    let mut pts: Vec<(Xyz, usize)> = xyz.iter().copied().zip(order.iter().copied()).collect();
                     kd_order(&mut pts);
                     for ((x, o), (p, i)) in xyz.iter_mut().zip(order.iter_mut()).zip(pts) {
                         *x = p;
@@ -673,6 +1016,12 @@ impl Grid {
                 });
         }
         Grid { origin, h, dims, zbits, tol: bbox.tol, keys, starts, xyz, order }
+    }
+
+    /// Where cell `c`'s points start in `xyz` (`c` up to the number of cells).
+    #[inline(always)]
+    fn start(&self, c: usize) -> usize {
+        self.starts[c] as usize
     }
 
     fn coords(&self, key: u64) -> [u64; 3] {
@@ -712,7 +1061,7 @@ impl Grid {
         let mut out = Vec::new();
         let mut first = 0usize;
         for c in 0..self.keys.len() {
-            if self.starts[c + 1] - self.starts[first] >= CHUNK_POINTS {
+            if self.start(c + 1) - self.start(first) >= CHUNK_POINTS {
                 out.push(first..c + 1);
                 first = c + 1;
             }
@@ -744,7 +1093,7 @@ impl Grid {
                     last += 1;
                 }
                 if last > first {
-                    out.push(self.starts[first]..self.starts[last]);
+                    out.push(self.start(first)..self.start(last));
                 }
             }
         }
@@ -752,7 +1101,8 @@ impl Grid {
 
     /// A lower bound on the distance from `q` (in the cell at `cell`) to any point outside the
     /// block of cells within `ring` of it (infinite towards sides where the grid ends).
-    fn block_margin(&self, cell: [u64; 3], ring: u64, q: &[f64; 3]) -> f64 {
+    fn block_margin(&self, cell: [u64; 3], ring: u64, q: &Xyz) -> f64 {
+        let q = wide(q);
         let mut m = f64::INFINITY;
         for a in 0..3 {
             if cell[a] >= ring {
@@ -765,6 +1115,14 @@ impl Grid {
             }
         }
         m - (1e-6 * self.h + self.tol)
+    }
+}
+
+/// [`split_ranges_mut`] of an optional array: `None` for every range without it.
+fn split_ranges_opt<'a, T>(data: Option<&'a mut [T]>, ranges: &[Range<usize>]) -> Vec<Option<&'a mut [T]>> {
+    match data {
+        Some(v) => split_ranges_mut(v, ranges).into_iter().map(Some).collect(),
+        None => ranges.iter().map(|_| None).collect(),
     }
 }
 
@@ -784,7 +1142,7 @@ fn split_ranges_mut<'a, T>(mut data: &'a mut [T], ranges: &[Range<usize>]) -> Ve
 
 /// Splits `out` (one entry per sorted point) into one slice per chunk of cells.
 fn split_by_chunks<'a, T>(out: &'a mut [T], grid: &Grid, chunks: &[Range<usize>]) -> Vec<&'a mut [T]> {
-    let ranges: Vec<Range<usize>> = chunks.iter().map(|r| grid.starts[r.start]..grid.starts[r.end]).collect();
+    let ranges: Vec<Range<usize>> = chunks.iter().map(|r| grid.start(r.start)..grid.start(r.end)).collect();
     split_ranges_mut(out, &ranges)
 }
 
@@ -902,18 +1260,19 @@ fn mean_sqrt(vals: impl ExactSizeIterator<Item = f64>) -> f64 {
     sum / n as f64
 }
 
-/// An axis-aligned box.
+/// An axis-aligned box of points, in their own single precision (the bounds of `f32` values are
+/// `f32` values: exact).
 #[derive(Debug, Clone, Copy)]
 struct Box3 {
-    lo: [f64; 3],
-    hi: [f64; 3],
+    lo: [f32; 3],
+    hi: [f32; 3],
 }
 
 impl Box3 {
-    fn of(pts: &[[f64; 3]]) -> Box3 {
-        let mut b = Box3 { lo: [f64::INFINITY; 3], hi: [f64::NEG_INFINITY; 3] };
+    fn of(pts: &[Xyz]) -> Box3 {
+        let mut b = Box3 { lo: [f32::INFINITY; 3], hi: [f32::NEG_INFINITY; 3] };
         for p in pts {
-            for ((lo, hi), &c) in b.lo.iter_mut().zip(b.hi.iter_mut()).zip(p) {
+            for ((lo, hi), c) in b.lo.iter_mut().zip(b.hi.iter_mut()).zip([p.x, p.y, p.z]) {
                 *lo = lo.min(c);
                 *hi = hi.max(c);
             }
@@ -930,8 +1289,9 @@ impl Box3 {
 
     /// Squared distance from `q` to the box, summed x, y, z like [`dist2`] so that it never
     /// exceeds the computed distance to a point inside.
-    fn dist2(&self, q: &[f64; 3]) -> f64 {
-        let e = |a: usize| (self.lo[a] - q[a]).max(q[a] - self.hi[a]).max(0.0);
+    fn dist2(&self, q: &Xyz) -> f64 {
+        let q = wide(q);
+        let e = |a: usize| (f64::from(self.lo[a]) - q[a]).max(q[a] - f64::from(self.hi[a])).max(0.0);
         let (ex, ey, ez) = (e(0), e(1), e(2));
         ex * ex + ey * ey + ez * ez
     }
@@ -949,89 +1309,66 @@ struct BvhNode {
     right: usize,
 }
 
-/// Spreads the low 21 bits of `v` to every third bit.
-fn spread3(v: u64) -> u64 {
-    let mut x = v & 0x1F_FFFF;
-    x = (x | (x << 32)) & 0x001F_0000_0000_FFFF;
-    x = (x | (x << 16)) & 0x001F_0000_FF00_00FF;
-    x = (x | (x << 8)) & 0x100F_00F0_0F00_F00F;
-    x = (x | (x << 4)) & 0x10C3_0C30_C30C_30C3;
-    x = (x | (x << 2)) & 0x1249_2492_4924_9249;
-    x
-}
+/// Subtrees of more points than this are built in parallel.
+const BVH_PARALLEL: usize = 1 << 16;
 
-/// 3-D Morton (Z-order) code of cell coordinates below 2^21.
-fn morton3(c: [u64; 3]) -> u64 {
-    spread3(c[0]) | (spread3(c[1]) << 1) | (spread3(c[2]) << 2)
-}
-
-/// A bounding-volume hierarchy over its own copy of a [`Grid`]'s points, laid out in 3-D Morton
-/// order of the cells (kd order inside big cells). A node covers a run of cells with a common
-/// Morton prefix (an octree box, so its points are contiguous) and splits it where the highest
-/// differing bit changes; a run of one big cell splits between its kd-ordered runs of [`LEAF`].
-/// Subtrees of at most [`LEAF_MAX`] points are leaves. Built in O(n) after a sort of the cells;
-/// used for the k-NN queries the grid cannot answer.
-struct Bvh {
-    pts: Vec<[f64; 3]>,
+/// A bounding-volume hierarchy over a [`Grid`]'s points, in the grid's own order (no copy). A
+/// node covers a run of cells with a common key prefix ([`cell_key`]: a box of columns and
+/// layers, so its points are contiguous) and splits it where the highest differing key bit
+/// changes; a run of one big cell (kd-ordered) splits where [`kd_order`] split it. Subtrees of
+/// at most `leaf_max` points are leaves; the bounds are the points' own. Built in O(n); used for
+/// the k-NN queries the grid cannot answer.
+struct Bvh<'g> {
+    pts: &'g [Xyz],
     /// Preorder.
     nodes: Vec<BvhNode>,
 }
 
-impl Bvh {
-    fn build(grid: &Grid) -> Bvh {
-        let mut cells: Vec<(u64, usize)> =
-            (0..grid.keys.len()).map(|c| (morton3(grid.coords(grid.keys[c])), c)).collect();
-        cells.par_sort_unstable();
-        // Where each cell goes in the copy, then the copy in parallel.
-        let mut at = Vec::with_capacity(cells.len() + 1);
-        let mut total = 0usize;
-        for &(_, c) in &cells {
-            at.push(total);
-            total += grid.starts[c + 1] - grid.starts[c];
-        }
-        at.push(total);
-        let mut pts = vec![[0.0f64; 3]; total];
-        let dest: Vec<Range<usize>> = (0..cells.len()).map(|i| at[i]..at[i + 1]).collect();
-        split_ranges_mut(&mut pts, &dest).into_par_iter().zip(&cells).for_each(|(out, &(_, c))| {
-            out.copy_from_slice(&grid.xyz[grid.starts[c]..grid.starts[c + 1]]);
-        });
-        // Runs: (Morton code, point range in `pts`); a big cell gives one run per kd leaf.
-        let mut runs = Vec::with_capacity(cells.len());
-        for (i, &(m, _)) in cells.iter().enumerate() {
-            let mut a = at[i];
-            while a < at[i + 1] {
-                let b = (a + LEAF).min(at[i + 1]);
-                runs.push((m, a..b));
-                a = b;
-            }
-        }
-        let nodes = if runs.is_empty() { Vec::new() } else { Self::build_par(&pts, &runs) };
-        Bvh { pts, nodes }
-    }
-
-    /// Where to split `runs` (at least 2): at the highest differing key bit, or in the middle of
-    /// one cell's runs.
-    fn split(runs: &[(u64, Range<usize>)]) -> usize {
-        let (first, last) = (runs[0].0, runs[runs.len() - 1].0);
-        if first == last {
-            runs.len().div_ceil(2)
+impl<'g> Bvh<'g> {
+    fn build(grid: &'g Grid, leaf_max: usize) -> Bvh<'g> {
+        let leaf_max = leaf_max.max(LEAF);
+        let cells = grid.keys.len();
+        let nodes = if cells == 0 {
+            Vec::new()
         } else {
-            let bit = 63 - (first ^ last).leading_zeros();
-            runs.partition_point(|r| (r.0 >> bit) & 1 == 0)
+            Self::build_par(grid, 0..cells, 0..grid.xyz.len(), leaf_max)
+        };
+        Bvh { pts: &grid.xyz, nodes }
+    }
+
+    /// Where to split a node of `cells` holding `points` (more than a leaf): (left cells, left
+    /// points, right cells, right points).
+    #[allow(clippy::type_complexity)]
+    fn split(
+        grid: &Grid,
+        cells: &Range<usize>,
+        points: &Range<usize>,
+    ) -> ((Range<usize>, Range<usize>), (Range<usize>, Range<usize>)) {
+        if cells.len() == 1 {
+            // One big cell in kd order: its kd splits.
+            let mid = points.start + LEAF * points.len().div_ceil(2 * LEAF);
+            ((cells.clone(), points.start..mid), (cells.clone(), mid..points.end))
+        } else {
+            let keys = &grid.keys[cells.clone()];
+            let bit = 63 - (keys[0] ^ keys[keys.len() - 1]).leading_zeros();
+            let c = cells.start + keys.partition_point(|k| (k >> bit) & 1 == 0);
+            let p = grid.start(c);
+            ((cells.start..c, points.start..p), (c..cells.end, p..points.end))
         }
     }
 
-    /// Builds the subtree of `runs` in preorder; big subtrees in parallel.
-    fn build_par(pts: &[[f64; 3]], runs: &[(u64, Range<usize>)]) -> Vec<BvhNode> {
-        let points = runs[0].1.start..runs[runs.len() - 1].1.end;
-        if runs.len() < 4096 || points.len() <= LEAF_MAX {
-            let mut nodes = Vec::with_capacity(2 * runs.len());
-            Self::build_seq(pts, runs, &mut nodes);
+    /// Builds the subtree in preorder; big subtrees in parallel.
+    fn build_par(grid: &Grid, cells: Range<usize>, points: Range<usize>, leaf_max: usize) -> Vec<BvhNode> {
+        if points.len() <= BVH_PARALLEL {
+            let mut nodes = Vec::with_capacity(2 * points.len().div_ceil(LEAF));
+            Self::build_seq(grid, cells, points, leaf_max, &mut nodes);
             return nodes;
         }
-        let split = Self::split(runs);
-        let (left, right) =
-            rayon::join(|| Self::build_par(pts, &runs[..split]), || Self::build_par(pts, &runs[split..]));
+        let ((lc, lp), (rc, rp)) = Self::split(grid, &cells, &points);
+        let (left, right) = rayon::join(
+            || Self::build_par(grid, lc, lp, leaf_max),
+            || Self::build_par(grid, rc, rp, leaf_max),
+        );
         let bounds = left[0].bounds.union(&right[0].bounds);
         let right_at = 1 + left.len();
         let mut nodes = Vec::with_capacity(right_at + right.len());
@@ -1049,31 +1386,36 @@ impl Bvh {
         nodes
     }
 
-    fn build_seq(pts: &[[f64; 3]], runs: &[(u64, Range<usize>)], nodes: &mut Vec<BvhNode>) -> Box3 {
-        let points = runs[0].1.start..runs[runs.len() - 1].1.end;
+    fn build_seq(
+        grid: &Grid,
+        cells: Range<usize>,
+        points: Range<usize>,
+        leaf_max: usize,
+        nodes: &mut Vec<BvhNode>,
+    ) -> Box3 {
         let me = nodes.len();
-        if runs.len() == 1 || points.len() <= LEAF_MAX {
-            let bounds = Box3::of(&pts[points.clone()]);
+        if points.len() <= leaf_max {
+            let bounds = Box3::of(&grid.xyz[points.clone()]);
             nodes.push(BvhNode { bounds, points, right: 0 });
             return bounds;
         }
-        let split = Self::split(runs);
+        let ((lc, lp), (rc, rp)) = Self::split(grid, &cells, &points);
         nodes.push(BvhNode { bounds: Box3::of(&[]), points, right: 0 });
-        let left = Self::build_seq(pts, &runs[..split], nodes);
+        let left = Self::build_seq(grid, lc, lp, leaf_max, nodes);
         nodes[me].right = nodes.len();
-        let right = Self::build_seq(pts, &runs[split..], nodes);
+        let right = Self::build_seq(grid, rc, rp, leaf_max, nodes);
         let bounds = left.union(&right);
         nodes[me].bounds = bounds;
         bounds
     }
 
-    fn knn(&self, q: &[f64; 3], best: &mut KBest) {
+    fn knn(&self, q: &Xyz, best: &mut KBest) {
         if !self.nodes.is_empty() {
             self.visit(0, q, best);
         }
     }
 
-    fn visit(&self, node: usize, q: &[f64; 3], best: &mut KBest) {
+    fn visit(&self, node: usize, q: &Xyz, best: &mut KBest) {
         let n = &self.nodes[node];
         if n.right == 0 {
             for p in &self.pts[n.points.clone()] {
@@ -1121,7 +1463,7 @@ fn knn_target(k: usize, d: f64) -> f64 {
 /// inverse sampling fraction squared, not counting pairs of identical points (a heap of exact
 /// duplicates would otherwise shrink the cells for everyone). The local dimension (population ∝
 /// edge^d) is estimated from successive trials, starting from surfaces (d = 2).
-fn knn_cell_size(points: &[Point3<f64>], bbox: &UsableBox, k: usize) -> f64 {
+fn knn_cell_size(points: &[Point3<f32>], bbox: &UsableBox, k: usize) -> f64 {
     let n = points.len();
     // Distinct indices: all of them for small clouds, else uniformly random ones (a stratified or
     // strided sample would under-count pairs in scan-ordered clouds).
@@ -1132,8 +1474,7 @@ fn knn_cell_size(points: &[Point3<f64>], bbox: &UsableBox, k: usize) -> f64 {
     };
     idx.sort_unstable();
     idx.dedup();
-    let sample: Vec<[f64; 3]> =
-        idx.iter().map(|&i| &points[i]).filter(|p| usable(p)).map(|p| [p.x, p.y, p.z]).collect();
+    let sample: Vec<[f64; 3]> = idx.iter().map(|&i| &points[i]).filter(|p| usable(*p)).map(wide).collect();
     let h_min = bbox.min_cell();
     let m = bbox.count as f64;
     let s = sample.len();
@@ -1211,7 +1552,7 @@ fn knn_cell_size(points: &[Point3<f64>], bbox: &UsableBox, k: usize) -> f64 {
 }
 
 /// Per-point k-NN mean distances (`NaN` for unusable points); see [`knn_mean_distances`].
-fn knn_means(points: &[Point3<f64>], k: usize) -> Vec<f64> {
+fn knn_means(points: &[Point3<f32>], k: usize) -> Vec<f64> {
     knn_means_with_stats(points, k).0
 }
 
@@ -1238,9 +1579,9 @@ const HINT_FACTOR: f64 = 1.25;
 /// Each buffer holds at least as many entries as the block has points.
 #[inline(always)]
 fn block_filter<const N: usize>(
-    xyz: &[[f64; 3]],
+    xyz: &[Xyz],
     ranges: &[Range<usize>],
-    qs: [&[f64; 3]; N],
+    qs: [&Xyz; N],
     t2: [f64; N],
     bufs: [&mut [u64]; N],
 ) -> [usize; N] {
@@ -1288,9 +1629,9 @@ fn finish_knn(buf: &mut [u64], cnt: usize, k: usize) -> (f64, f64) {
 /// `d² ≤ min(hint2·HINT_FACTOR, margin2)`, then (too few left) to `d² ≤ margin2`. `None` when
 /// fewer than `k` points lie within the margin. Returns (k-th squared distance, mean).
 fn block_knn(
-    xyz: &[[f64; 3]],
+    xyz: &[Xyz],
     ranges: &[Range<usize>],
-    q: &[f64; 3],
+    q: &Xyz,
     k: usize,
     margin2: f64,
     hint2: f64,
@@ -1309,26 +1650,114 @@ fn block_knn(
     }
 }
 
-fn knn_means_with_stats(points: &[Point3<f64>], k: usize) -> (Vec<f64>, KnnStats) {
+fn knn_means_with_stats(points: &[Point3<f32>], k: usize) -> (Vec<f64>, KnnStats) {
     let mut means = vec![f64::NAN; points.len()];
-    let mut stats = KnnStats::default();
     let Some(bbox) = UsableBox::of(points) else {
-        return (means, stats);
+        return (means, KnnStats::default());
     };
     let k = k.min(bbox.count);
     let h = knn_cell_size(points, &bbox, k);
     let grid = Grid::build(points, &bbox, h, true);
+    let mut sorted = vec![f64::NAN; grid.xyz.len()];
+    let (stats, _) = grid_knn(&grid, k, LEAF_MAX, &mut sorted, |d| d);
+    for (s, &d) in sorted.iter().enumerate() {
+        means[grid.order[s]] = d;
+    }
+    (means, stats)
+}
+
+/// The exact k-NN mean distance of the grid's point `s` (`k` at most the grid's points): the
+/// distances to the points of its block of cells, the block doubling in ring until the `k`-th
+/// nearest lies within its margin (or it covers the grid). For the few queries that need an
+/// exact answer outside the batch (the block scans cost `O(ring²)` column seeks each).
+fn ring_knn(grid: &Grid, s: usize, k: usize) -> f64 {
+    let c = grid.starts.partition_point(|&st| st as usize <= s) - 1;
+    let cell = grid.coords(grid.keys[c]);
+    let q = &grid.xyz[s];
+    let (mut ranges, mut d) = (Vec::new(), Vec::new());
+    let widest = grid.dims.iter().copied().max().unwrap_or(1);
+    let mut ring = 1u64;
+    loop {
+        grid.block_ranges(c, ring, &mut ranges);
+        d.clear();
+        for r in &ranges {
+            d.extend(grid.xyz[r.clone()].iter().map(|p| dist2(q, p)));
+        }
+        let whole = ring >= widest;
+        if d.len() >= k {
+            d.select_nth_unstable_by(k - 1, f64::total_cmp);
+            let m = grid.block_margin(cell, ring, q);
+            if whole || (m > 0.0 && d[k - 1] <= m * m) {
+                let best = &mut d[..k];
+                best.sort_unstable_by(f64::total_cmp);
+                return mean_sqrt(best.iter().copied());
+            }
+        }
+        if whole {
+            // Fewer than k points in the whole grid: not a valid call; the mean of them all.
+            d.sort_unstable_by(f64::total_cmp);
+            return mean_sqrt(d.iter().copied());
+        }
+        ring = (ring * 2).min(widest);
+    }
+}
+
+/// Count, mean and sum of squared deviations of a set of values (Welford), mergeable (Chan et
+/// al.), so the statistics of values computed in parallel need not store them.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+struct Moments {
+    n: usize,
+    mean: f64,
+    m2: f64,
+}
+
+impl Moments {
+    fn add(&mut self, x: f64) {
+        self.n += 1;
+        let d = x - self.mean;
+        self.mean += d / self.n as f64;
+        self.m2 += d * (x - self.mean);
+    }
+
+    fn merge(self, o: Moments) -> Moments {
+        if o.n == 0 {
+            return self;
+        }
+        if self.n == 0 {
+            return o;
+        }
+        let n = self.n + o.n;
+        let d = o.mean - self.mean;
+        Moments {
+            n,
+            mean: self.mean + d * (o.n as f64 / n as f64),
+            m2: self.m2 + o.m2 + d * d * (self.n as f64 * o.n as f64 / n as f64),
+        }
+    }
+}
+
+/// The k-NN mean distance of every point of `grid` (in grid order) into `out` through `put`, with
+/// how the queries were answered and the moments of the means. `k` is at most the number of
+/// points; `leaf_max` is the hierarchy's leaf size for the queries the grid cannot answer.
+fn grid_knn<T: Copy + Send>(
+    grid: &Grid,
+    k: usize,
+    leaf_max: usize,
+    out_all: &mut [T],
+    put: impl Fn(f64) -> T + Sync,
+) -> (KnnStats, Moments) {
+    let mut stats = KnnStats::default();
     // A block with more candidates than this goes to the hierarchy (heaps of duplicates).
     let cap = 48 * k + 2048;
-
-    let mut sorted = vec![f64::NAN; grid.xyz.len()];
     let chunks = grid.chunks();
-    let slices = split_by_chunks(&mut sorted, &grid, &chunks);
-    let per_chunk: Vec<(Vec<usize>, usize, usize)> = chunks
+    let slices = split_by_chunks(out_all, grid, &chunks);
+    let per_chunk: Vec<(Vec<usize>, usize, usize, Moments)> = chunks
         .into_par_iter()
         .zip(slices)
-        .map(|(cells, out)| {
-            let base = grid.starts[cells.start];
+        .map(|(cells, dest)| {
+            let base = grid.start(cells.start);
+            // This chunk's means in double precision, then into `dest` through `put`.
+            let mut out = vec![f64::NAN; dest.len()];
             let mut fallback = Vec::new();
             let mut overfull = 0usize;
             let mut second_chance = 0usize;
@@ -1337,7 +1766,7 @@ fn knn_means_with_stats(points: &[Point3<f64>], k: usize) -> (Vec<f64>, KnnStats
             let mut hint2 = f64::INFINITY;
             let mut failed = Vec::new();
             for c in cells {
-                let own = grid.starts[c]..grid.starts[c + 1];
+                let own = grid.start(c)..grid.start(c + 1);
                 grid.block_ranges(c, 1, &mut ranges);
                 let total: usize = ranges.iter().map(|r| r.len()).sum();
                 if total > cap {
@@ -1350,7 +1779,7 @@ fn knn_means_with_stats(points: &[Point3<f64>], k: usize) -> (Vec<f64>, KnnStats
                 if total < k {
                     failed.extend(own);
                 } else {
-                    let margin2 = |q: &[f64; 3]| {
+                    let margin2 = |q: &Xyz| {
                         let m = grid.block_margin(cell, 1, q);
                         if m > 0.0 { m * m } else { 0.0 }
                     };
@@ -1473,17 +1902,25 @@ fn knn_means_with_stats(points: &[Point3<f64>], k: usize) -> (Vec<f64>, KnnStats
                     }
                 }
             }
-            (fallback, overfull, second_chance)
+            let mut moments = Moments::default();
+            for (d, &m) in dest.iter_mut().zip(&out) {
+                *d = put(m);
+                if !m.is_nan() {
+                    moments.add(m);
+                }
+            }
+            (fallback, overfull, second_chance, moments)
         })
         .collect();
     stats.overfull_cells = per_chunk.iter().map(|f| f.1).sum();
     stats.second_chance = per_chunk.iter().map(|f| f.2).sum();
+    let mut moments = per_chunk.iter().fold(Moments::default(), |a, f| a.merge(f.3));
     // In grid order, so consecutive queries are near each other and share cache.
     let fallback: Vec<usize> = per_chunk.into_iter().flat_map(|f| f.0).collect();
     stats.tree = fallback.len();
     stats.grid = grid.xyz.len() - fallback.len();
     if !fallback.is_empty() {
-        let bvh = Bvh::build(&grid);
+        let bvh = Bvh::build(grid, leaf_max);
         let results: Vec<(usize, f64)> = fallback
             .par_chunks(256)
             .flat_map_iter(|part| {
@@ -1498,13 +1935,11 @@ fn knn_means_with_stats(points: &[Point3<f64>], k: usize) -> (Vec<f64>, KnnStats
             })
             .collect();
         for (s, d) in results {
-            sorted[s] = d;
+            out_all[s] = put(d);
+            moments.add(d);
         }
     }
-    for (s, &d) in sorted.iter().enumerate() {
-        means[grid.order[s]] = d;
-    }
-    (means, stats)
+    (stats, moments)
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -1535,7 +1970,7 @@ pub fn fit_sphere(points: &[Point3<f64>]) -> Result<SphereFit> {
     if n < 4 {
         return Err(sphere_param(n, "a sphere fit needs at least 4 points"));
     }
-    if let Some((i, p)) = points.iter().enumerate().find(|(_, p)| !usable(p)) {
+    if let Some((i, p)) = points.iter().enumerate().find(|(_, p)| !usable(*p)) {
         return Err(ReconError::param(
             format!("sphere_fit.points[{i}]"),
             format!("({}, {}, {})", p.x, p.y, p.z),
@@ -1887,6 +2322,11 @@ mod tests {
         Point3::new(x, y, z)
     }
 
+    /// A cloud's point (single precision) from double-precision coordinates.
+    fn pt(x: f64, y: f64, z: f64) -> Point3<f32> {
+        depthmill_geometry::cloud::single(&p(x, y, z))
+    }
+
     fn gauss(rng: &mut StdRng) -> f64 {
         let u1 = 1.0 - rng.random::<f64>();
         let u2 = rng.random::<f64>();
@@ -1897,8 +2337,8 @@ mod tests {
 
     /// O(n²): every squared distance to a usable point, sorted; the `k` smallest (the point
     /// itself included) as square roots summed in ascending order, over `k`. One result per `k`.
-    fn brute_means_multi(points: &[Point3<f64>], ks: &[usize]) -> Vec<Vec<f64>> {
-        let all: Vec<[f64; 3]> = points.iter().filter(|q| usable(q)).map(|q| [q.x, q.y, q.z]).collect();
+    fn brute_means_multi(points: &[Point3<f32>], ks: &[usize]) -> Vec<Vec<f64>> {
+        let all: Vec<Xyz> = points.iter().filter(|q| usable(*q)).copied().collect();
         let kmax = ks.iter().copied().max().unwrap_or(1).min(all.len()).max(1);
         let mut out = vec![Vec::with_capacity(points.len()); ks.len()];
         for q in points {
@@ -1906,8 +2346,7 @@ mod tests {
                 out.iter_mut().for_each(|o| o.push(f64::NAN));
                 continue;
             }
-            let q = [q.x, q.y, q.z];
-            let mut d: Vec<f64> = all.iter().map(|o| dist2(&q, o)).collect();
+            let mut d: Vec<f64> = all.iter().map(|o| dist2(q, o)).collect();
             if d.len() > kmax {
                 d.select_nth_unstable_by(kmax - 1, f64::total_cmp);
             }
@@ -1925,12 +2364,12 @@ mod tests {
         out
     }
 
-    fn brute_means(points: &[Point3<f64>], k: usize) -> Vec<f64> {
+    fn brute_means(points: &[Point3<f32>], k: usize) -> Vec<f64> {
         brute_means_multi(points, &[k]).remove(0)
     }
 
     /// Open3D's rule on the brute-force means (sample σ), with the two documented differences.
-    fn brute_sor_mask(points: &[Point3<f64>], k: usize, n_sigma: f64) -> Vec<bool> {
+    fn brute_sor_mask(points: &[Point3<f32>], k: usize, n_sigma: f64) -> Vec<bool> {
         let means = brute_means(points, k);
         let valid: Vec<f64> = means.iter().copied().filter(|d| !d.is_nan()).collect();
         if valid.len() < 2 {
@@ -1944,16 +2383,14 @@ mod tests {
 
     /// O(n²): per point, the sorted squared distances to every usable point (itself included);
     /// empty for unusable points.
-    fn brute_sorted_d2(points: &[Point3<f64>]) -> Vec<Vec<f64>> {
-        let xyz = |q: &Point3<f64>| [q.x, q.y, q.z];
+    fn brute_sorted_d2(points: &[Point3<f32>]) -> Vec<Vec<f64>> {
         points
             .iter()
             .map(|q| {
                 if !usable(q) {
                     return Vec::new();
                 }
-                let mut d: Vec<f64> =
-                    points.iter().filter(|o| usable(o)).map(|o| dist2(&xyz(q), &xyz(o))).collect();
+                let mut d: Vec<f64> = points.iter().filter(|o| usable(*o)).map(|o| dist2(q, o)).collect();
                 d.sort_by(f64::total_cmp);
                 d
             })
@@ -1968,21 +2405,23 @@ mod tests {
 
     /// Group by voxel in a hash map (members in index order), keep the member nearest the
     /// centroid `p₀ + Σ(p − p₀)/m`, the lowest index on ties.
-    fn brute_voxel_mask(points: &[Point3<f64>], voxel: f64) -> Vec<bool> {
+    fn brute_voxel_mask(points: &[Point3<f32>], voxel: f64) -> Vec<bool> {
         let mut groups: HashMap<[i64; 3], Vec<usize>> = HashMap::new();
-        for (i, q) in points.iter().enumerate().filter(|(_, q)| usable(q)) {
+        for (i, q) in points.iter().enumerate().filter(|(_, q)| usable(*q)) {
+            let q = q.at();
             let key =
                 [(q.x / voxel).floor() as i64, (q.y / voxel).floor() as i64, (q.z / voxel).floor() as i64];
             groups.entry(key).or_default().push(i);
         }
         let mut keep = vec![false; points.len()];
         for members in groups.values() {
-            let p0 = points[members[0]];
-            let sum = members.iter().fold(Vector3::zeros(), |s, &i| s + (points[i] - p0));
+            let p0 = points[members[0]].at();
+            let sum = members.iter().fold(Vector3::zeros(), |s, &i| s + (points[i].at() - p0));
             let centroid = p0 + sum / members.len() as f64;
             let mut best = members[0];
             for &i in members {
-                if (points[i] - centroid).norm_squared() < (points[best] - centroid).norm_squared() {
+                if (points[i].at() - centroid).norm_squared() < (points[best].at() - centroid).norm_squared()
+                {
                     best = i;
                 }
             }
@@ -1994,45 +2433,45 @@ mod tests {
     // ----- Random clouds ----------------------------------------------------------------------
 
     /// A wavy height field on a jittered grid (pitch 0.5 mm) with 20 µm noise.
-    fn surface(rng: &mut StdRng, n: usize) -> Vec<Point3<f64>> {
+    fn surface(rng: &mut StdRng, n: usize) -> Vec<Point3<f32>> {
         let side = (n as f64).sqrt().ceil() as usize;
         (0..n)
             .map(|i| {
                 let x = (i % side) as f64 * 0.5 + rng.random_range(-0.15..0.15);
                 let y = (i / side) as f64 * 0.5 + rng.random_range(-0.15..0.15);
-                p(x, y, 2.0 * (x / 7.0).sin() * (y / 5.0).cos() + 0.02 * gauss(rng))
+                pt(x, y, 2.0 * (x / 7.0).sin() * (y / 5.0).cos() + 0.02 * gauss(rng))
             })
             .collect()
     }
 
     /// `n` uniformly random points in a box of side `size`.
-    fn uniform(rng: &mut StdRng, n: usize, size: f64) -> Vec<Point3<f64>> {
+    fn uniform(rng: &mut StdRng, n: usize, size: f64) -> Vec<Point3<f32>> {
         (0..n)
-            .map(|_| p(rng.random::<f64>() * size, rng.random::<f64>() * size, rng.random::<f64>() * size))
+            .map(|_| pt(rng.random::<f64>() * size, rng.random::<f64>() * size, rng.random::<f64>() * size))
             .collect()
     }
 
     /// Points on a coarse integer lattice: many exact duplicates and tied distances.
-    fn lattice(rng: &mut StdRng, n: usize, side: i32) -> Vec<Point3<f64>> {
+    fn lattice(rng: &mut StdRng, n: usize, side: i32) -> Vec<Point3<f32>> {
         (0..n)
             .map(|_| {
                 let c = |rng: &mut StdRng| f64::from(rng.random_range(0..side)) * 0.5;
-                p(c(rng), c(rng), c(rng))
+                pt(c(rng), c(rng), c(rng))
             })
             .collect()
     }
 
     /// Tight clusters, a heap of exact duplicates, scattered points.
-    fn clustered(rng: &mut StdRng, n: usize) -> Vec<Point3<f64>> {
+    fn clustered(rng: &mut StdRng, n: usize) -> Vec<Point3<f32>> {
         let centres: Vec<Point3<f64>> =
             (0..5).map(|_| p(rng.random::<f64>() * 50.0, rng.random::<f64>() * 50.0, 0.0)).collect();
-        let mut pts: Vec<Point3<f64>> = (0..n)
+        let mut pts: Vec<Point3<f32>> = (0..n)
             .map(|i| match i % 10 {
-                0 => p(rng.random::<f64>() * 60.0, rng.random::<f64>() * 60.0, rng.random::<f64>() * 20.0),
-                1 => p(7.0, 7.0, 7.0),
+                0 => pt(rng.random::<f64>() * 60.0, rng.random::<f64>() * 60.0, rng.random::<f64>() * 20.0),
+                1 => pt(7.0, 7.0, 7.0),
                 _ => {
                     let c = centres[i % 5];
-                    p(c.x + 0.3 * gauss(rng), c.y + 0.3 * gauss(rng), c.z + 0.3 * gauss(rng))
+                    pt(c.x + 0.3 * gauss(rng), c.y + 0.3 * gauss(rng), c.z + 0.3 * gauss(rng))
                 }
             })
             .collect();
@@ -2050,7 +2489,7 @@ mod tests {
     #[test]
     fn retain_keeps_attributes_in_order() {
         let cloud = PointCloud::new(
-            (0..5).map(|i| p(f64::from(i), 0.0, 0.0)).collect(),
+            (0..5).map(|i| pt(f64::from(i), 0.0, 0.0)).collect(),
             Some(vec![0.0, 1.0, 2.0, 3.0, 4.0]),
             Some((0..5).map(|i| Vector3::new(i as f32, 0.0, 0.0)).collect()),
         )
@@ -2071,7 +2510,7 @@ mod tests {
     #[test]
     fn intensity_window_is_inclusive_and_checks_its_input() {
         let cloud = PointCloud::new(
-            (0..6).map(|i| p(f64::from(i), 0.0, 0.0)).collect(),
+            (0..6).map(|i| pt(f64::from(i), 0.0, 0.0)).collect(),
             Some(vec![0.5, 1.0, 1.5, 2.0, f32::NAN, 3.0]),
             None,
         )
@@ -2084,7 +2523,7 @@ mod tests {
         assert_eq!(e.to_string(), "invalid reconstruct.filters.intensity.max = 1: must be at least min = 2");
         let e = intensity_window(cloud.clone(), f32::NAN, 1.0).expect_err("NaN");
         assert!(e.to_string().starts_with("invalid reconstruct.filters.intensity.min = NaN"), "{e}");
-        let bare = PointCloud::from_points(cloud.points.clone());
+        let bare = PointCloud::new(cloud.points.clone(), None, None).expect("bare");
         let e = intensity_window(bare, 0.0, 1.0).expect_err("no intensity");
         assert!(matches!(e, ReconError::MissingAttribute { what: "intensity", .. }), "{e}");
         let mut broken = cloud;
@@ -2109,7 +2548,7 @@ mod tests {
 
     #[test]
     fn parameter_errors_name_the_field() {
-        let pts = vec![p(0.0, 0.0, 0.0); 3];
+        let pts = vec![pt(0.0, 0.0, 0.0); 3];
         let msg = |r: Result<Vec<bool>>| r.expect_err("must fail").to_string();
         assert_eq!(
             msg(statistical_outlier_mask(&pts, 0, 2.0)),
@@ -2132,9 +2571,9 @@ mod tests {
         assert!(msg(voxel_keep_mask(&pts, 0.0)).starts_with("invalid reconstruct.filters.voxel_mm = 0"));
         assert!(knn_mean_distances(&pts, 0).is_err());
         // Voxels too small for the coordinates: an error, not an overflow.
-        let far = vec![p(0.0, 0.0, 0.0), p(1e12, 0.0, 0.0)];
+        let far = vec![pt(0.0, 0.0, 0.0), pt(2f64.powi(40), 0.0, 0.0)];
         let e = msg(voxel_keep_mask(&far, 1e-6));
-        assert!(e.contains("point 1 at (1000000000000, 0, 0) mm lies more than 2^53 voxels"), "{e}");
+        assert!(e.contains("point 1 at (1099511627776, 0, 0) mm lies more than 2^53 voxels"), "{e}");
     }
 
     // ----- statistical outlier removal ---------------------------------------------------------
@@ -2146,7 +2585,7 @@ mod tests {
         // n_sigma = 1: threshold 2.44 drops x = 10. n_sigma = 2: threshold 3.78 keeps it (a
         // population σ = 1.2 would give 3.5 and drop it). Open3D 0.20 gives the same:
         // remove_statistical_outlier(2, 1.0) keeps [0, 1, 2, 3], (2, 2.0) keeps all five.
-        let pts: Vec<Point3<f64>> = [0.0, 1.0, 2.0, 3.0, 10.0].iter().map(|&x| p(x, 0.0, 0.0)).collect();
+        let pts: Vec<Point3<f32>> = [0.0, 1.0, 2.0, 3.0, 10.0].iter().map(|&x| pt(x, 0.0, 0.0)).collect();
         assert_eq!(knn_mean_distances(&pts, 2).expect("means"), vec![0.5, 0.5, 0.5, 0.5, 3.5]);
         assert_eq!(
             statistical_outlier_mask(&pts, 2, 1.0).expect("mask"),
@@ -2160,19 +2599,110 @@ mod tests {
     #[test]
     fn sor_degenerate_clouds_keep_their_usable_points() {
         // Every mean equal (σ = 0): nothing stands out.
-        let same = vec![p(1.0, 2.0, 3.0); 50];
+        let same = vec![pt(1.0, 2.0, 3.0); 50];
         assert_eq!(statistical_outlier_mask(&same, 8, 2.0).expect("mask"), vec![true; 50]);
         // One usable point; non-finite points are removed.
-        let one = vec![p(1.0, 2.0, 3.0), p(f64::NAN, 0.0, 0.0), p(0.0, f64::INFINITY, 0.0)];
+        let one = vec![pt(1.0, 2.0, 3.0), pt(f64::NAN, 0.0, 0.0), pt(0.0, f64::INFINITY, 0.0)];
         assert_eq!(statistical_outlier_mask(&one, 8, 2.0).expect("mask"), vec![true, false, false]);
-        let (out, report) = statistical_outlier_removal(PointCloud::from_points(one), 8, 2.0).expect("sor");
+        let (out, report) =
+            statistical_outlier_removal(PointCloud::new(one, None, None).expect("cloud"), 8, 2.0)
+                .expect("sor");
         assert_eq!((out.len(), report.kept, report.removed), (1, 1, 2));
+    }
+
+    #[test]
+    fn flag_sort_matches_a_sort_by_key_and_moves_every_lane() {
+        let mut rng = StdRng::seed_from_u64(21);
+        for (n, bits) in [(0usize, 8u32), (1, 8), (47, 12), (300, 20), (5000, 9), (70_000, 27), (40_000, 40)]
+        {
+            let keys: Vec<u64> = (0..n).map(|_| rng.random::<u64>() >> (64 - bits)).collect();
+            // Every lane carries the point's original index, so the tuples can be checked.
+            let pts: Vec<Xyz> = (0..n).map(|i| Point3::new(i as f32, 0.0, 0.0)).collect();
+            let intensity: Vec<f32> = (0..n).map(|i| i as f32 + 0.5).collect();
+            let normals: Vec<Vector3<f32>> = (0..n).map(|i| Vector3::new(0.0, i as f32, 0.0)).collect();
+            let mut want: Vec<(u64, usize)> = keys.iter().copied().zip(0..).collect();
+            want.sort_unstable();
+            let check = |sorted: Vec<u64>, pts: &[Xyz], intensity: &[f32], normals: &[Vector3<f32>]| {
+                let got: Vec<(u64, usize)> =
+                    sorted.iter().zip(pts).map(|(&k, p)| (k, p.x as usize)).collect();
+                let mut same = got.clone();
+                same.sort_unstable();
+                assert_eq!(same, want, "n = {n}, bits = {bits}: the same (key, point) pairs");
+                assert!(got.windows(2).all(|w| w[0].0 <= w[1].0), "n = {n}, bits = {bits}: sorted");
+                for (i, p) in pts.iter().enumerate() {
+                    assert_eq!(intensity[i], p.x + 0.5);
+                    assert_eq!(normals[i].y, p.x);
+                }
+            };
+            let (mut p64, mut i64_, mut n64) = (pts.clone(), intensity.clone(), normals.clone());
+            let mut k64 = keys.clone();
+            let lanes =
+                Lanes { keys: &mut k64, pts: &mut p64, intensity: Some(&mut i64_), normals: Some(&mut n64) };
+            flag_sort(lanes, top_shift(1 << bits));
+            check(k64, &p64, &i64_, &n64);
+            if bits <= 32 {
+                let (mut p32, mut i32_, mut n32) = (pts.clone(), intensity.clone(), normals.clone());
+                let mut k32: Vec<u32> = keys.iter().map(|&k| k as u32).collect();
+                let lanes = Lanes {
+                    keys: &mut k32,
+                    pts: &mut p32,
+                    intensity: Some(&mut i32_),
+                    normals: Some(&mut n32),
+                };
+                flag_sort(lanes, top_shift(1 << bits));
+                check(k32.iter().map(|&k| u64::from(k)).collect(), &p32, &i32_, &n32);
+            }
+        }
+    }
+
+    #[test]
+    fn sor_in_place_keeps_what_the_mask_keeps_with_the_attributes() {
+        let mut rng = StdRng::seed_from_u64(23);
+        let (planted_pts, _) = planted(&mut rng, false);
+        let mut with_nan = surface(&mut rng, 3000);
+        with_nan[17] = pt(f64::NAN, 1.0, 1.0);
+        with_nan[2000] = pt(0.0, f64::INFINITY, 1.0);
+        let clouds: Vec<(&str, Vec<Point3<f32>>)> = vec![
+            ("planted", planted_pts),
+            ("clustered", clustered(&mut rng, 6000)),
+            ("lattice", lattice(&mut rng, 4000, 12)),
+            ("non-finite", with_nan),
+        ];
+        for (name, pts) in clouds {
+            let n = pts.len();
+            // Attributes that name their point.
+            let intensity: Vec<f32> = (0..n).map(|i| i as f32).collect();
+            let normals: Vec<Vector3<f32>> = (0..n).map(|i| Vector3::new(i as f32, 0.0, 0.0)).collect();
+            let cloud = PointCloud::new(pts.clone(), Some(intensity), Some(normals)).expect("cloud");
+            for (k, n_sigma) in [(8usize, 1.0f64), (20, 2.0)] {
+                let mask = statistical_outlier_mask(&pts, k, n_sigma).expect("mask");
+                let mut want: Vec<usize> = (0..n).filter(|&i| mask[i]).collect();
+                want.sort_unstable();
+                // The stored single-precision means, and every mean measured again exactly.
+                for slack in [SINGLE_SLACK, 1.0] {
+                    let (out, report) = sor_in_place(cloud.clone(), k, n_sigma, slack).expect("sor");
+                    let (intensity, normals) =
+                        (out.intensity.expect("intensity"), out.normals.expect("normals"));
+                    let mut got: Vec<usize> = intensity.iter().map(|&i| i as usize).collect();
+                    for (j, &i) in got.iter().enumerate() {
+                        assert_eq!(
+                            out.points[j].coords, pts[i].coords,
+                            "{name}: the point follows its attributes"
+                        );
+                        assert_eq!(normals[j].x as usize, i, "{name}");
+                    }
+                    got.sort_unstable();
+                    assert_eq!(got, want, "{name}, k = {k}, n_sigma = {n_sigma}, slack = {slack}");
+                    assert_eq!((report.kept, report.removed), (want.len(), n - want.len()), "{name}");
+                }
+            }
+        }
     }
 
     #[test]
     fn knn_means_match_brute_force_on_random_clouds() {
         let mut rng = StdRng::seed_from_u64(11);
-        let mut clouds: Vec<(&str, Vec<Point3<f64>>)> = vec![
+        let mut clouds: Vec<(&str, Vec<Point3<f32>>)> = vec![
             ("surface", surface(&mut rng, 2500)),
             ("uniform", uniform(&mut rng, 2000, 10.0)),
             ("lattice", lattice(&mut rng, 2000, 6)),
@@ -2181,13 +2711,13 @@ mod tests {
         // Surface with 1 % far outliers, two non-finite points and a huge offset.
         let mut s = surface(&mut rng, 2000);
         s.extend(uniform(&mut rng, 20, 40.0).into_iter().map(|q| q + Vector3::new(-5.0, -5.0, 5.0)));
-        s.push(p(f64::NAN, 1.0, 1.0));
-        s.push(p(1.0, f64::NEG_INFINITY, 1.0));
+        s.push(pt(f64::NAN, 1.0, 1.0));
+        s.push(pt(1.0, f64::NEG_INFINITY, 1.0));
         clouds.push(("outliers", s.clone()));
         clouds.push(("offset", s.iter().map(|q| q + Vector3::new(1e6, -2e6, 5e5)).collect()));
         let mut far = uniform(&mut rng, 1000, 5.0);
-        far.push(p(1e9, 1e9, 0.0));
-        far.push(p(-3e8, 0.0, 7e8));
+        far.push(pt(1e9, 1e9, 0.0));
+        far.push(pt(-3e8, 0.0, 7e8));
         clouds.push(("huge extent", far));
 
         let (mut tree_used, mut second_chance_used) = (false, false);
@@ -2197,7 +2727,7 @@ mod tests {
             for (k, slow) in ks.into_iter().zip(&slow) {
                 let (fast, stats) = knn_means_with_stats(pts, k);
                 assert!(same_means(&fast, slow), "{name}, k = {k}");
-                assert_eq!(stats.grid + stats.tree, pts.iter().filter(|q| usable(q)).count(), "{name}");
+                assert_eq!(stats.grid + stats.tree, pts.iter().filter(|q| usable(*q)).count(), "{name}");
                 tree_used |= stats.tree > 0;
                 second_chance_used |= stats.second_chance > 0;
                 if *name == "surface" && k == 20 {
@@ -2211,7 +2741,7 @@ mod tests {
     #[test]
     fn knn_means_with_a_heap_of_duplicates() {
         let mut rng = StdRng::seed_from_u64(5);
-        let mut pts = vec![p(3.0, 3.0, 3.0); 4000];
+        let mut pts = vec![pt(3.0, 3.0, 3.0); 4000];
         pts.extend(uniform(&mut rng, 500, 6.0));
         let ks = [5, 20];
         for (k, slow) in ks.into_iter().zip(brute_means_multi(&pts, &ks)) {
@@ -2241,8 +2771,8 @@ mod tests {
     }
 
     /// A plane-like surface or a sphere, with noise, plus 1 % far outliers.
-    fn planted(rng: &mut StdRng, sphere: bool) -> (Vec<Point3<f64>>, usize) {
-        let mut pts = if sphere {
+    fn planted(rng: &mut StdRng, sphere: bool) -> (Vec<Point3<f32>>, usize) {
+        let mut pts: Vec<Point3<f64>> = if sphere {
             (0..20_000)
                 .map(|_| {
                     let v = Vector3::new(gauss(rng), gauss(rng), gauss(rng)).normalize();
@@ -2250,7 +2780,7 @@ mod tests {
                 })
                 .collect()
         } else {
-            surface(rng, 20_000)
+            surface(rng, 20_000).iter().map(CloudPoint::at).collect()
         };
         let n = pts.len();
         let lo = pts.iter().fold(Vector3::repeat(f64::INFINITY), |a, q| a.inf(&q.coords));
@@ -2274,7 +2804,7 @@ mod tests {
                 pts.push(q);
             }
         }
-        (pts, n)
+        (pts.iter().map(depthmill_geometry::cloud::single).collect(), n)
     }
 
     #[test]
@@ -2302,7 +2832,7 @@ mod tests {
         let mut rng = StdRng::seed_from_u64(8);
         let mut outliers = surface(&mut rng, 1500);
         outliers.extend(uniform(&mut rng, 40, 30.0));
-        outliers.push(p(f64::NAN, 0.0, 0.0));
+        outliers.push(pt(f64::NAN, 0.0, 0.0));
         let clouds =
             [outliers, lattice(&mut rng, 1500, 7), clustered(&mut rng, 1500), uniform(&mut rng, 1000, 8.0)];
         for pts in &clouds {
@@ -2321,11 +2851,12 @@ mod tests {
     fn ror_radius_is_strict_and_counts_others() {
         // Open3D 0.20: remove_radius_outlier(1, 1.0) on (0,0,0), (1,0,0), (5,0,0) keeps none;
         // with radius 1.0000001 it keeps the first two.
-        let pts = vec![p(0.0, 0.0, 0.0), p(1.0, 0.0, 0.0), p(5.0, 0.0, 0.0)];
+        let pts = vec![pt(0.0, 0.0, 0.0), pt(1.0, 0.0, 0.0), pt(5.0, 0.0, 0.0)];
         assert_eq!(radius_outlier_mask(&pts, 1.0, 1).expect("mask"), vec![false; 3]);
         assert_eq!(radius_outlier_mask(&pts, 1.000_000_1, 1).expect("mask"), vec![true, true, false]);
         let (out, report) =
-            radius_outlier_removal(PointCloud::from_points(pts), 1.000_000_1, 1).expect("ror");
+            radius_outlier_removal(PointCloud::new(pts, None, None).expect("cloud"), 1.000_000_1, 1)
+                .expect("ror");
         assert_eq!((out.len(), report), (2, FilterReport { filter: "radius", kept: 2, removed: 1 }));
     }
 
@@ -2335,7 +2866,7 @@ mod tests {
     fn voxel_decimation_matches_brute_force() {
         let mut rng = StdRng::seed_from_u64(13);
         let mut with_nan = surface(&mut rng, 2000);
-        with_nan.push(p(0.0, f64::NAN, 0.0));
+        with_nan.push(pt(0.0, f64::NAN, 0.0));
         let clouds =
             [with_nan, lattice(&mut rng, 2000, 9), clustered(&mut rng, 2000), uniform(&mut rng, 2000, 3.0)];
         for pts in &clouds {
@@ -2354,20 +2885,20 @@ mod tests {
         // Voxel 1: (0.1, 0.1), (0.5, 0.5), (0.9, 0.9) -> centroid (0.5, 0.5) -> the middle point.
         // Voxel 2: one point. Voxel 3: two points equally far from their centroid -> the first.
         let pts = vec![
-            p(0.1, 0.1, 0.0),
-            p(5.5, 0.5, 0.5),
-            p(0.5, 0.5, 0.0),
-            p(-0.2, 0.0, 0.0),
-            p(0.9, 0.9, 0.0),
-            p(-0.8, 0.0, 0.0),
+            pt(0.1, 0.1, 0.0),
+            pt(5.5, 0.5, 0.5),
+            pt(0.5, 0.5, 0.0),
+            pt(-0.2, 0.0, 0.0),
+            pt(0.9, 0.9, 0.0),
+            pt(-0.8, 0.0, 0.0),
         ];
         let cloud = PointCloud::new(pts, Some(vec![0.0, 1.0, 2.0, 3.0, 4.0, 5.0]), None).expect("valid");
         let (out, report) = voxel_decimate(cloud, 1.0).expect("voxel");
         assert_eq!(out.intensity, Some(vec![1.0, 2.0, 3.0]));
-        assert_eq!(out.points[1], p(0.5, 0.5, 0.0));
+        assert_eq!(out.points[1], pt(0.5, 0.5, 0.0));
         assert_eq!(report, FilterReport { filter: "voxel", kept: 3, removed: 3 });
         // Huge extents with a reasonable voxel are fine.
-        let far = vec![p(-1e12, 0.0, 0.0), p(1e12, 0.0, 0.0), p(1e12, 0.0, 0.5)];
+        let far = vec![pt(-1e12, 0.0, 0.0), pt(1e12, 0.0, 0.0), pt(1e12, 0.0, 0.5)];
         assert_eq!(voxel_keep_mask(&far, 1.0).expect("mask"), vec![true, true, false]);
     }
 
@@ -2416,8 +2947,8 @@ mod tests {
             min in 1usize..12,
             voxel in 0.3f64..3.0,
         ) {
-            let pts: Vec<Point3<f64>> =
-                coords.iter().map(|&(x, y, z)| p(f64::from(x) * 0.5, f64::from(y) * 0.5, f64::from(z) * 0.75)).collect();
+            let pts: Vec<Point3<f32>> =
+                coords.iter().map(|&(x, y, z)| pt(f64::from(x) * 0.5, f64::from(y) * 0.5, f64::from(z) * 0.75)).collect();
             prop_assert!(same_means(&knn_mean_distances(&pts, k).expect("means"), &brute_means(&pts, k)));
             prop_assert_eq!(statistical_outlier_mask(&pts, k, n_sigma).expect("sor"), brute_sor_mask(&pts, k, n_sigma));
             prop_assert_eq!(

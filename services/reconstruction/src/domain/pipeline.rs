@@ -17,8 +17,10 @@
 
 use std::time::Instant;
 
-use depthmill_geometry::{Face, HeightMap, PointCloud};
+use depthmill_geometry::cloud::single;
+use depthmill_geometry::{CloudPoint, Face, HeightMap, PointCloud};
 use nalgebra::{Isometry3, Point3, Translation3, Vector3};
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::error::{ReconError, Result};
@@ -530,7 +532,7 @@ pub fn reconstruct(
 pub fn reconstruct_with_free_space(
     input: Geometry,
     opts: &ReconstructOptions,
-    free_space: Option<&[Point3<f64>]>,
+    free_space: Option<&[Point3<f32>]>,
     progress: ProgressFn<'_>,
     cancelled: CancelFn<'_>,
 ) -> Result<ReconstructOutput> {
@@ -565,12 +567,20 @@ pub fn reconstruct_with_free_space(
             for (i, frame) in r.faces.iter().enumerate() {
                 progress(0.3 + 0.7 * i as f64 / n_faces, &format!("face {}: rasterising", frame.face));
                 let iso = frame.face_from_part();
-                let points: Vec<Point3<f64>> = cloud.points.iter().map(|p| iso * p).collect();
+                // The cloud itself for a face that views it as it is (`+Z`, no origin), else a
+                // turned copy (single precision, like the cloud).
+                let turned: Vec<Point3<f32>>;
+                let points: &[Point3<f32>] = if iso == Isometry3::identity() {
+                    &cloud.points
+                } else {
+                    turned = cloud.points.par_iter().map(|p| single(&(iso * p.at()))).collect();
+                    &turned
+                };
                 // Free space is what the scanner saw from above: it speaks for the top view only.
                 let free: Option<Vec<Point3<f64>>> = free_space
                     .filter(|f| !f.is_empty() && frame.face == depthmill_geometry::Face::PosZ)
-                    .map(|f| f.iter().map(|p| iso * p).collect());
-                faces.push(cloud_face(&points, free.as_deref(), *frame, &r, i, cancelled)?);
+                    .map(|f| f.iter().map(|p| iso * p.at()).collect());
+                faces.push(cloud_face(points, free.as_deref(), *frame, &r, i, cancelled)?);
             }
             ("point_cloud", kept, reports)
         }
@@ -621,7 +631,7 @@ fn choose(
     Ok(report)
 }
 
-fn face_roi(r: &Resolved, points: &[Point3<f64>], index: usize) -> Result<Roi> {
+fn face_roi<P: CloudPoint>(r: &Resolved, points: &[P], index: usize) -> Result<Roi> {
     match r.roi {
         Some(roi) => Ok(roi),
         None => Roi::around(points, r.margin_mm).ok_or_else(|| {
@@ -758,7 +768,7 @@ pub fn fill_unseen(map: &mut HeightMap, free: &[bool]) -> usize {
 }
 
 fn cloud_face(
-    points: &[Point3<f64>],
+    points: &[Point3<f32>],
     free: Option<&[Point3<f64>]>,
     frame: FaceFrame,
     r: &Resolved,
@@ -937,14 +947,11 @@ mod tests {
     /// unscanned disc of 1 mm radius in the middle (filled).
     fn noisy_plane() -> PointCloud {
         let mut rng = StdRng::seed_from_u64(5);
-        let points = (0..40_000)
-            .filter_map(|_| {
-                let (x, y) = (rng.random_range(0.0..30.0), rng.random_range(0.0..20.0));
-                let z = 5.0 + rng.random_range(-0.05..0.05);
-                ((x - 15.0f64).hypot(y - 10.0) > 1.0).then(|| Point3::new(x, y, z))
-            })
-            .collect();
-        PointCloud::from_points(points)
+        PointCloud::from_points((0..40_000).filter_map(|_| {
+            let (x, y) = (rng.random_range(0.0..30.0), rng.random_range(0.0..20.0));
+            let z = 5.0 + rng.random_range(-0.05..0.05);
+            ((x - 15.0f64).hypot(y - 10.0) > 1.0).then(|| Point3::new(x, y, z))
+        }))
     }
 
     fn face(estimator: Option<&str>) -> FaceOutput {
@@ -1133,13 +1140,15 @@ mod tests {
         let (cloud, table) = plateau_with_band();
         let opts = ReconstructOptions {
             pixel_mm: Some(0.5),
+            // Cell edges 0.025 mm off the points' lattice, so no point lies on one.
+            margin_mm: Some(1.025),
             fill: Some(FillOptions { max_hole_mm: Some(1.0), ..Default::default() }),
             ..Default::default()
         };
         let out = reconstruct_with_free_space(
             Geometry::Cloud(cloud.clone()),
             &opts,
-            Some(&table),
+            Some(&PointCloud::from_points(table.clone()).points),
             &|_, _| {},
             &|| false,
         )

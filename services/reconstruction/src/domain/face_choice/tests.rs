@@ -148,7 +148,7 @@ fn a_scanned_cloud_is_not_seen_from_inside() {
     let m = Mesh::cuboid(20.0, 16.0, 12.0);
     let mesh_samples = SurfaceSamples::from_mesh(&m, 0.25).expect("samples");
     let points: Vec<Point3<f64>> = mesh_samples.points.into_iter().filter(|p| p.z > 0.01).collect();
-    let cloud = PointCloud { points, intensity: None, normals: None };
+    let cloud = PointCloud::from_points(points);
     let s = FaceChoiceSettings { step_deg: 45.0, ..Default::default() };
     let samples = SurfaceSamples::from_cloud(&cloud, s.cell_mm).expect("samples");
     assert!(!samples.occluders.is_empty());

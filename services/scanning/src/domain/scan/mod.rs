@@ -1065,7 +1065,11 @@ impl ScanSession {
             units: None,
         };
         ScanOutput {
-            cloud: PointCloud { points: self.points, intensity: Some(self.intensity), normals: None },
+            cloud: PointCloud {
+                points: self.points.iter().map(depthmill_geometry::cloud::single).collect(),
+                intensity: Some(self.intensity),
+                normals: None,
+            },
             pass: self.pass,
             report,
             free_space: self.free_space,

@@ -61,11 +61,11 @@ fn distances(out: &ScanOutput, f: impl Fn(f64, f64) -> f64, lim: f64) -> (f64, f
     let mut sq = 0.0;
     let mut mx: f64 = 0.0;
     let mut n = 0;
-    for p in &out.cloud.points {
+    for p in out.cloud.points_f64() {
         if p.x.abs() > lim || p.y.abs() > lim {
             continue;
         }
-        let d = field_distance(p, &f);
+        let d = field_distance(&p, &f);
         sq += d * d;
         mx = mx.max(d);
         n += 1;
@@ -398,7 +398,7 @@ fn given_passes_are_scanned_where_asked() {
     let (rms, _, n) = distances(&out, dome, 18.0);
     assert!(n > 1000 && rms < 0.045, "{n} {rms}");
     // The line crosses the centre: points span x about ±half a line length around 0.
-    let xs: Vec<f64> = out.cloud.points.iter().map(|p| p.x).collect();
+    let xs: Vec<f64> = out.cloud.points.iter().map(|p| f64::from(p.x)).collect();
     let lo = xs.iter().copied().fold(f64::INFINITY, f64::min);
     let hi = xs.iter().copied().fold(f64::NEG_INFINITY, f64::max);
     assert!(lo > -40.0 && hi < 40.0 && lo < -15.0 && hi > 15.0, "{lo}..{hi}");
