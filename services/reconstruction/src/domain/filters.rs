@@ -67,9 +67,9 @@
 //! [`statistical_outlier_mask`] sorts a copy of the usable points (with their indices) and returns
 //! the mask in point order, for Open3D's bit-for-bit rule. [`statistical_outlier_removal`] sorts
 //! the cloud itself instead (an in-place MSD radix sort of the points and their attributes by cell
-//! key), stores the means in single precision and measures a point again exactly when its rounded
-//! mean cannot tell which side of the threshold it lies on: beside the cloud it holds the grid's
-//! cells (16 bytes each, about one per three points) and 4 bytes a point.
+//! key), stores the means in 16 bits and measures a point again exactly when its stored mean
+//! cannot tell which side of the threshold it lies on: beside the cloud it holds the grid's
+//! cells (12 bytes each, about one per three points) and 4 bytes a point while sorting, 2 after.
 //!
 //! Only distances are kept, never neighbour identities, so ties need no tie-break: the multiset of
 //! the `k` smallest distances is unique and the result is deterministic, bit for bit the same as
@@ -259,11 +259,11 @@ fn sor_mask_from_means(means: &[f64], n_sigma: f64) -> Vec<bool> {
 /// Statistical outlier removal (report name `statistical`): the rule of
 /// [`statistical_outlier_mask`], done in place.
 ///
-/// Beside the cloud it needs 4 bytes a point (the sort keys, then the means) and the grid's cells
-/// (16 bytes each, about one per three points), where the mask needs a sorted copy with indices:
-/// the cloud is sorted by grid cell (its attributes with it), the
-/// mean distances are kept in single precision (a point whose mean lies within rounding of the
-/// threshold is measured again exactly), and the survivors are compacted. So the survivors come
+/// Beside the cloud it needs 4 bytes a point while sorting (the keys), then 2 (the means), and
+/// the grid's cells (12 bytes each, about one per three points), where the mask needs a sorted
+/// copy with indices: the cloud is sorted by grid cell (its attributes with it), the mean
+/// distances are kept in 16 bits (a point whose mean lies within their rounding of the threshold
+/// is measured again exactly), and the survivors are compacted. So the survivors come
 /// out grouped by grid cell, not in their original order, and `μ` and `σ` are summed in that
 /// order (merged per chunk of cells, Chan et al.): the kept set is the mask's unless a mean lies
 /// within the last bit of the threshold.
@@ -272,12 +272,24 @@ pub fn statistical_outlier_removal(
     k: usize,
     n_sigma: f64,
 ) -> Result<(PointCloud, FilterReport)> {
-    sor_in_place(cloud, k, n_sigma, SINGLE_SLACK)
+    sor_in_place(cloud, k, n_sigma, STORED_SLACK)
 }
 
-/// Relative half-width of the interval a mean rounded to `f32` may have come from (half an ulp
-/// is at most 2^-24 of the value; twice that for margin).
-const SINGLE_SLACK: f64 = 1.0 / (1u64 << 23) as f64;
+/// A mean distance as stored by the in-place removal: the upper 16 bits of its `f32` (bfloat16:
+/// 8 bits of precision, `f32`'s range).
+fn store_mean(d: f64) -> u16 {
+    ((d as f32).to_bits() >> 16) as u16
+}
+
+/// [`store_mean`]'s value, within [`STORED_SLACK`] of the mean.
+fn stored_mean(b: u16) -> f64 {
+    f64::from(f32::from_bits(u32::from(b) << 16))
+}
+
+/// Relative half-width of the interval a stored mean may have come from (the truncation loses
+/// less than 2^-7 of the value, the rounding to `f32` 2^-24; 2^-6 for margin). About one point in
+/// a few hundred lies that close to the threshold and is measured again exactly.
+const STORED_SLACK: f64 = 1.0 / 64.0;
 
 /// Leaf size of the hierarchy the in-place removal builds for its fallback queries (fewer,
 /// larger leaves: a smaller tree).
@@ -302,18 +314,18 @@ fn sor_in_place(
     let k = k.min(bbox.count);
     let h = knn_cell_size(&cloud.points, &bbox, k);
     let grid = Grid::build_in_place(&mut cloud, &bbox, h, true);
-    let mut means = vec![0f32; grid.xyz.len()];
-    let (_, moments) = grid_knn(&grid, k, LEAF_MAX_IN_PLACE, &mut means, |d| d as f32);
+    let mut means = vec![0u16; grid.xyz.len()];
+    let (_, moments) = grid_knn(&grid, k, LEAF_MAX_IN_PLACE, &mut means, store_mean);
     // The decisions overwrite the means (1 keep, 0 drop): no second array.
     if moments.n < 2 {
-        means.fill(1.0);
+        means.fill(1);
     } else {
         let mean = moments.mean;
         let threshold = mean + n_sigma * (moments.m2 / (moments.n - 1) as f64).sqrt();
         let rule = |d: f64| d < threshold || d <= mean;
         // Some(decision) when the stored mean settles it, None when it must be measured again.
-        let sure = |m: f32| {
-            let m = f64::from(m);
+        let sure = |m: u16| {
+            let m = stored_mean(m);
             let e = m.abs() * slack;
             if rule(m + e) {
                 Some(true)
@@ -324,21 +336,21 @@ fn sor_in_place(
             }
         };
         let unsure: Vec<usize> = (0..means.len()).filter(|&s| sure(means[s]).is_none()).collect();
-        means.par_iter_mut().for_each(|m| *m = if sure(*m) == Some(true) { 1.0 } else { 0.0 });
+        means.par_iter_mut().for_each(|m| *m = u16::from(sure(*m) == Some(true)));
         if !unsure.is_empty() {
             // A few points (about one in a few million): their blocks, grown until they hold the
             // k nearest for sure.
             let exact: Vec<bool> = unsure.par_iter().map(|&s| rule(ring_knn(&grid, s, k))).collect();
             for (&s, e) in unsure.iter().zip(exact) {
-                means[s] = if e { 1.0 } else { 0.0 };
+                means[s] = u16::from(e);
             }
         }
     }
     let Grid { xyz, .. } = grid;
     cloud.points = xyz;
-    let kept = means.iter().filter(|&&m| m == 1.0).count();
+    let kept = means.iter().filter(|&&m| m == 1).count();
     let report = FilterReport { filter: "statistical", kept, removed: n - kept };
-    Ok((retain_where(cloud, |i| means[i] == 1.0), report))
+    Ok((retain_where(cloud, |i| means[i] == 1), report))
 }
 
 /// Which points radius outlier removal keeps: `true` iff the point is usable and at least
@@ -876,21 +888,9 @@ impl Grid {
         };
         let mut pts = std::mem::take(&mut cloud.points);
         let count = bbox.count;
-        // Cell runs from the sorted keys.
-        fn runs<K: RadixKey>(keys: &[K], count: usize) -> (Vec<u64>, Vec<u32>) {
-            // Counted first, so the arrays take no more than they hold.
-            let cells_n = keys[..count].windows(2).filter(|w| w[0] != w[1]).count() + usize::from(count > 0);
-            let (mut cells, mut starts) = (Vec::with_capacity(cells_n), Vec::with_capacity(cells_n + 1));
-            for (s, &k) in keys[..count].iter().enumerate() {
-                if cells.last() != Some(&k.bits()) {
-                    cells.push(k.bits());
-                    starts.push(s as u32);
-                }
-            }
-            starts.push(count as u32);
-            (cells, starts)
-        }
-        let (keys, starts) = if key_limit < 1 << 32 {
+        // The sort's keys go before the cells are built (from the sorted points' keys again), so
+        // the two never take memory at once.
+        if key_limit < 1 << 32 {
             let mut keys: Vec<u32> = pts.par_iter().map(|p| key_of(p) as u32).collect();
             let lanes = Lanes {
                 keys: &mut keys,
@@ -899,7 +899,6 @@ impl Grid {
                 normals: cloud.normals.as_deref_mut(),
             };
             flag_sort(lanes, top_shift(key_limit));
-            runs(&keys, count)
         } else {
             let mut keys: Vec<u64> = pts.par_iter().map(key_of).collect();
             let lanes = Lanes {
@@ -909,8 +908,20 @@ impl Grid {
                 normals: cloud.normals.as_deref_mut(),
             };
             flag_sort(lanes, top_shift(key_limit));
-            runs(&keys, count)
-        };
+        }
+        // Cell runs, counted first so the arrays take no more than they hold.
+        let sorted = &pts[..count];
+        let cells_n =
+            sorted.windows(2).filter(|w| key_of(&w[0]) != key_of(&w[1])).count() + usize::from(count > 0);
+        let (mut keys, mut starts) = (Vec::with_capacity(cells_n), Vec::with_capacity(cells_n + 1));
+        for (s, p) in sorted.iter().enumerate() {
+            let k = key_of(p);
+            if keys.last() != Some(&k) {
+                keys.push(k);
+                starts.push(s as u32);
+            }
+        }
+        starts.push(count as u32);
         pts.truncate(count);
         if let Some(v) = &mut cloud.intensity {
             v.truncate(count);
@@ -2679,7 +2690,7 @@ mod tests {
                 let mut want: Vec<usize> = (0..n).filter(|&i| mask[i]).collect();
                 want.sort_unstable();
                 // The stored single-precision means, and every mean measured again exactly.
-                for slack in [SINGLE_SLACK, 1.0] {
+                for slack in [STORED_SLACK, 1.0] {
                     let (out, report) = sor_in_place(cloud.clone(), k, n_sigma, slack).expect("sor");
                     let (intensity, normals) =
                         (out.intensity.expect("intensity"), out.normals.expect("normals"));
