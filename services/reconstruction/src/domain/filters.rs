@@ -619,8 +619,10 @@ impl UsableBox {
 /// Cell coordinates of `p` on a grid at `origin` with `1/h = inv_h` and `dims` cells per axis.
 #[inline]
 fn cell_of(p: &[f64; 3], origin: &[f64; 3], inv_h: f64, dims: &[u64; 3]) -> [u64; 3] {
-    // `as u64` saturates (negative and NaN give 0), so no input can wrap.
-    let c = |a: usize| (((p[a] - origin[a]) * inv_h).floor() as u64).min(dims[a] - 1);
+    // `as u64` truncates towards zero, which is the floor for every non-negative value, and
+    // saturates (negative values and NaN give 0, as their floor would): the floor without a
+    // call into libm, and no input can wrap.
+    let c = |a: usize| (((p[a] - origin[a]) * inv_h) as u64).min(dims[a] - 1);
     [c(0), c(1), c(2)]
 }
 
@@ -912,7 +914,7 @@ impl Grid {
         // Cell runs, counted first so the arrays take no more than they hold.
         let sorted = &pts[..count];
         let cells_n =
-            sorted.windows(2).filter(|w| key_of(&w[0]) != key_of(&w[1])).count() + usize::from(count > 0);
+            sorted.par_windows(2).filter(|w| key_of(&w[0]) != key_of(&w[1])).count() + usize::from(count > 0);
         let (mut keys, mut starts) = (Vec::with_capacity(cells_n), Vec::with_capacity(cells_n + 1));
         for (s, p) in sorted.iter().enumerate() {
             let k = key_of(p);
