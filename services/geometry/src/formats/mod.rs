@@ -615,7 +615,6 @@ pub(crate) fn parse_f32(tok: &[u8]) -> Option<f32> {
 // ---------------------------------------------------------------------------------------------
 // The cloud being built.
 
-/// Parallel arrays of a cloud under construction, applying the non-finite rule on push.
 /// A sink's points: single precision for a cloud, double for a mesh's vertices.
 pub(crate) enum SinkPoints {
     Single(Vec<Point3<f32>>),
@@ -631,6 +630,7 @@ impl SinkPoints {
     }
 }
 
+/// Parallel arrays of a cloud under construction, applying the non-finite rule on push.
 pub(crate) struct CloudSink {
     pub(crate) points: SinkPoints,
     pub(crate) intensity: Option<Vec<f32>>,
