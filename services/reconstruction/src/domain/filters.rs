@@ -287,8 +287,8 @@ fn stored_mean(b: u16) -> f64 {
 }
 
 /// Relative half-width of the interval a stored mean may have come from (the truncation loses
-/// less than 2^-7 of the value, the rounding to `f32` 2^-24; 2^-6 for margin). About one point in
-/// a few hundred lies that close to the threshold and is measured again exactly.
+/// less than 2^-7 of the value, the rounding to `f32` 2^-24; 2^-6 for margin). The points whose
+/// stored mean lies that close to the threshold are measured again exactly.
 const STORED_SLACK: f64 = 1.0 / 64.0;
 
 /// Leaf size of the hierarchy the in-place removal builds for its fallback queries (fewer,
@@ -338,8 +338,8 @@ fn sor_in_place(
         let unsure: Vec<usize> = (0..means.len()).filter(|&s| sure(means[s]).is_none()).collect();
         means.par_iter_mut().for_each(|m| *m = u16::from(sure(*m) == Some(true)));
         if !unsure.is_empty() {
-            // A few points (about one in a few million): their blocks, grown until they hold the
-            // k nearest for sure.
+            // The points near the threshold: their blocks, grown until they hold the k nearest
+            // for sure.
             let exact: Vec<bool> = unsure.par_iter().map(|&s| rule(ring_knn(&grid, s, k))).collect();
             for (&s, e) in unsure.iter().zip(exact) {
                 means[s] = u16::from(e);
