@@ -892,24 +892,15 @@ impl Grid {
         let count = bbox.count;
         // The sort's keys go before the cells are built (from the sorted points' keys again), so
         // the two never take memory at once.
+        fn sort<K: RadixKey>(mut keys: Vec<K>, pts: &mut [Xyz], cloud: &mut PointCloud, shift: u32) {
+            let (intensity, normals) = (cloud.intensity.as_deref_mut(), cloud.normals.as_deref_mut());
+            flag_sort(Lanes { keys: &mut keys, pts, intensity, normals }, shift);
+        }
+        let shift = top_shift(key_limit);
         if key_limit < 1 << 32 {
-            let mut keys: Vec<u32> = pts.par_iter().map(|p| key_of(p) as u32).collect();
-            let lanes = Lanes {
-                keys: &mut keys,
-                pts: &mut pts,
-                intensity: cloud.intensity.as_deref_mut(),
-                normals: cloud.normals.as_deref_mut(),
-            };
-            flag_sort(lanes, top_shift(key_limit));
+            sort(pts.par_iter().map(|p| key_of(p) as u32).collect(), &mut pts, cloud, shift);
         } else {
-            let mut keys: Vec<u64> = pts.par_iter().map(key_of).collect();
-            let lanes = Lanes {
-                keys: &mut keys,
-                pts: &mut pts,
-                intensity: cloud.intensity.as_deref_mut(),
-                normals: cloud.normals.as_deref_mut(),
-            };
-            flag_sort(lanes, top_shift(key_limit));
+            sort(pts.par_iter().map(key_of).collect(), &mut pts, cloud, shift);
         }
         // Cell runs, counted first so the arrays take no more than they hold.
         let sorted = &pts[..count];
