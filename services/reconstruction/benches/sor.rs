@@ -365,7 +365,7 @@ fn main() -> BoxResult<()> {
     match field(&stdout, "open3d_ms").and_then(|v| v.parse::<f64>().ok()) {
         Some(o3d_ms) => {
             println!(
-                "open3d remove_statistical_outlier: best of {} = {:.1} ms; depthmill is {:.2}x faster (target >= 5x); \
+                "open3d remove_statistical_outlier: best of {} = {:.1} ms; depthmill is {:.2}x faster (target >= 8x); \
                  mismatched points: {}",
                 args.repeat,
                 o3d_ms,

@@ -315,7 +315,7 @@ fn sor_in_place(
     let h = knn_cell_size(&cloud.points, &bbox, k);
     let grid = Grid::build_in_place(&mut cloud, &bbox, h, true);
     let mut means = vec![0u16; grid.xyz.len()];
-    let (_, moments) = grid_knn(&grid, k, LEAF_MAX_IN_PLACE, &mut means, store_mean);
+    let (_, moments) = grid_knn(&grid, k, LEAF_MAX_IN_PLACE, SumOrder::Any, &mut means, store_mean);
     // The decisions overwrite the means (1 keep, 0 drop): no second array.
     if moments.n < 2 {
         means.fill(1);
@@ -1577,45 +1577,94 @@ struct KnnStats {
 /// a scanned surface ~24 points pass for k = 20 and 1 % of the queries need a second pass.
 const HINT_FACTOR: f64 = 1.25;
 
-/// One pass over the block's points for `N` queries at once: for query `i`, writes the bit
-/// patterns of the squared distances (which order like the non-negative values) that are at most
-/// `t2[i]` to the front of `bufs[i]` (branch-free compaction) and returns how many there are.
-/// Each buffer holds at least as many entries as the block has points.
-#[inline(always)]
-fn block_filter<const N: usize>(
-    xyz: &[Xyz],
-    ranges: &[Range<usize>],
-    qs: [&Xyz; N],
-    t2: [f64; N],
-    bufs: [&mut [u64]; N],
-) -> [usize; N] {
-    let mut cnt = [0usize; N];
-    for r in ranges {
-        for p in &xyz[r.clone()] {
-            for i in 0..N {
-                let d = dist2(qs[i], p);
-                bufs[i][cnt[i]] = d.to_bits();
-                cnt[i] += usize::from(d <= t2[i]);
-            }
+/// Entries a filter buffer holds beyond the block's points (the vector kernel stores whole
+/// vectors past the last kept value).
+const FILTER_SLACK: usize = 8;
+
+/// The points of a block of cells, coordinate by coordinate, widened to `f64` (exactly): what
+/// the distance kernels read. One pack serves every query of a cell.
+#[derive(Debug, Default)]
+struct Packed {
+    x: Vec<f64>,
+    y: Vec<f64>,
+    z: Vec<f64>,
+}
+
+impl Packed {
+    #[inline(always)]
+    fn fill(&mut self, xyz: &[Xyz], ranges: &[Range<usize>]) {
+        let n: usize = ranges.iter().map(|r| r.len()).sum();
+        for v in [&mut self.x, &mut self.y, &mut self.z] {
+            v.clear();
+            v.resize(n, 0.0);
         }
+        let mut at = 0usize;
+        for r in ranges {
+            let to = at + r.len();
+            let dest = self.x[at..to].iter_mut().zip(&mut self.y[at..to]).zip(&mut self.z[at..to]);
+            for (p, ((x, y), z)) in xyz[r.clone()].iter().zip(dest) {
+                *x = f64::from(p.x);
+                *y = f64::from(p.y);
+                *z = f64::from(p.z);
+            }
+            at = to;
+        }
+    }
+
+    fn len(&self) -> usize {
+        self.x.len()
+    }
+}
+
+/// Writes the bit patterns of the squared distances from `q` to the block's points (which order
+/// like the non-negative values) that are at most `t2` to the front of `buf`, in the points'
+/// order, and returns how many there are. Each squared distance is [`dist2`]'s, bit for bit.
+/// `buf` holds at least `block.len() + FILTER_SLACK` entries.
+#[inline(always)]
+fn filter_portable(block: &Packed, q: &[f64; 3], t2: f64, buf: &mut [u64]) -> usize {
+    let mut cnt = 0usize;
+    for ((&x, &y), &z) in block.x.iter().zip(&block.y).zip(&block.z) {
+        let (dx, dy, dz) = (q[0] - x, q[1] - y, q[2] - z);
+        let d = dx * dx + dy * dy + dz * dz;
+        buf[cnt] = d.to_bits();
+        cnt += usize::from(d <= t2);
     }
     cnt
 }
 
-/// Sorts the `k` smallest of the `cnt ≥ k` filtered values to the front of `buf`; returns the
-/// k-th squared distance and the mean distance (square roots summed in ascending order).
-#[inline]
-fn finish_knn(buf: &mut [u64], cnt: usize, k: usize) -> (f64, f64) {
+/// How the mean of the `k` nearest distances is summed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum SumOrder {
+    /// In ascending order of distance, like Open3D (the same value to the last bit).
+    Ascending,
+    /// In any order (within `k` rounding errors of the ascending sum): for callers that
+    /// tolerate that and measure again near their threshold.
+    Any,
+}
+
+/// With [`SumOrder::Any`], up to this many surplus values are stepped over from the top (more
+/// go through a selection).
+const DROP_MAX: usize = 16;
+
+/// Brings the `k` smallest of the `cnt ≥ k` filtered values to the front of `buf` (ascending
+/// with [`SumOrder::Ascending`]); returns the k-th squared distance and the mean distance.
+#[inline(always)]
+fn finish_knn<const AVX512: bool>(buf: &mut [u64], cnt: usize, k: usize, order: SumOrder) -> (f64, f64) {
     let v = &mut buf[..cnt];
-    if cnt > 2 * k + 8 {
-        v.select_nth_unstable(k - 1);
-        v[..k].sort_unstable();
-    } else {
+    if order == SumOrder::Any && cnt - k <= DROP_MAX {
+        return simd::finish_any::<AVX512>(v, k);
+    }
+    if order == SumOrder::Ascending && cnt <= 2 * k + 8 {
         v.sort_unstable();
+    } else {
+        v.select_nth_unstable(k - 1);
+        if order == SumOrder::Ascending {
+            v[..k].sort_unstable();
+        }
     }
     let best = &buf[..k];
-    let kth2 = best.last().map_or(f64::INFINITY, |&b| f64::from_bits(b));
-    // Square roots in a separate pass (vectorised), then the ordered sum.
+    let kth2 = f64::from_bits(best[k - 1]);
+    // Square roots in a separate pass (vectorised), then the sum.
     let mut roots = [0.0f64; 32];
     let mut sum = 0.0f64;
     for part in best.chunks(32) {
@@ -1629,28 +1678,341 @@ fn finish_knn(buf: &mut [u64], cnt: usize, k: usize) -> (f64, f64) {
     (kth2, sum / k as f64)
 }
 
-/// The k-NN mean of query `q` from its block, if its `k` nearest provably lie there: filters to
-/// `d² ≤ min(hint2·HINT_FACTOR, margin2)`, then (too few left) to `d² ≤ margin2`. `None` when
-/// fewer than `k` points lie within the margin. Returns (k-th squared distance, mean).
-fn block_knn(
-    xyz: &[Xyz],
-    ranges: &[Range<usize>],
-    q: &Xyz,
+/// [`finish_knn`] in any order for a few surplus values: the k-th smallest found by stepping
+/// down from the largest value (each step a vectorised masked maximum and count), then the
+/// square roots of the values below it plus the k-th's for the rest, summed in eight lanes.
+#[inline(always)]
+fn finish_any_portable(v: &[u64], k: usize) -> (f64, f64) {
+    let surplus = v.len() - k;
+    // Values above `kth` so far; `kth` steps down through the distinct values.
+    let mut above = 0usize;
+    let mut kth = u64::MAX;
+    loop {
+        let top = v.iter().fold(0u64, |a, &x| a.max(if x < kth { x } else { 0 }));
+        let ties = v.iter().map(|&x| usize::from(x == top)).sum::<usize>();
+        kth = top;
+        if above + ties > surplus || top == 0 {
+            break;
+        }
+        above += ties;
+    }
+    let mut acc = [0.0f64; 8];
+    let mut below = 0usize;
+    let mut lanes = v.chunks_exact(8);
+    for part in &mut lanes {
+        for (a, &x) in acc.iter_mut().zip(part) {
+            *a += if x < kth { f64::from_bits(x).sqrt() } else { 0.0 };
+            below += usize::from(x < kth);
+        }
+    }
+    for (a, &x) in acc.iter_mut().zip(lanes.remainder()) {
+        *a += if x < kth { f64::from_bits(x).sqrt() } else { 0.0 };
+        below += usize::from(x < kth);
+    }
+    let kth2 = f64::from_bits(kth);
+    let sum = ((acc[0] + acc[1]) + (acc[2] + acc[3])) + ((acc[4] + acc[5]) + (acc[6] + acc[7]));
+    (kth2, (sum + (k - below) as f64 * kth2.sqrt()) / k as f64)
+}
+
+/// The k-NN mean of query `q` from its packed block, if its `k` nearest provably lie there:
+/// filters to `d² ≤ min(hint2·HINT_FACTOR, margin2)`, then (too few left) to `d² ≤ margin2`.
+/// `None` when fewer than `k` points lie within the margin. Returns (k-th squared distance,
+/// mean).
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn block_knn<const AVX512: bool>(
+    block: &Packed,
+    q: &[f64; 3],
     k: usize,
     margin2: f64,
     hint2: f64,
     buf: &mut [u64],
+    order: SumOrder,
 ) -> Option<(f64, f64)> {
     let mut t2 = margin2.min(hint2 * HINT_FACTOR);
     loop {
-        let [cnt] = block_filter(xyz, ranges, [q], [t2], [&mut *buf]);
+        let cnt = simd::filter::<AVX512>(block, q, t2, buf);
         if cnt >= k {
-            return Some(finish_knn(buf, cnt, k));
+            return Some(finish_knn::<AVX512>(buf, cnt, k, order));
         }
         if t2 >= margin2 {
             return None;
         }
         t2 = margin2;
+    }
+}
+
+/// What one chunk of cells' queries found: the mean per point of the chunk (NaN for the points
+/// left to the hierarchy), those points, the overfull cells and the second-chance answers.
+struct ChunkKnn {
+    means: Vec<f64>,
+    fallback: Vec<usize>,
+    overfull: usize,
+    second_chance: usize,
+}
+
+/// The k-NN queries of the cells `cells` that the grid answers (see [`grid_knn`]); `cap` is the
+/// most points a block may hold. `AVX512` selects the vector distance kernel (only set where the
+/// CPU has it, see [`simd::knn_chunk`]).
+#[inline(always)]
+fn knn_chunk_with<const AVX512: bool>(
+    grid: &Grid,
+    cells: Range<usize>,
+    k: usize,
+    cap: usize,
+    order: SumOrder,
+) -> ChunkKnn {
+    let base = grid.start(cells.start);
+    let mut out = vec![f64::NAN; grid.start(cells.end) - base];
+    let mut fallback = Vec::new();
+    let mut overfull = 0usize;
+    let mut second_chance = 0usize;
+    let mut ranges = Vec::with_capacity(9);
+    let mut block = Packed::default();
+    let mut buf = vec![0u64; cap + FILTER_SLACK];
+    let mut hint2 = f64::INFINITY;
+    let mut failed = Vec::new();
+    for c in cells {
+        let own = grid.start(c)..grid.start(c + 1);
+        grid.block_ranges(c, 1, &mut ranges);
+        let total: usize = ranges.iter().map(|r| r.len()).sum();
+        if total > cap {
+            overfull += 1;
+            fallback.extend(own);
+            continue;
+        }
+        let cell = grid.coords(grid.keys[c]);
+        failed.clear();
+        if total < k {
+            failed.extend(own);
+        } else {
+            block.fill(&grid.xyz, &ranges);
+            for s in own {
+                let p = &grid.xyz[s];
+                let m = grid.block_margin(cell, 1, p);
+                let found = if m > 0.0 {
+                    block_knn::<AVX512>(&block, &wide(p), k, m * m, hint2, &mut buf, order)
+                } else {
+                    None
+                };
+                match found {
+                    Some((kth2, mean)) => {
+                        hint2 = kth2;
+                        out[s - base] = mean;
+                    }
+                    None => failed.push(s),
+                }
+            }
+        }
+        // A second chance on the 5 × 5 × 5 block (a cell edge chosen a little too small, a
+        // sparse spot), unless even the 3 × 3 × 3 block was nearly empty (isolated points go
+        // straight to the hierarchy).
+        if failed.is_empty() {
+            continue;
+        }
+        if 4 * total < k {
+            fallback.extend_from_slice(&failed);
+            continue;
+        }
+        grid.block_ranges(c, 2, &mut ranges);
+        if ranges.iter().map(|r| r.len()).sum::<usize>() > cap {
+            fallback.extend_from_slice(&failed);
+            continue;
+        }
+        block.fill(&grid.xyz, &ranges);
+        for &s in &failed {
+            let p = &grid.xyz[s];
+            let m = grid.block_margin(cell, 2, p);
+            let found = if m > 0.0 {
+                block_knn::<AVX512>(&block, &wide(p), k, m * m, m * m, &mut buf, order)
+            } else {
+                None
+            };
+            match found {
+                Some((kth2, mean)) => {
+                    hint2 = kth2;
+                    out[s - base] = mean;
+                    second_chance += 1;
+                }
+                None => fallback.push(s),
+            }
+        }
+    }
+    ChunkKnn { means: out, fallback, overfull, second_chance }
+}
+
+/// The distance kernel compiled once portably and, on x86-64 with AVX-512, once with vector
+/// compression (chosen at run time).
+mod simd {
+    #![allow(unsafe_code)]
+
+    use super::{ChunkKnn, Grid, Packed, SumOrder};
+    use std::ops::Range;
+
+    /// Whether this CPU runs the AVX-512 kernel.
+    pub(super) fn has_avx512() -> bool {
+        #[cfg(target_arch = "x86_64")]
+        {
+            std::arch::is_x86_feature_detected!("avx512f") && std::arch::is_x86_feature_detected!("popcnt")
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            false
+        }
+    }
+
+    /// [`super::knn_chunk_with`] with the vector kernel when the CPU has it.
+    pub(super) fn knn_chunk(
+        grid: &Grid,
+        cells: Range<usize>,
+        k: usize,
+        cap: usize,
+        order: SumOrder,
+    ) -> ChunkKnn {
+        #[cfg(target_arch = "x86_64")]
+        {
+            if has_avx512() {
+                // SAFETY: `knn_chunk_avx512` only requires the CPU to support AVX-512F, checked
+                // just above.
+                return unsafe { knn_chunk_avx512(grid, cells, k, cap, order) };
+            }
+        }
+        super::knn_chunk_with::<false>(grid, cells, k, cap, order)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f,popcnt")]
+    fn knn_chunk_avx512(grid: &Grid, cells: Range<usize>, k: usize, cap: usize, order: SumOrder) -> ChunkKnn {
+        super::knn_chunk_with::<true>(grid, cells, k, cap, order)
+    }
+
+    /// [`super::filter_portable`], or [`filter_avx512`] when `AVX512` (set only by
+    /// `knn_chunk_avx512`, which runs only where the CPU has AVX-512F).
+    #[inline(always)]
+    pub(super) fn filter<const AVX512: bool>(
+        block: &Packed,
+        q: &[f64; 3],
+        t2: f64,
+        buf: &mut [u64],
+    ) -> usize {
+        #[cfg(target_arch = "x86_64")]
+        {
+            if AVX512 {
+                // SAFETY: `AVX512` is true only inside `knn_chunk_avx512`, called after the CPU
+                // was found to support AVX-512F (and in the tests, after the same check).
+                return unsafe { filter_avx512(block, q, t2, buf) };
+            }
+        }
+        super::filter_portable(block, q, t2, buf)
+    }
+
+    /// [`super::finish_any_portable`], or [`finish_any_avx512`] when `AVX512` (as [`filter`]).
+    #[inline(always)]
+    pub(super) fn finish_any<const AVX512: bool>(v: &[u64], k: usize) -> (f64, f64) {
+        #[cfg(target_arch = "x86_64")]
+        {
+            if AVX512 {
+                // SAFETY: as in `filter`.
+                return unsafe { finish_any_avx512(v, k) };
+            }
+        }
+        super::finish_any_portable(v, k)
+    }
+
+    /// [`super::finish_any_portable`] eight values at a time (the same steps; the sum in
+    /// another order).
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f,popcnt")]
+    pub(super) fn finish_any_avx512(v: &[u64], k: usize) -> (f64, f64) {
+        use std::arch::x86_64::*;
+        let n = v.len();
+        assert!(k >= 1 && k <= n, "k outside 1..=values");
+        let load = |j: usize| {
+            let left = n - j;
+            let lanes: __mmask8 = if left >= 8 { 0xff } else { (1u8 << left) - 1 };
+            // SAFETY: only the lanes below `left` are read, all within `v`.
+            (lanes, unsafe { _mm512_maskz_loadu_epi64(lanes, v.as_ptr().add(j).cast::<i64>()) })
+        };
+        let surplus = n - k;
+        let mut above = 0usize;
+        let mut kth = u64::MAX;
+        loop {
+            let limit = _mm512_set1_epi64(kth as i64);
+            let mut top = _mm512_setzero_si512();
+            for j in (0..n).step_by(8) {
+                let (lanes, x) = load(j);
+                let below = _mm512_mask_cmplt_epu64_mask(lanes, x, limit);
+                top = _mm512_mask_max_epu64(top, below, top, x);
+            }
+            let top = _mm512_reduce_max_epu64(top);
+            let at = _mm512_set1_epi64(top as i64);
+            let mut ties = 0usize;
+            for j in (0..n).step_by(8) {
+                let (lanes, x) = load(j);
+                ties += _mm512_mask_cmpeq_epu64_mask(lanes, x, at).count_ones() as usize;
+            }
+            kth = top;
+            if above + ties > surplus || top == 0 {
+                break;
+            }
+            above += ties;
+        }
+        let limit = _mm512_set1_epi64(kth as i64);
+        let mut acc = _mm512_setzero_pd();
+        let mut below = 0usize;
+        for j in (0..n).step_by(8) {
+            let (lanes, x) = load(j);
+            let m = _mm512_mask_cmplt_epu64_mask(lanes, x, limit);
+            acc = _mm512_add_pd(acc, _mm512_maskz_sqrt_pd(m, _mm512_castsi512_pd(x)));
+            below += m.count_ones() as usize;
+        }
+        let kth2 = f64::from_bits(kth);
+        let sum = _mm512_reduce_add_pd(acc);
+        (kth2, (sum + (k - below) as f64 * kth2.sqrt()) / k as f64)
+    }
+
+    /// [`super::filter_portable`] eight points at a time: the kept squared distances compressed
+    /// to the front of a vector and stored whole at the end of the kept run (hence
+    /// [`super::FILTER_SLACK`]). The same values in the same order, bit for bit (the same
+    /// operations in the same order; no fused multiply-add).
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f,popcnt")]
+    pub(super) fn filter_avx512(block: &Packed, q: &[f64; 3], t2: f64, buf: &mut [u64]) -> usize {
+        use std::arch::x86_64::*;
+        let n = block.len();
+        assert!(block.y.len() == n && block.z.len() == n, "packed coordinates of unequal length");
+        assert!(buf.len() >= n + super::FILTER_SLACK, "filter buffer too short");
+        let (qx, qy, qz) = (_mm512_set1_pd(q[0]), _mm512_set1_pd(q[1]), _mm512_set1_pd(q[2]));
+        let t = _mm512_set1_pd(t2);
+        let out = buf.as_mut_ptr().cast::<f64>();
+        let mut cnt = 0usize;
+        let mut j = 0usize;
+        while j < n {
+            let left = n - j;
+            let lanes: __mmask8 = if left >= 8 { 0xff } else { (1u8 << left) - 1 };
+            // SAFETY: the masked loads read only the lanes below `left`, all within the three
+            // vectors of length `n`; masked-off lanes are not accessed.
+            let (x, y, z) = unsafe {
+                (
+                    _mm512_maskz_loadu_pd(lanes, block.x.as_ptr().add(j)),
+                    _mm512_maskz_loadu_pd(lanes, block.y.as_ptr().add(j)),
+                    _mm512_maskz_loadu_pd(lanes, block.z.as_ptr().add(j)),
+                )
+            };
+            let (dx, dy, dz) = (_mm512_sub_pd(qx, x), _mm512_sub_pd(qy, y), _mm512_sub_pd(qz, z));
+            let d = _mm512_add_pd(
+                _mm512_add_pd(_mm512_mul_pd(dx, dx), _mm512_mul_pd(dy, dy)),
+                _mm512_mul_pd(dz, dz),
+            );
+            let keep = _mm512_mask_cmp_pd_mask::<_CMP_LE_OQ>(lanes, d, t);
+            // SAFETY: `cnt ≤ j < n`, so the eight entries from `cnt` lie within `buf`, which
+            // holds `n + FILTER_SLACK` (asserted above); `f64` and `u64` share size and
+            // alignment, and `storeu` needs no alignment.
+            unsafe { _mm512_storeu_pd(out.add(cnt), _mm512_maskz_compress_pd(keep, d)) };
+            cnt += keep.count_ones() as usize;
+            j += 8;
+        }
+        cnt
     }
 }
 
@@ -1663,7 +2025,7 @@ fn knn_means_with_stats(points: &[Point3<f32>], k: usize) -> (Vec<f64>, KnnStats
     let h = knn_cell_size(points, &bbox, k);
     let grid = Grid::build(points, &bbox, h, true);
     let mut sorted = vec![f64::NAN; grid.xyz.len()];
-    let (stats, _) = grid_knn(&grid, k, LEAF_MAX, &mut sorted, |d| d);
+    let (stats, _) = grid_knn(&grid, k, LEAF_MAX, SumOrder::Ascending, &mut sorted, |d| d);
     for (s, &d) in sorted.iter().enumerate() {
         means[grid.order[s]] = d;
     }
@@ -1742,11 +2104,14 @@ impl Moments {
 
 /// The k-NN mean distance of every point of `grid` (in grid order) into `out` through `put`, with
 /// how the queries were answered and the moments of the means. `k` is at most the number of
-/// points; `leaf_max` is the hierarchy's leaf size for the queries the grid cannot answer.
+/// points; `leaf_max` is the hierarchy's leaf size for the queries the grid cannot answer;
+/// `order` is how the grid's answers sum their distances (the hierarchy's sum in ascending
+/// order).
 fn grid_knn<T: Copy + Send>(
     grid: &Grid,
     k: usize,
     leaf_max: usize,
+    order: SumOrder,
     out_all: &mut [T],
     put: impl Fn(f64) -> T + Sync,
 ) -> (KnnStats, Moments) {
@@ -1759,161 +2124,15 @@ fn grid_knn<T: Copy + Send>(
         .into_par_iter()
         .zip(slices)
         .map(|(cells, dest)| {
-            let base = grid.start(cells.start);
-            // This chunk's means in double precision, then into `dest` through `put`.
-            let mut out = vec![f64::NAN; dest.len()];
-            let mut fallback = Vec::new();
-            let mut overfull = 0usize;
-            let mut second_chance = 0usize;
-            let mut ranges = Vec::with_capacity(9);
-            let mut buf = vec![0u64; 4 * (cap + 1)];
-            let mut hint2 = f64::INFINITY;
-            let mut failed = Vec::new();
-            for c in cells {
-                let own = grid.start(c)..grid.start(c + 1);
-                grid.block_ranges(c, 1, &mut ranges);
-                let total: usize = ranges.iter().map(|r| r.len()).sum();
-                if total > cap {
-                    overfull += 1;
-                    fallback.extend(own);
-                    continue;
-                }
-                let cell = grid.coords(grid.keys[c]);
-                failed.clear();
-                if total < k {
-                    failed.extend(own);
-                } else {
-                    let margin2 = |q: &Xyz| {
-                        let m = grid.block_margin(cell, 1, q);
-                        if m > 0.0 { m * m } else { 0.0 }
-                    };
-                    let mut s = own.start;
-                    // Four queries per pass over the block while there are four with a margin
-                    // (the block's points are read once for all four).
-                    while s + 3 < own.end {
-                        let qs = [&grid.xyz[s], &grid.xyz[s + 1], &grid.xyz[s + 2], &grid.xyz[s + 3]];
-                        let ms = qs.map(&margin2);
-                        if ms.contains(&0.0) {
-                            break;
-                        }
-                        let ts = ms.map(|m| m.min(hint2 * HINT_FACTOR));
-                        let (b01, b23) = buf.split_at_mut(2 * (cap + 1));
-                        let (b0, b1) = b01.split_at_mut(cap + 1);
-                        let (b2, b3) = b23.split_at_mut(cap + 1);
-                        let cnts = block_filter(
-                            &grid.xyz,
-                            &ranges,
-                            qs,
-                            ts,
-                            [&mut *b0, &mut *b1, &mut *b2, &mut *b3],
-                        );
-                        for (i, b) in [b0, b1, b2, b3].into_iter().enumerate() {
-                            let (q, m, t, cnt) = (qs[i], ms[i], ts[i], cnts[i]);
-                            let found = if cnt >= k {
-                                Some(finish_knn(b, cnt, k))
-                            } else if t < m {
-                                block_knn(&grid.xyz, &ranges, q, k, m, m, b)
-                            } else {
-                                None
-                            };
-                            match found {
-                                Some((kth2, mean)) => {
-                                    hint2 = kth2;
-                                    out[s + i - base] = mean;
-                                }
-                                None => failed.push(s + i),
-                            }
-                        }
-                        s += 4;
-                    }
-                    // Two queries per pass over the block while there are two with a margin.
-                    while s + 1 < own.end {
-                        let (qa, qb) = (&grid.xyz[s], &grid.xyz[s + 1]);
-                        let (ma, mb) = (margin2(qa), margin2(qb));
-                        if ma == 0.0 || mb == 0.0 {
-                            break;
-                        }
-                        let (ta, tb) = (ma.min(hint2 * HINT_FACTOR), mb.min(hint2 * HINT_FACTOR));
-                        let (ba, bb) = buf.split_at_mut(cap + 1);
-                        let [ca, cb] = block_filter(&grid.xyz, &ranges, [qa, qb], [ta, tb], [ba, bb]);
-                        for (j, q, m, t, cnt, b) in
-                            [(s, qa, ma, ta, ca, &mut *ba), (s + 1, qb, mb, tb, cb, &mut *bb)]
-                        {
-                            let found = if cnt >= k {
-                                Some(finish_knn(b, cnt, k))
-                            } else if t < m {
-                                block_knn(&grid.xyz, &ranges, q, k, m, m, b)
-                            } else {
-                                None
-                            };
-                            match found {
-                                Some((kth2, mean)) => {
-                                    hint2 = kth2;
-                                    out[j - base] = mean;
-                                }
-                                None => failed.push(j),
-                            }
-                        }
-                        s += 2;
-                    }
-                    for s in s..own.end {
-                        let q = &grid.xyz[s];
-                        let m = margin2(q);
-                        let found = if m > 0.0 {
-                            block_knn(&grid.xyz, &ranges, q, k, m, hint2, &mut buf[..=cap])
-                        } else {
-                            None
-                        };
-                        match found {
-                            Some((kth2, mean)) => {
-                                hint2 = kth2;
-                                out[s - base] = mean;
-                            }
-                            None => failed.push(s),
-                        }
-                    }
-                }
-                // A second chance on the 5 × 5 × 5 block (a cell edge chosen a little too small,
-                // a sparse spot), unless even the 3 × 3 × 3 block was nearly empty (isolated
-                // points go straight to the hierarchy).
-                if failed.is_empty() {
-                    continue;
-                }
-                if 4 * total < k {
-                    fallback.extend_from_slice(&failed);
-                    continue;
-                }
-                grid.block_ranges(c, 2, &mut ranges);
-                if ranges.iter().map(|r| r.len()).sum::<usize>() > cap {
-                    fallback.extend_from_slice(&failed);
-                    continue;
-                }
-                for &s in &failed {
-                    let q = &grid.xyz[s];
-                    let m = grid.block_margin(cell, 2, q);
-                    let found = if m > 0.0 {
-                        block_knn(&grid.xyz, &ranges, q, k, m * m, m * m, &mut buf[..=cap])
-                    } else {
-                        None
-                    };
-                    match found {
-                        Some((kth2, mean)) => {
-                            hint2 = kth2;
-                            out[s - base] = mean;
-                            second_chance += 1;
-                        }
-                        None => fallback.push(s),
-                    }
-                }
-            }
+            let found = simd::knn_chunk(grid, cells, k, cap, order);
             let mut moments = Moments::default();
-            for (d, &m) in dest.iter_mut().zip(&out) {
+            for (d, &m) in dest.iter_mut().zip(&found.means) {
                 *d = put(m);
                 if !m.is_nan() {
                     moments.add(m);
                 }
             }
-            (fallback, overfull, second_chance, moments)
+            (found.fallback, found.overfull, found.second_chance, moments)
         })
         .collect();
     stats.overfull_cells = per_chunk.iter().map(|f| f.1).sum();
@@ -2612,6 +2831,91 @@ mod tests {
             statistical_outlier_removal(PointCloud::new(one, None, None).expect("cloud"), 8, 2.0)
                 .expect("sor");
         assert_eq!((out.len(), report.kept, report.removed), (1, 1, 2));
+    }
+
+    /// The k smallest of `v` in ascending order, their k-th and mean of square roots (the
+    /// obviously right way).
+    fn sorted_knn(v: &[u64], k: usize) -> (f64, f64) {
+        let mut w = v.to_vec();
+        w.sort_unstable();
+        let best: Vec<f64> = w[..k].iter().map(|&b| f64::from_bits(b)).collect();
+        (best[k - 1], mean_sqrt(best.iter().copied()))
+    }
+
+    #[test]
+    fn distance_kernels_match_the_portable_and_sorted_references() {
+        let mut rng = StdRng::seed_from_u64(41);
+        let avx512 = simd::has_avx512();
+        for round in 0..400 {
+            // A block on a coarse lattice (ties, duplicates, the query itself) or spread out.
+            let n = rng.random_range(0..300usize);
+            let coarse = round % 2 == 0;
+            let coord = |rng: &mut StdRng| -> f32 {
+                if coarse {
+                    rng.random_range(-4i32..=4) as f32 * 0.25
+                } else {
+                    rng.random_range(-1.0f32..1.0)
+                }
+            };
+            let pts: Vec<Xyz> =
+                (0..n).map(|_| Xyz::new(coord(&mut rng), coord(&mut rng), coord(&mut rng))).collect();
+            let mut block = Packed::default();
+            let cut = rng.random_range(0..=n);
+            block.fill(&pts, &[0..cut, cut..n]);
+            let q = if n > 0 && rng.random_bool(0.5) {
+                wide(&pts[rng.random_range(0..n)])
+            } else {
+                wide(&Xyz::new(coord(&mut rng), coord(&mut rng), coord(&mut rng)))
+            };
+            let t2 = match round % 5 {
+                0 => f64::INFINITY,
+                1 => 0.0,
+                _ => rng.random_range(0.0..2.0),
+            };
+            let mut slow = vec![0u64; n + FILTER_SLACK];
+            let cnt = filter_portable(&block, &q, t2, &mut slow);
+            // Bit for bit what `dist2` gives, in the points' order.
+            let want: Vec<u64> = pts
+                .iter()
+                .map(|p| dist2(&Xyz::new(q[0] as f32, q[1] as f32, q[2] as f32), p))
+                .filter(|&d| d <= t2)
+                .map(f64::to_bits)
+                .collect();
+            assert_eq!(&slow[..cnt], &want[..], "round {round}: portable filter");
+            if avx512 {
+                let mut fast = vec![0u64; n + FILTER_SLACK];
+                let c = simd::filter::<true>(&block, &q, t2, &mut fast);
+                assert_eq!(&fast[..c], &want[..], "round {round}: vector filter");
+            }
+            // The k-NN finish on the kept values: 0 to 20 surplus values.
+            if cnt == 0 {
+                continue;
+            }
+            let k = rng.random_range(cnt.saturating_sub(20).max(1)..=cnt);
+            let (kth, mean) = sorted_knn(&want, k);
+            let close = |m: f64| (m - mean).abs() <= 1e-13 * mean.max(1e-300);
+            let (a_kth, a_mean) = finish_any_portable(&want, k);
+            assert!(
+                a_kth == kth && close(a_mean),
+                "round {round}: any order {a_kth} {a_mean} vs {kth} {mean}"
+            );
+            for order in [SumOrder::Ascending, SumOrder::Any] {
+                let mut buf = want.clone();
+                let (f_kth, f_mean) = finish_knn::<false>(&mut buf, cnt, k, order);
+                assert_eq!(f_kth, kth, "round {round}: {order:?}");
+                if order == SumOrder::Ascending {
+                    assert_eq!(f_mean.to_bits(), mean.to_bits(), "round {round}: ascending sum");
+                } else {
+                    assert!(close(f_mean), "round {round}: {f_mean} vs {mean}");
+                }
+                if avx512 {
+                    let mut buf = want.clone();
+                    let (v_kth, v_mean) = finish_knn::<true>(&mut buf, cnt, k, order);
+                    assert_eq!(v_kth, kth, "round {round}: vector {order:?}");
+                    assert!(close(v_mean), "round {round}: vector {v_mean} vs {mean}");
+                }
+            }
+        }
     }
 
     #[test]
