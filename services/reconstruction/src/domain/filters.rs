@@ -1413,21 +1413,18 @@ impl<'g> Bvh<'g> {
         bounds
     }
 
-    fn knn(&self, q: &Xyz, best: &mut KBest) {
+    /// The `k` nearest of `q` into `best`; `AVX512` scans the leaves with the vector kernel
+    /// (set only where the CPU has AVX-512F, see [`simd::has_avx512`]).
+    fn knn<const AVX512: bool>(&self, q: &Xyz, best: &mut KBest) {
         if !self.nodes.is_empty() {
-            self.visit(0, q, best);
+            self.visit::<AVX512>(0, q, best);
         }
     }
 
-    fn visit(&self, node: usize, q: &Xyz, best: &mut KBest) {
+    fn visit<const AVX512: bool>(&self, node: usize, q: &Xyz, best: &mut KBest) {
         let n = &self.nodes[node];
         if n.right == 0 {
-            for p in &self.pts[n.points.clone()] {
-                let d = dist2(q, p);
-                if d < best.worst() {
-                    best.push(d);
-                }
-            }
+            simd::leaf_scan::<AVX512>(&self.pts[n.points.clone()], q, best);
             return;
         }
         let (a, b) = (node + 1, n.right);
@@ -1435,10 +1432,10 @@ impl<'g> Bvh<'g> {
         let ((first, d_first), (second, d_second)) =
             if da <= db { ((a, da), (b, db)) } else { ((b, db), (a, da)) };
         if d_first < best.worst() {
-            self.visit(first, q, best);
+            self.visit::<AVX512>(first, q, best);
         }
         if d_second < best.worst() {
-            self.visit(second, q, best);
+            self.visit::<AVX512>(second, q, best);
         }
     }
 }
@@ -1846,7 +1843,7 @@ fn knn_chunk_with<const AVX512: bool>(
 mod simd {
     #![allow(unsafe_code)]
 
-    use super::{ChunkKnn, Grid, Packed, SumOrder};
+    use super::{ChunkKnn, Grid, KBest, Packed, SumOrder, Xyz};
     use std::ops::Range;
 
     /// Whether this CPU runs the AVX-512 kernel.
@@ -1904,6 +1901,87 @@ mod simd {
             }
         }
         super::filter_portable(block, q, t2, buf)
+    }
+
+    /// Pushes into `best`, in order, every point of `pts` nearer to `q` than `best`'s worst at
+    /// the time (what the hierarchy does at a leaf); with the vector kernel when `AVX512` (as
+    /// [`filter`]).
+    #[inline(always)]
+    pub(super) fn leaf_scan<const AVX512: bool>(pts: &[Xyz], q: &Xyz, best: &mut KBest) {
+        #[cfg(target_arch = "x86_64")]
+        {
+            if AVX512 {
+                // SAFETY: as in `filter`.
+                unsafe { leaf_scan_avx512(pts, q, best) };
+                return;
+            }
+        }
+        for p in pts {
+            let d = super::dist2(q, p);
+            if d < best.worst() {
+                best.push(d);
+            }
+        }
+    }
+
+    // The vector leaf scan reads the points as consecutive `f32` triples.
+    const _: () = assert!(std::mem::size_of::<Xyz>() == 12 && std::mem::align_of::<Xyz>() == 4);
+
+    /// [`leaf_scan`] eight points at a time: the points' coordinates separated by two-source
+    /// permutes, widened, the squared distances computed as [`super::dist2`] computes them (bit
+    /// for bit); the lanes below the worst at the start of the eight are offered to `best` one
+    /// by one, each checked against the worst at that time (so the same pushes happen).
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f")]
+    pub(super) fn leaf_scan_avx512(pts: &[Xyz], q: &Xyz, best: &mut KBest) {
+        use std::arch::x86_64::*;
+        let n = pts.len();
+        // `Xyz` is `#[repr(C)]` three `f32` (nalgebra's `OPoint` over an array), asserted above.
+        let base = pts.as_ptr().cast::<f32>();
+        let (qx, qy, qz) =
+            (_mm512_set1_pd(f64::from(q.x)), _mm512_set1_pd(f64::from(q.y)), _mm512_set1_pd(f64::from(q.z)));
+        let pick = |o: i32| {
+            _mm512_setr_epi32(o, o + 3, o + 6, o + 9, o + 12, o + 15, o + 18, o + 21, 0, 0, 0, 0, 0, 0, 0, 0)
+        };
+        let (ix, iy, iz) = (pick(0), pick(1), pick(2));
+        let mut d8 = [0.0f64; 8];
+        let mut j = 0usize;
+        while j < n {
+            let m = (n - j).min(8);
+            let floats = 3 * m;
+            let lo_mask: __mmask16 = if floats >= 16 { 0xffff } else { (1u16 << floats) - 1 };
+            let hi_mask: __mmask16 = if floats > 16 { (1u16 << (floats - 16)) - 1 } else { 0 };
+            let lanes: __mmask8 = if m == 8 { 0xff } else { (1u8 << m) - 1 };
+            // SAFETY: the masked loads read only the floats of points `j..j + m`, all within
+            // `pts`; masked-off lanes are not accessed.
+            let (lo, hi) = unsafe {
+                (
+                    _mm512_maskz_loadu_ps(lo_mask, base.add(3 * j)),
+                    _mm512_maskz_loadu_ps(hi_mask, base.add(3 * j + 16)),
+                )
+            };
+            let wide =
+                |idx: __m512i| _mm512_cvtps_pd(_mm512_castps512_ps256(_mm512_permutex2var_ps(lo, idx, hi)));
+            let (x, y, z) = (wide(ix), wide(iy), wide(iz));
+            let (dx, dy, dz) = (_mm512_sub_pd(qx, x), _mm512_sub_pd(qy, y), _mm512_sub_pd(qz, z));
+            let d = _mm512_add_pd(
+                _mm512_add_pd(_mm512_mul_pd(dx, dx), _mm512_mul_pd(dy, dy)),
+                _mm512_mul_pd(dz, dz),
+            );
+            let mut near = _mm512_mask_cmp_pd_mask::<_CMP_LT_OQ>(lanes, d, _mm512_set1_pd(best.worst()));
+            if near != 0 {
+                // SAFETY: `d8` holds eight `f64`; `storeu` needs no alignment.
+                unsafe { _mm512_storeu_pd(d8.as_mut_ptr(), d) };
+                while near != 0 {
+                    let i = near.trailing_zeros() as usize;
+                    near &= near - 1;
+                    if d8[i] < best.worst() {
+                        best.push(d8[i]);
+                    }
+                }
+            }
+            j += 8;
+        }
     }
 
     /// [`super::finish_any_portable`], or [`finish_any_avx512`] when `AVX512` (as [`filter`]).
@@ -2144,6 +2222,7 @@ fn grid_knn<T: Copy + Send>(
     stats.grid = grid.xyz.len() - fallback.len();
     if !fallback.is_empty() {
         let bvh = Bvh::build(grid, leaf_max);
+        let vector = simd::has_avx512();
         let results: Vec<(usize, f64)> = fallback
             .par_chunks(256)
             .flat_map_iter(|part| {
@@ -2151,7 +2230,11 @@ fn grid_knn<T: Copy + Send>(
                 part.iter()
                     .map(|&s| {
                         best.reset();
-                        bvh.knn(&grid.xyz[s], &mut best);
+                        if vector {
+                            bvh.knn::<true>(&grid.xyz[s], &mut best);
+                        } else {
+                            bvh.knn::<false>(&grid.xyz[s], &mut best);
+                        }
                         (s, best.mean_distance())
                     })
                     .collect::<Vec<_>>()
@@ -2886,6 +2969,24 @@ mod tests {
                 let mut fast = vec![0u64; n + FILTER_SLACK];
                 let c = simd::filter::<true>(&block, &q, t2, &mut fast);
                 assert_eq!(&fast[..c], &want[..], "round {round}: vector filter");
+            }
+            // The hierarchy's leaf scan: the same pushes, from a fresh or a half-full set.
+            if avx512 {
+                let qp = Xyz::new(q[0] as f32, q[1] as f32, q[2] as f32);
+                for k in [1, 7, 20, 70] {
+                    let (mut a, mut b) = (KBest::new(k), KBest::new(k));
+                    let split = n / 3;
+                    for part in [&pts[..split], &pts[split..]] {
+                        simd::leaf_scan::<false>(part, &qp, &mut a);
+                        simd::leaf_scan::<true>(part, &qp, &mut b);
+                        assert_eq!(a.worst().to_bits(), b.worst().to_bits(), "round {round}, k {k}: worst");
+                    }
+                    assert_eq!(
+                        a.mean_distance().to_bits(),
+                        b.mean_distance().to_bits(),
+                        "round {round}, k {k}: mean"
+                    );
+                }
             }
             // The k-NN finish on the kept values: 0 to 20 surplus values.
             if cnt == 0 {
