@@ -565,6 +565,8 @@ fn wide(p: &Xyz) -> [f64; 3] {
 const MAX_CELLS_PER_AXIS: u64 = 1 << 20;
 /// Points per rayon work item (cells are never split).
 const CHUNK_POINTS: usize = 2048;
+/// Points per rayon work item when finding where the cells start in sorted points.
+const RUN_CHUNK: usize = 1 << 15;
 /// Points per leaf of the bounding-volume hierarchy.
 const LEAF: usize = 16;
 
@@ -902,19 +904,52 @@ impl Grid {
         } else {
             sort(pts.par_iter().map(key_of).collect(), &mut pts, cloud, shift);
         }
-        // Cell runs, counted first so the arrays take no more than they hold.
+        // Cell runs, counted first so the arrays take no more than they hold; both passes in
+        // parallel over runs of points, each point's key computed once per pass.
         let sorted = &pts[..count];
-        let cells_n =
-            sorted.par_windows(2).filter(|w| key_of(&w[0]) != key_of(&w[1])).count() + usize::from(count > 0);
-        let (mut keys, mut starts) = (Vec::with_capacity(cells_n), Vec::with_capacity(cells_n + 1));
-        for (s, p) in sorted.iter().enumerate() {
-            let k = key_of(p);
-            if keys.last() != Some(&k) {
-                keys.push(k);
-                starts.push(s as u32);
+        let parts: Vec<Range<usize>> =
+            (0..count.div_ceil(RUN_CHUNK)).map(|i| i * RUN_CHUNK..((i + 1) * RUN_CHUNK).min(count)).collect();
+        // Calls `f(s, key)` for every point `s` of `r` that starts a cell.
+        let cell_starts = |r: &Range<usize>, f: &mut dyn FnMut(usize, u64)| {
+            let mut prev = r.start.checked_sub(1).map(|s| key_of(&sorted[s]));
+            for s in r.clone() {
+                let k = key_of(&sorted[s]);
+                if prev != Some(k) {
+                    f(s, k);
+                }
+                prev = Some(k);
             }
-        }
-        starts.push(count as u32);
+        };
+        let counts: Vec<usize> = parts
+            .par_iter()
+            .map(|r| {
+                let mut n = 0usize;
+                cell_starts(r, &mut |_, _| n += 1);
+                n
+            })
+            .collect();
+        let cells_n: usize = counts.iter().sum();
+        let (mut keys, mut starts) = (vec![0u64; cells_n], vec![0u32; cells_n + 1]);
+        let part_cells: Vec<Range<usize>> = counts
+            .iter()
+            .scan(0usize, |at, &c| {
+                *at += c;
+                Some(*at - c..*at)
+            })
+            .collect();
+        split_ranges_mut(&mut keys, &part_cells)
+            .into_par_iter()
+            .zip(split_ranges_mut(&mut starts[..cells_n], &part_cells))
+            .zip(&parts)
+            .for_each(|((ks, ss), r)| {
+                let mut i = 0usize;
+                cell_starts(r, &mut |s, k| {
+                    ks[i] = k;
+                    ss[i] = s as u32;
+                    i += 1;
+                });
+            });
+        starts[cells_n] = count as u32;
         pts.truncate(count);
         if let Some(v) = &mut cloud.intensity {
             v.truncate(count);
