@@ -94,7 +94,6 @@
 //! stable. [`beacon_frame`] builds the frame of three beacon centres.
 
 use std::cmp::Ordering;
-use std::collections::BinaryHeap;
 use std::ops::Range;
 
 use depthmill_geometry::pose::rotation_from_ypr_deg;
@@ -1185,106 +1184,66 @@ fn split_by_chunks<'a, T>(out: &'a mut [T], grid: &Grid, chunks: &[Range<usize>]
     split_ranges_mut(out, &ranges)
 }
 
-/// `k` values in the sorted buffer up to this, a max-heap beyond.
-const SMALL_K: usize = 64;
-
-/// A squared distance ordered totally, for the max-heap.
-#[derive(Debug, Clone, Copy, PartialEq)]
-struct Sq(f64);
-impl Eq for Sq {}
-impl PartialOrd for Sq {
-    fn partial_cmp(&self, other: &Self) -> Option<Ordering> {
-        Some(self.cmp(other))
-    }
-}
-impl Ord for Sq {
-    fn cmp(&self, other: &Self) -> Ordering {
-        self.0.total_cmp(&other.0)
-    }
-}
-
-/// The `k` smallest squared distances pushed so far (a multiset: ties need no tie-break).
-enum KBest {
-    /// Ascending, `+inf`-padded, length `k`; `len` real entries.
-    Sorted {
-        d: Vec<f64>,
-        len: usize,
-    },
-    Heap {
-        k: usize,
-        heap: BinaryHeap<Sq>,
-        scratch: Vec<f64>,
-    },
+/// The `k` smallest squared distances offered so far (a multiset: ties need no tie-break),
+/// kept lazily: offers below the bound are appended, and when the buffer fills the `k` smallest
+/// are selected and the bound drops to the k-th (so an offer costs an append, not an insertion).
+#[derive(Debug)]
+struct KBest {
+    k: usize,
+    d: Vec<f64>,
+    /// Values not below this cannot be among the `k` smallest (`+inf` until `k` are in).
+    bound: f64,
 }
 
 impl KBest {
     fn new(k: usize) -> Self {
-        if k <= SMALL_K {
-            KBest::Sorted { d: vec![f64::INFINITY; k], len: 0 }
-        } else {
-            KBest::Heap { k, heap: BinaryHeap::with_capacity(k + 1), scratch: Vec::with_capacity(k) }
-        }
+        let k = k.max(1);
+        KBest { k, d: Vec::with_capacity(Self::cap(k)), bound: f64::INFINITY }
+    }
+
+    /// Buffer length at which the k smallest are selected.
+    fn cap(k: usize) -> usize {
+        4 * k + 32
     }
 
     fn reset(&mut self) {
-        match self {
-            KBest::Sorted { d, len } => {
-                d.fill(f64::INFINITY);
-                *len = 0;
-            }
-            KBest::Heap { heap, .. } => heap.clear(),
-        }
+        self.d.clear();
+        self.bound = f64::INFINITY;
     }
 
-    /// Values not below this cannot enter (`+inf` until `k` values are in).
+    /// Values not below this cannot enter.
     #[inline(always)]
     fn worst(&self) -> f64 {
-        match self {
-            KBest::Sorted { d, .. } => d.last().copied().unwrap_or(f64::NEG_INFINITY),
-            KBest::Heap { k, heap, .. } => {
-                if heap.len() < *k {
-                    f64::INFINITY
-                } else {
-                    heap.peek().map_or(f64::INFINITY, |s| s.0)
-                }
-            }
-        }
+        self.bound
     }
 
-    /// Inserts `x`; the caller has checked `x < self.worst()`.
+    /// Offers `x`; the caller has checked `x < self.worst()`.
     #[inline(always)]
     fn push(&mut self, x: f64) {
-        match self {
-            KBest::Sorted { d, len } => {
-                let mut i = d.len() - 1;
-                while i > 0 && d[i - 1] > x {
-                    d[i] = d[i - 1];
-                    i -= 1;
-                }
-                d[i] = x;
-                *len = (*len + 1).min(d.len());
-            }
-            KBest::Heap { k, heap, .. } => {
-                heap.push(Sq(x));
-                if heap.len() > *k {
-                    heap.pop();
-                }
-            }
+        self.d.push(x);
+        if self.d.len() >= Self::cap(self.k) {
+            self.shrink();
         }
     }
 
-    /// Mean of the square roots, summed in ascending order.
+    /// Keeps the `k` smallest; the bound becomes the k-th.
+    fn shrink(&mut self) {
+        if self.d.len() >= self.k {
+            let k = self.k;
+            self.d.select_nth_unstable_by(k - 1, f64::total_cmp);
+            self.d.truncate(k);
+            self.bound = self.d[k - 1];
+        }
+    }
+
+    /// Mean of the square roots of the `k` smallest (all of them when fewer were offered),
+    /// summed in ascending order.
     fn mean_distance(&mut self) -> f64 {
-        let vals: &[f64] = match self {
-            KBest::Sorted { d, len } => &d[..*len],
-            KBest::Heap { heap, scratch, .. } => {
-                scratch.clear();
-                scratch.extend(heap.iter().map(|s| s.0));
-                scratch.sort_unstable_by(f64::total_cmp);
-                scratch
-            }
-        };
-        mean_sqrt(vals.iter().copied())
+        if self.d.len() > self.k {
+            self.shrink();
+        }
+        self.d.sort_unstable_by(f64::total_cmp);
+        mean_sqrt(self.d.iter().copied())
     }
 }
 
