@@ -740,8 +740,10 @@ struct Grid {
 }
 
 /// A radix-sortable key.
-trait RadixKey: Copy + Ord + Send + Sync {
+trait RadixKey: Copy + Ord + Send + Sync + Default {
     fn bits(self) -> u64;
+    /// The key from a value that fits (the caller has checked the width).
+    fn narrow(k: u64) -> Self;
 }
 
 impl RadixKey for u32 {
@@ -749,12 +751,64 @@ impl RadixKey for u32 {
     fn bits(self) -> u64 {
         u64::from(self)
     }
+    #[inline(always)]
+    fn narrow(k: u64) -> Self {
+        k as u32
+    }
 }
 
 impl RadixKey for u64 {
     #[inline(always)]
     fn bits(self) -> u64 {
         self
+    }
+    #[inline(always)]
+    fn narrow(k: u64) -> Self {
+        k
+    }
+}
+
+/// How a point gets its cell key on a grid ([`cell_of`], [`cell_key`]); points that are not
+/// usable get `limit`, above every cell's key.
+#[derive(Debug, Clone, Copy)]
+struct Keying {
+    origin: [f64; 3],
+    inv_h: f64,
+    dims: [u64; 3],
+    zbits: u32,
+    limit: u64,
+}
+
+/// Points per batch of keys computed at once.
+const KEY_BATCH: usize = 256;
+
+impl Keying {
+    #[inline(always)]
+    fn key(&self, p: &Xyz) -> u64 {
+        if usable(p) {
+            cell_key(cell_of(&wide(p), &self.origin, self.inv_h, &self.dims), self.zbits)
+        } else {
+            self.limit
+        }
+    }
+
+    /// The keys of every point, in parallel.
+    fn all_keys<K: RadixKey>(&self, pts: &[Xyz]) -> Vec<K> {
+        let mut out = vec![K::default(); pts.len()];
+        out.par_chunks_mut(RUN_CHUNK).zip(pts.par_chunks(RUN_CHUNK)).for_each(|(o, p)| self.keys_into(p, o));
+        out
+    }
+
+    /// The keys of `pts` into `out` (of the same length), a batch at a time through the vector
+    /// kernel where the CPU has it.
+    fn keys_into<K: RadixKey>(&self, pts: &[Xyz], out: &mut [K]) {
+        let mut batch = [0u64; KEY_BATCH];
+        for (p, o) in pts.chunks(KEY_BATCH).zip(out.chunks_mut(KEY_BATCH)) {
+            simd::keys(self, p, &mut batch[..p.len()]);
+            for (o, &k) in o.iter_mut().zip(&batch) {
+                *o = K::narrow(k);
+            }
+        }
     }
 }
 
@@ -886,9 +940,7 @@ impl Grid {
         let key_limit =
             cell_key([dims[0].next_power_of_two() - 1, dims[1].next_power_of_two() - 1, 0], zbits)
                 + (1 << zbits);
-        let key_of = |p: &Xyz| {
-            if usable(p) { cell_key(cell_of(&wide(p), &origin, inv_h, &dims), zbits) } else { key_limit }
-        };
+        let keying = Keying { origin, inv_h, dims, zbits, limit: key_limit };
         let mut pts = std::mem::take(&mut cloud.points);
         let count = bbox.count;
         // The sort's keys go before the cells are built (from the sorted points' keys again), so
@@ -899,9 +951,9 @@ impl Grid {
         }
         let shift = top_shift(key_limit);
         if key_limit < 1 << 32 {
-            sort(pts.par_iter().map(|p| key_of(p) as u32).collect(), &mut pts, cloud, shift);
+            sort(keying.all_keys::<u32>(&pts), &mut pts, cloud, shift);
         } else {
-            sort(pts.par_iter().map(key_of).collect(), &mut pts, cloud, shift);
+            sort(keying.all_keys::<u64>(&pts), &mut pts, cloud, shift);
         }
         // Cell runs, counted first so the arrays take no more than they hold; both passes in
         // parallel over runs of points, each point's key computed once per pass.
@@ -910,13 +962,19 @@ impl Grid {
             (0..count.div_ceil(RUN_CHUNK)).map(|i| i * RUN_CHUNK..((i + 1) * RUN_CHUNK).min(count)).collect();
         // Calls `f(s, key)` for every point `s` of `r` that starts a cell.
         let cell_starts = |r: &Range<usize>, f: &mut dyn FnMut(usize, u64)| {
-            let mut prev = r.start.checked_sub(1).map(|s| key_of(&sorted[s]));
-            for s in r.clone() {
-                let k = key_of(&sorted[s]);
-                if prev != Some(k) {
-                    f(s, k);
+            let mut prev = r.start.checked_sub(1).map(|s| keying.key(&sorted[s]));
+            let mut batch = [0u64; KEY_BATCH];
+            let mut at = r.start;
+            for part in sorted[r.clone()].chunks(KEY_BATCH) {
+                let keys = &mut batch[..part.len()];
+                simd::keys(&keying, part, keys);
+                for (s, &k) in (at..).zip(keys.iter()) {
+                    if prev != Some(k) {
+                        f(s, k);
+                    }
+                    prev = Some(k);
                 }
-                prev = Some(k);
+                at += part.len();
             }
         };
         let counts: Vec<usize> = parts
@@ -1837,7 +1895,7 @@ fn knn_chunk_with<const AVX512: bool>(
 mod simd {
     #![allow(unsafe_code)]
 
-    use super::{ChunkKnn, Grid, KBest, Packed, SumOrder, Xyz};
+    use super::{ChunkKnn, Grid, KBest, Keying, Packed, SumOrder, Xyz};
     use std::ops::Range;
 
     /// Whether this CPU runs the AVX-512 kernel.
@@ -1974,6 +2032,107 @@ mod simd {
                     }
                 }
             }
+            j += 8;
+        }
+    }
+
+    /// Whether this CPU runs the AVX-512 cell-key kernel (it also needs AVX-512DQ's unsigned
+    /// conversions).
+    pub(super) fn has_avx512_keys() -> bool {
+        #[cfg(target_arch = "x86_64")]
+        {
+            std::arch::is_x86_feature_detected!("avx512f") && std::arch::is_x86_feature_detected!("avx512dq")
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            false
+        }
+    }
+
+    /// The cell keys of `pts` into `out` (of the same length): [`Keying::key`] per point, eight
+    /// at a time where the CPU has AVX-512F and DQ.
+    pub(super) fn keys(keying: &Keying, pts: &[Xyz], out: &mut [u64]) {
+        #[cfg(target_arch = "x86_64")]
+        {
+            if has_avx512_keys() {
+                // SAFETY: `keys_avx512` only requires AVX-512F and DQ, checked just above.
+                unsafe { keys_avx512(keying, pts, out) };
+                return;
+            }
+        }
+        keys_portable(keying, pts, out);
+    }
+
+    pub(super) fn keys_portable(keying: &Keying, pts: &[Xyz], out: &mut [u64]) {
+        for (o, p) in out.iter_mut().zip(pts) {
+            *o = keying.key(p);
+        }
+    }
+
+    /// [`keys_portable`] eight points at a time, the same keys bit for bit: the coordinates
+    /// separated by permutes and widened; usable = all three finite; the cell index from the
+    /// same subtraction and product, clamped to `0..=dims − 1` in `f64` (exact: `dims ≤ 2^20`)
+    /// and truncated (what `as u64` then `min` give for every finite value); the Morton spread
+    /// in vector shifts.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f,avx512dq")]
+    pub(super) fn keys_avx512(keying: &Keying, pts: &[Xyz], out: &mut [u64]) {
+        use std::arch::x86_64::*;
+        let n = pts.len();
+        assert!(out.len() == n, "key output of another length");
+        let base = pts.as_ptr().cast::<f32>();
+        let pick = |o: i32| {
+            _mm512_setr_epi32(o, o + 3, o + 6, o + 9, o + 12, o + 15, o + 18, o + 21, 0, 0, 0, 0, 0, 0, 0, 0)
+        };
+        let (ix, iy, iz) = (pick(0), pick(1), pick(2));
+        let inf = _mm512_set1_pd(f64::INFINITY);
+        let zero = _mm512_setzero_pd();
+        let inv_h = _mm512_set1_pd(keying.inv_h);
+        let origin = keying.origin.map(|o| _mm512_set1_pd(o));
+        let top = keying.dims.map(|d| _mm512_set1_pd((d - 1) as f64));
+        let limit = _mm512_set1_epi64(keying.limit as i64);
+        let zbits = _mm_set_epi64x(0, i64::from(keying.zbits));
+        let spread = |v: __m512i| {
+            let m = |c: u64| _mm512_set1_epi64(c as i64);
+            let mut x = _mm512_and_si512(v, m(0xF_FFFF));
+            x = _mm512_and_si512(_mm512_or_si512(x, _mm512_slli_epi64::<16>(x)), m(0x0000_FFFF_0000_FFFF));
+            x = _mm512_and_si512(_mm512_or_si512(x, _mm512_slli_epi64::<8>(x)), m(0x00FF_00FF_00FF_00FF));
+            x = _mm512_and_si512(_mm512_or_si512(x, _mm512_slli_epi64::<4>(x)), m(0x0F0F_0F0F_0F0F_0F0F));
+            x = _mm512_and_si512(_mm512_or_si512(x, _mm512_slli_epi64::<2>(x)), m(0x3333_3333_3333_3333));
+            _mm512_and_si512(_mm512_or_si512(x, _mm512_slli_epi64::<1>(x)), m(0x5555_5555_5555_5555))
+        };
+        let mut j = 0usize;
+        while j < n {
+            let m = (n - j).min(8);
+            let floats = 3 * m;
+            let lo_mask: __mmask16 = if floats >= 16 { 0xffff } else { (1u16 << floats) - 1 };
+            let hi_mask: __mmask16 = if floats > 16 { (1u16 << (floats - 16)) - 1 } else { 0 };
+            let lanes: __mmask8 = if m == 8 { 0xff } else { (1u8 << m) - 1 };
+            // SAFETY: the masked loads read only the floats of points `j..j + m`, all within
+            // `pts` (`Xyz` is three `f32`, asserted by the leaf scan's constant).
+            let (lo, hi) = unsafe {
+                (
+                    _mm512_maskz_loadu_ps(lo_mask, base.add(3 * j)),
+                    _mm512_maskz_loadu_ps(hi_mask, base.add(3 * j + 16)),
+                )
+            };
+            let wide =
+                |idx: __m512i| _mm512_cvtps_pd(_mm512_castps512_ps256(_mm512_permutex2var_ps(lo, idx, hi)));
+            let c = [wide(ix), wide(iy), wide(iz)];
+            let mut usable: __mmask8 = lanes;
+            let mut cell = [_mm512_setzero_si512(); 3];
+            for a in 0..3 {
+                usable &= _mm512_cmp_pd_mask::<_CMP_LT_OQ>(_mm512_abs_pd(c[a]), inf);
+                let v = _mm512_mul_pd(_mm512_sub_pd(c[a], origin[a]), inv_h);
+                let v = _mm512_min_pd(_mm512_max_pd(v, zero), top[a]);
+                cell[a] = _mm512_cvttpd_epu64(v);
+            }
+            let column = _mm512_or_si512(spread(cell[0]), _mm512_slli_epi64::<1>(spread(cell[1])));
+            let key = _mm512_or_si512(_mm512_sll_epi64(column, zbits), cell[2]);
+            let key = _mm512_mask_blend_epi64(usable, limit, key);
+            // SAFETY: the masked store writes only the lanes below `m`, entries `j..j + m` of
+            // `out`, which has `n` entries (asserted above).
+            unsafe { _mm512_mask_storeu_epi64(out.as_mut_ptr().add(j).cast::<i64>(), lanes, key) };
             j += 8;
         }
     }
@@ -3010,6 +3169,47 @@ mod tests {
                     assert!(close(v_mean), "round {round}: vector {v_mean} vs {mean}");
                 }
             }
+        }
+    }
+
+    #[test]
+    fn vector_cell_keys_match_the_portable_ones() {
+        let mut rng = StdRng::seed_from_u64(43);
+        for round in 0..300 {
+            let dims =
+                [rng.random_range(1..2000u64), rng.random_range(1..2000u64), rng.random_range(1..70_000u64)];
+            let zbits = z_bits(dims[2]);
+            let keying = Keying {
+                origin: [
+                    rng.random_range(-50.0..50.0),
+                    rng.random_range(-50.0..50.0),
+                    rng.random_range(-50.0..50.0),
+                ],
+                inv_h: 1.0 / rng.random_range(0.01..2.0),
+                dims,
+                zbits,
+                limit: cell_key([dims[0].next_power_of_two() - 1, dims[1].next_power_of_two() - 1, 0], zbits)
+                    + (1 << zbits),
+            };
+            let n = rng.random_range(0..100usize);
+            let special = [f32::NAN, f32::INFINITY, f32::NEG_INFINITY, -1e30, 1e30, 0.0, -0.0];
+            let coord = |rng: &mut StdRng| -> f32 {
+                if rng.random_bool(0.05) {
+                    special[rng.random_range(0..special.len())]
+                } else {
+                    rng.random_range(-2000.0f32..2000.0)
+                }
+            };
+            let pts: Vec<Xyz> =
+                (0..n).map(|_| Xyz::new(coord(&mut rng), coord(&mut rng), coord(&mut rng))).collect();
+            let mut slow = vec![0u64; n];
+            simd::keys_portable(&keying, &pts, &mut slow);
+            for (p, &k) in pts.iter().zip(&slow) {
+                assert_eq!(k, keying.key(p));
+            }
+            let mut fast = vec![0u64; n];
+            simd::keys(&keying, &pts, &mut fast);
+            assert_eq!(fast, slow, "round {round}");
         }
     }
 
