@@ -1698,10 +1698,17 @@ const DROP_MAX: usize = 16;
 /// Brings the `k` smallest of the `cnt ≥ k` filtered values to the front of `buf` (ascending
 /// with [`SumOrder::Ascending`]); returns the k-th squared distance and the mean distance.
 #[inline(always)]
-fn finish_knn<const AVX512: bool>(buf: &mut [u64], cnt: usize, k: usize, order: SumOrder) -> (f64, f64) {
+fn finish_knn<const AVX512: bool>(
+    buf: &mut [u64],
+    cnt: usize,
+    k: usize,
+    order: SumOrder,
+    hint2: f64,
+) -> (f64, f64) {
     let v = &mut buf[..cnt];
     if order == SumOrder::Any && cnt - k <= DROP_MAX {
-        return simd::finish_any::<AVX512>(v, k);
+        let lower = if hint2.is_finite() { (hint2 * TOP_FRACTION).to_bits() } else { 0 };
+        return simd::finish_any::<AVX512>(v, k, lower);
     }
     if order == SumOrder::Ascending && cnt <= 2 * k + 8 {
         v.sort_unstable();
@@ -1727,11 +1734,60 @@ fn finish_knn<const AVX512: bool>(buf: &mut [u64], cnt: usize, k: usize, order: 
     (kth2, sum / k as f64)
 }
 
+/// [`finish_any_portable`]'s short list: at most this many values above the lower bound.
+const TOP_MAX: usize = 16;
+
+/// The short list's lower bound, relative to the previous query's k-th squared distance.
+const TOP_FRACTION: f64 = 0.9;
+
+/// [`finish_knn`] in any order for a few surplus values. The square roots of all values are
+/// summed (eight lanes) while the values above `lower` are listed; when there are more of those
+/// than the surplus but at most [`TOP_MAX`], they hold the largest, sorted, which give the
+/// k-th and the roots to take off. Otherwise [`finish_steps_portable`]. Any `lower` is correct
+/// (the caller's guess below the k-th: a fraction of the previous query's).
+#[inline(always)]
+fn finish_any_portable(v: &[u64], k: usize, lower: u64) -> (f64, f64) {
+    let surplus = v.len() - k;
+    let mut top = [0u64; TOP_MAX];
+    let mut listed = 0usize;
+    let mut acc = [0.0f64; 8];
+    for (i, &x) in v.iter().enumerate() {
+        acc[i % 8] += f64::from_bits(x).sqrt();
+        if x > lower {
+            if listed < TOP_MAX {
+                top[listed] = x;
+            }
+            listed += 1;
+        }
+    }
+    if listed > surplus && listed <= TOP_MAX {
+        let sum = ((acc[0] + acc[1]) + (acc[2] + acc[3])) + ((acc[4] + acc[5]) + (acc[6] + acc[7]));
+        return take_largest(&mut top[..listed], surplus, sum, k);
+    }
+    finish_steps_portable(v, k)
+}
+
+/// The k-th and mean distance from the sum of all roots and a list holding the `surplus + 1`
+/// largest values (and maybe more): the `surplus` largest come off the sum.
+#[inline(always)]
+fn take_largest(top: &mut [u64], surplus: usize, sum: f64, k: usize) -> (f64, f64) {
+    // Insertion sort, descending (a short list).
+    for i in 1..top.len() {
+        let mut j = i;
+        while j > 0 && top[j - 1] < top[j] {
+            top.swap(j - 1, j);
+            j -= 1;
+        }
+    }
+    let cut: f64 = top[..surplus].iter().map(|&x| f64::from_bits(x).sqrt()).sum();
+    (f64::from_bits(top[surplus]), (sum - cut) / k as f64)
+}
+
 /// [`finish_knn`] in any order for a few surplus values: the k-th smallest found by stepping
 /// down from the largest value (each step a vectorised masked maximum and count), then the
 /// square roots of the values below it plus the k-th's for the rest, summed in eight lanes.
 #[inline(always)]
-fn finish_any_portable(v: &[u64], k: usize) -> (f64, f64) {
+fn finish_steps_portable(v: &[u64], k: usize) -> (f64, f64) {
     let surplus = v.len() - k;
     // Values above `kth` so far; `kth` steps down through the distinct values.
     let mut above = 0usize;
@@ -1782,7 +1838,7 @@ fn block_knn<const AVX512: bool>(
     loop {
         let cnt = simd::filter::<AVX512>(block, q, t2, buf);
         if cnt >= k {
-            return Some(finish_knn::<AVX512>(buf, cnt, k, order));
+            return Some(finish_knn::<AVX512>(buf, cnt, k, order, hint2));
         }
         if t2 >= margin2 {
             return None;
@@ -2139,22 +2195,60 @@ mod simd {
 
     /// [`super::finish_any_portable`], or [`finish_any_avx512`] when `AVX512` (as [`filter`]).
     #[inline(always)]
-    pub(super) fn finish_any<const AVX512: bool>(v: &[u64], k: usize) -> (f64, f64) {
+    pub(super) fn finish_any<const AVX512: bool>(v: &[u64], k: usize, lower: u64) -> (f64, f64) {
         #[cfg(target_arch = "x86_64")]
         {
             if AVX512 {
                 // SAFETY: as in `filter`.
-                return unsafe { finish_any_avx512(v, k) };
+                return unsafe { finish_any_avx512(v, k, lower) };
             }
         }
-        super::finish_any_portable(v, k)
+        super::finish_any_portable(v, k, lower)
     }
 
-    /// [`super::finish_any_portable`] eight values at a time (the same steps; the sum in
+    /// [`super::finish_any_portable`] eight values at a time (the list compressed into place;
+    /// the sum in another order).
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f,popcnt")]
+    pub(super) fn finish_any_avx512(v: &[u64], k: usize, lower: u64) -> (f64, f64) {
+        use std::arch::x86_64::*;
+        let n = v.len();
+        assert!(k >= 1 && k <= n, "k outside 1..=values");
+        let surplus = n - k;
+        let bound = _mm512_set1_epi64(lower as i64);
+        let mut top = [0u64; super::TOP_MAX + 8];
+        let mut listed = 0usize;
+        let mut acc = _mm512_setzero_pd();
+        for j in (0..n).step_by(8) {
+            let left = n - j;
+            let lanes: __mmask8 = if left >= 8 { 0xff } else { (1u8 << left) - 1 };
+            // SAFETY: only the lanes below `left` are read, all within `v`.
+            let x = unsafe { _mm512_maskz_loadu_epi64(lanes, v.as_ptr().add(j).cast::<i64>()) };
+            acc = _mm512_add_pd(acc, _mm512_maskz_sqrt_pd(lanes, _mm512_castsi512_pd(x)));
+            let big = _mm512_mask_cmpgt_epu64_mask(lanes, x, bound);
+            if listed <= super::TOP_MAX {
+                // SAFETY: `listed ≤ TOP_MAX`, so the eight entries from `listed` lie within
+                // `top` (`TOP_MAX + 8` entries); `storeu` needs no alignment.
+                unsafe {
+                    _mm512_storeu_si512(
+                        top.as_mut_ptr().add(listed).cast(),
+                        _mm512_maskz_compress_epi64(big, x),
+                    )
+                };
+            }
+            listed += big.count_ones() as usize;
+        }
+        if listed > surplus && listed <= super::TOP_MAX {
+            return super::take_largest(&mut top[..listed], surplus, _mm512_reduce_add_pd(acc), k);
+        }
+        finish_steps_avx512(v, k)
+    }
+
+    /// [`super::finish_steps_portable`] eight values at a time (the same steps; the sum in
     /// another order).
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx512f,popcnt")]
-    pub(super) fn finish_any_avx512(v: &[u64], k: usize) -> (f64, f64) {
+    pub(super) fn finish_steps_avx512(v: &[u64], k: usize) -> (f64, f64) {
         use std::arch::x86_64::*;
         let n = v.len();
         assert!(k >= 1 && k <= n, "k outside 1..=values");
@@ -3148,14 +3242,23 @@ mod tests {
             let k = rng.random_range(cnt.saturating_sub(20).max(1)..=cnt);
             let (kth, mean) = sorted_knn(&want, k);
             let close = |m: f64| (m - mean).abs() <= 1e-13 * mean.max(1e-300);
-            let (a_kth, a_mean) = finish_any_portable(&want, k);
-            assert!(
-                a_kth == kth && close(a_mean),
-                "round {round}: any order {a_kth} {a_mean} vs {kth} {mean}"
-            );
+            // The short list's bound: none, a kept value, one between, the top.
+            let hint2 = match round % 4 {
+                0 => f64::INFINITY,
+                1 => f64::from_bits(want[rng.random_range(0..cnt)]) / TOP_FRACTION,
+                2 => f64::from_bits(want[rng.random_range(0..cnt)] + 1),
+                _ => 0.0,
+            };
+            let lower = if hint2.is_finite() { (hint2 * TOP_FRACTION).to_bits() } else { 0 };
+            for (a_kth, a_mean) in [finish_any_portable(&want, k, lower), finish_steps_portable(&want, k)] {
+                assert!(
+                    a_kth == kth && close(a_mean),
+                    "round {round}: any order {a_kth} {a_mean} vs {kth} {mean}"
+                );
+            }
             for order in [SumOrder::Ascending, SumOrder::Any] {
                 let mut buf = want.clone();
-                let (f_kth, f_mean) = finish_knn::<false>(&mut buf, cnt, k, order);
+                let (f_kth, f_mean) = finish_knn::<false>(&mut buf, cnt, k, order, hint2);
                 assert_eq!(f_kth, kth, "round {round}: {order:?}");
                 if order == SumOrder::Ascending {
                     assert_eq!(f_mean.to_bits(), mean.to_bits(), "round {round}: ascending sum");
@@ -3164,7 +3267,7 @@ mod tests {
                 }
                 if avx512 {
                     let mut buf = want.clone();
-                    let (v_kth, v_mean) = finish_knn::<true>(&mut buf, cnt, k, order);
+                    let (v_kth, v_mean) = finish_knn::<true>(&mut buf, cnt, k, order, hint2);
                     assert_eq!(v_kth, kth, "round {round}: vector {order:?}");
                     assert!(close(v_mean), "round {round}: vector {v_mean} vs {mean}");
                 }
