@@ -471,6 +471,87 @@ fn nearest_to_centroid<P: CloudPoint>(
     Some(best.0)
 }
 
+/// [`voxel_keep_mask`] when the cloud's voxel indices, taken from their minimum, pack into 32
+/// bits (and the points are fewer than 2^32): one `u64` per point (packed voxel, point index)
+/// radix-sorted on the voxel bits, which keeps each voxel's points in index order as the general
+/// path's sort does, so the same point is kept. `None` otherwise (also when a point's voxel is
+/// out of range: the general path reports it).
+fn voxel_keep_packed<P: CloudPoint>(points: &[P], voxel: f64) -> Option<Vec<bool>> {
+    if points.len() >= u32::MAX as usize {
+        return None;
+    }
+    type Range3 = ([i64; 3], [i64; 3], bool);
+    let empty: Range3 = ([i64::MAX; 3], [i64::MIN; 3], true);
+    let (lo, hi, ok) = points
+        .par_iter()
+        .filter(|p| usable(*p))
+        .fold(
+            || empty,
+            |(mut lo, mut hi, ok), p| match voxel_of(&p.at(), voxel) {
+                Some(v) => {
+                    for a in 0..3 {
+                        lo[a] = lo[a].min(v[a]);
+                        hi[a] = hi[a].max(v[a]);
+                    }
+                    (lo, hi, ok)
+                }
+                None => (lo, hi, false),
+            },
+        )
+        .reduce(
+            || empty,
+            |a, b| {
+                let mut r = a;
+                for i in 0..3 {
+                    r.0[i] = a.0[i].min(b.0[i]);
+                    r.1[i] = a.1[i].max(b.1[i]);
+                }
+                r.2 = a.2 && b.2;
+                r
+            },
+        );
+    if !ok {
+        return None;
+    }
+    if lo[0] > hi[0] {
+        return Some(vec![false; points.len()]);
+    }
+    let bits = [0, 1, 2].map(|a| 64 - (hi[a].abs_diff(lo[a])).leading_zeros());
+    let total = bits.iter().sum::<u32>();
+    if total > 32 {
+        return None;
+    }
+    let mut items: Vec<u64> = points
+        .par_iter()
+        .enumerate()
+        .filter(|(_, p)| usable(*p))
+        .filter_map(|(i, p)| {
+            let v = voxel_of(&p.at(), voxel)?;
+            let d = [0, 1, 2].map(|a| v[a].abs_diff(lo[a]));
+            let key = (d[0] << (bits[1] + bits[2])) | (d[1] << bits[2]) | d[2];
+            Some((key << 32) | i as u64)
+        })
+        .collect();
+    radix_sort_bits(&mut items, 32, total.max(1));
+    let mut runs = Vec::new();
+    let mut start = 0usize;
+    for j in 1..=items.len() {
+        if j == items.len() || items[j] >> 32 != items[start] >> 32 {
+            runs.push(start..j);
+            start = j;
+        }
+    }
+    let kept: Vec<usize> = runs
+        .into_par_iter()
+        .filter_map(|r| nearest_to_centroid(points, items[r].iter().map(|&it| (it & 0xFFFF_FFFF) as usize)))
+        .collect();
+    let mut keep = vec![false; points.len()];
+    for i in kept {
+        keep[i] = true;
+    }
+    Some(keep)
+}
+
 /// Which points voxel decimation keeps: per occupied voxel the point nearest its centroid (see
 /// the module docs).
 ///
@@ -484,6 +565,14 @@ pub fn voxel_keep_mask<P: CloudPoint>(points: &[P], voxel_mm: f64) -> Result<Vec
             "must be finite and positive",
         ));
     }
+    if let Some(keep) = voxel_keep_packed(points, voxel_mm) {
+        return Ok(keep);
+    }
+    voxel_keep_general(points, voxel_mm)
+}
+
+/// [`voxel_keep_mask`] for any cloud: (voxel, index) pairs sorted.
+fn voxel_keep_general<P: CloudPoint>(points: &[P], voxel_mm: f64) -> Result<Vec<bool>> {
     let mut pairs: Vec<([i64; 3], usize)> = points
         .par_iter()
         .enumerate()
@@ -3668,6 +3757,38 @@ mod tests {
                 );
             }
         }
+    }
+
+    #[test]
+    fn packed_voxel_path_keeps_what_the_general_one_keeps() {
+        let mut rng = StdRng::seed_from_u64(45);
+        let mut packed = 0;
+        for round in 0..60 {
+            let mut pts = match round % 3 {
+                0 => uniform(&mut rng, 3000, 20.0),
+                1 => surface(&mut rng, 3000),
+                _ => clustered(&mut rng, 3000),
+            };
+            pts.push(Xyz::new(f32::NAN, 0.0, 0.0));
+            // Voxels from a tenth of a millimetre to wider than the cloud; coordinates around
+            // negative and positive offsets.
+            let offset = rng.random_range(-1000.0f32..1000.0);
+            for p in &mut pts {
+                p.x += offset;
+            }
+            let voxel = 10f64.powf(rng.random_range(-1.0..1.5));
+            let general = voxel_keep_general(&pts, voxel).expect("general");
+            if let Some(fast) = voxel_keep_packed(&pts, voxel) {
+                assert_eq!(fast, general, "round {round}, voxel {voxel}");
+                packed += 1;
+            }
+            assert_eq!(voxel_keep_mask(&pts, voxel).expect("mask"), general, "round {round}");
+        }
+        assert!(packed > 40, "only {packed} clouds took the packed path");
+        // More than 32 bits of voxels: the general path.
+        let wide = vec![Xyz::new(0.0, 0.0, 0.0), Xyz::new(1e4, 1e4, 1e4), Xyz::new(5e3, 1.0, 2.0)];
+        assert!(voxel_keep_packed(&wide, 0.01).is_none());
+        assert_eq!(voxel_keep_mask(&wide, 0.01).expect("mask"), vec![true; 3]);
     }
 
     #[test]
