@@ -388,11 +388,12 @@ pub fn radius_outlier_mask(
     let mut keep_sorted = vec![false; grid.xyz.len()];
     let chunks = grid.chunks();
     let slices = split_by_chunks(&mut keep_sorted, &grid, &chunks);
+    let columns = Columns::build(&grid);
     chunks.into_par_iter().zip(slices).for_each(|(cells, out)| {
         let base = grid.start(cells.start);
         let mut ranges = Vec::with_capacity(9);
         for c in cells {
-            grid.block_ranges(c, 1, &mut ranges);
+            grid.block_ranges_with(columns.as_ref(), c, 1, &mut ranges);
             for s in grid.start(c)..grid.start(c + 1) {
                 let q = &grid.xyz[s];
                 let mut count = 0usize;
@@ -436,11 +437,15 @@ const MAX_VOXEL_INDEX: f64 = 9_007_199_254_740_992.0;
 fn voxel_of(p: &Point3<f64>, voxel: f64) -> Option<[i64; 3]> {
     let mut out = [0i64; 3];
     for (o, c) in out.iter_mut().zip(p.coords.iter()) {
-        let v = (c / voxel).floor();
+        let v = c / voxel;
+        // Beyond 2^53 every `f64` is an integer, so `v` within the bound iff its floor is.
         if v.is_nan() || v.abs() > MAX_VOXEL_INDEX {
             return None;
         }
-        *o = v as i64;
+        // The floor without a call into libm: truncate (exact here), one less for a negative
+        // fraction.
+        let t = v as i64;
+        *o = if (t as f64) > v { t - 1 } else { t };
     }
     Some(out)
 }
@@ -3785,6 +3790,20 @@ mod tests {
             assert_eq!(voxel_keep_mask(&pts, voxel).expect("mask"), general, "round {round}");
         }
         assert!(packed > 40, "only {packed} clouds took the packed path");
+        // The voxel index is the floor, negative coordinates and exact multiples included.
+        for _ in 0..20_000 {
+            let voxel = 10f64.powf(rng.random_range(-3.0..2.0));
+            let c = match rng.random_range(0..3) {
+                0 => rng.random_range(-1e4..1e4),
+                1 => rng.random_range(-50i32..50) as f64 * voxel,
+                _ => -rng.random_range(0.0..1e-9),
+            };
+            let p = Point3::new(c, -c, c * 0.5);
+            let want = [c, -c, c * 0.5].map(|x| (x / voxel).floor() as i64);
+            assert_eq!(voxel_of(&p, voxel), Some(want), "{c} / {voxel}");
+        }
+        assert_eq!(voxel_of(&Point3::new(f64::NAN, 0.0, 0.0), 1.0), None);
+        assert_eq!(voxel_of(&Point3::new(1e300, 0.0, 0.0), 1.0), None);
         // More than 32 bits of voxels: the general path.
         let wide = vec![Xyz::new(0.0, 0.0, 0.0), Xyz::new(1e4, 1e4, 1e4), Xyz::new(5e3, 1.0, 2.0)];
         assert!(voxel_keep_packed(&wide, 0.01).is_none());
