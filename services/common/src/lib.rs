@@ -4,6 +4,7 @@
 //! binaries; their `domain/` modules never import it.
 //!
 //! # Layout
+//! - [`alloc`]: the allocator's tuning (one malloc arena per core), set first by every binary.
 //! - [`config`]: layered configuration (TOML file, then `DEPTHMILL_<SVC>__SECTION__KEY` env overrides).
 //! - [`telemetry`]: the tracing subscriber, installed by binaries only.
 //! - [`tls`]: TLS of the public APIs: certificate files, the REST server over TLS, the gRPC identity.
@@ -14,6 +15,7 @@
 //! - [`stage`]: the registry of running stage calls that `CancelStage` uses.
 //! - [`ErrorChain`]: displays an error with all its sources, for logs.
 
+pub mod alloc;
 pub mod artifacts;
 pub mod config;
 pub mod grpc;
