@@ -21,13 +21,7 @@ struct Args {
 }
 
 fn main() -> anyhow::Result<()> {
-    // Before the runtime's threads exist.
-    depthmill_common::alloc::limit_malloc_arenas();
-    tokio::runtime::Builder::new_multi_thread()
-        .enable_all()
-        .build()
-        .context("starting the runtime")?
-        .block_on(run())
+    depthmill_common::process::run(run()).context("starting the runtime")?
 }
 
 async fn run() -> anyhow::Result<()> {

@@ -4,7 +4,8 @@
 //! binaries; their `domain/` modules never import it.
 //!
 //! # Layout
-//! - [`alloc`]: the allocator's tuning (one malloc arena per core), set first by every binary.
+//! - [`process`]: the allocator's tuning (one malloc arena per core), set first by every binary,
+//!   and the service binaries' runtime.
 //! - [`config`]: layered configuration (TOML file, then `DEPTHMILL_<SVC>__SECTION__KEY` env overrides).
 //! - [`telemetry`]: the tracing subscriber, installed by binaries only.
 //! - [`tls`]: TLS of the public APIs: certificate files, the REST server over TLS, the gRPC identity.
@@ -15,11 +16,11 @@
 //! - [`stage`]: the registry of running stage calls that `CancelStage` uses.
 //! - [`ErrorChain`]: displays an error with all its sources, for logs.
 
-pub mod alloc;
 pub mod artifacts;
 pub mod config;
 pub mod grpc;
 pub mod metrics;
+pub mod process;
 pub mod shutdown;
 pub mod stage;
 pub mod telemetry;

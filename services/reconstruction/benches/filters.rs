@@ -35,7 +35,9 @@ use depthmill_reconstruction::domain::filters::{
 
 mod support;
 
-use support::{BoxResult, cpu_seconds, scan_like_cloud, write_cloud_npy, write_mask_npy};
+use support::{
+    BoxResult, cpu_seconds, field, run_reference, scan_like_cloud, write_cloud_npy, write_mask_npy,
+};
 
 struct Args {
     points: usize,
@@ -101,8 +103,9 @@ fn script_path() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/compare_open3d_filters.py")
 }
 
-fn field(out: &str, key: &str) -> Option<f64> {
-    out.lines().find_map(|l| l.trim().strip_prefix(key)?.strip_prefix('=')?.parse().ok())
+/// A number from the script's output.
+fn number(out: &str, key: &str) -> Option<f64> {
+    field(out, key)?.parse().ok()
 }
 
 fn main() -> BoxResult<()> {
@@ -143,8 +146,8 @@ fn main() -> BoxResult<()> {
     let (cloud_path, keep_path) = (dir.path().join("cloud.npy"), dir.path().join("ror_keep.npy"));
     write_cloud_npy(&cloud_path, &cloud)?;
     write_mask_npy(&keep_path, &radius_outlier_mask(&cloud.points, args.radius_mm, args.min_neighbours)?)?;
-    let output = Command::new(&args.python)
-        .arg(script_path())
+    let mut cmd = Command::new(&args.python);
+    cmd.arg(script_path())
         .arg("--cloud")
         .arg(&cloud_path)
         .arg("--ror-keep")
@@ -153,40 +156,24 @@ fn main() -> BoxResult<()> {
         .args(["--min-neighbours", &args.min_neighbours.to_string()])
         .args(["--voxel-mm", &args.voxel_mm.to_string()])
         .args(["--depthmill-voxels", &vox_kept.to_string()])
-        .args(["--repeat", &args.repeat.to_string()])
-        .output();
-    let output = match output {
-        Ok(o) => o,
-        Err(e) => {
-            println!("open3d: cannot run {} ({e}); skipped", args.python);
-            return Ok(());
-        }
-    };
-    let stdout = String::from_utf8_lossy(&output.stdout);
-    for line in stdout.lines() {
-        println!("  | {line}");
-    }
-    if output.status.code() == Some(3) {
-        println!("open3d: not importable; install with `{} -m pip install open3d numpy`", args.python);
+        .args(["--repeat", &args.repeat.to_string()]);
+    let Some((stdout, _)) = run_reference(&mut cmd, &args.python) else {
         return Ok(());
-    }
-    if !output.status.success() {
-        print!("{}", String::from_utf8_lossy(&output.stderr));
-    }
+    };
     let ratio = |theirs: Option<f64>, ours: f64| theirs.map_or(f64::NAN, |t| t / ours);
     println!(
         "open3d remove_radius_outlier: {:.1} ms; depthmill is {:.2}x faster (CPU {:.2}x); mismatched points: {}",
-        field(&stdout, "open3d_ror_ms").unwrap_or(f64::NAN),
-        ratio(field(&stdout, "open3d_ror_ms"), ror_ms),
-        ratio(field(&stdout, "open3d_ror_cpu_ms"), ror_cpu.unwrap_or(f64::NAN)),
-        field(&stdout, "ror_mismatches").map_or("?".into(), |m| format!("{m:.0}"))
+        number(&stdout, "open3d_ror_ms").unwrap_or(f64::NAN),
+        ratio(number(&stdout, "open3d_ror_ms"), ror_ms),
+        ratio(number(&stdout, "open3d_ror_cpu_ms"), ror_cpu.unwrap_or(f64::NAN)),
+        number(&stdout, "ror_mismatches").map_or("?".into(), |m| format!("{m:.0}"))
     );
     println!(
         "open3d voxel_down_sample: {:.1} ms; depthmill is {:.2}x faster (CPU {:.2}x); voxels {} (depthmill {})",
-        field(&stdout, "open3d_voxel_ms").unwrap_or(f64::NAN),
-        ratio(field(&stdout, "open3d_voxel_ms"), vox_ms),
-        ratio(field(&stdout, "open3d_voxel_cpu_ms"), vox_cpu.unwrap_or(f64::NAN)),
-        field(&stdout, "open3d_voxels").map_or("?".into(), |m| format!("{m:.0}")),
+        number(&stdout, "open3d_voxel_ms").unwrap_or(f64::NAN),
+        ratio(number(&stdout, "open3d_voxel_ms"), vox_ms),
+        ratio(number(&stdout, "open3d_voxel_cpu_ms"), vox_cpu.unwrap_or(f64::NAN)),
+        number(&stdout, "open3d_voxels").map_or("?".into(), |m| format!("{m:.0}")),
         vox_kept
     );
     Ok(())

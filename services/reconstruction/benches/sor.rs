@@ -32,7 +32,7 @@ use std::time::Instant;
 use depthmill_geometry::PointCloud;
 use depthmill_reconstruction::domain::filters::{statistical_outlier_mask, statistical_outlier_removal};
 use nalgebra::Point3;
-use support::{cpu_seconds, gauss, scan_like_cloud, write_cloud_npy, write_mask_npy};
+use support::{cpu_seconds, field, gauss, run_reference, scan_like_cloud, write_cloud_npy, write_mask_npy};
 mod support;
 
 use rand::rngs::StdRng;
@@ -189,10 +189,6 @@ fn script_path(args: &Args) -> PathBuf {
         .map_or(by_manifest.clone(), |crate_dir| crate_dir.join("scripts/compare_open3d.py"))
 }
 
-fn field<'a>(out: &'a str, key: &str) -> Option<&'a str> {
-    out.lines().find_map(|l| l.trim().strip_prefix(key)?.strip_prefix('='))
-}
-
 fn main() -> BoxResult<()> {
     let args = parse_args()?;
     let threads = rayon::current_num_threads();
@@ -252,36 +248,17 @@ fn main() -> BoxResult<()> {
     write_cloud_npy(&cloud_path, &cloud)?;
     write_mask_npy(&keep_path, &keep)?;
     let script = script_path(&args);
-    let output = Command::new(&args.python)
-        .arg(&script)
+    let mut cmd = Command::new(&args.python);
+    cmd.arg(&script)
         .arg("--cloud")
         .arg(&cloud_path)
         .arg("--keep")
         .arg(&keep_path)
         .args(["--k", &args.k.to_string(), "--n-sigma", &args.n_sigma.to_string()])
-        .args(["--repeat", &args.repeat.to_string()])
-        .output();
-    let output = match output {
-        Ok(o) => o,
-        Err(e) => {
-            println!("open3d: cannot run {} ({e}); skipped", args.python);
-            return Ok(());
-        }
-    };
-    let stdout = String::from_utf8_lossy(&output.stdout);
-    for line in stdout.lines() {
-        println!("  | {line}");
-    }
-    if output.status.code() == Some(3) {
-        println!(
-            "open3d: not importable by {}; install with `{} -m pip install open3d numpy`",
-            args.python, args.python
-        );
+        .args(["--repeat", &args.repeat.to_string()]);
+    let Some((stdout, code)) = run_reference(&mut cmd, &args.python) else {
         return Ok(());
-    }
-    if !output.status.success() {
-        print!("{}", String::from_utf8_lossy(&output.stderr));
-    }
+    };
     match field(&stdout, "open3d_ms").and_then(|v| v.parse::<f64>().ok()) {
         Some(o3d_ms) => {
             println!(
@@ -300,7 +277,7 @@ fn main() -> BoxResult<()> {
                 );
             }
         }
-        None => println!("open3d: no timing from {} (exit {:?})", script.display(), output.status.code()),
+        None => println!("open3d: no timing from {} (exit {:?})", script.display(), code),
     }
     Ok(())
 }

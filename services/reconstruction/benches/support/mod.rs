@@ -4,6 +4,7 @@
 
 use std::io::{BufWriter, Write};
 use std::path::Path;
+use std::process::Command;
 
 use depthmill_geometry::PointCloud;
 use nalgebra::Point3;
@@ -93,4 +94,35 @@ pub fn write_mask_npy(path: &Path, keep: &[bool]) -> BoxResult<()> {
     w.write_all(&keep.iter().map(|&k| u8::from(k)).collect::<Vec<_>>())?;
     w.flush()?;
     Ok(())
+}
+
+/// Runs a reference script (`cmd`, through the interpreter `python`) and echoes its standard
+/// output indented. `None`, with the reason printed, when the interpreter cannot be started or
+/// the script says its modules are missing (exit status 3); its standard error is printed when it
+/// fails otherwise. Returns the standard output and the exit status.
+pub fn run_reference(cmd: &mut Command, python: &str) -> Option<(String, Option<i32>)> {
+    let output = match cmd.output() {
+        Ok(o) => o,
+        Err(e) => {
+            println!("open3d: cannot run {python} ({e}); skipped");
+            return None;
+        }
+    };
+    let stdout = String::from_utf8_lossy(&output.stdout).into_owned();
+    for line in stdout.lines() {
+        println!("  | {line}");
+    }
+    if output.status.code() == Some(3) {
+        println!("open3d: not importable by {python}; install with `{python} -m pip install open3d numpy`");
+        return None;
+    }
+    if !output.status.success() {
+        print!("{}", String::from_utf8_lossy(&output.stderr));
+    }
+    Some((stdout, output.status.code()))
+}
+
+/// The value of a `key=value` line of a script's output.
+pub fn field<'a>(out: &'a str, key: &str) -> Option<&'a str> {
+    out.lines().find_map(|l| l.trim().strip_prefix(key)?.strip_prefix('='))
 }

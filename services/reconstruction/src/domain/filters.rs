@@ -2209,11 +2209,64 @@ mod simd {
         }
     }
 
-    // The vector leaf scan reads the points as consecutive `f32` triples.
+    /// The lanes of a vector of eight holding the first `left` values (all eight from 8 up).
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    fn tail_mask(left: usize) -> std::arch::x86_64::__mmask8 {
+        if left >= 8 { 0xff } else { (1u8 << left) - 1 }
+    }
+
+    /// Points `j..j + 8` of `pts` (fewer at the end: the lanes returned), coordinate by
+    /// coordinate, widened to `f64` exactly: the 24 floats loaded masked and separated by
+    /// two-source permutes.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    fn load_points8(pts: &[Xyz], j: usize) -> (std::arch::x86_64::__mmask8, [std::arch::x86_64::__m512d; 3]) {
+        use std::arch::x86_64::*;
+        assert!(j < pts.len(), "point {j} beyond {}", pts.len());
+        let m = (pts.len() - j).min(8);
+        let floats = 3 * m;
+        let lo_mask: __mmask16 = if floats >= 16 { 0xffff } else { (1u16 << floats) - 1 };
+        let hi_mask: __mmask16 = if floats > 16 { (1u16 << (floats - 16)) - 1 } else { 0 };
+        // `Xyz` is `#[repr(C)]` three `f32` (nalgebra's `OPoint` over an array), asserted below.
+        let base = pts.as_ptr().cast::<f32>();
+        // SAFETY: the masked loads read only the floats of points `j..j + m`, all within `pts`;
+        // masked-off lanes are not accessed.
+        let (lo, hi) = unsafe {
+            (
+                _mm512_maskz_loadu_ps(lo_mask, base.add(3 * j)),
+                _mm512_maskz_loadu_ps(hi_mask, base.add(3 * j + 16)),
+            )
+        };
+        let coord = |o: i32| {
+            let idx = _mm512_setr_epi32(
+                o,
+                o + 3,
+                o + 6,
+                o + 9,
+                o + 12,
+                o + 15,
+                o + 18,
+                o + 21,
+                0,
+                0,
+                0,
+                0,
+                0,
+                0,
+                0,
+                0,
+            );
+            _mm512_cvtps_pd(_mm512_castps512_ps256(_mm512_permutex2var_ps(lo, idx, hi)))
+        };
+        (tail_mask(m), [coord(0), coord(1), coord(2)])
+    }
+
+    // `load_points8` reads the points as consecutive `f32` triples.
     const _: () = assert!(std::mem::size_of::<Xyz>() == 12 && std::mem::align_of::<Xyz>() == 4);
 
-    /// [`leaf_scan`] eight points at a time: the points' coordinates separated by two-source
-    /// permutes, widened, the squared distances computed as [`super::dist2`] computes them (bit
+    /// [`leaf_scan`] eight points at a time ([`load_points8`]): the squared distances computed as [`super::dist2`] computes them (bit
     /// for bit); the lanes below the worst at the start of the eight are offered to `best` one
     /// by one, each checked against the worst at that time (so the same pushes happen).
     #[cfg(target_arch = "x86_64")]
@@ -2221,33 +2274,12 @@ mod simd {
     pub(super) fn leaf_scan_avx512(pts: &[Xyz], q: &Xyz, best: &mut KBest) {
         use std::arch::x86_64::*;
         let n = pts.len();
-        // `Xyz` is `#[repr(C)]` three `f32` (nalgebra's `OPoint` over an array), asserted above.
-        let base = pts.as_ptr().cast::<f32>();
         let (qx, qy, qz) =
             (_mm512_set1_pd(f64::from(q.x)), _mm512_set1_pd(f64::from(q.y)), _mm512_set1_pd(f64::from(q.z)));
-        let pick = |o: i32| {
-            _mm512_setr_epi32(o, o + 3, o + 6, o + 9, o + 12, o + 15, o + 18, o + 21, 0, 0, 0, 0, 0, 0, 0, 0)
-        };
-        let (ix, iy, iz) = (pick(0), pick(1), pick(2));
         let mut d8 = [0.0f64; 8];
         let mut j = 0usize;
         while j < n {
-            let m = (n - j).min(8);
-            let floats = 3 * m;
-            let lo_mask: __mmask16 = if floats >= 16 { 0xffff } else { (1u16 << floats) - 1 };
-            let hi_mask: __mmask16 = if floats > 16 { (1u16 << (floats - 16)) - 1 } else { 0 };
-            let lanes: __mmask8 = if m == 8 { 0xff } else { (1u8 << m) - 1 };
-            // SAFETY: the masked loads read only the floats of points `j..j + m`, all within
-            // `pts`; masked-off lanes are not accessed.
-            let (lo, hi) = unsafe {
-                (
-                    _mm512_maskz_loadu_ps(lo_mask, base.add(3 * j)),
-                    _mm512_maskz_loadu_ps(hi_mask, base.add(3 * j + 16)),
-                )
-            };
-            let wide =
-                |idx: __m512i| _mm512_cvtps_pd(_mm512_castps512_ps256(_mm512_permutex2var_ps(lo, idx, hi)));
-            let (x, y, z) = (wide(ix), wide(iy), wide(iz));
+            let (lanes, [x, y, z]) = load_points8(pts, j);
             let (dx, dy, dz) = (_mm512_sub_pd(qx, x), _mm512_sub_pd(qy, y), _mm512_sub_pd(qz, z));
             let d = _mm512_add_pd(
                 _mm512_add_pd(_mm512_mul_pd(dx, dx), _mm512_mul_pd(dy, dy)),
@@ -2313,11 +2345,6 @@ mod simd {
         use std::arch::x86_64::*;
         let n = pts.len();
         assert!(out.len() == n, "key output of another length");
-        let base = pts.as_ptr().cast::<f32>();
-        let pick = |o: i32| {
-            _mm512_setr_epi32(o, o + 3, o + 6, o + 9, o + 12, o + 15, o + 18, o + 21, 0, 0, 0, 0, 0, 0, 0, 0)
-        };
-        let (ix, iy, iz) = (pick(0), pick(1), pick(2));
         let inf = _mm512_set1_pd(f64::INFINITY);
         let zero = _mm512_setzero_pd();
         let inv_h = _mm512_set1_pd(keying.inv_h);
@@ -2336,22 +2363,7 @@ mod simd {
         };
         let mut j = 0usize;
         while j < n {
-            let m = (n - j).min(8);
-            let floats = 3 * m;
-            let lo_mask: __mmask16 = if floats >= 16 { 0xffff } else { (1u16 << floats) - 1 };
-            let hi_mask: __mmask16 = if floats > 16 { (1u16 << (floats - 16)) - 1 } else { 0 };
-            let lanes: __mmask8 = if m == 8 { 0xff } else { (1u8 << m) - 1 };
-            // SAFETY: the masked loads read only the floats of points `j..j + m`, all within
-            // `pts` (`Xyz` is three `f32`, asserted by the leaf scan's constant).
-            let (lo, hi) = unsafe {
-                (
-                    _mm512_maskz_loadu_ps(lo_mask, base.add(3 * j)),
-                    _mm512_maskz_loadu_ps(hi_mask, base.add(3 * j + 16)),
-                )
-            };
-            let wide =
-                |idx: __m512i| _mm512_cvtps_pd(_mm512_castps512_ps256(_mm512_permutex2var_ps(lo, idx, hi)));
-            let c = [wide(ix), wide(iy), wide(iz)];
+            let (lanes, c) = load_points8(pts, j);
             let mut usable: __mmask8 = lanes;
             let mut cell = [_mm512_setzero_si512(); 3];
             for a in 0..3 {
@@ -2363,8 +2375,8 @@ mod simd {
             let column = _mm512_or_si512(spread(cell[0]), _mm512_slli_epi64::<1>(spread(cell[1])));
             let key = _mm512_or_si512(_mm512_sll_epi64(column, zbits), cell[2]);
             let key = _mm512_mask_blend_epi64(usable, limit, key);
-            // SAFETY: the masked store writes only the lanes below `m`, entries `j..j + m` of
-            // `out`, which has `n` entries (asserted above).
+            // SAFETY: the masked store writes only `lanes`, the points left from `j` (at most
+            // eight), entries below `n` of `out`, which has `n` entries (asserted above).
             unsafe { _mm512_mask_storeu_epi64(out.as_mut_ptr().add(j).cast::<i64>(), lanes, key) };
             j += 8;
         }
@@ -2397,9 +2409,8 @@ mod simd {
         let mut listed = 0usize;
         let mut acc = _mm512_setzero_pd();
         for j in (0..n).step_by(8) {
-            let left = n - j;
-            let lanes: __mmask8 = if left >= 8 { 0xff } else { (1u8 << left) - 1 };
-            // SAFETY: only the lanes below `left` are read, all within `v`.
+            let lanes = tail_mask(n - j);
+            // SAFETY: only the lanes below `n - j` are read, all within `v`.
             let x = unsafe { _mm512_maskz_loadu_epi64(lanes, v.as_ptr().add(j).cast::<i64>()) };
             acc = _mm512_add_pd(acc, _mm512_maskz_sqrt_pd(lanes, _mm512_castsi512_pd(x)));
             let big = _mm512_mask_cmpgt_epu64_mask(lanes, x, bound);
@@ -2430,9 +2441,8 @@ mod simd {
         let n = v.len();
         assert!(k >= 1 && k <= n, "k outside 1..=values");
         let load = |j: usize| {
-            let left = n - j;
-            let lanes: __mmask8 = if left >= 8 { 0xff } else { (1u8 << left) - 1 };
-            // SAFETY: only the lanes below `left` are read, all within `v`.
+            let lanes = tail_mask(n - j);
+            // SAFETY: only the lanes below `n - j` are read, all within `v`.
             (lanes, unsafe { _mm512_maskz_loadu_epi64(lanes, v.as_ptr().add(j).cast::<i64>()) })
         };
         let surplus = n - k;
@@ -2490,9 +2500,8 @@ mod simd {
         let mut cnt = 0usize;
         let mut j = 0usize;
         while j < n {
-            let left = n - j;
-            let lanes: __mmask8 = if left >= 8 { 0xff } else { (1u8 << left) - 1 };
-            // SAFETY: the masked loads read only the lanes below `left`, all within the three
+            let lanes = tail_mask(n - j);
+            // SAFETY: the masked loads read only the lanes below `n - j`, all within the three
             // vectors of length `n`; masked-off lanes are not accessed.
             let (x, y, z) = unsafe {
                 (

@@ -1,4 +1,4 @@
-//! The allocator's tuning, set by every binary first thing in `main`.
+//! Process set-up shared by the binaries: the allocator's tuning, and a service's `main`.
 
 /// Limits glibc's malloc to one arena per core.
 ///
@@ -24,3 +24,11 @@ pub fn limit_malloc_arenas() {
 /// Limits glibc's malloc to one arena per core (a no-op without glibc).
 #[cfg(not(all(target_os = "linux", target_env = "gnu")))]
 pub fn limit_malloc_arenas() {}
+
+/// A service binary's `main`: [`limit_malloc_arenas`], then `service` to completion on a
+/// multi-thread tokio runtime built after it (so no runtime thread exists yet). Errors: the
+/// runtime could not be built.
+pub fn run<T>(service: impl std::future::Future<Output = T>) -> std::io::Result<T> {
+    limit_malloc_arenas();
+    Ok(tokio::runtime::Builder::new_multi_thread().enable_all().build()?.block_on(service))
+}
