@@ -167,11 +167,15 @@ pub async fn run_calibration<S: AsyncRead + AsyncWrite + Unpin>(
         e => CalibrationError::Scan(e.to_string()),
     };
     progress(0.0, "planning the calibration scans".into());
+    let terr = |e: crate::devices::table::TableError| CalibrationError::Table(e.to_string());
+    // The views from where the table stands, in the given cyclic order.
+    let mut opts = opts;
+    let at = table.position_deg().await.map_err(terr)?;
+    opts.table_angles_deg = crate::domain::scan::plan::visit_order(&opts.table_angles_deg, at);
     let (session, plan) =
         blocking(move || crate::domain::calibration::calibration_session(&cell, layout, &opts))
             .await
             .map_err(scan_err)??;
-    let terr = |e: crate::devices::table::TableError| CalibrationError::Table(e.to_string());
     table.set_speed(TABLE_SPEED_DEG_S).await.map_err(terr)?;
     table.set_accel(TABLE_ACCEL_DEG_S2).await.map_err(terr)?;
     let session = run_plan(session, &plan, false, None, table, &progress, (0.0, 0.9), &cancel)
@@ -201,6 +205,14 @@ pub async fn run_scan<S: AsyncRead + AsyncWrite + Unpin>(
     cancel: CancellationToken,
 ) -> Result<ScanOutput, ScanError> {
     progress(0.0, format!("planning over a {}-triangle mesh", mesh.triangles.len()));
+    let terr = |e: crate::devices::table::TableError| ScanError::Table(e.to_string());
+    // The automatic stations from where the table stands (after a calibration or another job),
+    // in the given cyclic order; explicit passes keep theirs.
+    let mut opts = opts;
+    if opts.passes.is_none() {
+        let at = table.position_deg().await.map_err(terr)?;
+        opts.table_angles_deg = crate::domain::scan::plan::visit_order(&opts.table_angles_deg, at);
+    }
     let (session, plan) = blocking(move || {
         let mut s = ScanSession::with_cell(&mesh, opts, layout, cell)?;
         let plan = s.plan()?;
@@ -213,7 +225,6 @@ pub async fn run_scan<S: AsyncRead + AsyncWrite + Unpin>(
         length_mm = plan.length_mm(),
         "scan planned"
     );
-    let terr = |e: crate::devices::table::TableError| ScanError::Table(e.to_string());
     table.set_speed(TABLE_SPEED_DEG_S).await.map_err(terr)?;
     table.set_accel(TABLE_ACCEL_DEG_S2).await.map_err(terr)?;
     let adaptive = session.options().adaptive_rescan;

@@ -167,6 +167,21 @@ pub fn sensor_orientation(dir: &Vector3<f64>, tilt_deg: f64) -> UnitQuaternion<f
 /// A straight sensor path, world frame: start and end.
 type Segment = (Point3<f64>, Point3<f64>);
 
+/// `angles` in the same cyclic order, starting from the one the table reaches soonest from
+/// `from_deg` (the shortest way; the first of a tie): a list visited from where the table
+/// stands instead of from its first entry saves the turn back to it.
+pub fn visit_order(angles: &[f64], from_deg: f64) -> Vec<f64> {
+    let away = |a: f64| TableMove::between(from_deg, a, 1.0, 1.0).turn_deg.abs();
+    let start = angles
+        .iter()
+        .enumerate()
+        .min_by(|x, y| away(*x.1).total_cmp(&away(*y.1)).then(x.0.cmp(&y.0)))
+        .map_or(0, |(k, _)| k);
+    let mut out = angles.to_vec();
+    out.rotate_left(start);
+    out
+}
+
 /// Builds the plan: automatic from the part's bounds, or from `opts.passes`.
 pub fn plan_scan(
     placement: &PartPlacement,

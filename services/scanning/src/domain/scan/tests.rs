@@ -490,3 +490,45 @@ fn table_moves_match_a_stepped_trapezoid() {
     }
     assert!((plan::TableMove::between(350.0, 10.0, 45.0, 200.0).turn_deg - 20.0).abs() < 1e-12);
 }
+
+#[test]
+fn stations_are_visited_from_where_the_table_stands() {
+    let quarter = [0.0, 90.0, 180.0, 270.0];
+    // Total turning over a visit order, from `at`.
+    let turning = |order: &[f64], at: f64| {
+        let mut from = at;
+        let mut sum = 0.0;
+        for &a in order {
+            sum += plan::TableMove::between(from, a, 45.0, 200.0).turn_deg.abs();
+            from = a;
+        }
+        sum
+    };
+    // After a calibration that ended at 270°: 270, 0, 90, 180 (three quarter turns, not four).
+    assert_eq!(plan::visit_order(&quarter, 270.0), vec![270.0, 0.0, 90.0, 180.0]);
+    assert_eq!(turning(&plan::visit_order(&quarter, 270.0), 270.0), 270.0);
+    assert_eq!(turning(&quarter, 270.0), 360.0);
+    // Encoder readings off a little, beyond a turn or negative; a tie keeps the list's first.
+    assert_eq!(plan::visit_order(&quarter, 89.97), vec![90.0, 180.0, 270.0, 0.0]);
+    assert_eq!(plan::visit_order(&quarter, -90.0), vec![270.0, 0.0, 90.0, 180.0]);
+    assert_eq!(plan::visit_order(&quarter, 405.0), vec![0.0, 90.0, 180.0, 270.0]);
+    assert_eq!(plan::visit_order(&[30.0, 200.0], 115.0), vec![30.0, 200.0]);
+    assert_eq!(plan::visit_order(&[], 10.0), Vec::<f64>::new());
+    assert_eq!(plan::visit_order(&quarter, f64::NAN), quarter.to_vec());
+    // Every order is a rotation of the list whose first turn is the shortest.
+    let mut rng = StdRng::seed_from_u64(7);
+    for _ in 0..200 {
+        let n = rng.random_range(1..7);
+        let angles: Vec<f64> = (0..n).map(|_| rng.random_range(-360.0..360.0)).collect();
+        let at = rng.random_range(-360.0..720.0);
+        let order = plan::visit_order(&angles, at);
+        let start = (0..n).find(|&s| {
+            let mut r = angles.clone();
+            r.rotate_left(s);
+            r == order
+        });
+        assert!(start.is_some(), "{order:?} is not a rotation of {angles:?}");
+        let first = |o: &[f64]| plan::TableMove::between(at, o[0], 45.0, 200.0).turn_deg.abs();
+        assert!(angles.iter().all(|&a| first(&order) <= first(&[a]) + 1e-9));
+    }
+}
