@@ -476,6 +476,9 @@ fn nearest_to_centroid<P: CloudPoint>(
     Some(best.0)
 }
 
+/// Points per task of the voxel decimation's passes.
+const VOXEL_CHUNK: usize = 1 << 14;
+
 /// [`voxel_keep_mask`] when the cloud's voxel indices, taken from their minimum, pack into 32
 /// bits (and the points are fewer than 2^32): one `u64` per point (packed voxel, point index)
 /// radix-sorted on the voxel bits, which keeps each voxel's points in index order as the general
@@ -485,24 +488,24 @@ fn voxel_keep_packed<P: CloudPoint>(points: &[P], voxel: f64) -> Option<Vec<bool
     if points.len() >= u32::MAX as usize {
         return None;
     }
-    type Range3 = ([i64; 3], [i64; 3], bool);
-    let empty: Range3 = ([i64::MAX; 3], [i64::MIN; 3], true);
-    let (lo, hi, ok) = points
-        .par_iter()
-        .filter(|p| usable(*p))
-        .fold(
-            || empty,
-            |(mut lo, mut hi, ok), p| match voxel_of(&p.at(), voxel) {
-                Some(v) => {
-                    for a in 0..3 {
-                        lo[a] = lo[a].min(v[a]);
-                        hi[a] = hi[a].max(v[a]);
-                    }
-                    (lo, hi, ok)
+    // The usable points' coordinate bounds: `floor(c / voxel)` never decreases as `c` grows
+    // (a correctly rounded division is monotonic), so their voxels bound every point's.
+    type Bounds = ([f64; 3], [f64; 3], usize);
+    let empty: Bounds = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3], 0);
+    let (lo_c, hi_c, usable_n) = points
+        .par_chunks(VOXEL_CHUNK)
+        .map(|part| {
+            let mut b = empty;
+            for p in part.iter().filter(|p| usable(*p)) {
+                let q = p.at();
+                for a in 0..3 {
+                    b.0[a] = b.0[a].min(q[a]);
+                    b.1[a] = b.1[a].max(q[a]);
                 }
-                None => (lo, hi, false),
-            },
-        )
+                b.2 += 1;
+            }
+            b
+        })
         .reduce(
             || empty,
             |a, b| {
@@ -511,44 +514,80 @@ fn voxel_keep_packed<P: CloudPoint>(points: &[P], voxel: f64) -> Option<Vec<bool
                     r.0[i] = a.0[i].min(b.0[i]);
                     r.1[i] = a.1[i].max(b.1[i]);
                 }
-                r.2 = a.2 && b.2;
+                r.2 = a.2 + b.2;
                 r
             },
         );
-    if !ok {
-        return None;
-    }
-    if lo[0] > hi[0] {
+    if usable_n == 0 {
         return Some(vec![false; points.len()]);
     }
+    let lo = voxel_of(&Point3::from(lo_c), voxel)?;
+    let hi = voxel_of(&Point3::from(hi_c), voxel)?;
     let bits = [0, 1, 2].map(|a| 64 - (hi[a].abs_diff(lo[a])).leading_zeros());
     let total = bits.iter().sum::<u32>();
     if total > 32 {
         return None;
     }
-    let mut items: Vec<u64> = points
-        .par_iter()
-        .enumerate()
-        .filter(|(_, p)| usable(*p))
-        .filter_map(|(i, p)| {
-            let v = voxel_of(&p.at(), voxel)?;
-            let d = [0, 1, 2].map(|a| v[a].abs_diff(lo[a]));
-            let key = (d[0] << (bits[1] + bits[2])) | (d[1] << bits[2]) | d[2];
-            Some((key << 32) | i as u64)
+    // (packed voxel << 32) | index per usable point, in index order, written chunk by chunk.
+    let counts: Vec<usize> = if usable_n == points.len() {
+        points.chunks(VOXEL_CHUNK).map(<[P]>::len).collect()
+    } else {
+        points.par_chunks(VOXEL_CHUNK).map(|part| part.iter().filter(|p| usable(*p)).count()).collect()
+    };
+    let ranges: Vec<Range<usize>> = counts
+        .iter()
+        .scan(0usize, |at, &c| {
+            *at += c;
+            Some(*at - c..*at)
         })
         .collect();
-    radix_sort_bits(&mut items, 32, total.max(1));
-    let mut runs = Vec::new();
-    let mut start = 0usize;
-    for j in 1..=items.len() {
-        if j == items.len() || items[j] >> 32 != items[start] >> 32 {
-            runs.push(start..j);
-            start = j;
-        }
-    }
-    let kept: Vec<usize> = runs
+    let mut items = vec![0u64; usable_n];
+    split_ranges_mut(&mut items, &ranges)
         .into_par_iter()
-        .filter_map(|r| nearest_to_centroid(points, items[r].iter().map(|&it| (it & 0xFFFF_FFFF) as usize)))
+        .zip(points.par_chunks(VOXEL_CHUNK))
+        .enumerate()
+        .for_each(|(j, (out, part))| {
+            let base = j * VOXEL_CHUNK;
+            let mut o = out.iter_mut();
+            for (i, p) in part.iter().enumerate() {
+                if !usable(p) {
+                    continue;
+                }
+                // Within the bounds (monotonic), so never `None`.
+                let v = voxel_of(&p.at(), voxel).unwrap_or(lo);
+                let d = [0, 1, 2].map(|a| v[a].abs_diff(lo[a]));
+                let key = (d[0] << (bits[1] + bits[2])) | (d[1] << bits[2]) | d[2];
+                if let Some(slot) = o.next() {
+                    *slot = (key << 32) | (base + i) as u64;
+                }
+            }
+        });
+    radix_sort_bits(&mut items, 32, total.max(1));
+    // Spans of whole voxels (each cut moved on to the next voxel's start), their voxels' runs
+    // found and reduced in parallel.
+    let m = items.len();
+    let mut cuts: Vec<usize> = (0..m.div_ceil(VOXEL_CHUNK)).map(|c| c * VOXEL_CHUNK).collect();
+    for c in cuts.iter_mut().skip(1) {
+        let key = items[*c] >> 32;
+        *c += items[*c..].partition_point(|&it| it >> 32 == key);
+    }
+    cuts.push(m);
+    cuts.dedup();
+    let kept: Vec<usize> = cuts
+        .par_windows(2)
+        .flat_map_iter(|w| {
+            let span = &items[w[0]..w[1]];
+            let mut out = Vec::new();
+            let mut start = 0usize;
+            for j in 1..=span.len() {
+                if j == span.len() || span[j] >> 32 != span[start] >> 32 {
+                    let members = span[start..j].iter().map(|&it| (it & 0xFFFF_FFFF) as usize);
+                    out.extend(nearest_to_centroid(points, members));
+                    start = j;
+                }
+            }
+            out
+        })
         .collect();
     let mut keep = vec![false; points.len()];
     for i in kept {
@@ -3799,6 +3838,21 @@ mod tests {
             assert_eq!(voxel_keep_mask(&pts, voxel).expect("mask"), general, "round {round}");
         }
         assert!(packed > 40, "only {packed} clouds took the packed path");
+        // Clouds of several tasks' chunks with unusable points among them: the chunked passes,
+        // and voxels whose runs straddle the cuts between spans (the surface's rows and the
+        // clusters' heaps span chunks).
+        for round in 0..4 {
+            let mut pts =
+                if round % 2 == 0 { surface(&mut rng, 60_000) } else { clustered(&mut rng, 60_000) };
+            for i in (round..pts.len()).step_by(997) {
+                pts[i] = Xyz::new(0.0, f32::NAN, 0.0);
+            }
+            for voxel in [0.3, 2.0, 40.0] {
+                let general = voxel_keep_general(&pts, voxel).expect("general");
+                let fast = voxel_keep_packed(&pts, voxel).expect("packed path");
+                assert_eq!(fast, general, "large round {round}, voxel {voxel}");
+            }
+        }
         // The voxel index is the floor, negative coordinates and exact multiples included.
         for _ in 0..20_000 {
             let voxel = 10f64.powf(rng.random_range(-3.0..2.0));
