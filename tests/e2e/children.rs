@@ -175,7 +175,31 @@ pub fn tail(path: &Path) -> String {
 }
 
 /// A loopback address nothing listens on now.
+///
+/// The port comes from below the kernel's ephemeral range (`ip_local_port_range`, 32768-60999 by
+/// default): a port taken from that range and released could be handed to another test's outgoing
+/// connection or `:0` listener before the child binds it. Below it only explicit binds compete,
+/// and ports handed out here are not handed out again by this process.
 pub fn free_addr() -> anyhow::Result<SocketAddr> {
+    use std::sync::atomic::{AtomicU32, Ordering};
+    static NEXT: AtomicU32 = AtomicU32::new(0);
+    let ephemeral_lo = std::fs::read_to_string("/proc/sys/net/ipv4/ip_local_port_range")
+        .ok()
+        .and_then(|s| s.split_whitespace().next().and_then(|v| v.parse::<u32>().ok()))
+        .unwrap_or(32768);
+    let (lo, hi) = (10_000u32, ephemeral_lo.min(65_536));
+    if hi > lo + 1000 {
+        let span = hi - lo;
+        // Spread processes apart (several suites may run at once), then step through the span.
+        let base = (std::process::id().wrapping_mul(7919)) % span;
+        for _ in 0..span.min(4000) {
+            let port = lo + (base + NEXT.fetch_add(1, Ordering::Relaxed)) % span;
+            let Ok(port) = u16::try_from(port) else { continue };
+            if let Ok(l) = std::net::TcpListener::bind(("127.0.0.1", port)) {
+                return Ok(l.local_addr()?);
+            }
+        }
+    }
     Ok(std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?)
 }
 

@@ -50,7 +50,7 @@ impl Drop for Driver {
 }
 
 async fn start_driver(chromedriver: &Path) -> anyhow::Result<Driver> {
-    let port = std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?.port();
+    let port = crate::children::free_addr()?.port();
     let child = Command::new(chromedriver)
         .arg(format!("--port={port}"))
         .stdout(Stdio::null())

@@ -95,7 +95,7 @@ for name in sorted(f[:-3] for f in os.listdir(out) if f.endswith('.rc')):
     except Exception:
         pass
     rows.append(f"| {name} | {units} | {faces} | {tools} | {f('scan_silhouette_coverage_pct', 1)} | {f('coverage_pct', 1)} | {f('part_mean_mm')} | {f('part_rms_mm')} | {f('part_max_gouge_mm')} | {f('part_off_walls_max_gouge_mm')} | {f('part_off_walls_rms_mm')} | {f('preview_rms_mm')} | {f('max_gouge_mm')} | {f('cycle_time_s', 0)} | {f('cycle_time_no_adaptive_s', 0)} | {float(secs):.0f} |")
-hdr = "| part | units read | faces (surface share each adds, %) | tools | silhouette seen % | depth-map coverage % | mean vs part mm | RMS vs part mm | max gouge vs part mm | max gouge off walls mm | RMS off walls mm | RMS vs tools' surface mm | max gouge vs target mm | cycle s (adaptive) | cycle s (none) | wall s |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+hdr = "| part | units read | faces (surface share each adds, %) | tools | silhouette seen % | depth-map coverage % | mean vs part mm | RMS vs part mm | max gouge vs part mm | max gouge off walls mm | RMS off walls mm | RMS vs tools' surface mm | max gouge vs target (one face) or original part (several) mm | cycle s (adaptive) | cycle s (none) | wall s |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
 open(os.path.join(out, 'table.md'), 'w').write(hdr + "\n" + "\n".join(rows) + "\n")
 print(hdr); print("\n".join(rows))
 PYEOF
