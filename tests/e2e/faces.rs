@@ -130,6 +130,13 @@ async fn a_two_face_part_is_planned_with_the_a_axis_and_machined_on_both_faces()
         assert!(metric(&format!("map_{k}")).is_finite(), "{k}: {m}");
     }
     assert_eq!(report["part"]["opened_by"], "ball-3", "{report}");
+    // The machined part against what both faces' programs leave together (each face's preview,
+    // the second under the depth map's suffix), seen from the first face.
+    assert!(done["artifacts"]["toolpath_preview@1"]["sha256"].is_string(), "{done}");
+    println!("against the faces' prediction: RMS {} mm", m["preview_rms_mm"]);
+    // About 0.02 mm: the machine's steps and cells. Against the first face's preview alone
+    // (which still holds what the +Y face's program takes off the shared edge) it reads 0.3 mm.
+    assert!(metric("preview_rms_mm") < 0.05, "{m}");
     assert!(metric("opened_max_gouge_mm") <= metric("original_max_gouge_mm") + 1e-12);
     assert!(metric("opened_mean_leftover_mm") <= metric("original_mean_leftover_mm") + 1e-12);
     // The simulated part as a closed STL whose volume is the stock's.

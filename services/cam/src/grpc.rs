@@ -394,7 +394,20 @@ impl pb::cam_service_server::CamService for CamServiceImpl {
                         (None, None)
                     }
                 };
+                let mut face_previews = Vec::with_capacity(out.later_surfaces.len());
+                for surface in &out.later_surfaces {
+                    let mut bytes = Vec::new();
+                    match depthmill_geometry::write_png_to(surface, &mut bytes, PngDepth::Bits16) {
+                        Ok(()) => face_previews.push(store.put_bytes("image/png", &bytes).await?.into()),
+                        Err(e) => {
+                            tracing::warn!(error = %e, "a face's preview image not written");
+                            face_previews.clear();
+                            break;
+                        }
+                    }
+                }
                 Ok::<_, ArtifactError>(pb::PlanToolpathsResult {
+                    face_previews,
                     gcode: Some(gcode.into()),
                     toolpath_preview: preview,
                     plan_report: Some(report.into()),

@@ -48,6 +48,7 @@ pub mod heightmap_io;
 pub mod icp;
 pub mod mesh;
 pub mod mesh_raster;
+pub mod multi_face;
 pub mod npy;
 pub mod png_io;
 pub mod pose;

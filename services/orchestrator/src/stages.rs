@@ -718,6 +718,10 @@ impl StageRunner for GrpcStages {
                     .await?;
                     put(&mut out, "gcode", r.gcode);
                     put(&mut out, "toolpath_preview", r.toolpath_preview);
+                    // Further faces under the suffixes of their depth maps.
+                    for (i, p) in r.face_previews.into_iter().enumerate() {
+                        put(&mut out, &format!("toolpath_preview@{}", i + 1), Some(p));
+                    }
                     put(&mut out, "plan_report", r.plan_report);
                     put(&mut out, "leftover_map", r.leftover_map);
                     out.metrics.insert("estimated_time_s".into(), r.estimated_time_s);

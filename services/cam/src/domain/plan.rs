@@ -129,6 +129,8 @@ pub struct PlanOutput {
     pub report: PlanReport,
     /// Preview of the first face.
     pub preview: PreviewReport,
+    /// The surface the program leaves on each further face (faces 2.., in order).
+    pub later_surfaces: Vec<HeightMap>,
 }
 
 /// The plan report (JSON).
@@ -696,6 +698,7 @@ fn plan_with(
     let mut programs = Vec::new();
     let mut face_reports = Vec::new();
     let mut first_preview = None;
+    let mut later_surfaces = Vec::new();
     let mut total_time = 0.0;
     let per_face = 1.0 / faces.len() as f64;
     for (fi, face) in faces.iter().enumerate() {
@@ -932,6 +935,8 @@ fn plan_with(
         programs.push(FaceProgram { a_deg: face.a_deg, operations });
         if first_preview.is_none() {
             first_preview = Some(preview);
+        } else {
+            later_surfaces.push(preview.final_surface);
         }
     }
     let info = ProgramInfo {
@@ -961,6 +966,7 @@ fn plan_with(
             tool_choice: Vec::new(),
         },
         preview,
+        later_surfaces,
     })
 }
 

@@ -575,7 +575,7 @@ pub fn execute_faces(
     );
     let (run_report, stocks, dexel) = main?;
     let other_run = other_run?;
-    let final_stock = stocks
+    let mut final_stock = stocks
         .first()
         .map(|(_, m)| m.clone())
         .ok_or_else(|| invalid("stock", "none", "the run kept no stock"))?;
@@ -583,10 +583,13 @@ pub fn execute_faces(
         targets
             .iter()
             .zip(&stocks)
-            .map(|(t, (a, m))| FaceResult {
-                a_deg: *a,
-                final_stock: m.clone(),
-                deviation: Some(deviation(t.map, m)),
+            .map(|(t, (a, m))| {
+                // Labelled with the view its target records (the stock is seen from it).
+                let mut final_stock = m.clone();
+                if final_stock.set_face(t.map.face()).is_err() {
+                    tracing::warn!(face = %t.map.face(), "face label not kept on the final stock");
+                }
+                FaceResult { a_deg: *a, deviation: Some(deviation(t.map, &final_stock)), final_stock }
             })
             .collect()
     } else {
@@ -596,6 +599,9 @@ pub fn execute_faces(
             deviation: target.map(|t| deviation(t, &final_stock)),
         }]
     };
+    if indexed && let Some(first) = faces.first() {
+        final_stock = first.final_stock.clone();
+    }
     let deviation = combine_deviations(&faces);
     // The program's smallest tool opens the part (the finest it can reach).
     let opening = tools

@@ -364,17 +364,54 @@ impl Ctx<'_> {
     /// The machined part against the CAM's preview (`toolpath_preview`: the surface the program
     /// leaves, the part opened by the tools plus scallops). Leftover the tools cannot reach shows
     /// in the deviation from the part but not here; what shows here is the machine's doing (steps,
-    /// the adaptive loop's feeds, the simulation's cells). First face only.
+    /// the adaptive loop's feeds, the simulation's cells). Seen from the first face; on a part
+    /// cut on several faces the prediction is what every face's program leaves together
+    /// ([`depthmill_geometry::multi_face`]): the later faces cut what the first one's tools could
+    /// not reach and what its scan only assumed.
     pub(crate) fn against_preview(&mut self) -> Result<String, ReportError> {
         let (Ok(stock), Ok(preview)) = (self.decode("final_stock"), self.decode("toolpath_preview")) else {
             return Ok(String::new());
         };
-        let meta = *preview.map.meta();
-        let mut data = vec![f32::NAN; preview.map.data().len()];
+        let faces = self.face_suffixes();
+        let preview_map = if faces.len() > 1 {
+            let mut maps = vec![preview.map];
+            for suffix in &faces[1..] {
+                match self.decode(&format!("toolpath_preview{suffix}")) {
+                    Ok(d) => maps.push(d.map),
+                    Err(e) => {
+                        return Ok(format!(
+                            "<h3>Against the surface the program can leave</h3>{}",
+                            missing(&format!(
+                                "The part is cut on {} faces and the prediction needs every face's; {e}",
+                                faces.len()
+                            ))
+                        ));
+                    }
+                }
+            }
+            // Each face's view as its depth map records it (the preview's own label otherwise).
+            let surfaces: Vec<depthmill_geometry::multi_face::FaceSurface<'_>> = faces
+                .iter()
+                .zip(&maps)
+                .map(|(suffix, map)| {
+                    let face =
+                        self.decode(&format!("depth_map{suffix}")).map_or(map.face(), |d| d.map.face());
+                    depthmill_geometry::multi_face::FaceSurface { view_from_part: face.view_from_part(), map }
+                })
+                .collect();
+            match depthmill_geometry::multi_face::surface_seen_from(&surfaces, 0, stock.map.meta().z_min_mm) {
+                Ok(m) => m,
+                Err(e) => return Ok(missing(&format!("The faces' predictions could not be combined: {e}."))),
+            }
+        } else {
+            preview.map
+        };
+        let meta = *preview_map.meta();
+        let mut data = vec![f32::NAN; preview_map.data().len()];
         let (mut lo, mut hi, mut sum, mut sq, mut n) = (0.0f64, 0.0f64, 0.0f64, 0.0f64, 0usize);
         for row in 0..meta.height {
             for col in 0..meta.width {
-                let Some(p) = preview.map.get(col, row).filter(|v| v.is_finite()) else { continue };
+                let Some(p) = preview_map.get(col, row).filter(|v| v.is_finite()) else { continue };
                 let (x, y) = meta.cell_center(col, row);
                 let Some(z) =
                     stock.map.cell_of(x, y).and_then(|(c, r)| stock.map.get(c, r)).filter(|v| v.is_finite())
@@ -408,8 +445,16 @@ impl Ctx<'_> {
         if let (Some(view), Some((r, _, _))) = (maps::map_view(&map), maps::deviation_range(&map)) {
             let img = maps::deviation_image(&map, &view, r);
             let caption = format!(
-                "Machined part minus the CAM's predicted surface (the part opened by the tools, scallops included): what the machine itself added or left. Scale ±{} mm.",
-                fmt_num(r)
+                "Machined part minus the CAM's predicted surface (the part opened by the tools, scallops included): what the machine itself added or left. Scale ±{} mm.{}",
+                fmt_num(r),
+                if faces.len() > 1 {
+                    format!(
+                        " Seen from the first face; the prediction is what the programs of all {} faces leave together.",
+                        faces.len()
+                    )
+                } else {
+                    String::new()
+                }
             );
             body.push_str(&self.picture(
                 "deviation_from_preview.png",

@@ -906,9 +906,6 @@ impl ScanSession {
         Ok((summary, targets))
     }
 
-    /// Passes aimed at `targets`: from each first-scan angle + 45°, farther away, three short
-    /// passes per hole across it (straight down, tilted ±30°, each aimed so its optical axis meets
-    /// the hole at the standoff). Passes the arm cannot reach are left out with a diagnostic.
     /// The table angles a rescan visits, in order, when the first scan ended at `last`: each
     /// first-scan angle turned by 45°, one turn of the table starting from the angle nearest
     /// `last`. They do not depend on the holes, so the table can be on its way to the first
@@ -931,6 +928,9 @@ impl ScanSession {
         angles
     }
 
+    /// Passes aimed at `targets`: from each first-scan angle + 45°, farther away, three short
+    /// passes per hole across it (straight down, tilted ±30°, each aimed so its optical axis meets
+    /// the hole at the standoff). Passes the arm cannot reach are left out with a diagnostic.
     pub fn rescan_plan(&mut self, targets: &[HoleTarget]) -> ScanPlan {
         let spec = self.scanner.spec().clone();
         let standoff = self.opts.rescan_standoff_mm.unwrap_or_else(|| {
