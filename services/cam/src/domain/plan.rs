@@ -231,6 +231,27 @@ fn face_top(map: &HeightMap) -> Result<f64, CamError> {
     })
 }
 
+/// `target` with each cell it has no data for set to `rough`'s height there (at most `top`, the
+/// stock's top) where `rough` has one; `None` when there is no such cell or the grids differ.
+fn standing_target(target: &HeightMap, rough: &HeightMap, top: f64) -> Option<HeightMap> {
+    let (t, r) = (target.meta(), rough.meta());
+    if (t.width, t.height) != (r.width, r.height)
+        || t.pixel_mm != r.pixel_mm
+        || t.origin_x_mm != r.origin_x_mm
+        || t.origin_y_mm != r.origin_y_mm
+    {
+        return None;
+    }
+    let mut out: Option<HeightMap> = None;
+    for (i, (z, h)) in target.data().iter().zip(rough.data()).enumerate() {
+        if z.is_nan() && h.is_finite() {
+            let m = out.get_or_insert_with(|| target.clone());
+            m.data_mut()[i] = h.min(top as f32);
+        }
+    }
+    out
+}
+
 /// Default roughing tool when the job names none.
 const DEFAULT_ROUGHING: &str = "flat-6";
 /// The rest pass leaves each cut at the feed for this far before a rapid, mm.
@@ -703,7 +724,9 @@ fn plan_with(
     let per_face = 1.0 / faces.len() as f64;
     for (fi, face) in faces.iter().enumerate() {
         let base = fi as f64 * per_face;
-        let map = &face.map;
+        // The depth map: what the preview measures against.
+        let target = &face.map;
+        let map = target;
         let floor = map.z_min_mm();
         let top = match stock.z_mm {
             Some(z) if z.is_finite() && z > 0.0 => floor + z,
@@ -731,6 +754,11 @@ fn plan_with(
         }
         let safe_z = top + 5.0;
         let rough_map = face.roughing_map.as_ref().unwrap_or(map);
+        // What finishing and rest machining follow: the depth map, with the cells it has no data
+        // for standing at the roughing map's height where that keeps material (nobody saw them
+        // and no ray showed them empty), so they are not read as the floor and cut.
+        let standing = face.roughing_map.as_ref().and_then(|r| standing_target(target, r, top));
+        let map = standing.as_ref().unwrap_or(target);
 
         let rough_path = steps.run("roughing", base + 0.05 * per_face, || {
             roughing(
@@ -793,7 +821,7 @@ fn plan_with(
             if let Some((tool, segments)) = rest {
                 ops.push(SweptOp { tool, start: fin_segs.last().map_or(fin_start, Segment::end), segments });
             }
-            simulate(map, top, &ops)
+            simulate(target, top, &ops)
         };
         let mut preview = steps.run("preview", base + 0.7 * per_face, || sweep(&fin_segs, None))?;
         // Iso-level contours step over flat areas wider than the tool: a raster over what the
@@ -990,6 +1018,51 @@ mod tests {
         let faces = [FaceInput { a_deg: None, map: slotted_plate(), roughing_map: None }];
         let library = ToolLibrary::builtin()?;
         plan(&faces, options, &library, &MachineLimits::emco_f1(), &|_, _| {}, &|| false)
+    }
+
+    #[test]
+    fn cells_without_a_target_stand_where_the_roughing_map_keeps_material() {
+        // A 6 mm plateau over x < 10 mm on a 20 x 10 mm map at 0.25 mm, floor 0; the depth map has
+        // no data over x in [10, 16) mm (a side nobody saw), the roughing map keeps it at 6 mm
+        // there; beyond x = 16 mm both are 1 mm.
+        let (w, h) = (80u32, 40u32);
+        let meta = HeightMapMeta { z_min_mm: 0.0, z_max_mm: 8.0, ..HeightMapMeta::new(w, h, 0.25) };
+        let x = |i: u32| (f64::from(i % w) + 0.5) * 0.25;
+        let depth: Vec<f32> = (0..w * h)
+            .map(|i| match x(i) {
+                v if v < 10.0 => 6.0,
+                v if v < 16.0 => f32::NAN,
+                _ => 1.0,
+            })
+            .collect();
+        let rough: Vec<f32> = (0..w * h).map(|i| if x(i) < 16.0 { 6.0 } else { 1.0 }).collect();
+        let map = HeightMap::new(meta, depth).expect("depth map");
+        let roughing_map = Some(HeightMap::new(meta, rough).expect("roughing map"));
+        let library = ToolLibrary::builtin().expect("library");
+        let options = PlanOptions {
+            stock: Some(StockOptions { z_mm: Some(7.0), ..Default::default() }),
+            finishing: Some(FinishingOptions { step_over_mm: Some(0.5), ..Default::default() }),
+            ..Default::default()
+        };
+        let run = |roughing_map: Option<HeightMap>| {
+            let faces = [FaceInput { a_deg: None, map: map.clone(), roughing_map }];
+            plan(&faces, &options, &library, &MachineLimits::emco_f1(), &|_, _| {}, &|| false)
+                .expect("planned")
+                .preview
+                .final_surface
+        };
+        let lowest_unseen = |surface: &HeightMap| {
+            (0..w * h)
+                .filter(|&i| (10.0..16.0).contains(&x(i)))
+                .map(|i| surface.data()[i as usize])
+                .fold(f32::INFINITY, f32::min)
+        };
+        // With the roughing map the unseen cells keep its height (the tool stays off them); the
+        // depth map alone reads them as the floor and finishing cuts them.
+        let kept = lowest_unseen(&run(roughing_map));
+        assert!(kept > 6.0 - 0.01, "unseen cells cut to {kept} mm");
+        let cut = lowest_unseen(&run(None));
+        assert!(cut < 1.0, "without a roughing map the unseen cells are the floor: {cut} mm");
     }
 
     #[test]
