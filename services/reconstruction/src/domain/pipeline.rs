@@ -643,33 +643,24 @@ fn face_roi<P: CloudPoint>(r: &Resolved, points: &[P], index: usize) -> Result<R
 }
 
 /// Free-space evidence on a face's grid: the cells with a table point, and the same closed over
-/// the gaps between scan lines ([`close_mask`]).
+/// the gaps between scan lines ([`close_mask`], radius `k` cells).
 struct FreeCells {
     hits: Vec<bool>,
     closed: Vec<bool>,
+    k: usize,
 }
 
 impl FreeCells {
     /// The cells taken as empty next to `map` (after the hole fill): those with a table point,
-    /// and those the closing adds unless they touch a cell with data (closing rounds the free
-    /// region's concave corners, which are the part's convex corners).
+    /// and those the closing adds unless a cell with data lies within the closing's radius
+    /// (closing rounds the free region's concave corners, which are the part's convex corners,
+    /// and bridges an unseen wall or outline thinner than twice its radius between table points
+    /// on both sides of it).
     fn effective(&self, map: &HeightMap) -> Vec<bool> {
         let (w, h) = (map.width() as usize, map.height() as usize);
-        let d = map.data();
-        let touches_data = |i: usize| {
-            let (r, c) = ((i / w) as i64, (i % w) as i64);
-            (-1..=1i64).any(|dr| {
-                (-1..=1i64).any(|dc| {
-                    let (rr, cc) = (r + dr, c + dc);
-                    rr >= 0
-                        && cc >= 0
-                        && rr < h as i64
-                        && cc < w as i64
-                        && d[rr as usize * w + cc as usize].is_finite()
-                })
-            })
-        };
-        (0..d.len()).map(|i| self.hits[i] || (self.closed[i] && !touches_data(i))).collect()
+        let data: Vec<bool> = map.data().iter().map(|z| z.is_finite()).collect();
+        let near_data = dilate_mask(&data, w, h, self.k);
+        (0..data.len()).map(|i| self.hits[i] || (self.closed[i] && !near_data[i])).collect()
     }
 }
 
@@ -681,28 +672,30 @@ const FREE_GAP_MM: f64 = 1.0;
 /// set when every cell within `k` of it (Chebyshev) is within `k` of a set cell. Fills gaps up
 /// to `2k` cells between set cells without moving the set region's outline outward.
 pub fn close_mask(mask: &[bool], w: usize, h: usize, k: usize) -> Vec<bool> {
-    // Cells with a `target` cell within k (Chebyshev; cells off the grid do not count), separable:
-    // along the row, then along the column.
-    let near = |m: &[bool], target: bool| -> Vec<bool> {
-        let mut rows = vec![false; m.len()];
-        for r in 0..h {
-            for c in 0..w {
-                let (lo, hi) = (c.saturating_sub(k), (c + k).min(w - 1));
-                rows[r * w + c] = (lo..=hi).any(|cc| m[r * w + cc] == target);
-            }
-        }
-        let mut out = vec![false; m.len()];
-        for r in 0..h {
-            for c in 0..w {
-                let (lo, hi) = (r.saturating_sub(k), (r + k).min(h - 1));
-                out[r * w + c] = (lo..=hi).any(|rr| rows[rr * w + c]);
-            }
-        }
-        out
-    };
     // Dilate, then erode: set where no unset cell of the dilation lies within k.
-    let dilated = near(mask, true);
-    near(&dilated, false).iter().map(|v| !v).collect()
+    let dilated = dilate_mask(mask, w, h, k);
+    let unset: Vec<bool> = dilated.iter().map(|v| !v).collect();
+    dilate_mask(&unset, w, h, k).iter().map(|v| !v).collect()
+}
+
+/// The cells of `mask` (`w` x `h`, row-major) with a set cell within `k` (Chebyshev; cells off
+/// the grid do not count), separable: along the row, then along the column.
+fn dilate_mask(mask: &[bool], w: usize, h: usize, k: usize) -> Vec<bool> {
+    let mut rows = vec![false; mask.len()];
+    for r in 0..h {
+        for c in 0..w {
+            let (lo, hi) = (c.saturating_sub(k), (c + k).min(w - 1));
+            rows[r * w + c] = (lo..=hi).any(|cc| mask[r * w + cc]);
+        }
+    }
+    let mut out = vec![false; mask.len()];
+    for r in 0..h {
+        for c in 0..w {
+            let (lo, hi) = (r.saturating_sub(k), (r + k).min(h - 1));
+            out[r * w + c] = (lo..=hi).any(|rr| rows[rr * w + c]);
+        }
+    }
+    out
 }
 
 /// The smallest region holding both.
@@ -792,7 +785,7 @@ fn cloud_face(
                 try_rasterize_max(f, &grid)?.0.data().iter().map(|z| z.is_finite()).collect();
             let k = ((FREE_GAP_MM / r.pixel_mm).ceil() as usize).clamp(1, 16);
             let closed = close_mask(&hits, grid.width as usize, grid.height as usize, k);
-            Some(FreeCells { hits, closed })
+            Some(FreeCells { hits, closed, k })
         }
         // A face other than +Z has no evidence of where the part is not (the scanner saw the
         // table from above only): a cell no point falls in may hide the part, so every one is
@@ -800,7 +793,7 @@ fn cloud_face(
         // cutting down to the floor through a part nobody saw from that side.
         None if frame.face != Face::PosZ => {
             let n = grid.width as usize * grid.height as usize;
-            Some(FreeCells { hits: vec![false; n], closed: vec![false; n] })
+            Some(FreeCells { hits: vec![false; n], closed: vec![false; n], k: 0 })
         }
         None => None,
     };
@@ -1135,6 +1128,18 @@ mod tests {
         (PointCloud::from_points(part), table)
     }
 
+    /// `cloud` reconstructed with `table` as its free-space evidence.
+    fn over_table(cloud: PointCloud, table: &[Point3<f64>], opts: &ReconstructOptions) -> ReconstructOutput {
+        let free = PointCloud::from_points(table.iter().copied()).points;
+        reconstruct_with_free_space(Geometry::Cloud(cloud), opts, Some(&free), &|_, _| {}, &|| false)
+            .expect("reconstruct")
+    }
+
+    /// The height of the cell holding `(x, y)`, NaN off the grid or without data.
+    fn height_at(map: &HeightMap, x: f64, y: f64) -> f32 {
+        map.cell_of(x, y).and_then(|(c, r)| map.get(c, r)).unwrap_or(f32::NAN)
+    }
+
     #[test]
     fn unseen_cells_are_filled_from_above_and_empty_ones_left_to_cut() {
         let (cloud, table) = plateau_with_band();
@@ -1145,16 +1150,9 @@ mod tests {
             fill: Some(FillOptions { max_hole_mm: Some(1.0), ..Default::default() }),
             ..Default::default()
         };
-        let out = reconstruct_with_free_space(
-            Geometry::Cloud(cloud.clone()),
-            &opts,
-            Some(&PointCloud::from_points(table.clone()).points),
-            &|_, _| {},
-            &|| false,
-        )
-        .expect("reconstruct");
+        let out = over_table(cloud.clone(), &table, &opts);
         let map = &out.faces[0].depth_map;
-        let at = |x: f64, y: f64| map.cell_of(x, y).and_then(|(c, r)| map.get(c, r)).unwrap_or(f32::NAN);
+        let at = |x: f64, y: f64| height_at(map, x, y);
         // The unseen band is filled at the plateau's height: the tools leave it.
         assert_eq!(at(11.0, 10.0), 8.0);
         // The hole, where the table shows, and the table around stay empty: cut to the floor.
@@ -1174,6 +1172,48 @@ mod tests {
         let v = m.cell_of(11.0, 10.0).and_then(|(c, r)| m.get(c, r)).unwrap_or(f32::NAN);
         assert!(v.is_nan(), "{v}");
         assert_eq!(plain.faces[0].stats.unseen_filled, 0);
+    }
+
+    #[test]
+    fn the_gap_closing_spares_cells_near_the_part() {
+        // A plateau at z = 8 over x < 9 mm; the table (z = 0) seen beyond it, except a notch
+        // 9 <= x < 11, 5 <= y < 6 mm that nobody saw (a thin unseen edge between table lines on
+        // either side of it). On 0.5 mm cells the closing (radius 2 cells) bridges the notch; the
+        // cells of it within that radius of the plateau's data are not taken as empty but
+        // lidded, the ones farther out stay empty.
+        let (mut part, mut table) = (Vec::new(), Vec::new());
+        let step = 0.1;
+        for j in 0..(16.0 / step) as i32 {
+            for i in 0..(20.0 / step) as i32 {
+                let (x, y) = (-2.0 + step * (f64::from(i) + 0.5), -2.0 + step * (f64::from(j) + 0.5));
+                if x < 9.0 {
+                    part.push(Point3::new(x, y, 8.0));
+                } else if !((9.0..11.0).contains(&x) && (5.0..6.0).contains(&y)) {
+                    table.push(Point3::new(x, y, 0.0));
+                }
+            }
+        }
+        let opts = ReconstructOptions {
+            pixel_mm: Some(0.5),
+            margin_mm: Some(0.025),
+            fill: Some(FillOptions { max_hole_mm: Some(1.0), ..Default::default() }),
+            ..Default::default()
+        };
+        let out = over_table(PointCloud::from_points(part), &table, &opts);
+        let map = &out.faces[0].depth_map;
+        let at = |x: f64, y: f64| height_at(map, x, y);
+        // One and two cells from the plateau: lidded at its height.
+        assert_eq!(at(9.25, 5.25), 8.0);
+        assert_eq!(at(9.75, 5.75), 8.0);
+        // Three and four cells out: bridged by the table on both sides, empty.
+        assert!(
+            at(10.25, 5.25).is_nan() && at(10.75, 5.75).is_nan(),
+            "{} {}",
+            at(10.25, 5.25),
+            at(10.75, 5.75)
+        );
+        // The table itself stays empty.
+        assert!(at(12.0, 3.0).is_nan());
     }
 
     #[test]
