@@ -726,22 +726,24 @@ fn plan_with(
         let base = fi as f64 * per_face;
         // The depth map: what the preview measures against.
         let target = &face.map;
-        let map = target;
-        let floor = map.z_min_mm();
+        let floor = target.z_min_mm();
         let top = match stock.z_mm {
             Some(z) if z.is_finite() && z > 0.0 => floor + z,
             Some(z) => return Err(CamError::param("plan.stock.z_mm", format!("must be positive, got {z}"))),
-            None => face_top(map)?,
+            None => face_top(target)?,
         };
-        if top < face_top(map)? - 1e-9 {
+        if top < face_top(target)? - 1e-9 {
             return Err(CamError::param(
                 "plan.stock.z_mm",
-                format!("stock top {top:.3} mm is below the part's highest point {:.3} mm", face_top(map)?),
+                format!(
+                    "stock top {top:.3} mm is below the part's highest point {:.3} mm",
+                    face_top(target)?
+                ),
             ));
         }
         for (field, given, need) in [
-            ("plan.stock.x_mm", stock.x_mm, map.meta().width_mm()),
-            ("plan.stock.y_mm", stock.y_mm, map.meta().height_mm()),
+            ("plan.stock.x_mm", stock.x_mm, target.meta().width_mm()),
+            ("plan.stock.y_mm", stock.y_mm, target.meta().height_mm()),
         ] {
             if let Some(g) = given
                 && g + 1e-9 < need
@@ -753,7 +755,7 @@ fn plan_with(
             }
         }
         let safe_z = top + 5.0;
-        let rough_map = face.roughing_map.as_ref().unwrap_or(map);
+        let rough_map = face.roughing_map.as_ref().unwrap_or(target);
         // What finishing and rest machining follow: the depth map, with the cells it has no data
         // for standing at the roughing map's height where that keeps material (nobody saw them
         // and no ray showed them empty), so they are not read as the floor and cut.
