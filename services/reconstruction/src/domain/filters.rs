@@ -62,7 +62,12 @@
 //!   block; the rest (isolated points) and the queries of overfull blocks (heaps of duplicates)
 //!   go to a bounding-volume hierarchy over the grid's own point order (a node is a run of cells
 //!   with a common key prefix, a box; leaves of at most 24 points, nearest-child-first search
-//!   with box pruning; no copy of the points), built only when needed.
+//!   with box pruning; no copy of the points), built only when needed. The isolated cells'
+//!   points (at most an eighth of the cloud) are left out of it and copied into a small
+//!   hierarchy of their own, searched after it: a stray point in a run of surface cells would
+//!   stretch the boxes above the run to its height. These queries go in grid order, each
+//!   starting with a bound from the one before (its k-th distance plus the step between them,
+//!   the triangle inequality), so pruning starts at the first node.
 //!
 //! [`statistical_outlier_mask`] sorts a copy of the usable points (with their indices) and returns
 //! the mask in point order, for Open3D's bit-for-bit rule. [`statistical_outlier_removal`] sorts
@@ -1476,6 +1481,12 @@ impl KBest {
         self.bound = f64::INFINITY;
     }
 
+    /// Starts over with a bound the caller knows lies above the `k` smallest values to come.
+    fn reset_below(&mut self, bound: f64) {
+        self.d.clear();
+        self.bound = bound;
+    }
+
     /// Values not below this cannot enter.
     #[inline(always)]
     fn worst(&self) -> f64 {
@@ -1568,6 +1579,9 @@ struct BvhNode {
     bounds: Box3,
     /// The subtree's points: `pts[points]`.
     points: Range<usize>,
+    /// A leaf holding left-out cells: the grid's cells to scan one run at a time (empty
+    /// otherwise).
+    mixed: Range<usize>,
     /// Index of the right child (the left child follows the node); 0 for a leaf.
     right: usize,
 }
@@ -1581,22 +1595,38 @@ const BVH_PARALLEL: usize = 1 << 16;
 /// changes; a run of one big cell (kd-ordered) splits where [`kd_order`] split it. Subtrees of
 /// at most `leaf_max` points are leaves; the bounds are the points' own. Built in O(n); used for
 /// the k-NN queries the grid cannot answer.
+///
+/// Cells marked in `skip` are left out (their points neither bound nor get scanned): the grid's
+/// isolated cells, which a second hierarchy over a copy of their points holds instead (see
+/// [`grid_knn`]). Left in, one stray point in a run of
+/// surface cells stretches every box above the run to its height, and a query above the surface
+/// then opens every leaf along its way down.
 struct Bvh<'g> {
     pts: &'g [Xyz],
     /// Preorder.
     nodes: Vec<BvhNode>,
+    /// Where each cell's points start (the grid's `starts`).
+    starts: &'g [u32],
+    /// One bit per cell left out.
+    skip: Option<&'g [u64]>,
+}
+
+/// Whether bit `c` of `bits` is set.
+#[inline(always)]
+fn bit(bits: &[u64], c: usize) -> bool {
+    bits[c / 64] >> (c % 64) & 1 == 1
 }
 
 impl<'g> Bvh<'g> {
-    fn build(grid: &'g Grid, leaf_max: usize) -> Bvh<'g> {
+    fn build(grid: &'g Grid, leaf_max: usize, skip: Option<&'g [u64]>) -> Bvh<'g> {
         let leaf_max = leaf_max.max(LEAF);
         let cells = grid.keys.len();
         let nodes = if cells == 0 {
             Vec::new()
         } else {
-            Self::build_par(grid, 0..cells, 0..grid.xyz.len(), leaf_max)
+            Self::build_par(grid, 0..cells, 0..grid.xyz.len(), leaf_max, skip)
         };
-        Bvh { pts: &grid.xyz, nodes }
+        Bvh { pts: &grid.xyz, nodes, starts: &grid.starts, skip }
     }
 
     /// Where to split a node of `cells` holding `points` (more than a leaf): (left cells, left
@@ -1621,21 +1651,27 @@ impl<'g> Bvh<'g> {
     }
 
     /// Builds the subtree in preorder; big subtrees in parallel.
-    fn build_par(grid: &Grid, cells: Range<usize>, points: Range<usize>, leaf_max: usize) -> Vec<BvhNode> {
+    fn build_par(
+        grid: &Grid,
+        cells: Range<usize>,
+        points: Range<usize>,
+        leaf_max: usize,
+        skip: Option<&[u64]>,
+    ) -> Vec<BvhNode> {
         if points.len() <= BVH_PARALLEL {
             let mut nodes = Vec::with_capacity(2 * points.len().div_ceil(LEAF));
-            Self::build_seq(grid, cells, points, leaf_max, &mut nodes);
+            Self::build_seq(grid, cells, points, leaf_max, skip, &mut nodes);
             return nodes;
         }
         let ((lc, lp), (rc, rp)) = Self::split(grid, &cells, &points);
         let (left, right) = rayon::join(
-            || Self::build_par(grid, lc, lp, leaf_max),
-            || Self::build_par(grid, rc, rp, leaf_max),
+            || Self::build_par(grid, lc, lp, leaf_max, skip),
+            || Self::build_par(grid, rc, rp, leaf_max, skip),
         );
         let bounds = left[0].bounds.union(&right[0].bounds);
         let right_at = 1 + left.len();
         let mut nodes = Vec::with_capacity(right_at + right.len());
-        nodes.push(BvhNode { bounds, points, right: right_at });
+        nodes.push(BvhNode { bounds, points, mixed: 0..0, right: right_at });
         let shift = |off: usize| {
             move |mut n: BvhNode| {
                 if n.right != 0 {
@@ -1654,19 +1690,32 @@ impl<'g> Bvh<'g> {
         cells: Range<usize>,
         points: Range<usize>,
         leaf_max: usize,
+        skip: Option<&[u64]>,
         nodes: &mut Vec<BvhNode>,
     ) -> Box3 {
         let me = nodes.len();
         if points.len() <= leaf_max {
+            // A run of one big cell (part of it) is never left out: only small cells are.
+            let mixed = skip.is_some_and(|b| cells.clone().any(|c| bit(b, c)));
+            if mixed {
+                let mut bounds = Box3::of(&[]);
+                for c in cells.clone() {
+                    if !skip.is_some_and(|b| bit(b, c)) {
+                        bounds = bounds.union(&Box3::of(&grid.xyz[grid.start(c)..grid.start(c + 1)]));
+                    }
+                }
+                nodes.push(BvhNode { bounds, points, mixed: cells, right: 0 });
+                return bounds;
+            }
             let bounds = Box3::of(&grid.xyz[points.clone()]);
-            nodes.push(BvhNode { bounds, points, right: 0 });
+            nodes.push(BvhNode { bounds, points, mixed: 0..0, right: 0 });
             return bounds;
         }
         let ((lc, lp), (rc, rp)) = Self::split(grid, &cells, &points);
-        nodes.push(BvhNode { bounds: Box3::of(&[]), points, right: 0 });
-        let left = Self::build_seq(grid, lc, lp, leaf_max, nodes);
+        nodes.push(BvhNode { bounds: Box3::of(&[]), points, mixed: 0..0, right: 0 });
+        let left = Self::build_seq(grid, lc, lp, leaf_max, skip, nodes);
         nodes[me].right = nodes.len();
-        let right = Self::build_seq(grid, rc, rp, leaf_max, nodes);
+        let right = Self::build_seq(grid, rc, rp, leaf_max, skip, nodes);
         let bounds = left.union(&right);
         nodes[me].bounds = bounds;
         bounds
@@ -1683,7 +1732,25 @@ impl<'g> Bvh<'g> {
     fn visit<const AVX512: bool>(&self, node: usize, q: &Xyz, best: &mut KBest) {
         let n = &self.nodes[node];
         if n.right == 0 {
-            simd::leaf_scan::<AVX512>(&self.pts[n.points.clone()], q, best);
+            match self.skip {
+                Some(skip) if !n.mixed.is_empty() => {
+                    // The runs of cells kept.
+                    let mut c = n.mixed.start;
+                    while c < n.mixed.end {
+                        if bit(skip, c) {
+                            c += 1;
+                            continue;
+                        }
+                        let from = c;
+                        while c < n.mixed.end && !bit(skip, c) {
+                            c += 1;
+                        }
+                        let run = self.starts[from] as usize..self.starts[c] as usize;
+                        simd::leaf_scan::<AVX512>(&self.pts[run], q, best);
+                    }
+                }
+                _ => simd::leaf_scan::<AVX512>(&self.pts[n.points.clone()], q, best),
+            }
             return;
         }
         let (a, b) = (node + 1, n.right);
@@ -1827,6 +1894,8 @@ struct KnnStats {
     tree: usize,
     /// Cells whose block was overfull.
     overfull_cells: usize,
+    /// Points of isolated cells searched in a hierarchy of their own (see [`grid_knn`]).
+    stragglers: usize,
 }
 
 /// Threshold factor on the previous query's k-th squared distance (about 1.12 in distance): on
@@ -2061,6 +2130,9 @@ struct ChunkKnn {
     fallback: Vec<usize>,
     overfull: usize,
     second_chance: usize,
+    /// Cells of at most [`LEAF`] points whose whole 3 × 3 × 3 block holds fewer than `k / 4`
+    /// points (isolated points: all theirs are in `fallback`).
+    isolated: Vec<usize>,
 }
 
 /// The k-NN queries of the cells `cells` that the grid answers (see [`grid_knn`]); `cap` is the
@@ -2085,6 +2157,7 @@ fn knn_chunk_with<const AVX512: bool>(
     let mut buf = vec![0u64; cap + FILTER_SLACK];
     let mut hint2 = f64::INFINITY;
     let mut failed = Vec::new();
+    let mut isolated = Vec::new();
     for c in cells {
         let own = grid.start(c)..grid.start(c + 1);
         grid.block_ranges_with(columns, c, 1, &mut ranges);
@@ -2125,6 +2198,9 @@ fn knn_chunk_with<const AVX512: bool>(
         }
         if 4 * total < k {
             fallback.extend_from_slice(&failed);
+            if grid.start(c + 1) - grid.start(c) <= LEAF {
+                isolated.push(c);
+            }
             continue;
         }
         grid.block_ranges_with(columns, c, 2, &mut ranges);
@@ -2151,7 +2227,7 @@ fn knn_chunk_with<const AVX512: bool>(
             }
         }
     }
-    ChunkKnn { means: out, fallback, overfull, second_chance }
+    ChunkKnn { means: out, fallback, overfull, second_chance, isolated }
 }
 
 /// The distance kernel compiled once portably and, on x86-64 with AVX-512, once with vector
@@ -2671,11 +2747,12 @@ fn grid_knn<T: Copy + Send>(
     let chunks = grid.chunks();
     let slices = split_by_chunks(out_all, grid, &chunks);
     let columns = Columns::build(grid);
-    let per_chunk: Vec<(Vec<usize>, usize, usize, Moments)> = chunks
+    // Each chunk's answers go to `out_all` at once; its means vector is dropped.
+    let per_chunk: Vec<(ChunkKnn, Moments)> = chunks
         .into_par_iter()
         .zip(slices)
         .map(|(cells, dest)| {
-            let found = simd::knn_chunk(grid, columns.as_ref(), cells, k, cap, order);
+            let mut found = simd::knn_chunk(grid, columns.as_ref(), cells, k, cap, order);
             let mut moments = Moments::default();
             for (d, &m) in dest.iter_mut().zip(&found.means) {
                 *d = put(m);
@@ -2683,32 +2760,71 @@ fn grid_knn<T: Copy + Send>(
                     moments.add(m);
                 }
             }
-            (found.fallback, found.overfull, found.second_chance, moments)
+            found.means = Vec::new();
+            (found, moments)
         })
         .collect();
-    stats.overfull_cells = per_chunk.iter().map(|f| f.1).sum();
-    stats.second_chance = per_chunk.iter().map(|f| f.2).sum();
-    let mut moments = per_chunk.iter().fold(Moments::default(), |a, f| a.merge(f.3));
+    stats.overfull_cells = per_chunk.iter().map(|f| f.0.overfull).sum();
+    stats.second_chance = per_chunk.iter().map(|f| f.0.second_chance).sum();
+    let mut moments = per_chunk.iter().fold(Moments::default(), |a, f| a.merge(f.1));
+    let mut isolated = Vec::new();
+    let mut fallback = Vec::new();
     // In grid order, so consecutive queries are near each other and share cache.
-    let fallback: Vec<usize> = per_chunk.into_iter().flat_map(|f| f.0).collect();
+    for (f, _) in per_chunk {
+        fallback.extend(f.fallback);
+        isolated.extend(f.isolated);
+    }
     stats.tree = fallback.len();
     stats.grid = grid.xyz.len() - fallback.len();
     if !fallback.is_empty() {
-        let bvh = Bvh::build(grid, leaf_max);
+        // The isolated cells' points go to a hierarchy of their own (a copy, at most an eighth
+        // of the points), so that the boxes over the dense cells stay tight.
+        let strays: usize = isolated.iter().map(|&c| grid.start(c + 1) - grid.start(c)).sum();
+        let split = strays > 0 && strays * 8 <= grid.xyz.len();
+        let (skip, stray_grid) = if split {
+            let mut bits = vec![0u64; grid.keys.len().div_ceil(64)];
+            let mut pts = Vec::with_capacity(strays);
+            for &c in &isolated {
+                bits[c / 64] |= 1 << (c % 64);
+                pts.extend_from_slice(&grid.xyz[grid.start(c)..grid.start(c + 1)]);
+            }
+            let g = UsableBox::of(&pts).map(|b| Grid::build(&pts, &b, 4.0 * grid.h, true));
+            (Some(bits), g)
+        } else {
+            (None, None)
+        };
+        stats.stragglers = stray_grid.as_ref().map_or(0, |g| g.xyz.len());
+        let bvh = Bvh::build(grid, leaf_max, skip.as_deref().filter(|_| stray_grid.is_some()));
+        let stray_bvh = stray_grid.as_ref().map(|g| Bvh::build(g, LEAF_MAX, None));
         let vector = simd::has_avx512();
         let results: Vec<(usize, f64)> = fallback
             .par_chunks(256)
             .flat_map_iter(|part| {
                 let mut best = KBest::new(k);
+                // The previous query and its k-th squared distance: its k nearest lie within
+                // that distance plus the step from it (the triangle inequality), a bound that
+                // prunes from the first node on.
+                let mut prev: Option<(&Xyz, f64)> = None;
                 part.iter()
                     .map(|&s| {
-                        best.reset();
-                        if vector {
-                            bvh.knn::<true>(&grid.xyz[s], &mut best);
-                        } else {
-                            bvh.knn::<false>(&grid.xyz[s], &mut best);
+                        let q = &grid.xyz[s];
+                        match prev {
+                            Some((p, kth2)) => {
+                                let r = kth2.sqrt() + dist2(q, p).sqrt();
+                                best.reset_below(r * r * (1.0 + 1e-9) + f64::MIN_POSITIVE);
+                            }
+                            None => best.reset(),
                         }
-                        (s, best.mean_distance())
+                        for tree in std::iter::once(&bvh).chain(&stray_bvh) {
+                            if vector {
+                                tree.knn::<true>(q, &mut best);
+                            } else {
+                                tree.knn::<false>(q, &mut best);
+                            }
+                        }
+                        let mean = best.mean_distance();
+                        prev = (best.d.len() == k).then(|| (q, best.d[k - 1]));
+                        (s, mean)
                     })
                     .collect::<Vec<_>>()
             })
@@ -3651,8 +3767,15 @@ mod tests {
         far.push(pt(1e9, 1e9, 0.0));
         far.push(pt(-3e8, 0.0, 7e8));
         clouds.push(("huge extent", far));
+        // Surface with 3 % stray points in the slab just around it (isolated cells among the
+        // surface's: searched apart from the surface, and each other's neighbours).
+        let mut near = surface(&mut rng, 2500);
+        let strays: Vec<Point3<f32>> =
+            uniform(&mut rng, 75, 25.0).into_iter().map(|q| Point3::new(q.x, q.y, q.z / 5.0 - 2.5)).collect();
+        near.extend(strays);
+        clouds.push(("near strays", near));
 
-        let (mut tree_used, mut second_chance_used) = (false, false);
+        let (mut tree_used, mut second_chance_used, mut strays_apart) = (false, false, false);
         let ks = [1, 2, 5, 20, 70];
         for (name, pts) in &clouds {
             let slow = brute_means_multi(pts, &ks);
@@ -3662,12 +3785,14 @@ mod tests {
                 assert_eq!(stats.grid + stats.tree, pts.iter().filter(|q| usable(*q)).count(), "{name}");
                 tree_used |= stats.tree > 0;
                 second_chance_used |= stats.second_chance > 0;
+                strays_apart |= stats.stragglers > 0;
+                assert!(stats.stragglers <= stats.tree, "{name}: {stats:?}");
                 if *name == "surface" && k == 20 {
                     assert!(stats.tree * 10 < stats.grid, "{name}: {stats:?}");
                 }
             }
         }
-        assert!(tree_used && second_chance_used);
+        assert!(tree_used && second_chance_used && strays_apart);
     }
 
     #[test]
