@@ -1377,19 +1377,46 @@ impl Grid {
     /// A lower bound on the distance from `q` (in the cell at `cell`) to any point outside the
     /// block of cells within `ring` of it (infinite towards sides where the grid ends).
     fn block_margin(&self, cell: [u64; 3], ring: u64, q: &Xyz) -> f64 {
-        let q = wide(q);
-        let mut m = f64::INFINITY;
-        for a in 0..3 {
-            if cell[a] >= ring {
-                let lo = self.origin[a] + (cell[a] - ring) as f64 * self.h;
-                m = m.min(q[a] - lo);
+        self.block_walls(cell, ring).margin(q)
+    }
+
+    /// The walls of the block of cells within `ring` of `cell`, for [`Walls::margin`] (one per
+    /// cell serves all its points).
+    #[inline(always)]
+    fn block_walls(&self, cell: [u64; 3], ring: u64) -> Walls {
+        let mut w =
+            Walls { lo: [f64::NEG_INFINITY; 3], hi: [f64::INFINITY; 3], slack: 1e-6 * self.h + self.tol };
+        for (a, &c) in cell.iter().enumerate() {
+            if c >= ring {
+                w.lo[a] = self.origin[a] + (c - ring) as f64 * self.h;
             }
-            if cell[a] + ring < self.dims[a] {
-                let hi = self.origin[a] + (cell[a] + ring + 1) as f64 * self.h;
-                m = m.min(hi - q[a]);
+            if c + ring < self.dims[a] {
+                w.hi[a] = self.origin[a] + (c + ring + 1) as f64 * self.h;
             }
         }
-        m - (1e-6 * self.h + self.tol)
+        w
+    }
+}
+
+/// The walls of a block of cells (infinite towards sides where the grid ends) and the slack
+/// [`Walls::margin`] takes off for rounding.
+#[derive(Debug, Clone, Copy)]
+struct Walls {
+    lo: [f64; 3],
+    hi: [f64; 3],
+    slack: f64,
+}
+
+impl Walls {
+    /// A lower bound on the distance from `q` (inside the block) to any point outside it.
+    #[inline(always)]
+    fn margin(&self, q: &Xyz) -> f64 {
+        let q = wide(q);
+        let m = (q[0] - self.lo[0])
+            .min(self.hi[0] - q[0])
+            .min((q[1] - self.lo[1]).min(self.hi[1] - q[1]))
+            .min((q[2] - self.lo[2]).min(self.hi[2] - q[2]));
+        m - self.slack
     }
 }
 
@@ -2168,6 +2195,7 @@ fn knn_chunk_with<const AVX512: bool>(
             continue;
         }
         let cell = grid.coords(grid.keys[c]);
+        let walls = grid.block_walls(cell, 1);
         failed.clear();
         if total < k {
             failed.extend(own);
@@ -2175,7 +2203,7 @@ fn knn_chunk_with<const AVX512: bool>(
             block.fill(&grid.xyz, &ranges);
             for s in own {
                 let p = &grid.xyz[s];
-                let m = grid.block_margin(cell, 1, p);
+                let m = walls.margin(p);
                 let found = if m > 0.0 {
                     block_knn::<AVX512>(&block, &wide(p), k, m * m, hint2, &mut buf, order)
                 } else {
@@ -2209,9 +2237,10 @@ fn knn_chunk_with<const AVX512: bool>(
             continue;
         }
         block.fill(&grid.xyz, &ranges);
+        let walls2 = grid.block_walls(cell, 2);
         for &s in &failed {
             let p = &grid.xyz[s];
-            let m = grid.block_margin(cell, 2, p);
+            let m = walls2.margin(p);
             let found = if m > 0.0 {
                 block_knn::<AVX512>(&block, &wide(p), k, m * m, m * m, &mut buf, order)
             } else {
