@@ -2200,7 +2200,7 @@ fn knn_chunk_with<const AVX512: bool>(
         if total < k {
             failed.extend(own);
         } else {
-            block.fill(&grid.xyz, &ranges);
+            simd::fill::<AVX512>(&mut block, &grid.xyz, &ranges);
             for s in own {
                 let p = &grid.xyz[s];
                 let m = walls.margin(p);
@@ -2236,7 +2236,7 @@ fn knn_chunk_with<const AVX512: bool>(
             fallback.extend_from_slice(&failed);
             continue;
         }
-        block.fill(&grid.xyz, &ranges);
+        simd::fill::<AVX512>(&mut block, &grid.xyz, &ranges);
         let walls2 = grid.block_walls(cell, 2);
         for &s in &failed {
             let p = &grid.xyz[s];
@@ -2330,6 +2330,49 @@ mod simd {
             }
         }
         super::filter_portable(block, q, t2, buf)
+    }
+
+    /// [`Packed::fill`], eight points at a time when `AVX512` (as [`filter`]).
+    #[inline(always)]
+    pub(super) fn fill<const AVX512: bool>(block: &mut Packed, xyz: &[Xyz], ranges: &[Range<usize>]) {
+        #[cfg(target_arch = "x86_64")]
+        {
+            if AVX512 {
+                // SAFETY: as in `filter`.
+                unsafe { fill_avx512(block, xyz, ranges) };
+                return;
+            }
+        }
+        block.fill(xyz, ranges);
+    }
+
+    /// [`Packed::fill`] with [`load_points8`]: the same values (the widening is exact).
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f")]
+    fn fill_avx512(block: &mut Packed, xyz: &[Xyz], ranges: &[Range<usize>]) {
+        use std::arch::x86_64::*;
+        let n: usize = ranges.iter().map(|r| r.len()).sum();
+        for v in [&mut block.x, &mut block.y, &mut block.z] {
+            v.clear();
+            v.resize(n, 0.0);
+        }
+        let mut at = 0usize;
+        for r in ranges {
+            let pts = &xyz[r.clone()];
+            let mut j = 0usize;
+            while j < pts.len() {
+                let (lanes, [x, y, z]) = load_points8(pts, j);
+                // SAFETY: the lanes stored are the points `j..j + m` of this range (`m` the lanes
+                // set), which go to `at + j..at + j + m`, within the `n` entries of each vector.
+                unsafe {
+                    _mm512_mask_storeu_pd(block.x.as_mut_ptr().add(at + j), lanes, x);
+                    _mm512_mask_storeu_pd(block.y.as_mut_ptr().add(at + j), lanes, y);
+                    _mm512_mask_storeu_pd(block.z.as_mut_ptr().add(at + j), lanes, z);
+                }
+                j += 8;
+            }
+            at += pts.len();
+        }
     }
 
     /// Pushes into `best`, in order, every point of `pts` nearer to `q` than `best`'s worst at
@@ -3563,6 +3606,14 @@ mod tests {
             let mut block = Packed::default();
             let cut = rng.random_range(0..=n);
             block.fill(&pts, &[0..cut, cut..n]);
+            if avx512 {
+                let mut fast = Packed::default();
+                simd::fill::<true>(&mut fast, &pts, &[0..cut, cut..n]);
+                let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                for (a, b) in [(&block.x, &fast.x), (&block.y, &fast.y), (&block.z, &fast.z)] {
+                    assert_eq!(bits(a), bits(b), "round {round}: vector fill");
+                }
+            }
             let q = if n > 0 && rng.random_bool(0.5) {
                 wide(&pts[rng.random_range(0..n)])
             } else {
