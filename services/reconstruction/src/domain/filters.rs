@@ -64,8 +64,9 @@
 //!   with a common key prefix, a box; leaves of at most 24 points, nearest-child-first search
 //!   with box pruning; no copy of the points), built only when needed. The isolated cells'
 //!   points (at most an eighth of the cloud) are left out of it and copied into a small
-//!   hierarchy of their own, searched first (small, it sets a bound for the big one): a stray point in a run of surface cells would
-//!   stretch the boxes above the run to its height. These queries go in grid order, each
+//!   hierarchy of their own, searched first (small, it sets a bound for the big one): a stray
+//!   point in a run of surface cells would stretch the boxes above the run to its height.
+//!   These queries go in grid order, each
 //!   starting with a bound from the one before (its k-th distance plus the step between them,
 //!   the triangle inequality), so pruning starts at the first node.
 //!
