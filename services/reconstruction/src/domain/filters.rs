@@ -1024,19 +1024,22 @@ fn flag_sort<K: RadixKey>(mut lanes: Lanes<'_, K>, shift: u32) {
         start[b + 1] = start[b] + count[b];
     }
     if !count.contains(&n) {
-        // Each swap puts one point into its bucket for good.
+        // Sweeps over what each unfinished bucket has not yet settled: every point swept is
+        // swapped to the next free place of its own bucket (for good) and what comes back is
+        // looked at in the next sweep, so the swaps of one sweep do not wait on each other's
+        // loads (the point at a place is not read again at once, as one swap after another
+        // into the same place would). Places below `next[b]` hold bucket `b`'s points.
         let mut next = start;
-        for b in 0..256 {
-            while next[b] < start[b + 1] {
-                let i = next[b];
-                let d = digit(lanes.keys[i]);
-                if d == b {
-                    next[b] += 1;
-                } else {
+        let mut open: Vec<usize> = (0..256).filter(|&b| count[b] > 0).collect();
+        while !open.is_empty() {
+            for &b in &open {
+                for i in next[b]..start[b + 1] {
+                    let d = digit(lanes.keys[i]);
                     lanes.swap(i, next[d]);
                     next[d] += 1;
                 }
             }
+            open.retain(|&b| next[b] < start[b + 1]);
         }
     }
     if shift == 0 {
