@@ -66,9 +66,9 @@
 //!   points (at most an eighth of the cloud) are left out of it and copied into a small
 //!   hierarchy of their own, searched first (small, it sets a bound for the big one): a stray
 //!   point in a run of surface cells would stretch the boxes above the run to its height.
-//!   These queries go in grid order, each
-//!   starting with a bound from the one before (its k-th distance plus the step between them,
-//!   the triangle inequality), so pruning starts at the first node.
+//!   These queries go in grid order, each starting with a bound from the one before (its k-th
+//!   distance plus the step between them, the triangle inequality), so pruning starts at the
+//!   first node.
 //!
 //! [`statistical_outlier_mask`] sorts a copy of the usable points (with their indices) and returns
 //! the mask in point order, for Open3D's bit-for-bit rule. [`statistical_outlier_removal`] sorts
@@ -1629,9 +1629,9 @@ const BVH_PARALLEL: usize = 1 << 16;
 ///
 /// Cells marked in `skip` are left out (their points neither bound nor get scanned): the grid's
 /// isolated cells, which a second hierarchy over a copy of their points holds instead (see
-/// [`grid_knn`]). Left in, one stray point in a run of
-/// surface cells stretches every box above the run to its height, and a query above the surface
-/// then opens every leaf along its way down.
+/// [`grid_knn`]). Left in, one stray point in a run of surface cells stretches every box above
+/// the run to its height, and a query above the surface then opens every leaf along its way
+/// down.
 struct Bvh<'g> {
     pts: &'g [Xyz],
     /// Preorder.
