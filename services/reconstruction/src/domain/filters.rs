@@ -1996,11 +1996,7 @@ struct Packed {
 impl Packed {
     #[inline(always)]
     fn fill(&mut self, xyz: &[Xyz], ranges: &[Range<usize>]) {
-        let n: usize = ranges.iter().map(|r| r.len()).sum();
-        for v in [&mut self.x, &mut self.y, &mut self.z] {
-            v.clear();
-            v.resize(n, 0.0);
-        }
+        self.size_for(ranges);
         let mut at = 0usize;
         for r in ranges {
             let to = at + r.len();
@@ -2011,6 +2007,16 @@ impl Packed {
                 *z = f64::from(p.z);
             }
             at = to;
+        }
+    }
+
+    /// Room for the points of `ranges`, coordinate by coordinate (zeroed).
+    #[inline(always)]
+    fn size_for(&mut self, ranges: &[Range<usize>]) {
+        let n: usize = ranges.iter().map(|r| r.len()).sum();
+        for v in [&mut self.x, &mut self.y, &mut self.z] {
+            v.clear();
+            v.resize(n, 0.0);
         }
     }
 
@@ -2402,11 +2408,7 @@ mod simd {
     #[target_feature(enable = "avx512f")]
     fn fill_avx512(block: &mut Packed, xyz: &[Xyz], ranges: &[Range<usize>]) {
         use std::arch::x86_64::*;
-        let n: usize = ranges.iter().map(|r| r.len()).sum();
-        for v in [&mut block.x, &mut block.y, &mut block.z] {
-            v.clear();
-            v.resize(n, 0.0);
-        }
+        block.size_for(ranges);
         let mut at = 0usize;
         for r in ranges {
             let pts = &xyz[r.clone()];
@@ -2414,7 +2416,8 @@ mod simd {
             while j < pts.len() {
                 let (lanes, [x, y, z]) = load_points8(pts, j);
                 // SAFETY: the lanes stored are the points `j..j + m` of this range (`m` the lanes
-                // set), which go to `at + j..at + j + m`, within the `n` entries of each vector.
+                // set), which go to `at + j..at + j + m`, within the entries `size_for` made (the
+                // ranges' total) in each vector.
                 unsafe {
                     _mm512_mask_storeu_pd(block.x.as_mut_ptr().add(at + j), lanes, x);
                     _mm512_mask_storeu_pd(block.y.as_mut_ptr().add(at + j), lanes, y);
