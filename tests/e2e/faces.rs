@@ -8,8 +8,15 @@ use std::time::Duration;
 use depthmill_tests::{StackOptions, TestStack};
 use serde_json::json;
 
-/// A 30 × 20 × 20 mm block centred on the X axis (the A axis) with a bump on its top (+Z) and a
-/// ridge on its +Y side: two height fields, written as an ASCII PLY mesh.
+/// Where the part lies in its file: far from the file's origin, as a part of an assembly does.
+/// The set-up turns it about its own centre, so the A axis does not swing it out of the travel.
+const OFFSET: [f64; 3] = [40.0, -120.0, -300.0];
+
+/// The centre of the part's bounding box in the file (see [`two_face_ply`]).
+const CENTRE: [f64; 3] = [OFFSET[0], OFFSET[1] + 0.75, OFFSET[2] + 1.0];
+
+/// A 30 × 20 × 20 mm block with a bump on its top (+Z) and a ridge on its +Y side, moved by
+/// [`OFFSET`]: two height fields, written as an ASCII PLY mesh.
 fn two_face_ply() -> Vec<u8> {
     let top = |x: f64, y: f64| 10.0 + 2.0 * (1.0 - (x * x + y * y) / 64.0).max(0.0);
     let side =
@@ -51,7 +58,7 @@ fn two_face_ply() -> Vec<u8> {
         faces.len()
     );
     for v in &verts {
-        let _ = writeln!(s, "{:.4} {:.4} {:.4}", v[0], v[1], v[2]);
+        let _ = writeln!(s, "{:.4} {:.4} {:.4}", v[0] + OFFSET[0], v[1] + OFFSET[1], v[2] + OFFSET[2]);
     }
     for f in &faces {
         let _ = writeln!(s, "3 {} {} {}", f[0], f[1], f[2]);
@@ -81,6 +88,13 @@ async fn a_two_face_part_is_planned_with_the_a_axis_and_machined_on_both_faces()
         ["depth_map", "depth_map@1", "final_stock", "final_stock@1", "deviation_map", "deviation_map@1"]
     {
         assert!(done["artifacts"][name]["sha256"].is_string(), "{name} missing: {done}");
+    }
+    // Both faces turn about the part's centre, which each map records.
+    let sha = done["artifacts"]["reconstruct_report"]["sha256"].as_str().unwrap_or_default();
+    let rec: serde_json::Value =
+        stack.http.get(stack.url(&format!("/v1/artifacts/{sha}"))).send().await?.json().await?;
+    for f in rec["faces"].as_array().cloned().unwrap_or_default() {
+        assert_eq!(f["part_origin_mm"], json!(CENTRE), "{rec}");
     }
     // One program turning the A axis between the faces.
     let sha = done["artifacts"]["gcode"]["sha256"].as_str().unwrap_or_default();
@@ -156,6 +170,13 @@ async fn a_two_face_part_is_planned_with_the_a_axis_and_machined_on_both_faces()
     let (v_mesh, v_dexel) =
         (info["volume_mm3"].as_f64().unwrap_or(0.0), info["dexel_volume_mm3"].as_f64().unwrap_or(1.0));
     assert!((v_mesh - v_dexel).abs() < 0.02 * v_dexel, "{info}");
+    // ... in the part's own frame, where the original part lies: within the block (the blank
+    // the faces' maps bound, a few mm around the part).
+    let b = mesh.bounds().expect("a machined part");
+    for k in 0..3 {
+        let (lo, hi) = ([-15.0, -10.0, -10.0][k] + OFFSET[k], [15.0, 11.5, 12.0][k] + OFFSET[k]);
+        assert!(b.min[k] > lo - 5.0 && b.max[k] < hi + 5.0 && b.max[k] > lo, "axis {k}: {b:?}");
+    }
     // The report shows each face.
     let page = stack.http.get(stack.url(&format!("/v1/jobs/{id}/report"))).send().await?.text().await?;
     assert!(page.contains("Face 2"), "the report shows the second face");

@@ -42,6 +42,16 @@ pub struct HeightMapMeta {
     /// View the map looks from.
     #[serde(default)]
     pub face: Face,
+    /// The point of the part frame at the origin of the map's frame: a part-frame point `p`
+    /// lies at `R·(p − part_origin_mm)` in the map's frame, `R` the face's rotation
+    /// ([`Face::view_from_part`]). Zero for a part milled where it lies; a turned set-up puts
+    /// the part's centre on the A axis, and every face of it carries that centre.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub part_origin_mm: [f64; 3],
+}
+
+fn is_zero(v: &[f64; 3]) -> bool {
+    *v == [0.0; 3]
 }
 
 impl HeightMapMeta {
@@ -57,7 +67,14 @@ impl HeightMapMeta {
             z_min_mm: 0.0,
             z_max_mm: 1.0,
             face: Face::PosZ,
+            part_origin_mm: [0.0; 3],
         }
+    }
+
+    /// The rigid motion from the part frame to the map's frame: `p ↦ R·(p − part_origin_mm)`.
+    pub fn view_from_part(&self) -> nalgebra::Isometry3<f64> {
+        let [x, y, z] = self.part_origin_mm;
+        self.face.view_from_part_pose() * nalgebra::Translation3::new(-x, -y, -z)
     }
 
     /// Checks: nonzero dimensions, at most [`MAX_CELLS`] cells, finite positive `pixel_mm`, finite
@@ -85,6 +102,11 @@ impl HeightMapMeta {
         check_finite("z_max_mm", self.z_max_mm)?;
         if self.z_min_mm >= self.z_max_mm {
             return Err(GeometryError::invalid("z_max_mm", self.z_max_mm, "a value greater than z_min_mm"));
+        }
+        for (key, v) in
+            ["part_origin_mm x", "part_origin_mm y", "part_origin_mm z"].iter().zip(self.part_origin_mm)
+        {
+            check_finite(key, v)?;
         }
         match self.face {
             Face::A { angle_deg } => check_finite("face angle_deg", angle_deg)?,
@@ -231,6 +253,19 @@ impl HeightMap {
     /// Sets the view (an A angle must be finite).
     pub fn set_face(&mut self, face: Face) -> Result<()> {
         let meta = HeightMapMeta { face, ..self.meta };
+        meta.validate()?;
+        self.meta = meta;
+        Ok(())
+    }
+
+    /// The part-frame point at the origin of the map's frame ([`HeightMapMeta::part_origin_mm`]).
+    pub fn part_origin_mm(&self) -> [f64; 3] {
+        self.meta.part_origin_mm
+    }
+
+    /// Sets [`HeightMapMeta::part_origin_mm`] (finite).
+    pub fn set_part_origin(&mut self, part_origin_mm: [f64; 3]) -> Result<()> {
+        let meta = HeightMapMeta { part_origin_mm, ..self.meta };
         meta.validate()?;
         self.meta = meta;
         Ok(())

@@ -552,6 +552,7 @@ mod tests {
         let path = dir.path().join("map.npy");
         let mut map = hemisphere(7, 0.3, 1.0, true);
         map.set_face(Face::A { angle_deg: 30.0 }).expect("face");
+        map.set_part_origin([1.5, -20.25, -176.0]).expect("part origin");
         write_npy(&map, &path).expect("write");
         assert!(dir.path().join("map.npy.json").exists());
         assert!(read_npy(&path, None).expect("read").bitwise_eq(&map));

@@ -15,7 +15,8 @@
 //! # Metadata
 //!
 //! `tEXt` keys, all prefixed `depthmill:`: `format` (= [`PNG_FORMAT_VERSION`]), `pixel_mm`,
-//! `origin_x_mm`, `origin_y_mm`, `z_min_mm`, `z_max_mm`, `face`, `bit_depth`. Numbers are written
+//! `origin_x_mm`, `origin_y_mm`, `z_min_mm`, `z_max_mm`, `face`, `bit_depth`, and
+//! `part_origin_mm` (`x,y,z`, only when not zero: see [`HeightMapMeta::part_origin_mm`]). Numbers are written
 //! in Rust's shortest round-trip decimal form, so they read back bit for bit.
 //!
 //! # Reading
@@ -161,6 +162,9 @@ fn write_png_compressed<W: Write>(
         PngDepth::Bits8 => BitDepth::Eight,
         PngDepth::Bits16 => BitDepth::Sixteen,
     });
+    let origin = meta.part_origin_mm;
+    let part_origin = (origin != [0.0; 3])
+        .then(|| ("part_origin_mm", format!("{},{},{}", origin[0], origin[1], origin[2])));
     let entries = [
         ("format", PNG_FORMAT_VERSION.to_string()),
         ("pixel_mm", meta.pixel_mm.to_string()),
@@ -171,7 +175,7 @@ fn write_png_compressed<W: Write>(
         ("face", meta.face.to_string()),
         ("bit_depth", depth.bits().to_string()),
     ];
-    for (key, value) in entries {
+    for (key, value) in entries.into_iter().chain(part_origin) {
         enc.add_text_chunk(format!("{META_PREFIX}{key}"), value).map_err(encoding_err)?;
     }
     let mut writer = enc.write_header().map_err(encoding_err)?;
@@ -360,6 +364,16 @@ fn resolve_meta(
         Some(v) => v.parse::<Face>().map_err(|e| bad("face", v, &e.to_string()))?,
         None => Face::PosZ,
     };
+    let part_origin_mm = match find("part_origin_mm") {
+        None => [0.0; 3],
+        Some(v) => {
+            let parts: Vec<Option<f64>> = v.split(',').map(|c| c.trim().parse::<f64>().ok()).collect();
+            match parts[..] {
+                [Some(x), Some(y), Some(z)] => [x, y, z],
+                _ => return Err(bad("part_origin_mm", v, "expected three numbers x,y,z")),
+            }
+        }
+    };
     let meta = HeightMapMeta {
         width,
         height,
@@ -369,6 +383,7 @@ fn resolve_meta(
         z_min_mm,
         z_max_mm,
         face,
+        part_origin_mm,
     };
     meta.validate()?;
     Ok(meta)
@@ -419,6 +434,34 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn face_and_part_origin_round_trip() {
+        let mut map = hemisphere(9, 0.25, 3.5, true);
+        map.set_face(Face::A { angle_deg: -45.0 }).expect("face");
+        map.set_part_origin([0.1, -20.25, -176.0]).expect("part origin");
+        let back = round_trip(&map, PngDepth::Bits16);
+        assert_eq!(back.meta(), map.meta());
+        let mut bytes = Vec::new();
+        write_png_to(&map, &mut bytes, PngDepth::Bits16).expect("write");
+        let text = String::from_utf8_lossy(&bytes).into_owned();
+        let key = format!("{META_PREFIX}part_origin_mm");
+        assert!(text.contains(&key));
+        // Zero is not written: files of parts milled where they lie stay as they were.
+        map.set_part_origin([0.0; 3]).expect("zero");
+        bytes.clear();
+        write_png_to(&map, &mut bytes, PngDepth::Bits16).expect("write");
+        assert!(!String::from_utf8_lossy(&bytes).contains(&key));
+        let e = resolve_meta(
+            &[("pixel_mm", "1"), ("z_min_mm", "0"), ("z_max_mm", "1"), ("part_origin_mm", "1,2")]
+                .map(|(k, v)| (k.to_string(), v.to_string())),
+            2,
+            2,
+            None,
+        )
+        .expect_err("two numbers");
+        assert!(e.to_string().contains("part_origin_mm"), "{e}");
     }
 
     #[test]
@@ -540,6 +583,8 @@ mod tests {
                         z_min_mm: z0,
                         z_max_mm: z0 + range,
                         face,
+                        // Some maps centred on a point of the part (a turned set-up), some not.
+                        part_origin_mm: if face == Face::PosZ { [0.0; 3] } else { [ox, oy, z0] },
                     };
                     HeightMap::new(meta, data).expect("valid")
                 })

@@ -73,8 +73,8 @@ pub(crate) fn execute(
                 let (report, stock) = run_watched(&traj, &opts, points, &stop).map_err(run_status)?;
                 let _ = progress_tx.try_send(Ok(progress(0.9, "meshing the simulated part".into())));
                 let measured = points.zip(report.deviation.as_ref()).map(|(p, d)| (p, &d.per_point[..]));
-                let (part, stl, ply) =
-                    part_meshes(&stock, measured).map_err(|e| ErrorCode::Internal.status(e.to_string()))?;
+                let (part, stl, ply) = part_meshes(&stock, measured, &Default::default())
+                    .map_err(|e| ErrorCode::Internal.status(e.to_string()))?;
                 let mut json = serde_json::to_value(&report)
                     .map_err(|e| Status::internal(format!("encoding the report: {e}")))?;
                 json["part_mesh"] = serde_json::to_value(&part).unwrap_or_default();

@@ -17,7 +17,7 @@
 use std::io::BufRead;
 use std::sync::Arc;
 
-use depthmill_geometry::nalgebra::Point3;
+use depthmill_geometry::nalgebra::{Point3, Vector3};
 use depthmill_geometry::{HeightMap, HeightMapMeta, ToolProfile, ToolSpec};
 use depthmill_report::plot::{Chart, Panel, Series};
 use serde::Serialize;
@@ -456,6 +456,7 @@ pub fn execute_faces(
     observe: &mut (dyn FnMut(&TelemetryRow) + Send),
 ) -> Result<ExecuteOutput, ExecuteError> {
     let target = targets.first().map(|t| t.map);
+    let part_origin = common_part_origin(targets)?;
     let profile = MachineProfile::by_name_or_file(&opts.machine)?;
     let material: Material = match &opts.material {
         None => material("aluminium").ok_or_else(|| invalid("execute.material", "aluminium", "missing"))?,
@@ -586,7 +587,9 @@ pub fn execute_faces(
             .map(|(t, (a, m))| {
                 // Labelled with the view its target records (the stock is seen from it).
                 let mut final_stock = m.clone();
-                if final_stock.set_face(t.map.face()).is_err() {
+                if final_stock.set_face(t.map.face()).is_err()
+                    || final_stock.set_part_origin(t.map.part_origin_mm()).is_err()
+                {
                     tracing::warn!(face = %t.map.face(), "face label not kept on the final stock");
                 }
                 FaceResult { a_deg: *a, deviation: Some(deviation(t.map, &final_stock)), final_stock }
@@ -608,18 +611,28 @@ pub fn execute_faces(
         .iter()
         .filter(|t| header.iter().any(|h| h.0 == t.number))
         .min_by(|a, b| a.profile.radius_mm().total_cmp(&b.profile.radius_mm()));
-    let measured = match (&dexel, &opts.reference) {
-        (Some(stock), Some(r)) => {
+    // The dexel stock lives in the set-up's frame: the part frame less `part_origin`. The
+    // reference points move there to be measured; the meshes move back to the part frame.
+    let reference: Option<std::borrow::Cow<'_, [Point3<f64>]>> = opts.reference.as_ref().map(|r| {
+        if part_origin == Vector3::zeros() {
+            std::borrow::Cow::Borrowed(&r.points[..])
+        } else {
+            std::borrow::Cow::Owned(r.points.iter().map(|p| p - part_origin).collect())
+        }
+    });
+    let measured = match (&dexel, &opts.reference, &reference) {
+        (Some(stock), Some(r), Some(points)) => {
             let faces: Vec<MeasureFace<'_>> =
                 targets.iter().map(|t| MeasureFace { a_deg: t.a_deg, map: t.map }).collect();
-            Some(measure(stock, &r.source, &r.points, &faces, opening.map(|t| (t.name.as_str(), &t.profile))))
+            Some(measure(stock, &r.source, points, &faces, opening.map(|t| (t.name.as_str(), &t.profile))))
         }
         _ => None,
     };
     let meshes = match &dexel {
         Some(stock) => Some(part_meshes(
             stock,
-            opts.reference.as_deref().zip(measured.as_ref()).map(|(r, m)| (&r.points[..], &m.per_point[..])),
+            reference.as_deref().zip(measured.as_ref()).map(|(r, m)| (r, &m.per_point[..])),
+            &part_origin,
         )?),
         None => None,
     };
@@ -694,15 +707,22 @@ fn comparison_setup(setup: &SimSetup, policy: PolicyKind) -> SimSetup {
 /// The simulated part as binary STL and as a coarser view mesh (binary PLY) whose vertices carry
 /// the deviation of the nearest `measured` reference point (points on the original part and
 /// their deviations; NaN where not measured).
+///
+/// The stock and `measured` are in the set-up's frame; both meshes are written in the part frame
+/// (moved by `part_origin`, see [`common_part_origin`]).
 pub fn part_meshes(
     stock: &super::dexel::DexelStock,
     measured: Option<(&[Point3<f64>], &[f32])>,
+    part_origin: &Vector3<f64>,
 ) -> Result<(PartMesh, Vec<u8>, Vec<u8>), ExecuteError> {
     let mesh_err = |e: super::dexel::DexelError| invalid("part mesh", "dexel stock", &e.to_string());
     let write_err =
         |e: depthmill_geometry::formats::FormatError| invalid("part mesh", "bytes", &e.to_string());
     let step = stock.surface_step_mm(MAX_SURFACE_SAMPLES);
-    let mesh = stock.surface_mesh(step).map_err(mesh_err)?;
+    let mut mesh = stock.surface_mesh(step).map_err(mesh_err)?;
+    for v in &mut mesh.vertices {
+        *v += part_origin;
+    }
     let mut stl = Vec::new();
     depthmill_geometry::formats::write_stl(&mut stl, &mesh, "depthmill simulated part (mm)")
         .map_err(write_err)?;
@@ -714,6 +734,10 @@ pub fn part_meshes(
         }
         None => vec![f32::NAN; view.vertices.len()],
     };
+    let mut view = view;
+    for v in &mut view.vertices {
+        *v += part_origin;
+    }
     let mut ply = Vec::new();
     depthmill_geometry::formats::write_mesh_ply(
         &mut ply,
@@ -732,6 +756,22 @@ pub fn part_meshes(
         view_triangles: view.triangles.len(),
     };
     Ok((info, stl, ply))
+}
+
+/// The part-frame point the set-up's frame is centred on: every target map's
+/// [`depthmill_geometry::HeightMapMeta::part_origin_mm`] (zero without targets). A turned set-up
+/// turns about one point, so maps that disagree are refused.
+pub fn common_part_origin(targets: &[FaceTarget<'_>]) -> Result<Vector3<f64>, ExecuteError> {
+    let Some(first) = targets.first() else { return Ok(Vector3::zeros()) };
+    let o = first.map.part_origin_mm();
+    if let Some((i, t)) = targets.iter().enumerate().find(|(_, t)| t.map.part_origin_mm() != o) {
+        return Err(invalid(
+            &format!("face_maps[{i}].part_origin_mm"),
+            format!("{:?}", t.map.part_origin_mm()),
+            &format!("every face of one set-up turns about one point; face_maps[0] turns about {o:?}"),
+        ));
+    }
+    Ok(Vector3::from(o))
 }
 
 /// The deviation over every face: worst gouge and leftover, mean and RMS over all cells; the
@@ -959,6 +999,85 @@ mod tests {
             "{:?}",
             out.report.run.warnings
         );
+    }
+
+    #[test]
+    fn a_set_up_centred_off_the_files_origin_is_measured_in_the_parts_frame() {
+        // The turned face above, its map centred on a point of the part far from the file's
+        // origin, and points of the original part where the part lies in its file: the figures
+        // are those of the part at the origin, and the meshes come back to the part's frame.
+        let program = "(T1 flat-6: flat D6.0000 mm, 2 flutes - roughing-x with flat-6)\nG21 G90 G17 G94 G40 G49 G80\n\
+                       G53 G0 Z0\nG0 A30\nT1 M6\nS1800 M3\nG43 H1\nG0 X-4 Y10\nZ15\nG1 Z8 F100\nG1 X24 F300\nG0 Z15\nM30\n";
+        let open = || -> std::io::Result<Box<dyn BufRead + Send>> {
+            Ok(Box::new(std::io::Cursor::new(program.as_bytes().to_vec())))
+        };
+        let face = depthmill_geometry::Face::A { angle_deg: 30.0 };
+        let meta = HeightMapMeta { z_min_mm: 0.0, z_max_mm: 10.0, face, ..HeightMapMeta::new(40, 40, 0.5) };
+        let part_from_view = super::super::sim::part_from_work(30.0);
+        let surface: Vec<Point3<f64>> = (0..40 * 40)
+            .map(|k| {
+                part_from_view
+                    * Point3::new(0.25 + 0.5 * f64::from(k % 40), 0.25 + 0.5 * f64::from(k / 40), 5.0)
+            })
+            .collect();
+        let origin = Vector3::new(100.0, -50.0, -300.0);
+        let run = |o: Vector3<f64>| {
+            let mut target = HeightMap::filled(meta, 5.0).expect("map");
+            target.set_part_origin(o.into()).expect("origin");
+            let points = surface.iter().map(|p| p + o).collect();
+            let opts = ExecuteOptions {
+                stock_z_mm: Some(10.0),
+                compare: false,
+                reference: Some(Arc::new(Reference { source: "mesh".into(), points })),
+                ..Default::default()
+            };
+            execute_faces(&open, &opts, &[FaceTarget { a_deg: 30.0, map: &target }], &|| false, &mut |_| {})
+                .expect("ran")
+        };
+        let (at_zero, off) = (run(Vector3::zeros()), run(origin));
+        let (a, b) = (at_zero.report.part.expect("measured"), off.report.part.expect("measured"));
+        assert!(a.against_part.points > 1000, "{a:?}");
+        assert_eq!(a.against_part.points, b.against_part.points);
+        for (x, y) in [
+            (a.against_part.max_gouge_mm, b.against_part.max_gouge_mm),
+            (a.against_part.rms_deviation_mm, b.against_part.rms_deviation_mm),
+            (a.against_part.mean_leftover_mm, b.against_part.mean_leftover_mm),
+        ] {
+            assert!((x - y).abs() < 1e-9, "{a:?}\n{b:?}");
+        }
+        assert_eq!(off.faces[0].final_stock.part_origin_mm(), <[f64; 3]>::from(origin));
+        let bounds = |stl: &[u8]| {
+            let (mesh, _) = depthmill_geometry::formats::read_stl_from(
+                std::io::Cursor::new(stl.to_vec()),
+                "part",
+                Some(stl.len() as u64),
+                &depthmill_geometry::formats::ReadLimits::default(),
+            )
+            .expect("stl");
+            mesh.bounds().expect("bounds")
+        };
+        let (ba, bb) = (
+            bounds(at_zero.part_stl.as_deref().expect("stl")),
+            bounds(off.part_stl.as_deref().expect("stl")),
+        );
+        assert!(
+            ((bb.min - ba.min) - origin).norm() < 1e-3 && ((bb.max - ba.max) - origin).norm() < 1e-3,
+            "{ba:?} {bb:?}"
+        );
+        // Faces of one set-up turning about different points are refused before anything runs.
+        let mut other = HeightMap::filled(meta, 5.0).expect("map");
+        other.set_part_origin([1.0, 0.0, 0.0]).expect("origin");
+        let first = HeightMap::filled(meta, 5.0).expect("map");
+        let e = execute_faces(
+            &open,
+            &ExecuteOptions { stock_z_mm: Some(10.0), compare: false, ..Default::default() },
+            &[FaceTarget { a_deg: 30.0, map: &first }, FaceTarget { a_deg: 30.0, map: &other }],
+            &|| false,
+            &mut |_| {},
+        )
+        .map(|_| ())
+        .expect_err("two centres");
+        assert!(e.to_string().contains("face_maps[1].part_origin_mm"), "{e}");
     }
 
     /// A feed-only run of the EMCO with its tool table on `stock` (and `faces`, when several).

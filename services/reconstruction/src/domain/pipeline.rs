@@ -427,6 +427,10 @@ pub struct FaceOutput {
 pub struct FaceStats {
     /// The face as text (`+Z`, `A=90`, `N=0,0.6,0.8`).
     pub face: String,
+    /// The part-frame point the face's frame is centred on (a turned set-up's centre on the A
+    /// axis, or the face's own origin), when not the part frame's origin.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub part_origin_mm: Option<[f64; 3]>,
     pub width: u32,
     pub height: u32,
     pub pixel_mm: f64,
@@ -562,6 +566,7 @@ pub fn reconstruct_with_free_space(
                 let samples = SurfaceSamples::from_cloud(&cloud, settings.cell_mm)?;
                 choice_report = Some(choose(&mut r, &samples, &settings, cancelled)?);
             }
+            centre_turned_faces(&mut r, cloud.bounds());
             let n_faces = r.faces.len() as f64;
             let kept = cloud.len();
             for (i, frame) in r.faces.iter().enumerate() {
@@ -590,6 +595,7 @@ pub fn reconstruct_with_free_space(
                 let samples = SurfaceSamples::from_mesh(&mesh, settings.cell_mm)?;
                 choice_report = Some(choose(&mut r, &samples, &settings, cancelled)?);
             }
+            centre_turned_faces(&mut r, mesh.bounds());
             let n_faces = r.faces.len() as f64;
             for (i, frame) in r.faces.iter().enumerate() {
                 progress(
@@ -616,6 +622,25 @@ pub fn reconstruct_with_free_space(
         face_choice: choice_report,
     };
     Ok(ReconstructOutput { faces, report })
+}
+
+/// Centres a turned set-up on the A axis: when any face of `r` is not `+Z`, the faces without
+/// an origin of their own turn about the centre of the part's bounding box `bounds` (to 0.01 mm)
+/// instead of the origin of the file's frame, which may lie anywhere (an assembly's origin, a
+/// scanner's): turned about that, the part would swing out of the machine's travel. Each map
+/// carries the point ([`depthmill_geometry::HeightMapMeta::part_origin_mm`]) for the stages that
+/// compare with the part in its own frame. A part cut from `+Z` alone stays where it lies.
+fn centre_turned_faces(r: &mut Resolved, bounds: Option<depthmill_geometry::Aabb>) {
+    let turned = r.faces.iter().any(|f| f.face != depthmill_geometry::Face::PosZ);
+    let Some(b) = bounds.filter(|_| turned) else { return };
+    let centre = nalgebra::center(&b.min, &b.max).map(|c| (c * 100.0).round() / 100.0);
+    if !centre.coords.iter().all(|c| c.is_finite()) {
+        return;
+    }
+    for f in &mut r.faces {
+        f.origin.get_or_insert(centre);
+    }
+    tracing::info!(centre_mm = ?[centre.x, centre.y, centre.z], "turned set-up centred on the A axis");
 }
 
 /// Runs the face choice and puts its faces in `r`.
@@ -777,6 +802,7 @@ fn cloud_face(
     }
     let mut grid = grid_for_roi(&roi, r.pixel_mm)?;
     grid.face = frame.face;
+    grid.part_origin_mm = frame.origin.map_or([0.0; 3], |o| o.coords.into());
     // Cells where the scanner saw the table: nothing there. Scan lines sample the table every
     // line spacing, so the gaps between them are closed (up to FREE_GAP_MM).
     let free_cells: Option<FreeCells> = match free {
@@ -838,6 +864,7 @@ fn mesh_face(
     let roi = face_roi(r, &mesh.vertices, index)?;
     let mut grid = grid_for_roi(&roi, r.pixel_mm)?;
     grid.face = frame.face;
+    grid.part_origin_mm = frame.origin.map_or([0.0; 3], |o| o.coords.into());
     let (raw, _) = rasterize_mesh_with_stats(mesh, &grid)?;
     if raw.valid_count() == 0 {
         return Err(ReconError::Empty(format!(
@@ -912,6 +939,7 @@ fn finish_face(
     let m = depth_map.meta();
     let stats = FaceStats {
         face: frame.face.to_string(),
+        part_origin_mm: frame.origin.map(|o| o.coords.into()),
         width: m.width,
         height: m.height,
         pixel_mm: m.pixel_mm,
@@ -1089,6 +1117,55 @@ mod tests {
         for (r, t) in turned.roughing_map.data().iter().zip(turned.depth_map.data()) {
             assert!(r >= t, "roughing {r} below target {t}");
         }
+    }
+
+    #[test]
+    fn a_turned_set_up_turns_about_the_parts_centre() {
+        // A 30 x 20 x 10 mm box far from the file's origin, as a part of an assembly lies.
+        let mut mesh = depthmill_geometry::Mesh::cuboid(30.0, 20.0, 10.0);
+        mesh.transform(&Isometry3::translation(100.0, -250.0, -400.0));
+        let run = |faces: Vec<FaceOptions>| {
+            let opts = ReconstructOptions { pixel_mm: Some(0.5), faces: Some(faces), ..Default::default() };
+            reconstruct(Geometry::Mesh(mesh.clone()), &opts, &|_, _| {}, &|| false).expect("reconstruct")
+        };
+        // Milled from +Z alone, it stays where it lies.
+        let up = run(vec![FaceOptions { view: Some("+Z".into()), ..Default::default() }]);
+        assert_eq!(up.faces[0].depth_map.part_origin_mm(), [0.0; 3]);
+        assert!(up.faces[0].stats.part_origin_mm.is_none());
+        assert!((up.faces[0].depth_map.origin_x_mm() - 100.0).abs() < 2.0);
+        // Turned, every face turns about the box's centre: on the A axis, whatever the file says.
+        let turned = run(vec![
+            FaceOptions { view: Some("+Z".into()), ..Default::default() },
+            FaceOptions { a_deg: Some(90.0), ..Default::default() },
+        ]);
+        let centre = [115.0, -240.0, -395.0];
+        for f in &turned.faces {
+            assert_eq!(f.depth_map.part_origin_mm(), centre, "{}", f.face.face);
+            assert_eq!(f.roughing_map.part_origin_mm(), centre);
+            assert_eq!(f.stats.part_origin_mm, Some(centre));
+            // The map's frame puts the box's centre at the origin: half its height on top, and its
+            // grid about the axis.
+            let m = &f.depth_map;
+            let top = m.data().iter().copied().filter(|z| z.is_finite()).fold(f32::MIN, f32::max);
+            let half = if f.face.face == Face::PosZ { 5.0 } else { 10.0 };
+            assert!((f64::from(top) - half).abs() < 1e-3, "{}: top {top}", f.face.face);
+            let y_mid = m.origin_y_mm() + f64::from(m.height()) * m.pixel_mm() / 2.0;
+            assert!(y_mid.abs() < 1.0, "{}: grid centred at y {y_mid}", f.face.face);
+            // The map's own motion takes the part's centre to its frame's origin.
+            let c = m.meta().view_from_part() * Point3::from(centre);
+            assert!(c.coords.norm() < 1e-9, "{c}");
+        }
+        // A normal face keeps the origin the job gives it.
+        let own = run(vec![
+            FaceOptions { view: Some("+Z".into()), ..Default::default() },
+            FaceOptions {
+                normal: Some([0.0, -1.0, 1.0]),
+                origin: Some([100.0, -250.0, -400.0]),
+                ..Default::default()
+            },
+        ]);
+        assert_eq!(own.faces[0].depth_map.part_origin_mm(), centre);
+        assert_eq!(own.faces[1].depth_map.part_origin_mm(), [100.0, -250.0, -400.0]);
     }
 
     #[test]

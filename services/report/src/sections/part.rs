@@ -142,17 +142,16 @@ impl Ctx<'_> {
     /// The machined part against the original part itself, when the job started from its mesh
     /// (a simulated scan): the mesh's top surface, seen as the first face sees it (turned to its
     /// view when that is not `+Z`), rasterised on the final stock's grid (exact z-buffer at cell
-    /// centres). Only when the maps are in the mesh's own frame up to that turn: a first face
-    /// without a moved origin, and no `filters.transform`.
+    /// centres). Only when the maps are in the mesh's own frame up to that turn and the point
+    /// the map's frame is centred on: no `filters.transform`.
     pub(crate) fn against_part(&mut self) -> Result<String, ReportError> {
         let rec = &self.job["spec"]["reconstruct"];
-        let same_frame = rec["filters"]["transform"].is_null()
-            && match rec["faces"].as_array() {
-                None => true,
-                Some(f) => f.first().is_none_or(|f0| f0["origin"].is_null()),
-            };
-        // The first face's view (chosen from the shape or named), as the depth map records it.
-        let Ok(face) = self.decode("depth_map").map(|d| d.map.face()) else { return Ok(String::new()) };
+        let same_frame = rec["filters"]["transform"].is_null();
+        // The first face's view (chosen from the shape or named) and the part's point it is
+        // centred on, as the depth map records them.
+        let Ok(view_from_part) = self.decode("depth_map").map(|d| d.map.meta().view_from_part()) else {
+            return Ok(String::new());
+        };
         let Some(bytes) = self.artifacts.get("mesh").filter(|_| same_frame) else {
             return Ok(String::new());
         };
@@ -181,8 +180,8 @@ impl Ctx<'_> {
         if scale != 1.0 {
             mesh.scale(scale);
         }
-        if face != depthmill_geometry::Face::PosZ {
-            mesh.transform(&face.view_from_part_pose());
+        if view_from_part != depthmill_geometry::nalgebra::Isometry3::identity() {
+            mesh.transform(&view_from_part);
         }
         let meta = *stock.map.meta();
         let Ok((part, _)) = depthmill_geometry::mesh_raster::rasterize_mesh_with_stats(&mesh, &meta) else {
