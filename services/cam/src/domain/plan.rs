@@ -15,6 +15,7 @@ use std::time::Instant;
 
 use depthmill_geometry::HeightMap;
 use nalgebra::Point3;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::CamError;
@@ -915,9 +916,21 @@ fn plan_with(
             (2u32, fin_path, fin_segs, &fin_tool, fin_data.clone(), holders.1, step_over),
         ];
         ops.extend(rest_op);
-        for (number, path, segs, tool, data, holder, so) in ops {
-            let time = estimate_time_s(prev_end, &segs, &data, limits);
-            prev_end = segs.last().map_or(prev_end, Segment::end);
+        // Each operation's time from where the one before ends, the operations side by side.
+        let starts: Vec<Point3<f64>> = ops
+            .iter()
+            .map(|op| {
+                let s = prev_end;
+                prev_end = op.2.last().map_or(prev_end, Segment::end);
+                s
+            })
+            .collect();
+        let times: Vec<f64> = ops
+            .par_iter()
+            .zip(&starts)
+            .map(|(op, &from)| estimate_time_s(from, &op.2, &op.4, limits))
+            .collect();
+        for ((number, path, segs, tool, data, holder, so), time) in ops.into_iter().zip(times) {
             total_time += time;
             let (lines, arcs_n) = segs.iter().fold((0, 0), |(l, a), s| match s {
                 Segment::Arc { .. } => (l, a + 1),

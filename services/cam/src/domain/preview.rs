@@ -149,13 +149,17 @@ struct Run {
     /// XY bounds of the tip positions, and their lowest Z.
     bbox: [f64; 4],
     z_min: f64,
-    /// Buckets along `u`: bucket `k` covers `[u0 + k·bw, u0 + (k+1)·bw)`; its pieces are
-    /// `items[starts[k]..starts[k+1]]`.
+    /// Buckets along `u`: bucket `k` covers `[u0 + k·bw, u0 + (k+1)·bw)`; its pieces are the
+    /// lines `line_items[line_starts[k]..line_starts[k+1]]` and the arcs likewise, each kind
+    /// read in a loop of its own (no branch on the kind).
     u0: f64,
     bw: f64,
-    starts: Vec<u32>,
-    items: Vec<u32>,
-    pieces: Vec<Piece>,
+    line_starts: Vec<u32>,
+    line_items: Vec<u32>,
+    lines: Vec<Line>,
+    arc_starts: Vec<u32>,
+    arc_items: Vec<u32>,
+    arcs: Vec<Arc>,
     /// Per bucket, the lowest centre height of its pieces: no piece is below it by more than the
     /// section radius.
     zlo: Vec<f64>,
@@ -164,12 +168,30 @@ struct Run {
 /// One piece of a [`Run`]'s raw lower offset, for a section radius `r'` (`zc`: centre heights).
 #[derive(Debug, Clone, Copy)]
 enum Piece {
-    /// The lower offset of the centre segment from `(ua, za)` to `(ub, zb)` (`ua < ub`): over `u`
-    /// in `[ua + r'·sin, ub + r'·sin]` at `za - r'·cos + slope·(u - ua - r'·sin)`.
-    Line { ua: f64, ub: f64, za: f64, sin: f64, cos: f64, slope: f64 },
-    /// The lower circle about the centre vertex `(uk, zk)` in the directions whose `u` component
-    /// (sine of the angle from straight down) lies in `[slo, shi]`.
-    Arc { uk: f64, zk: f64, slo: f64, shi: f64 },
+    Line(Line),
+    Arc(Arc),
+}
+
+/// The lower offset of the centre segment from `(ua, za)` to `(ub, zb)` (`ua < ub`): over `u` in
+/// `[ua + r'·sin, ub + r'·sin]` at `za - r'·cos + slope·(u - ua - r'·sin)`.
+#[derive(Debug, Clone, Copy)]
+struct Line {
+    ua: f64,
+    ub: f64,
+    za: f64,
+    sin: f64,
+    cos: f64,
+    slope: f64,
+}
+
+/// The lower circle about the centre vertex `(uk, zk)` in the directions whose `u` component (sine
+/// of the angle from straight down) lies in `[slo, shi]`.
+#[derive(Debug, Clone, Copy)]
+struct Arc {
+    uk: f64,
+    zk: f64,
+    slo: f64,
+    shi: f64,
 }
 
 /// Slack on a piece's range (mm, or sine): a cell on the boundary between two pieces takes both.
@@ -188,14 +210,14 @@ impl Run {
                 continue; // vertical: its lower end's circle covers it
             }
             let len = du.hypot(dz);
-            pieces.push(Piece::Line {
+            pieces.push(Piece::Line(Line {
                 ua: a.0,
                 ub: b.0,
                 za: a.1,
                 sin: dz / len,
                 cos: du / len,
                 slope: dz / du,
-            });
+            }));
         }
         for (k, &(uk, zk)) in v.iter().enumerate() {
             // Normal cone of the vertex, as the sine range of directions (sin φ, -cos φ).
@@ -214,13 +236,13 @@ impl Run {
                 }
             }
             if slo <= shi {
-                pieces.push(Piece::Arc { uk, zk, slo, shi });
+                pieces.push(Piece::Arc(Arc { uk, zk, slo, shi }));
             }
         }
         // Each piece's u range over every r' in [0, r].
         let range = |p: &Piece| match *p {
-            Piece::Line { ua, ub, sin, .. } => (ua + (r * sin).min(0.0), ub + (r * sin).max(0.0)),
-            Piece::Arc { uk, slo, shi, .. } => (uk + (r * slo).min(0.0), uk + (r * shi).max(0.0)),
+            Piece::Line(Line { ua, ub, sin, .. }) => (ua + (r * sin).min(0.0), ub + (r * sin).max(0.0)),
+            Piece::Arc(Arc { uk, slo, shi, .. }) => (uk + (r * slo).min(0.0), uk + (r * shi).max(0.0)),
         };
         let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
         for p in &pieces {
@@ -231,23 +253,53 @@ impl Run {
         let u0 = lo - 2.0 * PIECE_EPS;
         let nb = if hi >= lo { ((hi + 2.0 * PIECE_EPS - u0) / bw).floor() as usize + 1 } else { 0 };
         let bucket = |u: f64| (((u - u0) / bw).floor().max(0.0) as usize).min(nb.saturating_sub(1));
-        let mut counts = vec![0u32; nb + 1];
+        // Counting sort of (bucket, piece) pairs, lines and arcs apart.
+        let (mut lines, mut arcs) = (Vec::new(), Vec::new());
+        let (mut line_starts, mut arc_starts) = (vec![0u32; nb + 1], vec![0u32; nb + 1]);
         for p in &pieces {
             let (a, b) = range(p);
+            let starts = match *p {
+                Piece::Line(l) => {
+                    lines.push(l);
+                    &mut line_starts
+                }
+                Piece::Arc(c) => {
+                    arcs.push(c);
+                    &mut arc_starts
+                }
+            };
             for k in bucket(a - PIECE_EPS)..=bucket(b + PIECE_EPS) {
-                counts[k + 1] += 1;
+                starts[k + 1] += 1;
             }
         }
         for k in 0..nb {
-            counts[k + 1] += counts[k];
+            line_starts[k + 1] += line_starts[k];
+            arc_starts[k + 1] += arc_starts[k];
         }
-        let mut fill = counts.clone();
-        let mut items = vec![0u32; counts[nb] as usize];
-        for (i, p) in pieces.iter().enumerate() {
+        let (mut line_fill, mut arc_fill) = (line_starts.clone(), arc_starts.clone());
+        let mut line_items = vec![0u32; line_starts[nb] as usize];
+        let mut arc_items = vec![0u32; arc_starts[nb] as usize];
+        let mut zlo = vec![f64::INFINITY; nb];
+        let (mut li, mut ai) = (0u32, 0u32);
+        for p in &pieces {
             let (a, b) = range(p);
             for k in bucket(a - PIECE_EPS)..=bucket(b + PIECE_EPS) {
-                items[fill[k] as usize] = i as u32;
-                fill[k] += 1;
+                match *p {
+                    Piece::Line(l) => {
+                        line_items[line_fill[k] as usize] = li;
+                        line_fill[k] += 1;
+                        zlo[k] = zlo[k].min(l.za.min(l.za + l.slope * (l.ub - l.ua)));
+                    }
+                    Piece::Arc(c) => {
+                        arc_items[arc_fill[k] as usize] = ai;
+                        arc_fill[k] += 1;
+                        zlo[k] = zlo[k].min(c.zk);
+                    }
+                }
+            }
+            match p {
+                Piece::Line(_) => li += 1,
+                Piece::Arc(_) => ai += 1,
             }
         }
         let mut bbox = [f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY];
@@ -255,19 +307,7 @@ impl Run {
             bbox = [bbox[0].min(t.x), bbox[1].max(t.x), bbox[2].min(t.y), bbox[3].max(t.y)];
         }
         let z_min = tips.iter().map(|t| t.z).fold(f64::INFINITY, f64::min);
-        let low = |p: &Piece| match *p {
-            Piece::Line { za, ub, ua, slope, .. } => za.min(za + slope * (ub - ua)),
-            Piece::Arc { zk, .. } => zk,
-        };
-        let zlo = (0..nb)
-            .map(|k| {
-                items[counts[k] as usize..counts[k + 1] as usize]
-                    .iter()
-                    .map(|&i| low(&pieces[i as usize]))
-                    .fold(f64::INFINITY, f64::min)
-            })
-            .collect();
-        Run { o, d, r, bbox, z_min, u0, bw, starts: counts, items, pieces, zlo }
+        Run { o, d, r, bbox, z_min, u0, bw, line_starts, line_items, lines, arc_starts, arc_items, arcs, zlo }
     }
 
     /// The columns of the row at `cy` the swept solid can be above (`|v| <= r` and `u` within the
@@ -276,7 +316,7 @@ impl Run {
         // Along the row, x = o.x + t: u = t·d.x + ry·d.y, v = ry·d.x - t·d.y.
         let ry = cy - self.o[1];
         let (mut lo, mut hi) = (f64::NEG_INFINITY, f64::INFINITY);
-        let u_hi = self.u0 + self.bw * (self.starts.len() - 1) as f64;
+        let u_hi = self.u0 + self.bw * (self.line_starts.len() - 1) as f64;
         let mut clip = |k: f64, c: f64, a: f64, b: f64| -> bool {
             // a <= k·t + c <= b
             if k.abs() < 1e-12 {
@@ -312,10 +352,37 @@ impl Run {
         if rp2 < 0.0 {
             return;
         }
+        self.lower_at(u, rp2.sqrt(), rp2, cell);
+    }
+
+    /// The cells of a row of `g` (`cells`, from column `col0`, all at `cy`) lowered as
+    /// [`Run::lower`] does, the section radius worked out once when the run lies along X.
+    fn lower_row(&self, g: &Grid, col0: usize, cy: f64, cells: &mut [f32]) {
+        let cx = |i: usize| g.x0 + ((col0 + i) as f64 + 0.5) * g.p;
+        if self.d[1] != 0.0 {
+            for (i, cell) in cells.iter_mut().enumerate() {
+                self.lower([cx(i), cy], cell);
+            }
+            return;
+        }
+        // Along X: v is the row's offset from the line, the same for every cell.
+        let ry = cy - self.o[1];
+        let rp2 = self.r * self.r - ry * self.d[0] * (ry * self.d[0]);
+        if rp2 < 0.0 {
+            return;
+        }
         let rp = rp2.sqrt();
+        for (i, cell) in cells.iter_mut().enumerate() {
+            self.lower_at((cx(i) - self.o[0]) * self.d[0] + ry * self.d[1], rp, rp2, cell);
+        }
+    }
+
+    /// Lowers `cell` at `u` along the run, where the section radius is `rp` (`rp2` its square).
+    #[inline]
+    fn lower_at(&self, u: f64, rp: f64, rp2: f64, cell: &mut f32) {
         // Truncation is the floor here (k >= 0), without a libm call per cell.
         let k = (u - self.u0) / self.bw;
-        if !(k >= 0.0 && (k as usize) + 1 < self.starts.len()) {
+        if !(k >= 0.0 && (k as usize) + 1 < self.line_starts.len()) {
             return;
         }
         let k = k as usize;
@@ -323,21 +390,18 @@ impl Run {
             return; // already at or below anything this run reaches here
         }
         let mut best = f64::INFINITY;
-        for &i in &self.items[self.starts[k] as usize..self.starts[k + 1] as usize] {
-            match self.pieces[i as usize] {
-                Piece::Line { ua, ub, za, sin, cos, slope } => {
-                    let s = rp * sin;
-                    if u >= ua + s - PIECE_EPS && u <= ub + s + PIECE_EPS {
-                        let z = za - rp * cos + slope * (u - ua - s);
-                        best = best.min(z);
-                    }
-                }
-                Piece::Arc { uk, zk, slo, shi } => {
-                    let du = u - uk;
-                    if du >= rp * slo - PIECE_EPS && du <= rp * shi + PIECE_EPS {
-                        best = best.min(zk - (rp2 - du * du).max(0.0).sqrt());
-                    }
-                }
+        for &i in &self.line_items[self.line_starts[k] as usize..self.line_starts[k + 1] as usize] {
+            let Line { ua, ub, za, sin, cos, slope } = self.lines[i as usize];
+            let s = rp * sin;
+            if u >= ua + s - PIECE_EPS && u <= ub + s + PIECE_EPS {
+                best = best.min(za - rp * cos + slope * (u - ua - s));
+            }
+        }
+        for &i in &self.arc_items[self.arc_starts[k] as usize..self.arc_starts[k + 1] as usize] {
+            let Arc { uk, zk, slo, shi } = self.arcs[i as usize];
+            let du = u - uk;
+            if du >= rp * slo - PIECE_EPS && du <= rp * shi + PIECE_EPS {
+                best = best.min(zk - (rp2 - du * du).max(0.0).sqrt());
             }
         }
         let z = best as f32;
@@ -586,10 +650,7 @@ fn apply(
             Sweep::Run(i) => {
                 let run = &runs[i];
                 let Some((col_lo, col_hi)) = run.columns(cy, g) else { continue };
-                for (col, cell) in line[col_lo..=col_hi].iter_mut().enumerate() {
-                    let cx = g.x0 + ((col + col_lo) as f64 + 0.5) * g.p;
-                    run.lower([cx, cy], cell);
-                }
+                run.lower_row(g, col_lo, cy, &mut line[col_lo..=col_hi]);
             }
             Sweep::Level { a, b, z } => {
                 // Only the row's chord of the stadium; a flat end's cells strictly inside it all
@@ -719,12 +780,30 @@ pub fn simulate(
         }
         let shape = Shape::of(&op.tool.profile);
         let grid = Grid { w, x0, y0, p };
+        let y_range = |sw: &Sweep| match *sw {
+            Sweep::Point(s) => (s.y, s.y),
+            Sweep::Level { a, b, .. } => (a[1].min(b[1]), a[1].max(b[1])),
+            Sweep::BallLine { a, b, .. } => (a.y.min(b.y), a.y.max(b.y)),
+            Sweep::Run(i) => (runs[i].bbox[2], runs[i].bbox[3]),
+        };
         surface.par_chunks_mut(BAND_ROWS * w).zip(buckets.par_iter()).enumerate().for_each(
             |(b, (band, items))| {
                 let band_row0 = b * BAND_ROWS;
-                let band_rows = band.len() / w;
-                for sw in items {
-                    apply(sw, &runs, &shape, r2, &grid, band, band_row0, band_rows);
+                // Row by row, the sweeps nearest the row first: a raster pass further off then
+                // finds the cells already below anything it reaches and skips them (the result
+                // is the lowest of all, in any order).
+                let mut order: Vec<(f64, usize)> = Vec::with_capacity(items.len());
+                for (r, row) in band.chunks_mut(w).enumerate() {
+                    let cy = y0 + ((band_row0 + r) as f64 + 0.5) * p;
+                    order.clear();
+                    order.extend(items.iter().enumerate().map(|(i, sw)| {
+                        let (lo, hi) = y_range(sw);
+                        ((lo - cy).max(cy - hi).max(0.0), i)
+                    }));
+                    order.sort_unstable_by(|a, b| a.0.total_cmp(&b.0));
+                    for &(_, i) in &order {
+                        apply(&items[i], &runs, &shape, r2, &grid, row, band_row0 + r, 1);
+                    }
                 }
             },
         );
