@@ -234,6 +234,26 @@ pub fn cutting_data(tool: &Tool, material: &str, limits: &MachineLimits) -> Resu
 /// Largest change of direction (degrees) kept at speed through a joint.
 pub const JUNCTION_ANGLE_DEG: f64 = 30.0;
 
+/// The rate (mm/s) a move from `from` runs at, as [`estimate_time_s`] models it, and whether it
+/// is a rapid.
+fn move_rate(from: Point3<f64>, seg: &Segment, data: &CuttingData, limits: &MachineLimits) -> (f64, bool) {
+    let (fmin, fmax) = (limits.feed_min_mm_min, limits.feed_max_mm_min.max(limits.feed_min_mm_min));
+    let feed = |f: f64| if f > 0.0 { f.clamp(fmin, fmax) } else { fmin } / 60.0;
+    let a = limits.accel_mm_s2;
+    match *seg {
+        Segment::Rapid(_) => {
+            (if limits.rapid_mm_min > 0.0 { limits.rapid_mm_min / 60.0 } else { fmax / 60.0 }, true)
+        }
+        Segment::Linear(_) => (feed(data.feed_mm_min), false),
+        Segment::Plunge(_) => (feed(data.plunge_mm_min), false),
+        Segment::Arc { center, .. } => {
+            let r = (from.x - center[0]).hypot(from.y - center[1]);
+            let v = feed(data.feed_mm_min);
+            (if a.is_finite() && a > 0.0 && r > 0.0 { v.min((a * r).sqrt()) } else { v }, false)
+        }
+    }
+}
+
 /// Time (s) of a trapezoidal move of `len` mm entered at `v0`, left at `v1`, cruising at most at
 /// `vmax` (mm/s) with acceleration `a` (mm/s²); `v0`, `v1` must be reachable (planner-checked).
 fn trapezoid_s(len: f64, v0: f64, v1: f64, vmax: f64, a: f64) -> f64 {
@@ -270,11 +290,8 @@ pub fn estimate_time_s(
     data: &CuttingData,
     limits: &MachineLimits,
 ) -> f64 {
-    let (fmin, fmax) = (limits.feed_min_mm_min, limits.feed_max_mm_min.max(limits.feed_min_mm_min));
-    let feed = |f: f64| if f > 0.0 { f.clamp(fmin, fmax) } else { fmin } / 60.0;
     let a = limits.accel_mm_s2;
     let a_ok = a.is_finite() && a > 0.0;
-    let rapid = if limits.rapid_mm_min > 0.0 { limits.rapid_mm_min / 60.0 } else { fmax / 60.0 };
     let cos_limit = JUNCTION_ANGLE_DEG.to_radians().cos();
     // One pass builds each move's length and rate and the junction speed before it, already
     // lowered to what the move before can reach (the forward pass); the backward pass then
@@ -285,16 +302,7 @@ pub fn estimate_time_s(
     let mut plain = 0.0;
     for seg in segments {
         let (len, dir_in, dir_out) = move_geometry(from, seg);
-        let (v, is_rapid) = match *seg {
-            Segment::Rapid(_) => (rapid, true),
-            Segment::Linear(_) => (feed(data.feed_mm_min), false),
-            Segment::Plunge(_) => (feed(data.plunge_mm_min), false),
-            Segment::Arc { center, .. } => {
-                let r = (from.x - center[0]).hypot(from.y - center[1]);
-                let v = feed(data.feed_mm_min);
-                (if a_ok && r > 0.0 { v.min((a * r).sqrt()) } else { v }, false)
-            }
-        };
+        let (v, is_rapid) = move_rate(from, seg, data, limits);
         from = seg.end();
         if !(len.is_finite() && len > 0.0 && v > 0.0) {
             continue;
@@ -429,25 +437,13 @@ mod tests {
         data: &CuttingData,
         limits: &MachineLimits,
     ) -> f64 {
-        let (fmin, fmax) = (limits.feed_min_mm_min, limits.feed_max_mm_min.max(limits.feed_min_mm_min));
-        let feed = |f: f64| if f > 0.0 { f.clamp(fmin, fmax) } else { fmin } / 60.0;
         let a = limits.accel_mm_s2;
         let a_ok = a.is_finite() && a > 0.0;
-        let rapid = if limits.rapid_mm_min > 0.0 { limits.rapid_mm_min / 60.0 } else { fmax / 60.0 };
         let mut moves = Vec::with_capacity(segments.len());
         let mut from = start;
         for seg in segments {
             let (len, dir_in, dir_out) = move_geometry(from, seg);
-            let (v, is_rapid) = match *seg {
-                Segment::Rapid(_) => (rapid, true),
-                Segment::Linear(_) => (feed(data.feed_mm_min), false),
-                Segment::Plunge(_) => (feed(data.plunge_mm_min), false),
-                Segment::Arc { center, .. } => {
-                    let r = (from.x - center[0]).hypot(from.y - center[1]);
-                    let v = feed(data.feed_mm_min);
-                    (if a_ok && r > 0.0 { v.min((a * r).sqrt()) } else { v }, false)
-                }
-            };
+            let (v, is_rapid) = move_rate(from, seg, data, limits);
             from = seg.end();
             if len.is_finite() && len > 0.0 && v > 0.0 {
                 moves.push(Move { len_mm: len, v_max_mm_s: v, rapid: is_rapid, dir_in, dir_out });
