@@ -209,6 +209,37 @@ struct Steps<'a> {
 }
 
 impl Steps<'_> {
+    /// Two steps side by side (rayon's join: each has serial stretches the other fills), each
+    /// timed on its own, so the report's step times then add up to more than the wall time.
+    fn run_pair<A: Send, B: Send>(
+        &mut self,
+        fraction: f64,
+        names: [&str; 2],
+        a: impl FnOnce() -> Result<A, CamError> + Send,
+        b: impl FnOnce() -> Result<B, CamError> + Send,
+    ) -> Result<(A, B), CamError> {
+        if (self.cancelled)() {
+            return Err(CamError::Cancelled);
+        }
+        (self.progress)(fraction, &format!("{} and {}", names[0], names[1]));
+        let timed = |t: Instant| t.elapsed().as_secs_f64();
+        let (ra, rb) = rayon::join(
+            || {
+                let t = Instant::now();
+                a().map(|v| (v, timed(t)))
+            },
+            || {
+                let t = Instant::now();
+                b().map(|v| (v, timed(t)))
+            },
+        );
+        let ((va, ta), (vb, tb)) = (ra?, rb?);
+        for (name, secs) in [(names[0], ta), (names[1], tb)] {
+            *self.timings.entry(name.to_string()).or_insert(0.0) += secs;
+        }
+        Ok((va, vb))
+    }
+
     fn run<T>(
         &mut self,
         name: &str,
@@ -763,49 +794,58 @@ fn plan_with(
         let standing = face.roughing_map.as_ref().and_then(|r| standing_target(target, r, top));
         let map = standing.as_ref().unwrap_or(target);
 
-        let rough_path = steps.run("roughing", base + 0.05 * per_face, || {
-            roughing(
-                rough_map,
-                &rough_tool,
-                &RoughingParams {
-                    step_down_mm: step_down,
-                    stock_to_leave_mm: leave,
-                    step_over_mm: 0.4 * rough_tool.diameter_mm(),
-                    pattern,
-                    stock_top_mm: top,
-                    floor_mm: floor,
-                    safe_z_mm: safe_z,
-                },
-            )
-        })?;
         let opts = CompensateOptions { pixel_model: PixelModel::Column, outside_z_mm: Some(floor) };
         // The finishing target read as the job says (columns, or samples of a continuous surface).
         let fin_opts = CompensateOptions { pixel_model: fin_model, ..opts };
-        let tip = steps
-            .run("compensate", base + 0.25 * per_face, || compensate(map, &fin_tool.profile, &fin_opts))?;
-        let mut fin_path = steps.run("finishing", base + 0.4 * per_face, || {
-            finishing(
-                &tip,
-                &fin_tool,
-                &FinishingParams {
-                    pattern: fin_pattern,
-                    step_over_mm: step_over,
-                    level_step_mm: step_over,
-                    zigzag: true,
-                    safe_z_mm: safe_z,
-                },
-            )
-        })?;
-        let rough_tip =
-            steps.run("compensate", base + 0.5 * per_face, || compensate(map, &rough_tool.profile, &opts))?;
+        // Roughing (and its tool's tip surface, for the holder check) beside the finishing tool's
+        // tip surface and passes.
+        let ((rough_path, rough_tip), (tip, fin_path)) = steps.run_pair(
+            base + 0.05 * per_face,
+            ["roughing", "finishing"],
+            || {
+                Ok((
+                    roughing(
+                        rough_map,
+                        &rough_tool,
+                        &RoughingParams {
+                            step_down_mm: step_down,
+                            stock_to_leave_mm: leave,
+                            step_over_mm: 0.4 * rough_tool.diameter_mm(),
+                            pattern,
+                            stock_top_mm: top,
+                            floor_mm: floor,
+                            safe_z_mm: safe_z,
+                        },
+                    )?,
+                    compensate(map, &rough_tool.profile, &opts)?,
+                ))
+            },
+            || {
+                let tip = compensate(map, &fin_tool.profile, &fin_opts)?;
+                let fin_path = finishing(
+                    &tip,
+                    &fin_tool,
+                    &FinishingParams {
+                        pattern: fin_pattern,
+                        step_over_mm: step_over,
+                        level_step_mm: step_over,
+                        zigzag: true,
+                        safe_z_mm: safe_z,
+                    },
+                )?;
+                Ok((tip, fin_path))
+            },
+        )?;
+        let mut fin_path = fin_path;
         let holders = steps.run("holder", base + 0.55 * per_face, || {
             let points = |t: &Toolpath| {
                 t.passes.iter().flat_map(|p| p.points.iter().copied()).collect::<Vec<Point3<f64>>>()
             };
-            Ok((
-                check_holder(map, &rough_tool, &rough_tip, &points(&rough_path), floor)?,
-                check_holder(map, &fin_tool, &tip, &points(&fin_path), floor)?,
-            ))
+            let (rough, fin) = rayon::join(
+                || check_holder(map, &rough_tool, &rough_tip, &points(&rough_path), floor),
+                || check_holder(map, &fin_tool, &tip, &points(&fin_path), floor),
+            );
+            Ok((rough?, fin?))
         })?;
         let (rough_segs, mut fin_segs) = steps.run("cleanup", base + 0.6 * per_face, || {
             Ok((
