@@ -168,13 +168,38 @@ struct Writer {
     exact: Option<[f64; 3]>,
     /// Z is at the machine's top (retracted) and nothing moved since.
     retracted: bool,
+    /// A block's words, its capacity kept from block to block.
+    buf: String,
 }
 
 type Sink<'a, E> = dyn FnMut(&str) -> Result<(), E> + 'a;
 
 impl Writer {
     fn new(dialect: Dialect) -> Self {
-        Writer { dialect, block: 0, motion: None, feed: None, pos: [None; 3], exact: None, retracted: false }
+        Writer {
+            dialect,
+            block: 0,
+            motion: None,
+            feed: None,
+            pos: [None; 3],
+            exact: None,
+            retracted: false,
+            buf: String::new(),
+        }
+    }
+
+    /// The empty words buffer (give it back with [`Writer::put_words`]).
+    fn words(&mut self) -> String {
+        let mut w = std::mem::take(&mut self.buf);
+        w.clear();
+        w
+    }
+
+    /// Writes `words` as a block and keeps the buffer.
+    fn put_words<E>(&mut self, sink: &mut Sink<'_, E>, words: String) -> Result<(), Fail<E>> {
+        let r = self.line(sink, &words);
+        self.buf = words;
+        r
     }
 
     /// A line without a block number (`%`, `O0001`).
@@ -360,17 +385,17 @@ impl Writer {
                 }
                 if self.pos[2].is_none() && (self.pos[0] != Some(q[0]) || self.pos[1] != Some(q[1])) {
                     // Z unknown (just retracted to the top): across first, then down.
-                    let mut words = String::new();
+                    let mut words = self.words();
                     self.g_word(&mut words, 0);
                     self.axis_words(&mut words, q, [true, true, false]);
-                    self.line(sink, &words)?;
+                    self.put_words(sink, words)?;
                     self.pos[0] = Some(q[0]);
                     self.pos[1] = Some(q[1]);
                 }
-                let mut words = String::new();
+                let mut words = self.words();
                 self.g_word(&mut words, 0);
                 self.axis_words(&mut words, q, [true; 3]);
-                self.line(sink, &words)?;
+                self.put_words(sink, words)?;
                 self.moved(q, exact);
                 Ok(())
             }
@@ -424,7 +449,7 @@ impl Writer {
                 if (i == 0 && j == 0) || m >= ARC_RADIUS_MISMATCH_MAX_MM * GRID {
                     return self.linear(sink, q, exact, feed, changed);
                 }
-                let mut words = String::new();
+                let mut words = self.words();
                 self.g_word(&mut words, if clockwise { 2 } else { 3 });
                 push_q(&mut words, 'X', q[0]);
                 push_q(&mut words, 'Y', q[1]);
@@ -432,7 +457,7 @@ impl Writer {
                 push_q(&mut words, 'I', i);
                 push_q(&mut words, 'J', j);
                 self.feed_word(&mut words, feed);
-                self.line(sink, &words)?;
+                self.put_words(sink, words)?;
                 self.moved(q, exact);
                 Ok(())
             }
@@ -451,11 +476,11 @@ impl Writer {
             self.exact = Some(exact);
             return Ok(());
         }
-        let mut words = String::new();
+        let mut words = self.words();
         self.g_word(&mut words, 1);
         self.axis_words(&mut words, q, [true; 3]);
         self.feed_word(&mut words, f);
-        self.line(sink, &words)?;
+        self.put_words(sink, words)?;
         self.moved(q, exact);
         Ok(())
     }
@@ -463,7 +488,6 @@ impl Writer {
 
 /// Appends the word `name` + [`fmt_q`]`(v)` (no allocation: a program has millions of them).
 fn push_q(words: &mut String, name: char, v: i64) {
-    use std::fmt::Write as _;
     if !words.is_empty() {
         words.push(' ');
     }
@@ -472,8 +496,23 @@ fn push_q(words: &mut String, name: char, v: i64) {
         words.push('-');
     }
     let a = v.unsigned_abs();
-    // Writing into a String cannot fail.
-    let _ = write!(words, "{}.{:04}", a / 10_000, a % 10_000);
+    // The digits from the right: four decimals, the point, then the whole part (at least "0").
+    let mut digits = [0u8; 24];
+    let (mut at, mut rest) = (digits.len(), a);
+    for k in 0.. {
+        if k == 4 {
+            at -= 1;
+            digits[at] = b'.';
+        }
+        at -= 1;
+        digits[at] = b'0' + (rest % 10) as u8;
+        rest /= 10;
+        if k >= 4 && rest == 0 {
+            break;
+        }
+    }
+    // ASCII digits and a point.
+    words.push_str(std::str::from_utf8(&digits[at..]).unwrap_or_default());
 }
 
 #[cfg(test)]

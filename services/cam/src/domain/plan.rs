@@ -1032,7 +1032,8 @@ fn plan_with(
         ],
     };
     let gcode = steps.run("gcode", 0.95, || Ok(write_program(&info, &programs, dialect)))?;
-    let blocks = gcode.lines().count();
+    // Every line of the program ends in a newline.
+    let blocks = gcode.bytes().filter(|&b| b == b'\n').count();
     progress(1.0, "done");
     let preview = first_preview.ok_or_else(|| CamError::param("faces", "no depth map to plan"))?;
     Ok(PlanOutput {
