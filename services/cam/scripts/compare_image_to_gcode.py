@@ -39,9 +39,9 @@ roughing step-down) from the same image.  This script
    reads the per-step times from out.report.json (`timings_s`);
 4. prints a table of time and program lines ("blocks") for each, the ratio
    (image-to-gcode finishing + roughing) / depthmill total, and finishing vs
-   finishing: image-to-gcode finishing against depthmill's
-   `compensate + finishing` (its `compensate` entry also holds the roughing
-   tool's compensation, so that side is an upper bound).
+   finishing: image-to-gcode finishing against depthmill's `finishing` step
+   (the finishing tool's compensation and passes; the roughing, with its own
+   tool's compensation, runs beside it).
 
 How to run
 ----------
@@ -335,7 +335,7 @@ def main():
         t = dm["timings_s"]
         if t:
             print("depthmill steps: " + ", ".join(f"{k} {v:.3f} s" for k, v in t.items())
-                  + f"; sum {sum(t.values()):.3f} s (the rest of the wall time: image read, writing files)")
+                  + " (roughing, with its tool's compensation, runs beside finishing, with its own)")
     print()
     if dm and i2g_fin:
         if i2g_rough:
@@ -349,8 +349,8 @@ def main():
         if "finishing" in t:
             dm_fin = t["finishing"] + t.get("compensate", 0.0)
             print(f"finishing vs finishing: image-to-gcode {i2g_fin['wall_s']:.2f} s / depthmill "
-                  f"compensate+finishing {dm_fin:.3f} s = {i2g_fin['wall_s'] / dm_fin:.1f}x "
-                  f"(depthmill's compensate also covers the roughing tool: an upper bound)")
+                  f"finishing (its tool's compensation and passes) {dm_fin:.3f} s = "
+                  f"{i2g_fin['wall_s'] / dm_fin:.1f}x")
         if i2g_rough and "roughing" in t:
             print(f"roughing vs roughing: image-to-gcode {i2g_rough['wall_s']:.2f} s / depthmill roughing "
                   f"{t['roughing']:.3f} s = {i2g_rough['wall_s'] / t['roughing']:.1f}x")
