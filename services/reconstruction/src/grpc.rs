@@ -341,6 +341,9 @@ impl pb::reconstruction_service_server::ReconstructionService for Reconstruction
                     });
                 }
                 for f in &out.faces {
+                    if let Some(message) = &f.stats.warning {
+                        diagnostics.push(Diagnostic { code: "face_mostly_assumed".into(), message: message.clone() });
+                    }
                     if f.stats.unseen_filled > 0 {
                         let p = f.stats.pixel_mm;
                         diagnostics.push(Diagnostic {

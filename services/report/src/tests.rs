@@ -1125,3 +1125,25 @@ fn the_deviation_leaves_out_cells_the_scanner_never_saw() {
     let out = render_ok(&job("bare", "succeeded", &bare), &bare);
     assert!(!out.html.contains("Left out (grey)"));
 }
+
+#[test]
+fn a_face_the_scan_hardly_saw_is_flagged_in_the_report() {
+    let mut arts = full_artifacts();
+    let warning = "face A=90: 3.3 % of its map was measured and 96.7 % assumed (cells no point showed, set at the height around them): the scan hardly saw the part from this side";
+    arts.insert(
+        "reconstruct_report".into(),
+        serde_json::to_vec(&serde_json::json!({"faces": [{"face": "A=90", "warning": warning}]}))
+            .expect("json"),
+    );
+    let j = job("housing", "succeeded", &arts);
+    let out = render_ok(&j, &arts);
+    assert!(
+        out.html.contains(r#"<p class="missing">face A=90: 3.3 % of its map was measured"#),
+        "{}",
+        out.html
+    );
+    // Without the warning, nothing is flagged.
+    arts.insert("reconstruct_report".into(), br#"{"faces": [{"face": "+Z"}]}"#.to_vec());
+    let j = job("housing", "succeeded", &arts);
+    assert!(!render_ok(&j, &arts).html.contains("hardly saw"));
+}

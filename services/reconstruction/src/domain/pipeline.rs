@@ -445,10 +445,40 @@ pub struct FaceStats {
     /// Cells the scanner saw neither the part nor the table in, filled with the highest height
     /// around them (only with free-space evidence; see [`reconstruct_with_free_space`]).
     pub unseen_filled: usize,
+    /// [`FaceStats::mostly_assumed`]'s warning, when the face's map is more assumed than measured.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub warning: Option<String>,
     /// What the `fit` estimator did (the noise it found, its windows).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub fit: Option<FitReport>,
     pub seconds: f64,
+}
+
+/// A face's map with more than this many assumed cells per measured one is named
+/// ([`FaceStats::mostly_assumed`]). A turned face of a part scanned from above commonly holds one
+/// to two assumed cells per measured one (the sides the scan saw at a slant); a view along a
+/// side the scan never saw holds tens.
+pub const ASSUMED_PER_MEASURED_WARN: usize = 3;
+
+impl FaceStats {
+    /// A warning when the face's map holds more than [`ASSUMED_PER_MEASURED_WARN`] assumed cells
+    /// (never shown by a point, set at the height around them: [`fill_unseen`]) per measured
+    /// one: the scan hardly saw the part from that side, so its program leaves material over
+    /// most of it. The job names the face and the shares rather than cut a part the map only
+    /// guesses at without a word.
+    pub fn mostly_assumed(&self) -> Option<String> {
+        let c = &self.coverage;
+        if self.unseen_filled <= ASSUMED_PER_MEASURED_WARN * c.measured || c.cells == 0 {
+            return None;
+        }
+        let pct = |n: usize| 100.0 * n as f64 / c.cells as f64;
+        Some(format!(
+            "face {}: {:.1} % of its map was measured and {:.1} % assumed (cells no point showed, set at the height around them): the scan hardly saw the part from this side, so the program leaves material over most of it; name the faces to cut (reconstruct.faces) or scan that side",
+            self.face,
+            pct(c.measured),
+            pct(self.unseen_filled)
+        ))
+    }
 }
 
 /// What [`reconstruct`] produced.
@@ -952,9 +982,11 @@ fn finish_face(
         coverage,
         fill,
         unseen_filled,
+        warning: None,
         fit: None,
         seconds: started.elapsed().as_secs_f64(),
     };
+    let stats = FaceStats { warning: stats.mostly_assumed(), ..stats };
     Ok(FaceOutput { face: frame, raw, depth_map, coverage_map, roughing_map, stats })
 }
 
@@ -1166,6 +1198,40 @@ mod tests {
         ]);
         assert_eq!(own.faces[0].depth_map.part_origin_mm(), centre);
         assert_eq!(own.faces[1].depth_map.part_origin_mm(), [100.0, -250.0, -400.0]);
+    }
+
+    #[test]
+    fn a_face_the_scan_hardly_saw_is_named() {
+        // A box's top (z = 10) and the outline where it meets the table (z = 0), as a scan from
+        // above shows it: seen from the side (A = 90), only those two rows of its map are measured.
+        let mut points = Vec::new();
+        for i in 0..=120 {
+            for j in 0..=80 {
+                points.push(Point3::new(f64::from(i) * 0.25, f64::from(j) * 0.25, 10.0));
+            }
+        }
+        for i in 0..=120 {
+            for y in [0.0, 20.0] {
+                points.push(Point3::new(f64::from(i) * 0.25, y, 0.0));
+            }
+        }
+        let opts = ReconstructOptions {
+            pixel_mm: Some(0.5),
+            faces: Some(vec![
+                FaceOptions { view: Some("+Z".into()), ..Default::default() },
+                FaceOptions { a_deg: Some(90.0), ..Default::default() },
+            ]),
+            filters: Some(FilterOptions::default()),
+            ..Default::default()
+        };
+        let out = reconstruct(Geometry::Cloud(PointCloud::from_points(points)), &opts, &|_, _| {}, &|| false)
+            .expect("reconstruct");
+        assert!(out.faces[0].stats.mostly_assumed().is_none(), "+Z is measured");
+        let side = &out.faces[1].stats;
+        let w = side.mostly_assumed().expect("the side view is mostly assumed");
+        assert_eq!(side.warning.as_ref(), Some(&w), "the report carries it");
+        assert!(w.starts_with("face A=90: ") && w.contains("% assumed"), "{w}");
+        assert!(side.unseen_filled > 3 * side.coverage.measured, "{side:?}");
     }
 
     #[test]

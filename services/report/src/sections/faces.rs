@@ -100,8 +100,26 @@ impl Ctx<'_> {
         body
     }
 
+    /// The reconstruction's warnings about faces whose maps are more assumed than measured.
+    pub(crate) fn face_warnings(&self) -> String {
+        let rep = ["reconstruct_report", "reconstruction_report"]
+            .iter()
+            .find_map(|k| self.artifacts.get(*k))
+            .and_then(|b| serde_json::from_slice::<Value>(b).ok());
+        let warnings: Vec<String> = rep
+            .as_ref()
+            .and_then(|r| r["faces"].as_array())
+            .into_iter()
+            .flatten()
+            .filter_map(|f| f["warning"].as_str())
+            .map(|w| format!(r#"<p class="missing">{}</p>"#, esc(w)))
+            .collect();
+        warnings.concat()
+    }
+
     pub(crate) fn maps(&mut self) -> Result<String, ReportError> {
         let mut body = self.face_choice();
+        body.push_str(&self.face_warnings());
         let faces = self.face_suffixes();
         for (fi, suffix) in faces.iter().enumerate() {
             let dkey = format!("depth_map{suffix}");
