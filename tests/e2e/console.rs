@@ -213,6 +213,14 @@ async fn the_console_submits_watches_and_shows_a_job() -> anyhow::Result<()> {
     // Attempts and artifacts listed.
     let attempts = c.find_all(Locator::Css("#attempts tbody tr")).await?;
     assert!(attempts.len() >= 5, "{} attempt rows", attempts.len());
+    // What the stages said: the scan at least says which rays gave no point.
+    let diagnostics = c.find(Locator::Css("#diagnostics")).await?.text().await?;
+    assert!(diagnostics.contains("dropped_rays"), "{diagnostics}");
+    assert_eq!(
+        c.find_all(Locator::Css("#diagnostics tbody tr")).await?.len(),
+        job["diagnostics"].as_array().map_or(0, Vec::len),
+        "{job}"
+    );
     let artifacts = c.find(Locator::Css("#artifacts")).await?.text().await?;
     for name in ["point_cloud", "depth_map", "gcode", "telemetry", "report"] {
         assert!(artifacts.contains(name), "{name} not listed: {artifacts}");

@@ -3,6 +3,7 @@
 //! a job behind; the next good part is accepted.
 
 use depthmill_geometry::Mesh;
+use depthmill_proto::orchestrator::v1 as pb;
 use depthmill_tests::{StackOptions, TestStack};
 use serde_json::json;
 
@@ -180,12 +181,38 @@ async fn real_cad_parts_run_end_to_end() -> anyhow::Result<()> {
         // multi-face part's headline figures are the original part's, the maps' are `map_`).
         let map_gouge = m.get("map_max_gouge_mm").unwrap_or(&m["max_gouge_mm"]);
         assert!(map_gouge.as_f64().unwrap_or(1.0) < 0.1, "{file}: {m}");
-        let html = stack
-            .http
-            .get(stack.url(&format!("/v1/jobs/{}/report", done["id"].as_str().unwrap_or_default())))
-            .send()
-            .await?;
+        // The job keeps what the stages said, in stage order: the unit the mesh was read in,
+        // the faces chosen from the shape, where unseen surface was filled (named by face).
+        let diags = done["diagnostics"].as_array().cloned().unwrap_or_default();
+        let find = |stage: &str, code: &str| {
+            diags.iter().find(|d| d["stage"] == stage && d["code"] == code).cloned()
+        };
+        let units = find("scan", "units").unwrap_or_else(|| panic!("{file}: no units diagnostic: {diags:?}"));
+        assert!(units["message"].as_str().unwrap_or("").contains(unit), "{file}: {units}");
+        assert!(find("reconstruct", "face_choice").is_some(), "{file}: {diags:?}");
+        let unseen = find("reconstruct", "unseen_filled").unwrap_or_else(|| panic!("{file}: {diags:?}"));
+        let order: Vec<&str> = diags.iter().filter_map(|d| d["stage"].as_str()).collect();
+        let rank =
+            |s: &str| ["scan", "reconstruct", "plan", "execute", "report"].iter().position(|x| *x == s);
+        assert!(order.windows(2).all(|w| rank(w[0]) <= rank(w[1])), "{file}: {order:?}");
+        // The same over gRPC.
+        let id = done["id"].as_str().unwrap_or_default().to_string();
+        let got = stack.grpc().await?.get_job(pb::GetJobRequest { id: id.clone() }).await?.into_inner();
+        assert_eq!(got.diagnostics.len(), diags.len(), "{file}");
+        assert!(
+            got.diagnostics.iter().any(|d| d.code == "unseen_filled"
+                && d.stage == pb::Stage::Reconstruct as i32
+                && d.message == unseen["message"].as_str().unwrap_or_default()),
+            "{file}: {:?}",
+            got.diagnostics
+        );
+        // And the report shows it among what needs attention.
+        let html = stack.http.get(stack.url(&format!("/v1/jobs/{id}/report"))).send().await?;
         assert_eq!(html.status().as_u16(), 200);
+        let html = html.text().await?;
+        let findings = html.split(r#"<section id="findings">"#).nth(1).unwrap_or_default();
+        let findings = findings.split("</section>").next().unwrap_or_default();
+        assert!(findings.contains("<code>unseen_filled</code>"), "{file}: {findings}");
     }
     stack.shutdown().await
 }

@@ -193,6 +193,11 @@ pub async fn status(server: &Server, id: &str, json: bool) -> anyhow::Result<()>
                 crate::outln!("  {stage:<12} {:>8.2} s", secs.as_f64().unwrap_or(0.0));
             }
         }
+        // What the stages said about the part: what could not be done and where, what was chosen.
+        for d in job.get("diagnostics").and_then(Value::as_array).into_iter().flatten() {
+            let s = |k: &str| d.get(k).and_then(Value::as_str).unwrap_or("?");
+            crate::outln!("  {} {}: {}", s("stage"), s("code"), s("message"));
+        }
     }
     Ok(())
 }

@@ -343,6 +343,15 @@ function jobDetails(job) {
       metrics.length ? h('table', { id: 'metrics' }, h('tbody', {}, metrics.map(([k, v]) => h('tr', {}, h('th', { scope: 'row', text: k }), h('td', { class: 'num', text: fmtNum(v) })))))
         : h('p', { class: 'muted', text: 'None yet' }))));
 
+  const diags = job.diagnostics || [];
+  if (diags.length) {
+    wrap.append(h('div', { class: 'card' }, h('h3', { text: 'What the stages found' }),
+      h('div', { class: 'table-wrap' }, h('table', { id: 'diagnostics' },
+        h('thead', {}, h('tr', {}, ['Stage', 'Code', 'Message'].map((t) => h('th', { scope: 'col', text: t })))),
+        h('tbody', {}, diags.map((d) => h('tr', {},
+          h('td', { text: d.stage }), h('td', {}, h('code', { text: d.code })), h('td', { class: 'small', text: d.message }))))))));
+  }
+
   wrap.append(h('div', { class: 'card' }, h('h3', { text: 'Attempts' }),
     h('div', { class: 'table-wrap' }, h('table', { id: 'attempts' },
       h('thead', {}, h('tr', {}, ['Stage', '#', 'Outcome', 'Started', 'Time', 'Error'].map((t) => h('th', { scope: 'col', text: t })))),

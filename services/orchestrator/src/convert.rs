@@ -475,6 +475,15 @@ pub fn job(j: &Job) -> pb::Job {
                 error_message: a.error_message.clone().unwrap_or_default(),
             })
             .collect(),
+        diagnostics: j
+            .diagnostics
+            .iter()
+            .map(|d| pb::JobDiagnostic {
+                stage: stage(d.stage) as i32,
+                code: d.code.clone(),
+                message: d.message.clone(),
+            })
+            .collect(),
     }
 }
 

@@ -475,6 +475,11 @@ impl GrpcStages {
     }
 }
 
+/// Keeps what the stage's service said (bounded: [`StageOutputs::set_diagnostics`]).
+fn keep_diagnostics(out: &mut StageOutputs, diagnostics: Vec<types::Diagnostic>) {
+    out.set_diagnostics(diagnostics.into_iter().map(|d| (d.code, d.message)));
+}
+
 fn put(out: &mut StageOutputs, name: &str, a: Option<types::ArtifactRef>) {
     if let Some(a) = a {
         out.artifacts.insert(name.to_string(), a.into());
@@ -590,6 +595,7 @@ impl StageRunner for GrpcStages {
                     })
                     .await?;
                     put(&mut out, "point_cloud", r.point_cloud);
+                    keep_diagnostics(&mut out, r.diagnostics);
                     put(&mut out, "scan_report", r.report);
                     put(&mut out, "free_space", r.free_space);
                     out.metrics.insert("scan_points".into(), r.points as f64);
@@ -635,6 +641,7 @@ impl StageRunner for GrpcStages {
                     })
                     .await?;
                     put(&mut out, "reconstruct_report", r.report);
+                    keep_diagnostics(&mut out, r.diagnostics);
                     for (i, f) in r.faces.into_iter().enumerate() {
                         // The first face's maps under the plain names, further faces suffixed `@<i>`.
                         let suffix = if i == 0 { String::new() } else { format!("@{i}") };
@@ -663,6 +670,7 @@ impl StageRunner for GrpcStages {
                     .await?;
                     put(&mut out, "gcode", r.gcode);
                     put(&mut out, "joint_trajectory", r.joint_trajectory);
+                    keep_diagnostics(&mut out, r.diagnostics);
                     put(&mut out, "plan_report", r.plan_report);
                     out.metrics.insert("estimated_time_s".into(), r.estimated_time_s);
                     for (k, v) in [
@@ -718,6 +726,7 @@ impl StageRunner for GrpcStages {
                     .await?;
                     put(&mut out, "gcode", r.gcode);
                     put(&mut out, "toolpath_preview", r.toolpath_preview);
+                    keep_diagnostics(&mut out, r.diagnostics);
                     // Further faces under the suffixes of their depth maps.
                     for (i, p) in r.face_previews.into_iter().enumerate() {
                         put(&mut out, &format!("toolpath_preview@{}", i + 1), Some(p));
@@ -749,6 +758,7 @@ impl StageRunner for GrpcStages {
                     put(&mut out, "machined_part_view", r.part_view);
                     put(&mut out, "machine_report", r.machine_report);
                     out.metrics.insert("cycle_time_s".into(), r.cycle_time_s);
+                    keep_diagnostics(&mut out, r.diagnostics);
                     out.metrics.insert("robot_removed_mm3".into(), r.removed_mm3);
                     out.metrics.insert("robot_rapid_removed_mm3".into(), r.rapid_removed_mm3);
                     if let Some(f) = r.against_part {
@@ -815,6 +825,7 @@ impl StageRunner for GrpcStages {
                     })
                     .await?;
                     put(&mut out, "final_stock", r.final_stock);
+                    keep_diagnostics(&mut out, r.diagnostics);
                     put(&mut out, "deviation_map", r.deviation_map);
                     // Further faces under the suffixes of their depth maps.
                     for (i, f) in r.faces.into_iter().enumerate().skip(1) {

@@ -165,12 +165,14 @@ pub fn render(input: &ReportInput<'_>) -> Result<ReportOutput, ReportError> {
     if ctx.is_robot() {
         // A robot job: no depth maps, Z-map stock or adaptive loop; its own plan and run.
         body.push_str(&ctx.robot_summary());
+        body.push_str(&ctx.findings());
         body.push_str(&ctx.parameters());
         body.push_str(&ctx.point_cloud()?);
         body.push_str(&ctx.robot()?);
         body.push_str(&ctx.solid()?);
     } else {
         body.push_str(&ctx.summary());
+        body.push_str(&ctx.findings());
         body.push_str(&ctx.parameters());
         body.push_str(&ctx.point_cloud()?);
         body.push_str(&ctx.mill_sections()?);

@@ -423,10 +423,15 @@ impl pb::scanning_service_server::ScanningService for ScanningServiceImpl {
                     .map_err(depthmill_common::artifacts::grpc_status)?;
                 let r = &out.report;
                 let coverage = r.coverage_after_rescan.or(r.coverage_before_rescan).map_or(0.0, |c| c.covered_pct);
+                // The silhouette's line says where the part went unseen: a code of its own.
+                let unseen = r.silhouette.as_ref().and_then(|s| s.diagnostic());
                 let mut diagnostics: Vec<Diagnostic> = r
                     .diagnostics
                     .iter()
-                    .map(|m| Diagnostic { code: "scan".into(), message: m.clone() })
+                    .map(|m| Diagnostic {
+                        code: if unseen.as_ref() == Some(m) { "silhouette_unseen" } else { "scan" }.into(),
+                        message: m.clone(),
+                    })
                     .collect();
                 if let Some(u) = &r.units {
                     diagnostics.push(Diagnostic {

@@ -361,12 +361,80 @@ impl JobMetrics {
     }
 }
 
-/// What one stage produced: named artifacts (`point_cloud`, `depth_map`, `gcode`, ...) and metrics.
+/// What one stage produced: named artifacts (`point_cloud`, `depth_map`, `gcode`, ...), metrics
+/// and what the stage's service said about the part (diagnostics).
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, ToSchema)]
 pub struct StageOutputs {
     #[schema(value_type = BTreeMap<String, ArtifactRefSchema>)]
     pub artifacts: BTreeMap<String, ArtifactRef>,
     pub metrics: BTreeMap<String, f64>,
+    /// In the order the service gave them; absent from results recorded before diagnostics were
+    /// kept.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub diagnostics: Vec<StageDiagnostic>,
+}
+
+/// Most diagnostics one stage's result keeps; a service that says more is cut here, with a last
+/// diagnostic saying how many were left out (the whole list stays in the stage's report artifact).
+pub const MAX_STAGE_DIAGNOSTICS: usize = 200;
+
+/// Longest message kept, in bytes (cut at a character boundary, with an ellipsis).
+pub const MAX_DIAGNOSTIC_MESSAGE_BYTES: usize = 2000;
+
+/// One thing a stage's service said about the part or the run: what could not be done and where,
+/// what it chose and why (`code`: `tool_choice`, `material_left`, `unreachable_surface`,
+/// `face_mostly_assumed`, `unseen_filled`, `units_warning`, ...).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
+pub struct StageDiagnostic {
+    pub code: String,
+    pub message: String,
+}
+
+impl StageOutputs {
+    /// Keeps a service's diagnostics, bounded by [`MAX_STAGE_DIAGNOSTICS`] and
+    /// [`MAX_DIAGNOSTIC_MESSAGE_BYTES`] so one verbose stage cannot swell every read of the job.
+    pub fn set_diagnostics(&mut self, diagnostics: impl IntoIterator<Item = (String, String)>) {
+        let mut kept = Vec::new();
+        let mut left_out = 0usize;
+        for (code, message) in diagnostics {
+            if kept.len() < MAX_STAGE_DIAGNOSTICS {
+                kept.push(StageDiagnostic { code, message: cut(message, MAX_DIAGNOSTIC_MESSAGE_BYTES) });
+            } else {
+                left_out += 1;
+            }
+        }
+        if left_out > 0 {
+            kept.push(StageDiagnostic {
+                code: "diagnostics_truncated".into(),
+                message: format!(
+                    "{left_out} more diagnostics left out after the first {MAX_STAGE_DIAGNOSTICS} (the stage's report has them all)"
+                ),
+            });
+        }
+        self.diagnostics = kept;
+    }
+}
+
+/// `s` cut to at most `max` bytes at a character boundary, ending in "…" when cut.
+fn cut(mut s: String, max: usize) -> String {
+    if s.len() <= max {
+        return s;
+    }
+    let mut end = max.saturating_sub('…'.len_utf8());
+    while !s.is_char_boundary(end) {
+        end -= 1;
+    }
+    s.truncate(end);
+    s.push('…');
+    s
+}
+
+/// A stage's diagnostic as the job shows it.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
+pub struct JobDiagnostic {
+    pub stage: Stage,
+    pub code: String,
+    pub message: String,
 }
 
 /// A reference to a stored artifact.
@@ -468,6 +536,11 @@ pub struct Job {
     #[schema(value_type = BTreeMap<String, ArtifactRefSchema>)]
     pub artifacts: BTreeMap<String, ArtifactRef>,
     pub metrics: JobMetrics,
+    /// What the completed stages' services said about the part and the run, in stage order:
+    /// what could not be done and where (`material_left`, `unreachable_surface`, ...), what was
+    /// chosen and why (`tool_choice`, `face_choice`, `units`).
+    #[serde(default)]
+    pub diagnostics: Vec<JobDiagnostic>,
     pub spec: JobSpec,
     pub cancel_requested: bool,
     /// Creation time, milliseconds since the Unix epoch.
@@ -498,5 +571,27 @@ mod tests {
         for s in Stage::ALL {
             assert_eq!(s.as_str().parse::<Stage>(), Ok(s));
         }
+    }
+
+    #[test]
+    fn a_stage_keeps_a_bounded_number_of_bounded_diagnostics() {
+        let mut out = StageOutputs::default();
+        let long = "é".repeat(MAX_DIAGNOSTIC_MESSAGE_BYTES);
+        out.set_diagnostics(
+            (0..MAX_STAGE_DIAGNOSTICS + 5)
+                .map(|i| ("c".to_string(), if i == 0 { long.clone() } else { i.to_string() })),
+        );
+        assert_eq!(out.diagnostics.len(), MAX_STAGE_DIAGNOSTICS + 1);
+        let first = &out.diagnostics[0].message;
+        assert!(first.len() <= MAX_DIAGNOSTIC_MESSAGE_BYTES && first.ends_with('…'), "{}", first.len());
+        assert_eq!(out.diagnostics[1].message, "1");
+        let last = &out.diagnostics[MAX_STAGE_DIAGNOSTICS];
+        assert_eq!(last.code, "diagnostics_truncated");
+        assert!(last.message.starts_with("5 more"), "{}", last.message);
+        // A result stored before diagnostics were kept still reads, and an empty list is not written.
+        let old: StageOutputs =
+            serde_json::from_str(r#"{"artifacts": {}, "metrics": {"x": 1.0}}"#).expect("an old result");
+        assert!(old.diagnostics.is_empty());
+        assert!(!serde_json::to_string(&old).expect("json").contains("diagnostics"));
     }
 }

@@ -5,6 +5,7 @@ pub mod job;
 pub mod spec;
 
 pub use job::{
-    AttemptOutcome, AttemptRecord, Job, JobError, JobMetrics, JobStatus, Stage, StageOutputs, StageResult,
+    AttemptOutcome, AttemptRecord, Job, JobDiagnostic, JobError, JobMetrics, JobStatus, Stage,
+    StageDiagnostic, StageOutputs, StageResult,
 };
 pub use spec::{InputKind, JobSpec, JsonError, SpecError};

@@ -6,8 +6,8 @@ use std::str::FromStr;
 
 use super::{ClaimedJob, NewJob, StoreError};
 use crate::domain::{
-    AttemptOutcome, AttemptRecord, Job, JobError, JobMetrics, JobSpec, JobStatus, Stage, StageOutputs,
-    StageResult,
+    AttemptOutcome, AttemptRecord, Job, JobDiagnostic, JobError, JobMetrics, JobSpec, JobStatus, Stage,
+    StageOutputs, StageResult,
 };
 
 /// The columns of `jobs` a job is read from ([`job_columns!`]).
@@ -129,7 +129,7 @@ impl JobRow {
     /// The job, with its stage results and attempts (read by the caller from the same database).
     pub fn into_job(
         self,
-        results: Vec<StageResult>,
+        mut results: Vec<StageResult>,
         attempts: Vec<AttemptRecord>,
     ) -> Result<Job, StoreError> {
         let id = self.id;
@@ -151,11 +151,18 @@ impl JobRow {
         let mut artifacts = BTreeMap::new();
         let mut stage_timings_s = BTreeMap::new();
         let mut metrics = JobMetrics::default();
+        let mut diagnostics = Vec::new();
+        results.sort_by_key(|r| r.stage);
         for r in &results {
             stage_timings_s
                 .insert(r.stage.as_str().to_string(), (r.finished_at_ms - r.started_at_ms) as f64 / 1000.0);
             artifacts.extend(r.outputs.artifacts.clone());
             metrics.absorb(&r.outputs.metrics);
+            diagnostics.extend(r.outputs.diagnostics.iter().map(|d| JobDiagnostic {
+                stage: r.stage,
+                code: d.code.clone(),
+                message: d.message.clone(),
+            }));
         }
         // A stage without a result (failed, cancelled, running) shows the time its finished
         // attempts took, retries included.
@@ -176,6 +183,7 @@ impl JobRow {
             stage_timings_s,
             artifacts,
             metrics,
+            diagnostics,
             spec,
             cancel_requested: self.cancel_requested,
             created_at_ms: self.created_at_ms,
@@ -198,6 +206,7 @@ pub(super) fn inserted(new: NewJob) -> Job {
         stage_timings_s: BTreeMap::new(),
         artifacts: BTreeMap::new(),
         metrics: JobMetrics::default(),
+        diagnostics: Vec::new(),
         spec: new.spec,
         cancel_requested: false,
         created_at_ms: new.now_ms,

@@ -97,6 +97,7 @@ suite!(
     tokens_are_found_by_hash_listed_and_revoked_once,
     active_jobs_are_counted_per_client,
     calibrations_are_versioned_in_order_and_the_newest_is_in_force,
+    stage_diagnostics_are_kept_with_the_stage_and_read_back_in_stage_order,
 );
 
 fn result(stage: Stage) -> StageResult {
@@ -372,4 +373,35 @@ async fn calibrations_are_versioned_in_order_and_the_newest_is_in_force(db: Db) 
     // The same id twice is refused and changes nothing.
     assert!(s.create_calibration(&rec("cal_a", 30)).await.is_err());
     assert_eq!(s.list_calibrations(10).await.expect("list").len(), 2);
+}
+
+async fn stage_diagnostics_are_kept_with_the_stage_and_read_back_in_stage_order(db: Db) {
+    let s = db.store().await;
+    s.create(new("j1", None)).await.expect("create");
+    s.claim("w", 10, 1000).await.expect("claim").expect("job");
+    let mut execute = result(Stage::Execute);
+    execute.outputs.set_diagnostics([
+        ("machine".to_string(), "line 12: feed 9000 mm/min clamped to 6000 \"F\" ✓".to_string()),
+        ("material_left".to_string(), "face 1: 3.5 mm² around (1.0, -2.0) mm".to_string()),
+    ]);
+    s.begin_attempt("j1", "w", Stage::Execute, 11).await.expect("begin");
+    s.complete_stage("j1", "w", &execute, Some(Stage::Report), 0.5, 12).await.expect("execute");
+    let mut report = result(Stage::Report);
+    report.outputs.set_diagnostics([("report".to_string(), "done".to_string())]);
+    s.begin_attempt("j1", "w", Stage::Report, 13).await.expect("begin");
+    s.complete_stage("j1", "w", &report, None, 1.0, 14).await.expect("report");
+    let job = s.get("j1").await.expect("get").expect("job");
+    let got: Vec<(Stage, &str, &str)> =
+        job.diagnostics.iter().map(|d| (d.stage, d.code.as_str(), d.message.as_str())).collect();
+    assert_eq!(
+        got,
+        [
+            (Stage::Execute, "machine", "line 12: feed 9000 mm/min clamped to 6000 \"F\" ✓"),
+            (Stage::Execute, "material_left", "face 1: 3.5 mm² around (1.0, -2.0) mm"),
+            (Stage::Report, "report", "done"),
+        ]
+    );
+    // Listed jobs carry them too.
+    let page = s.list(None, 10, None).await.expect("list");
+    assert_eq!(page.jobs.first().map(|j| j.diagnostics.len()), Some(3));
 }

@@ -81,6 +81,47 @@ impl Ctx<'_> {
         section("summary", "Summary", &kv_table(&rows))
     }
 
+    /// What the stages' services said (the job's `diagnostics`): first what could not be done or
+    /// is only assumed, with where, then the rest (choices and their reasons) folded. Nothing when
+    /// the job has none.
+    pub(crate) fn findings(&self) -> String {
+        let Some(all) = self.job["diagnostics"].as_array().filter(|d| !d.is_empty()) else {
+            return String::new();
+        };
+        let row = |d: &Value| {
+            vec![
+                esc(d["stage"].as_str().unwrap_or("?")),
+                format!("<code>{}</code>", esc(d["code"].as_str().unwrap_or("?"))),
+                esc(d["message"].as_str().unwrap_or("")),
+            ]
+        };
+        let (attention, notes): (Vec<&Value>, Vec<&Value>) =
+            all.iter().partition(|d| d["code"].as_str().is_some_and(needs_attention));
+        let mut body = String::new();
+        if attention.is_empty() {
+            body.push_str("<p>No stage reported material it could not reach, surface it did not see or a run warning.</p>");
+        } else {
+            let _ = write!(
+                body,
+                r#"<p class="missing">{} finding(s) where the part will not be what the model shows: material the tools cannot reach, surface no orientation or scan saw, or warnings of the run.</p>"#,
+                attention.len()
+            );
+            let rows: Vec<Vec<String>> = attention.iter().map(|d| row(d)).collect();
+            body.push_str(&table(&["stage", "code", "what and where"], &rows));
+        }
+        if !notes.is_empty() {
+            let rows: Vec<Vec<String>> = notes.iter().map(|d| row(d)).collect();
+            let _ = write!(
+                body,
+                "<details><summary>{} further note(s) of the stages (choices and their reasons)</summary>",
+                notes.len()
+            );
+            body.push_str(&table(&["stage", "code", "message"], &rows));
+            body.push_str("</details>");
+        }
+        section("findings", "What the stages found", &body)
+    }
+
     pub(crate) fn parameters(&self) -> String {
         let mut body = String::new();
         let spec = &self.job["spec"];
@@ -180,4 +221,29 @@ impl Ctx<'_> {
         }
         section("parameters", "Job parameters and timings", &body)
     }
+}
+
+/// Diagnostic codes that say the part will differ from the model (as opposed to notes on what was
+/// chosen): material left, surface not reached or not seen, a unit guess, a run warning.
+fn needs_attention(code: &str) -> bool {
+    matches!(
+        code,
+        "material_left"
+            | "unreachable_surface"
+            | "face_mostly_assumed"
+            | "unseen_filled"
+            | "units_warning"
+            | "non_finite_points"
+            | "silhouette_unseen"
+            | "machine"
+            | "rapid_cut"
+            | "blocked"
+            | "unreachable"
+            | "out_of_reach"
+            | "too_narrow"
+            | "open_chains"
+            | "layer_defects"
+            | "mesh_not_closed"
+            | "diagnostics_truncated"
+    ) || code.ends_with("_warning")
 }
