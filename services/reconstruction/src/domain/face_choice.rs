@@ -17,8 +17,13 @@
 //!    undercut) or at the bottom of a too-narrow pocket is not.
 //!
 //! A point cloud has no surface under what the scanner saw (the part stands on the table): a cap
-//! under its footprint, at its lowest height, hides the inside of the cloud from orientations
-//! that look up at it. A closed mesh hides its own inside.
+//! under its footprint, at its lowest height, with the table a few cells thick under it, hides
+//! the inside of the cloud from orientations that look up at it (and keeps a side view from
+//! reaching the part's lowest layer by going down past it), and walls under the surface seen
+//! from above, from each cell's highest
+//! point down to its lowest neighbour's, hide it from orientations that look from the side
+//! (without them a top surface seen edge-on would stand like a sheet in air, its far side open,
+//! and count as reached by the tool's side). A closed mesh hides its own inside.
 //!
 //! The choice is exact where it can be: for `k = 1, 2, …` faces, every `k`-subset of the
 //! candidates is tried while there are at most [`EXACT_SUBSETS`] of them (greedy beyond), and the
@@ -56,6 +61,9 @@ pub const DEFAULT_TOLERANCE_MM: f64 = 0.2;
 pub const EXACT_SUBSETS: u64 = 20_000;
 /// Most surface samples; a finer cell that would give more is coarsened.
 pub const MAX_SAMPLES: usize = 400_000;
+/// Layers of occluders under a cloud's cap (the table it stood on), each a sampling cell apart:
+/// enough that a sample on the part's lowest layer has solid under it in every view.
+const TABLE_LAYERS: u32 = 2;
 /// Unreached regions listed in the report, largest first.
 const MAX_REGIONS: usize = 8;
 
@@ -160,8 +168,9 @@ fn sampling_cell(cell_mm: f64, area_mm2: f64) -> f64 {
 }
 
 impl SurfaceSamples {
-    /// Samples of a point cloud: one point per `cell_mm` voxel, and a cap under the footprint
-    /// seen from above (+Z), at the lowest height of the cloud.
+    /// Samples of a point cloud: one point per `cell_mm` voxel; as occluders, a cap under the
+    /// footprint seen from above (+Z) at the lowest height of the cloud with [`TABLE_LAYERS`]
+    /// more under it, and each footprint cell's wall down to its lowest 4-neighbour.
     pub fn from_cloud(cloud: &PointCloud, cell_mm: f64) -> Result<SurfaceSamples> {
         let finite: Vec<Point3<f32>> =
             cloud.points.iter().copied().filter(|p| p.coords.iter().all(|c| c.is_finite())).collect();
@@ -176,12 +185,34 @@ impl SurfaceSamples {
         let z_min = points.iter().map(|p| p.z).fold(f64::INFINITY, f64::min);
         let grid = grid_for_roi(&roi, cell)?;
         let (top, _) = try_rasterize_max(&points, &grid)?;
+        let top_at = |col: i64, row: i64| -> f64 {
+            if col < 0 || row < 0 {
+                return z_min;
+            }
+            top.get(col as u32, row as u32).filter(|z| z.is_finite()).map_or(z_min, f64::from)
+        };
         let mut occluders = Vec::new();
         for row in 0..top.height() {
             for col in 0..top.width() {
-                if top.get(col, row).is_some_and(f32::is_finite) {
-                    let (x, y) = grid.cell_center(col, row);
-                    occluders.push(Point3::new(x, y, z_min));
+                let Some(t) = top.get(col, row).filter(|z| z.is_finite()).map(f64::from) else { continue };
+                let (x, y) = grid.cell_center(col, row);
+                // The cap, and the table under it: nothing reaches the part's underside by
+                // going down past its lowest point.
+                for k in 0..=TABLE_LAYERS {
+                    occluders.push(Point3::new(x, y, z_min - f64::from(k) * cell));
+                }
+                // The wall down to the lowest 4-neighbour: the body under the surface seen from
+                // above is solid to its outline, so a side view does not look through it.
+                let (c, r) = (i64::from(col), i64::from(row));
+                let lo = [(c - 1, r), (c + 1, r), (c, r - 1), (c, r + 1)]
+                    .into_iter()
+                    .map(|(cc, rr)| top_at(cc, rr))
+                    .fold(t, f64::min)
+                    .max(z_min);
+                let mut z = t - cell;
+                while z > lo {
+                    occluders.push(Point3::new(x, y, z));
+                    z -= cell;
                 }
             }
         }
@@ -651,4 +682,4 @@ impl FaceChoiceReport {
 }
 
 #[cfg(test)]
-mod tests;
+pub(crate) mod tests;

@@ -597,25 +597,82 @@ pub fn reconstruct_with_free_space(
                 choice_report = Some(choose(&mut r, &samples, &settings, cancelled)?);
             }
             centre_turned_faces(&mut r, cloud.bounds());
+            // A cloud the scanner took from above, the part on the table (its free space says
+            // so), is solid under what the scanner saw: a turned face sees only the points that
+            // body does not hide from the side it looks from.
+            let body = match free_space {
+                Some(f) if !f.is_empty() && r.faces.iter().any(|fr| fr.face != Face::PosZ) => {
+                    progress(0.25, "the part's body seen from above, for the turned faces");
+                    let map = body_from_above(&cloud.points, f, &r, cancelled)?;
+                    let surface = body_surface(&map, table_height(f, &map));
+                    Some((map, surface))
+                }
+                _ => None,
+            };
             let n_faces = r.faces.len() as f64;
             let kept = cloud.len();
             for (i, frame) in r.faces.iter().enumerate() {
                 progress(0.3 + 0.7 * i as f64 / n_faces, &format!("face {}: rasterising", frame.face));
                 let iso = frame.face_from_part();
+                let visible = body.as_ref().filter(|_| frame.face != Face::PosZ).map(|(b, _)| {
+                    let up = iso.rotation.inverse() * Vector3::z();
+                    visible_from(&cloud.points, &up, b, occlusion_tolerance_mm(r.pixel_mm))
+                });
                 // The cloud itself for a face that views it as it is (`+Z`, no origin), else a
-                // turned copy (single precision, like the cloud).
+                // turned copy (single precision, like the cloud) of the points it sees.
                 let turned: Vec<Point3<f32>>;
-                let points: &[Point3<f32>] = if iso == Isometry3::identity() {
+                let points: &[Point3<f32>] = if iso == Isometry3::identity() && visible.is_none() {
                     &cloud.points
                 } else {
-                    turned = cloud.points.par_iter().map(|p| single(&(iso * p.at()))).collect();
+                    turned = match &visible {
+                        Some(v) => cloud
+                            .points
+                            .par_iter()
+                            .zip(v.par_iter())
+                            .filter(|(_, seen)| **seen)
+                            .map(|(p, _)| single(&(iso * p.at())))
+                            .collect(),
+                        None => cloud.points.par_iter().map(|p| single(&(iso * p.at()))).collect(),
+                    };
                     &turned
                 };
+                if points.is_empty() {
+                    return Err(ReconError::Empty(format!(
+                        "reconstruct.faces[{i}] ({}): the scanned part's body hides every point of the cloud from that side (the scanner saw it from above)",
+                        frame.face
+                    )));
+                }
+                // Seen past the body, an empty cell is surface nobody saw from that side (a wall
+                // the scanner saw edge-on, or not at all), not a gap between scan lines: it is
+                // lidded at the height around it, never interpolated from what lies behind. The
+                // map covers the whole part as the face sees it, hidden points included.
+                // The body's surface seen from the face bounds the part from that side.
+                let bound: Option<Vec<Point3<f32>>> = body
+                    .as_ref()
+                    .filter(|_| visible.is_some())
+                    .map(|(_, surface)| surface.par_iter().map(|p| single(&(iso * p))).collect());
+                let face_r = bound.as_ref().map(|bound| {
+                    let roi = r.roi.or_else(|| {
+                        let all: Vec<Point3<f32>> = cloud
+                            .points
+                            .par_iter()
+                            .map(|p| single(&(iso * p.at())))
+                            .chain(bound.par_iter().copied())
+                            .collect();
+                        Roi::around(&all, r.margin_mm)
+                    });
+                    Resolved { roi, fill: FillParams { max_hole_mm: 0.0, ..r.fill }, ..r.clone() }
+                });
                 // Free space is what the scanner saw from above: it speaks for the top view only.
                 let free: Option<Vec<Point3<f64>>> = free_space
                     .filter(|f| !f.is_empty() && frame.face == depthmill_geometry::Face::PosZ)
                     .map(|f| f.iter().map(|p| iso * p.at()).collect());
-                faces.push(cloud_face(points, free.as_deref(), *frame, &r, i, cancelled)?);
+                let face_r = face_r.as_ref().unwrap_or(&r);
+                let mut face = cloud_face(points, free.as_deref(), *frame, face_r, i, cancelled)?;
+                if let Some(bound) = &bound {
+                    lid_with_body(&mut face, bound, face_r)?;
+                }
+                faces.push(face);
             }
             ("point_cloud", kept, reports)
         }
@@ -652,6 +709,222 @@ pub fn reconstruct_with_free_space(
         face_choice: choice_report,
     };
     Ok(ReconstructOutput { faces, report })
+}
+
+/// The part's body as the scanner saw it from above: the `+Z` map of the cloud at the job's
+/// pixel, highest point per cell, with the free space and the unseen fill of a `+Z` face (a cell
+/// where the table was seen is empty, any other empty one is lidded at the height around it),
+/// over the whole cloud whatever the job's region of interest. The part lies under it.
+fn body_from_above(
+    points: &[Point3<f32>],
+    free_space: &[Point3<f32>],
+    r: &Resolved,
+    cancelled: CancelFn<'_>,
+) -> Result<HeightMap> {
+    let free: Vec<Point3<f64>> = free_space.iter().map(|p| p.at()).collect();
+    // An empty cell between measurements is lidded at the height around it, not interpolated:
+    // the body bounds the part from above, at a step's edge too.
+    let fill = FillParams { max_hole_mm: 0.0, ..r.fill };
+    let rb = Resolved { roi: None, estimator: CellEstimator::Max, fill, ..r.clone() };
+    let frame = FaceFrame { face: Face::PosZ, origin: None };
+    Ok(cloud_face(points, Some(&free), frame, &rb, 0, cancelled)?.depth_map)
+}
+
+/// The height of the table the part stood on: the median of the free space's heights (the
+/// table the scanner saw past the part), never above the body's lowest cell.
+fn table_height(free_space: &[Point3<f32>], body: &HeightMap) -> f64 {
+    let mut z: Vec<f32> = free_space.iter().map(|p| p.z).filter(|z| z.is_finite()).collect();
+    let lowest = body.z_range_of_data().map_or(f64::INFINITY, |(lo, _)| f64::from(lo));
+    if z.is_empty() {
+        return lowest;
+    }
+    let mid = z.len() / 2;
+    let (_, m, _) = z.select_nth_unstable_by(mid, f32::total_cmp);
+    f64::from(*m).min(lowest)
+}
+
+/// The surface of the body ([`body_from_above`]) standing on the table at `floor`, as points
+/// (part frame) every half cell: each cell's column, its top and each side that stands above the
+/// neighbouring column (or the table). Seen from any side, a map at the body's pixel gets a point
+/// in every cell the body covers.
+fn body_surface(body: &HeightMap, floor: f64) -> Vec<Point3<f64>> {
+    let px = body.pixel_mm();
+    let (w, h) = (body.width(), body.height());
+    let height = |c: i64, r: i64| -> f64 {
+        if c < 0 || r < 0 || c >= i64::from(w) || r >= i64::from(h) {
+            return floor;
+        }
+        body.get(c as u32, r as u32).filter(|z| z.is_finite()).map_or(floor, |z| f64::from(z).max(floor))
+    };
+    (0..h)
+        .into_par_iter()
+        .flat_map_iter(|r| {
+            let mut out = Vec::new();
+            for c in 0..w {
+                let Some(t) = body.get(c, r).filter(|z| z.is_finite()).map(|z| f64::from(z).max(floor))
+                else {
+                    continue;
+                };
+                let (cx, cy) = body.cell_center(c, r);
+                let q = 0.25 * px;
+                for (dx, dy) in [(-q, -q), (q, -q), (-q, q), (q, q)] {
+                    out.push(Point3::new(cx + dx, cy + dy, t));
+                }
+                // Sides, just inside this cell, down to the lower neighbour.
+                let inside = 0.5 * px * (1.0 - 1e-3);
+                let (ci, ri) = (i64::from(c), i64::from(r));
+                for (nc, nr, ox, oy) in [
+                    (ci - 1, ri, -1.0, 0.0),
+                    (ci + 1, ri, 1.0, 0.0),
+                    (ci, ri - 1, 0.0, -1.0),
+                    (ci, ri + 1, 0.0, 1.0),
+                ] {
+                    let lo = height(nc, nr);
+                    if t - lo <= 1e-9 {
+                        continue;
+                    }
+                    // From half a cell under the top down, then the foot on the neighbour.
+                    let steps = ((t - lo) / (0.5 * px)).ceil().min(1e5) as usize;
+                    for k in 1..=steps {
+                        let z = (t - 0.5 * px * k as f64).max(lo);
+                        for along in [-q, q] {
+                            let (x, y) = if ox != 0.0 {
+                                (cx + ox * inside, cy + along)
+                            } else {
+                                (cx + along, cy + oy * inside)
+                            };
+                            out.push(Point3::new(x, y, z));
+                        }
+                    }
+                }
+            }
+            out
+        })
+        .collect()
+}
+
+/// Raises a turned face's cells no visible point showed (assumed, lidded at the height around
+/// them) to the body's surface seen from that face, `bound` (in the face's frame): the height
+/// around an unseen region is what lies behind it, while the body bounds what may stand in front.
+/// The roughing map is raised alike, and the map's range widened when the user set none.
+fn lid_with_body(face: &mut FaceOutput, bound: &[Point3<f32>], r: &Resolved) -> Result<()> {
+    let grid = *face.depth_map.meta();
+    let (front, _) = try_rasterize_max(bound, &grid)?;
+    let mut raised = 0usize;
+    for (((z, c), f), rough) in face
+        .depth_map
+        .data_mut()
+        .iter_mut()
+        .zip(face.coverage_map.data())
+        .zip(front.data())
+        .zip(face.roughing_map.data_mut())
+    {
+        if !f.is_finite() {
+            continue;
+        }
+        if *c == COVERAGE_ASSUMED && *z < *f {
+            *z = *f;
+            raised += 1;
+        }
+        if rough.is_nan() || *rough < *z {
+            *rough = *z;
+        }
+    }
+    if raised > 0 {
+        let hi = face.depth_map.z_range_of_data().map_or(grid.z_max_mm, |(_, hi)| f64::from(hi));
+        let z_max = r.z_range.1.unwrap_or(grid.z_max_mm.max(hi));
+        face.depth_map.set_z_range(grid.z_min_mm, z_max)?;
+        face.roughing_map.set_z_range(grid.z_min_mm, z_max)?;
+        face.stats.z_max_mm = z_max;
+    }
+    Ok(())
+}
+
+/// How far above the ray towards the tool the body must stand to hide a point, mm: the scanner's
+/// noise on the highest point of a cell, and half a cell of slope.
+fn occlusion_tolerance_mm(pixel_mm: f64) -> f64 {
+    (0.5 * pixel_mm).max(0.1)
+}
+
+/// Which `points` (part frame) a face whose tool comes from direction `up` (part frame, unit)
+/// sees past `body` ([`body_from_above`]: the part is solid under it): a point is hidden when the
+/// ray from it towards the tool crosses a cell other than the point's own at `tol` or more under
+/// the body's height there (the ray's lowest height in the cell). The cells are walked in the
+/// order the ray crosses them (a grid traversal, exact), until the ray leaves the map or rises
+/// above the body's highest cell. A face looking straight down (`up` = +Z) sees every point.
+pub fn visible_from(points: &[Point3<f32>], up: &Vector3<f64>, body: &HeightMap, tol: f64) -> Vec<bool> {
+    if up.x.abs() < 1e-12 && up.y.abs() < 1e-12 {
+        return vec![true; points.len()];
+    }
+    let top = body.data().iter().copied().filter(|z| z.is_finite()).fold(f32::NEG_INFINITY, f32::max);
+    let top = f64::from(top) + tol;
+    let px = body.pixel_mm();
+    let (w, h) = (i64::from(body.width()), i64::from(body.height()));
+    let (x0, y0) = (body.origin_x_mm(), body.origin_y_mm());
+    let hidden_in = |c: i64, r: i64, z_low: f64| {
+        (0..w).contains(&c)
+            && (0..h).contains(&r)
+            && body.get(c as u32, r as u32).is_some_and(|t| t.is_finite() && f64::from(t) >= z_low + tol)
+    };
+    points
+        .par_iter()
+        .map(|p| {
+            let p = p.at();
+            if !p.coords.iter().all(|c| c.is_finite()) {
+                return false;
+            }
+            // Position in cells; the ray's parameter is the distance along `up`.
+            let (u, v) = ((p.x - x0) / px, (p.y - y0) / px);
+            let (mut c, mut r) = (u.floor() as i64, v.floor() as i64);
+            let axis = |o: f64, cell: i64, d: f64| -> (i64, f64, f64) {
+                let d = d / px;
+                if d > 0.0 {
+                    (1, (cell as f64 + 1.0 - o) / d, 1.0 / d)
+                } else if d < 0.0 {
+                    (-1, (cell as f64 - o) / d, -1.0 / d)
+                } else {
+                    (0, f64::INFINITY, f64::INFINITY)
+                }
+            };
+            let (sc, mut next_c, dc) = axis(u, c, up.x);
+            let (sr, mut next_r, dr) = axis(v, r, up.y);
+            // Where the ray leaves the grid's rectangle (or never enters it).
+            let leave = |o: f64, d: f64, n: i64| -> f64 {
+                let d = d / px;
+                if d > 0.0 {
+                    (n as f64 - o) / d
+                } else if d < 0.0 {
+                    -o / d
+                } else if (0.0..n as f64).contains(&o) {
+                    f64::INFINITY
+                } else {
+                    f64::NEG_INFINITY
+                }
+            };
+            let end = leave(u, up.x, w).min(leave(v, up.y, h));
+            loop {
+                let entry = next_c.min(next_r);
+                if entry >= end {
+                    return true;
+                }
+                if next_c < next_r {
+                    c += sc;
+                    next_c += dc;
+                } else {
+                    r += sr;
+                    next_r += dr;
+                }
+                let exit = next_c.min(next_r).min(end);
+                let z_low = p.z + up.z * if up.z >= 0.0 { entry } else { exit };
+                if up.z >= 0.0 && z_low > top {
+                    return true;
+                }
+                if hidden_in(c, r, z_low) {
+                    return false;
+                }
+            }
+        })
+        .collect()
 }
 
 /// Centres a turned set-up on the A axis: when any face of `r` is not `+Z`, the faces without
@@ -1276,6 +1549,173 @@ mod tests {
         let free = PointCloud::from_points(table.iter().copied()).points;
         reconstruct_with_free_space(Geometry::Cloud(cloud), opts, Some(&free), &|_, _| {}, &|| false)
             .expect("reconstruct")
+    }
+
+    #[test]
+    fn a_turned_face_of_a_scan_sees_nothing_through_the_part() {
+        // A pocketed block with a step in its pocket, on a wider base, scanned from above: the
+        // cloud holds what faces up (the steep walls went unseen), the free space the table
+        // around it. Seen from the side, the step's top lies behind the pocket's wall: a map
+        // taking it as the surface there would cut through the wall to reach it.
+        use crate::domain::face_choice::tests::{POCKETED_BLOCK, boxes};
+        let list: Vec<_> = POCKETED_BLOCK.into_iter().chain([([7.0, 7.0, 5.0], [13.0, 13.0, 8.0])]).collect();
+        let part = boxes(&list);
+        let solid =
+            |p: Point3<f64>| list.iter().any(|(lo, hi)| (0..3).all(|k| lo[k] <= p[k] && p[k] <= hi[k]));
+        // The boxes' faces on the part's outside (a face two boxes share is inside the solid).
+        let surface: Vec<Point3<f64>> = SurfaceSamples::from_mesh(&part, 0.2)
+            .expect("samples")
+            .points
+            .into_iter()
+            .filter(|p| (0..3).any(|k| [-1e-3, 1e-3].iter().any(|d| !solid(p + Vector3::ith(k, *d)))))
+            .collect();
+        let up_facing = |p: &Point3<f64>| {
+            let within = |lo: f64, hi: f64| (lo..=hi).contains(&p.x) && (lo..=hi).contains(&p.y);
+            let at = |z: f64| (p.z - z).abs() < 1e-6;
+            (at(2.0) && !within(0.0, 20.0))
+                || at(12.0)
+                || (at(8.0) && within(7.0, 13.0))
+                || (at(5.0) && within(4.0, 16.0) && !within(7.0, 13.0))
+        };
+        let cloud = PointCloud::from_points(surface.iter().copied().filter(up_facing));
+        let table: Vec<Point3<f64>> = (0..=140)
+            .flat_map(|i| {
+                (0..=140)
+                    .map(move |j| Point3::new(-10.0 + 0.3 * f64::from(i), -10.0 + 0.3 * f64::from(j), 0.0))
+            })
+            .filter(|p| !((-5.0..=25.0).contains(&p.x) && (-5.0..=25.0).contains(&p.y)))
+            .collect();
+        let opts = ReconstructOptions {
+            pixel_mm: Some(0.25),
+            faces: Some(vec![
+                FaceOptions { view: Some("+Z".into()), ..Default::default() },
+                FaceOptions { a_deg: Some(-90.0), ..Default::default() },
+                FaceOptions { a_deg: Some(-45.0), ..Default::default() },
+            ]),
+            filters: Some(FilterOptions::default()),
+            ..Default::default()
+        };
+        let out = over_table(cloud.clone(), &table, &opts);
+        // The highest of the map's cells around a point's: a face seen edge-on lies on a cell's
+        // edge, and either cell holds it.
+        let around = |map: &HeightMap, v: Point3<f64>| -> Option<f64> {
+            let (c, r) = map.cell_of(v.x, v.y)?;
+            let mut best: Option<f64> = None;
+            for (dc, dr) in [(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 0), (0, 1), (1, -1), (1, 0), (1, 1)] {
+                let (cc, rr) = (i64::from(c) + dc, i64::from(r) + dr);
+                if cc < 0 || rr < 0 {
+                    continue;
+                }
+                if let Some(z) = map.get(cc as u32, rr as u32).filter(|z| z.is_finite()) {
+                    best = Some(best.map_or(f64::from(z), |b: f64| b.max(f64::from(z))));
+                }
+            }
+            best
+        };
+        for face in &out.faces[1..] {
+            // No cell of the turned map lies below the part's surface seen from that side.
+            let view = face.depth_map.meta().view_from_part();
+            let worst = surface
+                .iter()
+                .filter_map(|p| {
+                    let v = view * p;
+                    around(&face.depth_map, v).map(|z| v.z - z)
+                })
+                .fold(0.0f64, f64::max);
+            assert!(worst < 0.3, "{}: the map lies {worst:.2} mm inside the part", face.stats.face);
+        }
+        // Without the free space nothing says the cloud was scanned from above: every point
+        // counts, and the step shows through the wall.
+        let plain = reconstruct(Geometry::Cloud(cloud), &opts, &|_, _| {}, &|| false).expect("reconstruct");
+        let through = plain.faces[1..]
+            .iter()
+            .flat_map(|side| {
+                let view = side.depth_map.meta().view_from_part();
+                surface.iter().filter_map(move |p| {
+                    let v = view * p;
+                    let (c, r) = side.depth_map.cell_of(v.x, v.y)?;
+                    side.depth_map.get(c, r).filter(|z| z.is_finite()).map(|z| v.z - f64::from(z))
+                })
+            })
+            .fold(0.0f64, f64::max);
+        assert!(through > 3.0, "the case shows what the body prevents: {through}");
+    }
+
+    /// The obviously right visibility: every cell of the body the ray from the point crosses (its
+    /// exact entry and exit), hidden when the ray's lowest height in a crossed cell other than the
+    /// point's own is `tol` or more under the cell's height.
+    fn visible_reference(p: Point3<f64>, up: Vector3<f64>, body: &HeightMap, tol: f64) -> bool {
+        let own = body.cell_of(p.x, p.y);
+        for r in 0..body.height() {
+            for c in 0..body.width() {
+                if Some((c, r)) == own {
+                    continue;
+                }
+                let Some(t) = body.get(c, r).filter(|z| z.is_finite()) else { continue };
+                let (cx, cy) = body.cell_center(c, r);
+                let half = 0.5 * body.pixel_mm();
+                // The ray's parameter interval inside the cell's square (slab method).
+                let (mut lo, mut hi) = (0.0f64, f64::INFINITY);
+                for (o, d, centre) in [(p.x, up.x, cx), (p.y, up.y, cy)] {
+                    if d.abs() < 1e-12 {
+                        if o < centre - half || o >= centre + half {
+                            lo = f64::INFINITY;
+                        }
+                    } else {
+                        let (a, b) = ((centre - half - o) / d, (centre + half - o) / d);
+                        lo = lo.max(a.min(b));
+                        hi = hi.min(a.max(b));
+                    }
+                }
+                if lo < hi {
+                    let z_low = p.z + up.z * if up.z >= 0.0 { lo } else { hi };
+                    if f64::from(t) >= z_low + tol {
+                        return false;
+                    }
+                }
+            }
+        }
+        true
+    }
+
+    #[test]
+    fn visibility_past_the_body_matches_a_cell_by_cell_reference() {
+        let mut rng = StdRng::seed_from_u64(11);
+        for case in 0..40 {
+            let (w, h) = (rng.random_range(3..14u32), rng.random_range(3..14u32));
+            let meta = depthmill_geometry::HeightMapMeta {
+                origin_x_mm: rng.random_range(-3.0..3.0),
+                origin_y_mm: rng.random_range(-3.0..3.0),
+                ..depthmill_geometry::HeightMapMeta::new(w, h, 0.5)
+            };
+            let data: Vec<f32> = (0..w * h)
+                .map(|_| if rng.random_bool(0.2) { f32::NAN } else { rng.random_range(0.0..6.0) })
+                .collect();
+            let body = HeightMap::new(meta, data).expect("map");
+            let points: Vec<Point3<f32>> = (0..60)
+                .map(|_| {
+                    Point3::new(
+                        rng.random_range(-4.0..10.0),
+                        rng.random_range(-4.0..10.0),
+                        rng.random_range(-1.0..7.0),
+                    )
+                })
+                .collect();
+            // The A faces (rays along Y) and turns about other axes.
+            let a = rng.random_range(-90.0f64..=90.0).to_radians();
+            let up = if case % 2 == 0 {
+                Vector3::new(0.0, -a.sin(), a.cos())
+            } else {
+                let b = rng.random_range(0.0..std::f64::consts::TAU);
+                Vector3::new(a.sin() * b.cos(), a.sin() * b.sin(), a.cos())
+            };
+            let tol = 0.1;
+            let fast = visible_from(&points, &up, &body, tol);
+            for (p, seen) in points.iter().zip(&fast) {
+                let exact = visible_reference(p.at(), up, &body, tol);
+                assert_eq!(*seen, exact, "case {case}: {p:?} up {up:?}");
+            }
+        }
     }
 
     /// The height of the cell holding `(x, y)`, NaN off the grid or without data.

@@ -11,7 +11,17 @@ fn never() -> bool {
 
 /// Boxes `[lo, hi]` as one mesh (touching boxes keep their shared faces: samples there are
 /// inside the solid and never reached).
-fn boxes(list: &[([f64; 3], [f64; 3])]) -> Mesh {
+/// A 20 × 20 × 12 mm block on a 30 × 30 × 2 mm base, with a 12 × 12 × 7 mm pocket in its top.
+pub(crate) const POCKETED_BLOCK: [([f64; 3], [f64; 3]); 6] = [
+    ([-5.0, -5.0, 0.0], [25.0, 25.0, 2.0]),
+    ([0.0, 0.0, 2.0], [20.0, 20.0, 5.0]),
+    ([0.0, 0.0, 5.0], [20.0, 4.0, 12.0]),
+    ([0.0, 16.0, 5.0], [20.0, 20.0, 12.0]),
+    ([0.0, 4.0, 5.0], [4.0, 16.0, 12.0]),
+    ([16.0, 4.0, 5.0], [20.0, 16.0, 12.0]),
+];
+
+pub(crate) fn boxes(list: &[([f64; 3], [f64; 3])]) -> Mesh {
     let mut m = Mesh { vertices: Vec::new(), triangles: Vec::new() };
     for (lo, hi) in list {
         let mut b = Mesh::cuboid(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]);
@@ -160,6 +170,59 @@ fn a_scanned_cloud_is_not_seen_from_inside() {
     let (faces, report) = choose_faces(&samples, &s, &never).expect("choice");
     assert_eq!(faces, vec![Face::PosZ], "{report:#?}");
     assert!(report.covered_pct > 99.5, "{report:#?}");
+}
+
+#[test]
+fn a_cloud_seen_only_from_above_is_solid_from_the_side() {
+    // A pocketed block on a wider base, scanned from above with its steep walls unseen: the
+    // cloud holds the base's rim, the block's top and the pocket's floor, nothing vertical.
+    let part = boxes(&POCKETED_BLOCK);
+    let all = SurfaceSamples::from_mesh(&part, 0.25).expect("samples");
+    let inside = |p: &Point3<f64>, lo: f64, hi: f64| (lo..=hi).contains(&p.x) && (lo..=hi).contains(&p.y);
+    let seen: Vec<Point3<f64>> = all
+        .points
+        .into_iter()
+        .filter(|p| {
+            ((p.z - 2.0).abs() < 1e-6 && !inside(p, 0.0, 20.0))
+                || (p.z - 12.0).abs() < 1e-6
+                || ((p.z - 5.0).abs() < 1e-6 && inside(p, 4.0, 16.0))
+        })
+        .collect();
+    let cloud = PointCloud::from_points(seen);
+    let s = FaceChoiceSettings { step_deg: 45.0, ..Default::default() };
+    let samples = SurfaceSamples::from_cloud(&cloud, s.cell_mm).expect("samples");
+    let floor = sample_index(&samples, Point3::new(10.0, 10.0, 5.0));
+    assert!(reached(&samples, Face::PosZ, &s).expect("reach")[floor], "from above");
+    for a in [-90.0, -45.0, 45.0, 90.0] {
+        let f = Face::A { angle_deg: a };
+        assert!(!reached(&samples, f, &s).expect("reach")[floor], "{f}: through the pocket's walls");
+    }
+    let (faces, report) = choose_faces(&samples, &s, &never).expect("choice");
+    assert_eq!(faces, vec![Face::PosZ], "{report:#?}");
+}
+
+#[test]
+fn a_cloud_s_lowest_layer_is_not_reached_past_the_table() {
+    // A slab scanned from above, and under its overhang a few points of the floor plate it
+    // stands on (seen at a tilt): the lowest layer of the cloud, with the table under it.
+    let mut points = Vec::new();
+    for i in 0..=80 {
+        for j in 0..=80 {
+            points.push(Point3::new(0.25 * f64::from(i), 0.25 * f64::from(j), 10.0));
+        }
+    }
+    for i in 0..=32 {
+        for j in 0..=6 {
+            points.push(Point3::new(2.0 + 0.5 * f64::from(i), 2.0 + 0.5 * f64::from(j), 1.0));
+        }
+    }
+    let cloud = PointCloud::from_points(points);
+    let s = FaceChoiceSettings { step_deg: 45.0, ..Default::default() };
+    let samples = SurfaceSamples::from_cloud(&cloud, s.cell_mm).expect("samples");
+    let floor = sample_index(&samples, Point3::new(10.0, 3.0, 1.0));
+    for f in candidates(s.step_deg, samples.max_turn_deg) {
+        assert!(!reached(&samples, f, &s).expect("reach")[floor], "{f}: reached from under the part");
+    }
 }
 
 /// The obviously right reach test: every cell's highest sample by a scan of all samples, the
