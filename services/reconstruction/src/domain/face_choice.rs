@@ -451,10 +451,12 @@ fn for_each_subset(n: usize, k: usize, f: &mut dyn FnMut(&[usize])) {
 /// The best subset of `sets` of each size `1..=max_k` (most samples covered; ties: the earlier
 /// subset in lexicographic order, so lower candidate indices, A nearer 0, win). Exhaustive while
 /// a size has at most [`EXACT_SUBSETS`] subsets, then greedy from the best smaller one.
-/// Returns, per size, the subset and its count, and whether every size was exhaustive.
-fn best_subsets(sets: &[Bits], max_k: usize, tol: u64, cost: &[f64]) -> (Vec<(Vec<usize>, u64)>, bool) {
+/// Returns, per size, the subset, its count and the most any subset of that size covers, and
+/// whether every size was exhaustive.
+type Best = (Vec<usize>, u64, u64);
+fn best_subsets(sets: &[Bits], max_k: usize, tol: u64, cost: &[f64]) -> (Vec<Best>, bool) {
     let n = sets.len();
-    let mut out: Vec<(Vec<usize>, u64)> = Vec::new();
+    let mut out: Vec<Best> = Vec::new();
     let mut exact = true;
     for k in 1..=max_k.min(n) {
         if binomial(n as u64, k as u64) <= EXACT_SUBSETS {
@@ -481,10 +483,11 @@ fn best_subsets(sets: &[Bits], max_k: usize, tol: u64, cost: &[f64]) -> (Vec<(Ve
                     best = Some((s, c));
                 }
             }
-            out.push(best.unwrap_or_default());
+            let (s, c) = best.unwrap_or_default();
+            out.push((s, c, most));
         } else {
             exact = false;
-            let Some((prev, _)) = out.last().cloned() else { break };
+            let Some((prev, ..)) = out.last().cloned() else { break };
             let mut acc = Bits(vec![0; sets[0].0.len()]);
             for &i in &prev {
                 acc.or(&sets[i]);
@@ -502,10 +505,17 @@ fn best_subsets(sets: &[Bits], max_k: usize, tol: u64, cost: &[f64]) -> (Vec<(Ve
             let Some((i, c)) = best else { break };
             let mut s = prev;
             s.push(i);
-            out.push((s, c));
+            out.push((s, c, c));
         }
     }
     (out, exact)
+}
+
+/// Of `best` (per size, [`best_subsets`]), the first whose best count leaves less than
+/// `min_gain_pct` of `n` samples of the `any` some candidate reaches, else the last.
+fn enough(best: &[Best], any: u64, n: u64, min_gain_pct: f64) -> Option<&Best> {
+    let pct = |c: u64| 100.0 * c as f64 / n.max(1) as f64;
+    best.iter().find(|(_, _, most)| pct(any - most) < min_gain_pct || *most == any).or(best.last())
 }
 
 /// Chooses the faces (module docs). `progress` gets a fraction in [0, 1].
@@ -534,18 +544,15 @@ pub fn choose_faces(
     let costs: Vec<f64> = cands.iter().map(|&f| turn_of(f)).collect();
     let (best, exact) = best_subsets(&sets, s.max_faces as usize, tol, &costs);
     // The smallest k whose best subset leaves less than min_gain_pct of what some candidate
-    // reaches (no further face can add as much), else the largest searched.
-    let pick = best
-        .iter()
-        .find(|(_, c)| pct(any - c) < s.min_gain_pct || *c == any)
-        .or(best.last())
-        .cloned()
-        .unwrap_or_default();
+    // reaches (no further face can add as much), else the largest searched; of that size, the
+    // subset the tie-break chose (within min_gain_pct of the best, turning least: judged by the
+    // best's count, so the tie-break never asks for one more face).
+    let (pick, ..) = enough(&best, any, n as u64, s.min_gain_pct).cloned().unwrap_or_default();
     // Order the chosen faces by what each adds: the largest first.
     let mut order: Vec<usize> = Vec::new();
     let mut acc = Bits(vec![0; sets[0].0.len()]);
     let mut chosen = Vec::new();
-    let mut left: Vec<usize> = pick.0.clone();
+    let mut left: Vec<usize> = pick.clone();
     while !left.is_empty() {
         let (j, &i) = left
             .iter()

@@ -328,7 +328,7 @@ fn the_best_subsets_are_the_brute_force_ones() {
         let sets: Vec<Bits> = bools.iter().map(|b| Bits::from_bools(b)).collect();
         let (best, exact) = best_subsets(&sets, 4, 0, &vec![0.0; n_sets]);
         assert!(exact);
-        for (k, (subset, count)) in best.iter().enumerate() {
+        for (k, (subset, count, best_count)) in best.iter().enumerate() {
             assert_eq!(subset.len(), k + 1);
             // Brute force over bitmasks: the most points any (k+1)-subset covers.
             let mut most = 0;
@@ -339,7 +339,7 @@ fn the_best_subsets_are_the_brute_force_ones() {
                 let c = (0..n).filter(|&i| (0..n_sets).any(|j| mask >> j & 1 == 1 && bools[j][i])).count();
                 most = most.max(c as u64);
             }
-            assert_eq!(*count, most, "size {}", k + 1);
+            assert_eq!((*count, *best_count), (most, most), "size {}", k + 1);
             let c = (0..n).filter(|&i| subset.iter().any(|&j| bools[j][i])).count() as u64;
             assert_eq!(c, *count);
         }
@@ -354,7 +354,23 @@ fn about_as_much_reach_with_less_turning_wins() {
     let b: Vec<bool> = vec![true; 100];
     let sets = [Bits::from_bools(&a), Bits::from_bools(&b)];
     let (best, _) = best_subsets(&sets, 1, 1, &[0.0, 15.0]);
-    assert_eq!(best[0], (vec![0], 99));
+    assert_eq!(best[0], (vec![0], 99, 100));
     let (best, _) = best_subsets(&sets, 1, 0, &[0.0, 15.0]);
-    assert_eq!(best[0], (vec![1], 100));
+    assert_eq!(best[0], (vec![1], 100, 100));
+}
+
+#[test]
+fn the_turning_tie_break_never_asks_for_another_face() {
+    // +Z reaches 742 of 1000 samples, A=30 750, A=60 13 more beyond +Z's: the most any one face
+    // reaches leaves less than 1 % of what the candidates reach together, so one face is
+    // enough, and within 1 % of the best the one that does not turn wins: +Z alone (not +Z with
+    // two faces that add under 1 % between them).
+    let n = 1000;
+    let range = |lo: usize, hi: usize| -> Vec<bool> { (0..n).map(|i| (lo..hi).contains(&i)).collect() };
+    let faces = [Face::PosZ, Face::A { angle_deg: 30.0 }, Face::A { angle_deg: 60.0 }];
+    let sets = [range(0, 742), range(0, 750), range(742, 755)].map(|b| Bits::from_bools(&b));
+    let costs: Vec<f64> = faces.iter().map(|&f| turn_of(f)).collect();
+    let (best, _) = best_subsets(&sets, 3, 10, &costs);
+    assert_eq!(best[0], (vec![0], 742, 750));
+    assert_eq!(enough(&best, 755, n as u64, 1.0), Some(&best[0]));
 }
