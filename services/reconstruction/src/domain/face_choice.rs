@@ -28,8 +28,9 @@
 //! The choice is exact where it can be: for `k = 1, 2, …` faces, every `k`-subset of the
 //! candidates is tried while there are at most [`EXACT_SUBSETS`] of them (greedy beyond), and the
 //! smallest `k` whose best subset leaves less than `min_gain_pct` of the surface for another face
-//! to add is taken; subsets within `min_gain_pct` of the best count as equal and the one that
-//! turns the part least wins (`+Z` when it does about as well). A cloud's candidates stop
+//! to add is taken; subsets within `min_gain_pct` of that best count as equal, so the fewest
+//! faces within that margin are taken, and of those the one that turns the part least (`+Z`
+//! when it does about as well; never a face that adds nothing). A cloud's candidates stop
 //! at |A| = 90°: beyond, a view looks up into what the scanner never saw. What no candidate
 //! reaches is reported as regions (centre, extent, area).
 
@@ -460,30 +461,13 @@ fn best_subsets(sets: &[Bits], max_k: usize, tol: u64, cost: &[f64]) -> (Vec<Bes
     let mut exact = true;
     for k in 1..=max_k.min(n) {
         if binomial(n as u64, k as u64) <= EXACT_SUBSETS {
-            let mut all: Vec<(Vec<usize>, u64)> = Vec::new();
+            let mut most = 0;
             for_each_subset(n, k, &mut |s| {
                 let refs: Vec<&Bits> = s.iter().map(|&i| &sets[i]).collect();
-                all.push((s.to_vec(), Bits::union_count(&refs)));
+                most = most.max(Bits::union_count(&refs));
             });
-            let most = all.iter().map(|(_, c)| *c).max().unwrap_or(0);
-            // Of the subsets within `tol` of the most, the one that turns the part least (then
-            // the one that reaches more, then the first).
-            let turn = |s: &[usize]| s.iter().map(|&i| cost.get(i).copied().unwrap_or(0.0)).sum::<f64>();
-            let mut best: Option<(Vec<usize>, u64)> = None;
-            for (s, c) in all.into_iter().filter(|(_, c)| c + tol >= most) {
-                let better = match &best {
-                    None => true,
-                    Some((bs, bc)) => match turn(&s).total_cmp(&turn(bs)) {
-                        std::cmp::Ordering::Less => true,
-                        std::cmp::Ordering::Equal => c > *bc,
-                        std::cmp::Ordering::Greater => false,
-                    },
-                };
-                if better {
-                    best = Some((s, c));
-                }
-            }
-            let (s, c) = best.unwrap_or_default();
+            // Of the subsets within `tol` of the most, the one that turns the part least.
+            let (s, c) = least_turning(sets, k, most.saturating_sub(tol), cost).unwrap_or_default();
             out.push((s, c, most));
         } else {
             exact = false;
@@ -509,6 +493,58 @@ fn best_subsets(sets: &[Bits], max_k: usize, tol: u64, cost: &[f64]) -> (Vec<Bes
         }
     }
     (out, exact)
+}
+
+/// Of the `k`-subsets of `sets` covering at least `floor` samples, the one that turns the part
+/// least (then the one that covers more, then the first in lexicographic order); exhaustive.
+fn least_turning(sets: &[Bits], k: usize, floor: u64, cost: &[f64]) -> Option<(Vec<usize>, u64)> {
+    let turn = |s: &[usize]| s.iter().map(|&i| cost.get(i).copied().unwrap_or(0.0)).sum::<f64>();
+    let mut best: Option<(Vec<usize>, u64, f64)> = None;
+    for_each_subset(sets.len(), k, &mut |s| {
+        let refs: Vec<&Bits> = s.iter().map(|&i| &sets[i]).collect();
+        let c = Bits::union_count(&refs);
+        if c < floor {
+            return;
+        }
+        let t = turn(s);
+        let better = match &best {
+            None => true,
+            Some((_, bc, bt)) => match t.total_cmp(bt) {
+                std::cmp::Ordering::Less => true,
+                std::cmp::Ordering::Equal => c > *bc,
+                std::cmp::Ordering::Greater => false,
+            },
+        };
+        if better {
+            best = Some((s.to_vec(), c, t));
+        }
+    });
+    best.map(|(s, c, _)| (s, c))
+}
+
+/// The faces to take: the size [`enough`] finds, then the fewest faces (turning least) within
+/// `tol` samples of that size's best: a smaller set about as good as the best needs no more.
+fn pick_faces(
+    sets: &[Bits],
+    best: &[Best],
+    any: u64,
+    n: u64,
+    min_gain_pct: f64,
+    tol: u64,
+    cost: &[f64],
+) -> Vec<usize> {
+    let Some((pick, _, most)) = enough(best, any, n, min_gain_pct) else { return Vec::new() };
+    let floor = most.saturating_sub(tol);
+    for (j, (_, _, most_j)) in best.iter().enumerate().take(pick.len().saturating_sub(1)) {
+        let k = j + 1;
+        if *most_j >= floor
+            && binomial(sets.len() as u64, k as u64) <= EXACT_SUBSETS
+            && let Some((s, _)) = least_turning(sets, k, floor, cost)
+        {
+            return s;
+        }
+    }
+    pick.clone()
 }
 
 /// Of `best` (per size, [`best_subsets`]), the first whose best count leaves less than
@@ -544,10 +580,10 @@ pub fn choose_faces(
     let costs: Vec<f64> = cands.iter().map(|&f| turn_of(f)).collect();
     let (best, exact) = best_subsets(&sets, s.max_faces as usize, tol, &costs);
     // The smallest k whose best subset leaves less than min_gain_pct of what some candidate
-    // reaches (no further face can add as much), else the largest searched; of that size, the
-    // subset the tie-break chose (within min_gain_pct of the best, turning least: judged by the
-    // best's count, so the tie-break never asks for one more face).
-    let (pick, ..) = enough(&best, any, n as u64, s.min_gain_pct).cloned().unwrap_or_default();
+    // reaches (no further face can add as much), else the largest searched; then the fewest
+    // faces, turning least, within min_gain_pct of that size's best (judged by the best's count,
+    // so the tie-break never asks for one more face, and a face adding nothing is not taken).
+    let pick = pick_faces(&sets, &best, any, n as u64, s.min_gain_pct, tol, &costs);
     // Order the chosen faces by what each adds: the largest first.
     let mut order: Vec<usize> = Vec::new();
     let mut acc = Bits(vec![0; sets[0].0.len()]);

@@ -373,4 +373,19 @@ fn the_turning_tie_break_never_asks_for_another_face() {
     let (best, _) = best_subsets(&sets, 3, 10, &costs);
     assert_eq!(best[0], (vec![0], 742, 750));
     assert_eq!(enough(&best, 755, n as u64, 1.0), Some(&best[0]));
+    assert_eq!(pick_faces(&sets, &best, 755, n as u64, 1.0, 10, &costs), vec![0]);
+    // When the best single face leaves 1 % or more, a pair is needed (760), but one face within
+    // 1 % of the best pair is one set-up fewer: A=30 alone (750), not +Z with A=60.
+    let sets = [range(0, 742), range(0, 750), range(742, 760)].map(|b| Bits::from_bools(&b));
+    let (best, _) = best_subsets(&sets, 3, 10, &costs);
+    assert_eq!(enough(&best, 760, n as u64, 1.0), Some(&best[1]));
+    assert_eq!(pick_faces(&sets, &best, 760, n as u64, 1.0, 10, &costs), vec![1]);
+    // ... and +Z when it is that close itself.
+    let sets = [range(0, 752), range(0, 750), range(742, 770)].map(|b| Bits::from_bools(&b));
+    let (best, _) = best_subsets(&sets, 3, 10, &costs);
+    assert_eq!(enough(&best, 770, n as u64, 1.0), Some(&best[1]));
+    assert_eq!(pick_faces(&sets, &best, 770, n as u64, 1.0, 10, &costs), vec![0, 2]);
+    let sets = [range(0, 761), range(0, 750), range(742, 770)].map(|b| Bits::from_bools(&b));
+    let (best, _) = best_subsets(&sets, 3, 10, &costs);
+    assert_eq!(pick_faces(&sets, &best, 770, n as u64, 1.0, 10, &costs), vec![0]);
 }
