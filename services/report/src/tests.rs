@@ -1147,3 +1147,36 @@ fn a_face_the_scan_hardly_saw_is_flagged_in_the_report() {
     let j = job("housing", "succeeded", &arts);
     assert!(!render_ok(&j, &arts).html.contains("hardly saw"));
 }
+
+#[test]
+fn the_stages_findings_come_first_where_the_part_differs_and_the_rest_folded() {
+    let arts = BTreeMap::new();
+    let mut j = job("findings", "succeeded", &arts);
+    let html = render_ok(&j, &arts).html;
+    assert!(!has_section(&html, "findings"), "no diagnostics, no section");
+    j["diagnostics"] = json!([
+        {"stage": "reconstruct", "code": "face_choice", "message": "faces chosen from the shape: +Z (+98.1 %)"},
+        {"stage": "plan", "code": "material_left", "message": "face 1: 5.9 mm² around (0.0, 0.6) mm stay <up to> 3.188 mm"},
+        {"stage": "execute", "code": "machine", "message": "feed clamped at line 12 & on"},
+    ]);
+    let html = render_ok(&j, &arts).html;
+    let section = html.split(r#"<section id="findings">"#).nth(1).expect("a findings section");
+    let section = section.split("</section>").next().unwrap_or_default();
+    // The two that say the part differs, escaped, before the fold; the choice inside it.
+    let (attention, folded) = section.split_once("<details>").expect("the notes are folded");
+    assert!(attention.contains("2 finding(s)"), "{attention}");
+    assert!(
+        attention.contains("<code>material_left</code>") && attention.contains("&lt;up to&gt;"),
+        "{attention}"
+    );
+    assert!(
+        attention.contains("<code>machine</code>") && attention.contains("line 12 &amp; on"),
+        "{attention}"
+    );
+    assert!(!attention.contains("face_choice"), "{attention}");
+    assert!(folded.contains("<code>face_choice</code>") && folded.contains("1 further note(s)"), "{folded}");
+    // The section follows the summary.
+    let (summary, findings) =
+        (html.find(r#"<section id="summary">"#), html.find(r#"<section id="findings">"#));
+    assert!(summary < findings, "{summary:?} {findings:?}");
+}
