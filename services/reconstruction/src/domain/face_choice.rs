@@ -20,10 +20,10 @@
 //! under its footprint, at its lowest height, with the table a few cells thick under it, hides
 //! the inside of the cloud from orientations that look up at it (and keeps a side view from
 //! reaching the part's lowest layer by going down past it), and walls under the surface seen
-//! from above, from each cell's highest
-//! point down to its lowest neighbour's, hide it from orientations that look from the side
-//! (without them a top surface seen edge-on would stand like a sheet in air, its far side open,
-//! and count as reached by the tool's side). A closed mesh hides its own inside.
+//! from above, from each cell's highest point down to its lowest neighbour's, hide it from
+//! orientations that look from the side (without them a pocket's floor or the far side of a top
+//! surface would be seen through the hollow cloud and count as reached). A closed mesh hides its
+//! own inside.
 //!
 //! The choice is exact where it can be: for `k = 1, 2, …` faces, every `k`-subset of the
 //! candidates is tried while there are at most [`EXACT_SUBSETS`] of them (greedy beyond), and the
@@ -449,12 +449,14 @@ fn for_each_subset(n: usize, k: usize, f: &mut dyn FnMut(&[usize])) {
     rec(0, n, k, &mut Vec::with_capacity(k), f);
 }
 
+/// A subset of the candidates, the samples it covers, and the most any subset of its size covers.
+type Best = (Vec<usize>, u64, u64);
+
 /// The best subset of `sets` of each size `1..=max_k` (most samples covered; ties: the earlier
 /// subset in lexicographic order, so lower candidate indices, A nearer 0, win). Exhaustive while
 /// a size has at most [`EXACT_SUBSETS`] subsets, then greedy from the best smaller one.
-/// Returns, per size, the subset, its count and the most any subset of that size covers, and
-/// whether every size was exhaustive.
-type Best = (Vec<usize>, u64, u64);
+/// Returns, per size, the subset, its count and the most any subset of that size covers
+/// ([`Best`]), and whether every size was exhaustive.
 fn best_subsets(sets: &[Bits], max_k: usize, tol: u64, cost: &[f64]) -> (Vec<Best>, bool) {
     let n = sets.len();
     let mut out: Vec<Best> = Vec::new();
