@@ -170,8 +170,8 @@ fn sampling_cell(cell_mm: f64, area_mm2: f64) -> f64 {
 
 impl SurfaceSamples {
     /// Samples of a point cloud: one point per `cell_mm` voxel; as occluders, a cap under the
-    /// footprint seen from above (+Z) at the lowest height of the cloud with [`TABLE_LAYERS`]
-    /// more under it, and each footprint cell's wall down to its lowest 4-neighbour.
+    /// footprint seen from above (+Z) at the lowest height of the cloud with two more
+    /// layers (the table) under it, and each footprint cell's wall down to its lowest 4-neighbour.
     pub fn from_cloud(cloud: &PointCloud, cell_mm: f64) -> Result<SurfaceSamples> {
         let finite: Vec<Point3<f32>> =
             cloud.points.iter().copied().filter(|p| p.coords.iter().all(|c| c.is_finite())).collect();

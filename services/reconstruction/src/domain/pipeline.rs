@@ -847,7 +847,7 @@ fn occlusion_tolerance_mm(pixel_mm: f64) -> f64 {
 }
 
 /// Which `points` (part frame) a face whose tool comes from direction `up` (part frame, unit)
-/// sees past `body` ([`body_from_above`]: the part is solid under it): a point is hidden when the
+/// sees past `body` (the part's `+Z` map from above: the part is solid under it): a point is hidden when the
 /// ray from it towards the tool crosses a cell other than the point's own at `tol` or more under
 /// the body's height there (the ray's lowest height in the cell). The cells are walked in the
 /// order the ray crosses them (a grid traversal, exact), until the ray leaves the map or rises
