@@ -621,18 +621,19 @@ pub fn reconstruct_with_free_space(
                 // The cloud itself for a face that views it as it is (`+Z`, no origin), else a
                 // turned copy (single precision, like the cloud) of the points it sees.
                 let turned: Vec<Point3<f32>>;
+                // The region the whole turned cloud covers, hidden points included.
+                let mut whole_roi = None;
                 let points: &[Point3<f32>] = if iso == Isometry3::identity() && visible.is_none() {
                     &cloud.points
                 } else {
+                    let all: Vec<Point3<f32>> =
+                        cloud.points.par_iter().map(|p| single(&(iso * p.at()))).collect();
                     turned = match &visible {
-                        Some(v) => cloud
-                            .points
-                            .par_iter()
-                            .zip(v.par_iter())
-                            .filter(|(_, seen)| **seen)
-                            .map(|(p, _)| single(&(iso * p.at())))
-                            .collect(),
-                        None => cloud.points.par_iter().map(|p| single(&(iso * p.at()))).collect(),
+                        Some(v) => {
+                            whole_roi = Roi::around(&all, r.margin_mm);
+                            all.into_iter().zip(v).filter(|(_, seen)| **seen).map(|(p, _)| p).collect()
+                        }
+                        None => all,
                     };
                     &turned
                 };
@@ -645,21 +646,16 @@ pub fn reconstruct_with_free_space(
                 // Seen past the body, an empty cell is surface nobody saw from that side (a wall
                 // the scanner saw edge-on, or not at all), not a gap between scan lines: it is
                 // lidded at the height around it, never interpolated from what lies behind. The
-                // map covers the whole part as the face sees it, hidden points included.
-                // The body's surface seen from the face bounds the part from that side.
+                // map covers the whole part as the face sees it, hidden points and the body's
+                // surface included; that surface bounds the part from that side.
                 let bound: Option<Vec<Point3<f32>>> = body
                     .as_ref()
                     .filter(|_| visible.is_some())
                     .map(|(_, surface)| surface.par_iter().map(|p| single(&(iso * p))).collect());
                 let face_r = bound.as_ref().map(|bound| {
-                    let roi = r.roi.or_else(|| {
-                        let all: Vec<Point3<f32>> = cloud
-                            .points
-                            .par_iter()
-                            .map(|p| single(&(iso * p.at())))
-                            .chain(bound.par_iter().copied())
-                            .collect();
-                        Roi::around(&all, r.margin_mm)
+                    let roi = r.roi.or_else(|| match (whole_roi, Roi::around(bound, r.margin_mm)) {
+                        (Some(a), Some(b)) => Some(roi_union(a, b)),
+                        (a, b) => a.or(b),
                     });
                     Resolved { roi, fill: FillParams { max_hole_mm: 0.0, ..r.fill }, ..r.clone() }
                 });
