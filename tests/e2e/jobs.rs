@@ -295,6 +295,7 @@ async fn cancel_reaches_the_instance_that_runs_the_stage() -> anyhow::Result<()>
         spec: spec.clone(),
         artifacts: [("gcode".to_string(), program.clone())].into_iter().collect(),
         calibration: None,
+        calibrate_in_scan: false,
     };
     for round in 0..3 {
         // One call held on each instance.

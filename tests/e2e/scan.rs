@@ -101,6 +101,9 @@ async fn a_mesh_job_is_scanned_into_a_cloud_on_the_part_and_goes_on_to_reconstru
     assert!(m["scan_registration_rms_mm"].as_f64().unwrap_or(1.0) < 0.07, "{m}");
     assert!(m["scan_registration_merge_rms_mm"].as_f64().unwrap_or(1.0) < 0.07, "{m}");
     assert_eq!(m["scan_calibration_version"].as_f64(), Some(1.0), "{m}");
+    // The job says how the cell was calibrated.
+    let how = done["diagnostics"].as_array().into_iter().flatten().find(|d| d["code"] == "cell_calibrated");
+    assert!(how.and_then(|d| d["message"].as_str()).is_some_and(|m| m.contains("calibrated")), "{done}");
 
     // The cloud: binary PLY with intensity and pass ids, on the part within the scanner's noise.
     let ply = fetch(&stack, &done, "point_cloud").await?;
@@ -363,6 +366,60 @@ async fn a_running_scan_is_cancelled_through_the_service_which_then_scans_again(
     let (_, created) = stack.post_job(&ok, None).await?;
     let done = stack.wait_for_end(created["id"].as_str().expect("id"), Duration::from_secs(300)).await?;
     assert_eq!(done["status"], "succeeded", "{done}");
+    stack.shutdown().await
+}
+
+#[tokio::test]
+async fn a_new_cell_is_calibrated_at_the_first_scans_own_stations() -> anyhow::Result<()> {
+    let stack = scripted_stack().await?;
+    let sha = stack.upload("model/stl", dome_stl()).await?;
+    let job = |angles: serde_json::Value| {
+        let mut j = quick_job(&sha, "dynamic");
+        j["scan"]["table_angles_deg"] = angles;
+        j["scan"]["line_spacing_mm"] = json!(0.5);
+        j
+    };
+    // No calibration in force: three stations over 240° serve the routine too, and the part
+    // leaves the reference sphere's nest free, so the table turns once for both.
+    let (_, created) = stack.post_job(&job(json!([0, 120, 240])), None).await?;
+    let done = stack.wait_for_end(created["id"].as_str().expect("id"), Duration::from_secs(300)).await?;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    let m = &done["metrics"];
+    assert_eq!(m["scan_calibration_version"].as_f64(), Some(1.0), "{m}");
+    assert!(m["scan_registration_rms_mm"].as_f64().unwrap_or(1.0) < 0.07, "{m}");
+    assert!(m["scan_registration_merge_rms_mm"].as_f64().unwrap_or(1.0) < 0.07, "{m}");
+    let said: Vec<String> = done["diagnostics"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .filter(|d| d["code"] == "cell_calibrated")
+        .filter_map(|d| d["message"].as_str().map(String::from))
+        .collect();
+    assert!(said.len() == 1 && said[0].contains("at this scan's stations"), "{said:?}");
+    let report: serde_json::Value = serde_json::from_slice(&fetch(&stack, &done, "scan_report").await?)?;
+    assert_eq!(report["calibration"]["during_scan"], true, "{}", report["calibration"]);
+    // The table stopped at the scan's stations only: each scanned the part as well as the sphere.
+    for st in report["stations"].as_array().into_iter().flatten() {
+        let passes = st["passes"].as_array().cloned().unwrap_or_default();
+        assert!(passes.iter().any(|p| p["points"].as_u64().unwrap_or(0) > 0), "{st}");
+        assert!(passes.iter().any(|p| p["points"] == 0), "{st}");
+    }
+    assert!(report["calibration"]["truth"]["table_error_mm"].as_f64().unwrap_or(1.0) < 0.05, "{report}");
+    // Stored as version 1 with its trigger, and in force for the next job, which calibrates
+    // nothing; two stations could not have found the axis, but the cell is calibrated already.
+    let list: serde_json::Value = stack.http.get(stack.url("/v1/calibrations")).send().await?.json().await?;
+    let cals = list["calibrations"].as_array().cloned().unwrap_or_default();
+    assert_eq!(cals.len(), 1, "{list}");
+    assert_eq!(cals[0]["trigger"], "scan", "{list}");
+    assert_eq!(cals[0]["version"], 1, "{list}");
+    let (_, created) = stack.post_job(&job(json!([0, 180])), None).await?;
+    let next = stack.wait_for_end(created["id"].as_str().expect("id"), Duration::from_secs(300)).await?;
+    assert_eq!(next["status"], "succeeded", "{next}");
+    assert_eq!(next["metrics"]["scan_calibration_version"].as_f64(), Some(1.0), "{next}");
+    assert!(
+        !next["diagnostics"].as_array().into_iter().flatten().any(|d| d["code"] == "cell_calibrated"),
+        "{next}"
+    );
     stack.shutdown().await
 }
 

@@ -74,41 +74,36 @@ pub async fn run(input: &Path, args: &ScanArgs, output: &Path) -> anyhow::Result
         b.set_message(m);
     });
     let started = std::time::Instant::now();
-    // The simulated cell is off its drawing as a real one is: calibrate it, then scan.
+    // The simulated cell is off its drawing as a real one is: the scan calibrates it (at its own
+    // stations when the part leaves the reference sphere's nest free, else first).
     let layout = CellLayout::default();
     let errors = CellErrors::default();
-    let calibrated = depthmill_scanning::session::run_calibration(
-        Cell::new(&layout, &errors, None),
+    let result = depthmill_scanning::session::run_scan(
+        mesh,
+        opts,
         layout,
-        CalibrationOptions::default(),
+        Cell::new(&layout, &errors, None),
+        Some(CalibrationOptions::default()),
         &mut table,
-        progress.clone(),
+        progress,
         tokio_util::sync::CancellationToken::new(),
     )
     .await
-    .context("calibrating the cell");
-    let result = match calibrated {
-        Ok((cal, report)) => {
-            if let (Some(b), Some(a)) = (report.registration_before, report.registration_after) {
-                bar.println(format!(
-                    "cell calibrated in {:.1} s of simulated scanning: merge error {:.4} mm before, {:.4} mm after",
-                    report.scan_time_s, b.merge_rms_mm, a.merge_rms_mm
-                ));
-            }
-            depthmill_scanning::session::run_scan(
-                mesh,
-                opts,
-                layout,
-                Cell::new(&layout, &errors, Some(cal)),
-                &mut table,
-                progress,
-                tokio_util::sync::CancellationToken::new(),
-            )
-            .await
-            .context("scanning")
-        }
-        Err(e) => Err(e),
-    };
+    .context("scanning");
+    if let Ok((_, Some(made))) = &result
+        && let (Some(b), Some(a)) = (made.report.registration_before, made.report.registration_after)
+    {
+        bar.println(format!(
+            "cell calibrated {}: merge error {:.4} mm before, {:.4} mm after",
+            match &made.why_not {
+                None => "at the scan's stations".to_string(),
+                Some(why) => format!("before the scan ({why})"),
+            },
+            b.merge_rms_mm,
+            a.merge_rms_mm
+        ));
+    }
+    let result = result.map(|(out, _)| out);
     bar.finish_and_clear();
     drop(table);
     stop.cancel();

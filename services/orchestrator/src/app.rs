@@ -28,6 +28,11 @@ pub struct ApiError {
     pub field: Option<String>,
 }
 
+/// A new calibration's id.
+pub fn new_calibration_id() -> String {
+    format!("cal_{}", uuid::Uuid::now_v7().simple())
+}
+
 /// Longest a calibration routine may take (table turns in real time, scans, fit).
 pub const CALIBRATION_DEADLINE: std::time::Duration = std::time::Duration::from_secs(600);
 
@@ -569,39 +574,42 @@ impl App {
     }
 
     /// Runs the scanning cell's calibration routine and stores the result as the next version
-    /// (the one in force from now on). `trigger`: `api` or `auto`.
+    /// (the one in force from now on), with trigger `api`. A job's scan calibrates the cell
+    /// itself when none is in force (trigger `scan`, [`App::store_calibration`]).
     pub async fn calibrate(
         &self,
         params: &crate::stages::CalibrationParams,
         trigger: &str,
     ) -> Result<crate::store::CalibrationRecord, ApiError> {
         let current = self.store.latest_calibration().await?;
-        let id = format!("cal_{}", uuid::Uuid::now_v7().simple());
+        let id = new_calibration_id();
         let run = self
             .stages
             .calibrate(&id, params, current.as_ref(), CALIBRATION_DEADLINE)
             .await
             .map_err(|e| ApiError::new(e.code, e.message))?;
+        Ok(self.store_calibration(id, run.calibration_json, run.report_json, trigger).await?)
+    }
+
+    /// Stores a calibration of the scanning cell as the next version, in force from now on.
+    pub async fn store_calibration(
+        &self,
+        id: String,
+        calibration_json: String,
+        report_json: String,
+        trigger: &str,
+    ) -> Result<crate::store::CalibrationRecord, crate::store::StoreError> {
         let rec = crate::store::CalibrationRecord {
             id,
             version: 0,
             created_at_ms: now_ms(),
             trigger_kind: trigger.to_string(),
-            calibration_json: run.calibration_json,
-            report_json: run.report_json,
+            calibration_json,
+            report_json,
         };
         let stored = self.store.create_calibration(&rec).await?;
         tracing::info!(id = %stored.id, version = stored.version, trigger, "cell calibration stored");
         Ok(stored)
-    }
-
-    /// The calibration in force; when there is none yet, the cell is calibrated first (stored
-    /// with trigger `auto`).
-    pub async fn calibration_in_force(&self) -> Result<crate::store::CalibrationRecord, ApiError> {
-        match self.store.latest_calibration().await? {
-            Some(c) => Ok(c),
-            None => self.calibrate(&crate::stages::CalibrationParams::default(), "auto").await,
-        }
     }
 
     /// The CAM service's tool library.

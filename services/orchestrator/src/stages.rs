@@ -31,6 +31,9 @@ pub struct StageCall {
     pub artifacts: BTreeMap<String, ArtifactRef>,
     /// The scanning cell's calibration in force (the scan stage places its points with it).
     pub calibration: Option<crate::store::CalibrationRecord>,
+    /// No calibration is in force: the scan calibrates the cell (at its own stations when it can)
+    /// and returns it in [`StageOutputs::calibration_made`].
+    pub calibrate_in_scan: bool,
 }
 
 /// The calibration routine's options (`POST /v1/calibrations`); unset fields take the defaults.
@@ -585,6 +588,7 @@ impl StageRunner for GrpcStages {
                         params: Some(convert::scan_params(&call.spec.scan.clone().unwrap_or_default())),
                         units: convert::input_units(call.spec.input.units) as i32,
                         calibration: call.calibration.as_ref().map(calibration_to_wire).transpose()?,
+                        calibrate: call.calibrate_in_scan.then(scan::CalibrationParams::default),
                     };
                     let mut client = scan::scanning_service_client::ScanningServiceClient::new(channel);
                     let stream =
@@ -604,6 +608,12 @@ impl StageRunner for GrpcStages {
                     out.metrics.insert("scan_coverage_pct".into(), r.coverage_pct);
                     out.metrics.insert("scan_registration_rms_mm".into(), r.registration_rms_mm);
                     out.metrics.insert("scan_registration_merge_rms_mm".into(), r.registration_merge_rms_mm);
+                    if let Some(c) = &r.new_calibration {
+                        out.calibration_made = Some(crate::domain::job::CalibrationMade {
+                            calibration_json: calibration_json_of(c)?,
+                            report_json: r.new_calibration_report_json.clone(),
+                        });
+                    }
                     if r.calibration_version > 0 {
                         out.metrics
                             .insert("scan_calibration_version".into(), f64::from(r.calibration_version));

@@ -199,6 +199,7 @@ impl Worker {
                 spec: job.spec.clone(),
                 artifacts,
                 calibration: None,
+                calibrate_in_scan: false,
             };
             let started = now_ms();
             let outcome = if stage == Stage::Report {
@@ -272,28 +273,35 @@ impl Worker {
             let attempt = self.app.store.begin_attempt(&id, &self.owner, stage, now_ms()).await?;
             call.attempt = attempt;
             self.app.events.job_changed(&id);
-            // The scan places its points with the cell's calibration in force, made first when
-            // there is none; a failure to get it is this attempt's failure (retried when transient).
-            let calibrated = if stage == Stage::Scan && call.calibration.is_none() {
-                match self.calibration_in_force(&id).await? {
-                    Ok(c) => {
-                        call.calibration = Some(c);
-                        Ok(())
-                    }
-                    Err(e) => Err(StageError::new(
-                        e.code,
-                        format!("calibrating the scanning cell before the scan: {}", e.message),
-                    )),
-                }
-            } else {
-                Ok(())
+            // The scan places its points with the cell's calibration in force; with none yet
+            // (a new cell), it calibrates the cell itself, at its own stations when it can.
+            if stage == Stage::Scan && (call.calibration.is_none() || call.calibrate_in_scan) {
+                call.calibration = self.app.store.latest_calibration().await?;
+                call.calibrate_in_scan = call.calibration.is_none();
+            }
+            let result = match self.attempt(&call, first, cancel, shutdown).await? {
+                Some(r) => r,
+                None => return Ok(None),
             };
-            let result = match calibrated {
-                Err(e) => Err(e),
-                Ok(()) => match self.attempt(&call, first, cancel, shutdown).await? {
-                    Some(r) => r,
-                    None => return Ok(None),
+            // A calibration the scan made is stored as the next version, in force from now on.
+            let result = match result {
+                Ok(mut out) => match out.calibration_made.take() {
+                    Some(made) => {
+                        let stored = self
+                            .app
+                            .store_calibration(
+                                crate::app::new_calibration_id(),
+                                made.calibration_json,
+                                made.report_json,
+                                "scan",
+                            )
+                            .await?;
+                        out.metrics.insert("scan_calibration_version".into(), stored.version as f64);
+                        Ok(out)
+                    }
+                    None => Ok(out),
                 },
+                Err(e) => Err(e),
             };
             let (outcome, delay) = match &result {
                 Ok(_) => (AttemptOutcome::Ok, None),
@@ -346,31 +354,6 @@ impl Worker {
         }
     }
 
-    /// The cell's calibration in force, made first when there is none, with `id`'s lease renewed
-    /// meanwhile (a calibration takes longer than a lease).
-    async fn calibration_in_force(
-        &self,
-        id: &str,
-    ) -> Result<Result<crate::store::CalibrationRecord, crate::app::ApiError>, StoreError> {
-        // Both futures are polled together: a renewal waiting for a database connection must not
-        // stop the calibration, which may hold one, from going on (a renewal awaited inside a
-        // `select!` arm would).
-        let renewals = async {
-            let mut ticker = tokio::time::interval(secs(self.cfg.lease_s / 3.0));
-            loop {
-                ticker.tick().await;
-                let lease = self.app.store.renew(id, &self.owner, now_ms(), self.lease_ms()).await?;
-                if !lease.held {
-                    return Err(StoreError::LeaseLost { id: id.to_string() });
-                }
-            }
-        };
-        tokio::select! {
-            r = self.app.calibration_in_force() => Ok(r),
-            e = renewals => e,
-        }
-    }
-
     /// One call of the stage's service, with lease renewal, progress and cancel forwarding.
     /// `Ok(None)`: shutting down.
     async fn attempt(
@@ -386,7 +369,11 @@ impl Worker {
         let report = move |fraction: f64, _message: &str| {
             let _ = progress_tx.send(fraction);
         };
-        let deadline = secs(self.cfg.stage_deadline_s);
+        // A scan that calibrates the cell has the calibration's own budget on top of the stage's.
+        let mut deadline = secs(self.cfg.stage_deadline_s);
+        if call.calibrate_in_scan {
+            deadline += crate::app::CALIBRATION_DEADLINE;
+        }
         let run = self.stages.run(call, deadline, &report);
         tokio::pin!(run);
         // The first tick is at once: the lease is renewed (and a cancel in the database seen) as

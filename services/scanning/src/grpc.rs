@@ -72,7 +72,11 @@ impl From<ScanError> for Status {
         let code = match &e {
             ScanError::Cancelled => ErrorCode::Cancelled,
             ScanError::Table(_) => ErrorCode::Unavailable,
-            ScanError::Robot(_) | ScanError::Latch(_) | ScanError::Coverage(_) => ErrorCode::Internal,
+            ScanError::Robot(_)
+            | ScanError::Latch(_)
+            | ScanError::Coverage(_)
+            | ScanError::Calibration(_)
+            | ScanError::NotInScan(_) => ErrorCode::Internal,
             _ => ErrorCode::InvalidArgument,
         };
         code.status(e.to_string())
@@ -342,6 +346,7 @@ impl pb::scanning_service_server::ScanningService for ScanningServiceImpl {
             ..Default::default()
         })?;
         let calibration = req.calibration.map(|c| calibration_from_wire(c, &self.cell.layout)).transpose()?;
+        let calibrate = req.calibrate.map(|p| calibration_options(p, &self.cell.layout)).transpose()?;
         let (mesh, units) = read_mesh(&self.cell, &mesh_ref.sha256, req.units).await?;
         let guard = self.running.start(&job_id);
         let (tx, rx) = mpsc::channel(64);
@@ -360,18 +365,33 @@ impl pb::scanning_service_server::ScanningService for ScanningServiceImpl {
                     None => (None, String::new(), 0, String::new()),
                 };
                 let sim = crate::domain::calibration::Cell::new(&cell.layout, &cell.errors, cal);
-                let mut out = crate::session::run_scan(
+                let (mut out, made) = crate::session::run_scan(
                     mesh,
                     opts,
                     cell.layout,
                     sim,
+                    calibrate,
                     &mut table,
                     progress.clone(),
                     token.clone(),
                 )
                 .await?;
                 out.report.units = units;
-                if let Some(c) = &cal {
+                if let Some(m) = &made {
+                    // The calibration made for this scan and its figures, for the job report.
+                    out.report.calibration = Some(serde_json::json!({
+                        "made_for_this_scan": true,
+                        "during_scan": m.during_scan,
+                        "why_not_during_scan": m.why_not,
+                        "calibration": m.calibration,
+                        "sphere_rms_mm": m.report.sphere_rms_mm,
+                        "table_fit_rms_mm": m.report.table_fit_rms_mm,
+                        "registration_before": m.report.registration_before,
+                        "registration_after": m.report.registration_after,
+                        "truth": m.report.truth,
+                        "scan_time_s": m.report.scan_time_s,
+                    }));
+                } else if let Some(c) = &cal {
                     // The calibration in force and its own report's figures, for the job report.
                     let report: serde_json::Value = serde_json::from_str(&cal_report).unwrap_or(serde_json::Value::Null);
                     out.report.calibration = Some(serde_json::json!({
@@ -449,6 +469,31 @@ impl pb::scanning_service_server::ScanningService for ScanningServiceImpl {
                         r.dropped.out_of_window, r.dropped.incidence, r.dropped.occluded, r.dropped.miss
                     ),
                 });
+                if let Some(m) = &made {
+                    let merge = |c: Option<crate::domain::calibration::RegistrationCheck>| {
+                        c.map_or("-".to_string(), |c| format!("{:.4}", c.merge_rms_mm))
+                    };
+                    diagnostics.push(Diagnostic {
+                        code: "cell_calibrated".into(),
+                        message: format!(
+                            "the cell was calibrated {}: merge error of the sphere's scans {} mm with the calibration before, {} mm after",
+                            match &m.why_not {
+                                None => "at this scan's stations (the table turned once for both)".to_string(),
+                                Some(why) => format!("by the routine before the scan ({why})"),
+                            },
+                            merge(m.report.registration_before),
+                            merge(m.report.registration_after)
+                        ),
+                    });
+                }
+                let (new_calibration, new_calibration_report_json) = match &made {
+                    Some(m) => (
+                        Some(calibration_to_wire(&m.calibration, String::new(), 0)),
+                        serde_json::to_string_pretty(&m.report)
+                            .map_err(|e| Status::internal(format!("encoding the calibration report failed: {e}")))?,
+                    ),
+                    None => (None, String::new()),
+                };
                 tracing::info!(points = r.points, frames = r.frames, scan_time_s = r.scan_time_s, "scan done");
                 Ok(pb::ScanPartResult {
                     point_cloud: Some(cloud_ref.into()),
@@ -464,6 +509,9 @@ impl pb::scanning_service_server::ScanningService for ScanningServiceImpl {
                     registration_merge_rms_mm: r.registration_merge_rms_mm,
                     calibration_id: cal_id,
                     calibration_version: cal_version,
+                    calibrated_during_scan: made.as_ref().is_some_and(|m| m.during_scan),
+                    new_calibration,
+                    new_calibration_report_json,
                 })
             }
             .await;

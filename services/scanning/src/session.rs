@@ -193,17 +193,48 @@ pub async fn run_calibration<S: AsyncRead + AsyncWrite + Unpin>(
     Ok((cal, report))
 }
 
+/// A scan session on `cell` and its plan, made on a blocking thread.
+async fn planned(
+    mesh: Arc<Mesh>,
+    opts: ScanOptions,
+    layout: CellLayout,
+    cell: Cell,
+) -> Result<(ScanSession, ScanPlan), ScanError> {
+    blocking(move || {
+        let mut s = ScanSession::with_cell(&mesh, opts, layout, cell)?;
+        let plan = s.plan()?;
+        Ok::<_, ScanError>((s, plan))
+    })
+    .await?
+}
+
+/// A calibration made for a scan: the cell calibrated at the scan's own stations (the table
+/// turning once for both) or, when that cannot be done, by the routine before it.
+#[derive(Debug, Clone)]
+pub struct MadeCalibration {
+    pub calibration: Calibration,
+    pub report: CalibrationReport,
+    /// Made at the scan's stations (else by the routine before the scan, for `why_not`).
+    pub during_scan: bool,
+    pub why_not: Option<String>,
+}
+
 /// Scans `mesh` with `opts` on `cell` (the physics on its truth, the points placed with its
-/// calibration): plan, stations, and the adaptive rescan when asked.
+/// calibration): plan, stations, and the adaptive rescan when asked. With `calibrate`, the cell
+/// is calibrated for this scan first ([`MadeCalibration`]): at the scan's stations when the part
+/// leaves the reference sphere's nest free and the stations suit the routine, else by the routine
+/// before the scan; the points are placed with the new calibration either way.
+#[allow(clippy::too_many_arguments)]
 pub async fn run_scan<S: AsyncRead + AsyncWrite + Unpin>(
     mesh: Mesh,
     opts: ScanOptions,
     layout: CellLayout,
     cell: Cell,
+    calibrate: Option<CalibrationOptions>,
     table: &mut TableClient<S>,
     progress: Progress,
     cancel: CancellationToken,
-) -> Result<ScanOutput, ScanError> {
+) -> Result<(ScanOutput, Option<MadeCalibration>), ScanError> {
     progress(0.0, format!("planning over a {}-triangle mesh", mesh.triangles.len()));
     let terr = |e: crate::devices::table::TableError| ScanError::Table(e.to_string());
     // The automatic stations from where the table stands (after a calibration or another job),
@@ -213,12 +244,50 @@ pub async fn run_scan<S: AsyncRead + AsyncWrite + Unpin>(
         let at = table.position_deg().await.map_err(terr)?;
         opts.table_angles_deg = crate::domain::scan::plan::visit_order(&opts.table_angles_deg, at);
     }
-    let (session, plan) = blocking(move || {
-        let mut s = ScanSession::with_cell(&mesh, opts, layout, cell)?;
-        let plan = s.plan()?;
-        Ok::<_, ScanError>((s, plan))
-    })
-    .await??;
+    let mesh = Arc::new(mesh);
+    let in_scan = match calibrate.clone() {
+        None => None,
+        Some(cal) => {
+            let (m, o, c) = (mesh.clone(), opts.clone(), cell.clone());
+            Some(
+                blocking(move || {
+                    let mut s = ScanSession::with_cell_calibrating(&m, o, layout, c, cal)?;
+                    let plan = s.plan()?;
+                    Ok::<_, ScanError>((s, plan))
+                })
+                .await?,
+            )
+        }
+    };
+    let mut made = None;
+    let (session, plan) = match in_scan {
+        Some(Ok(found)) => found,
+        Some(Err(ScanError::NotInScan(why))) => {
+            // The routine first, then the scan placed with what it found.
+            tracing::info!(reason = %why, "calibrating the cell before the scan");
+            let cal_opts = calibrate.clone().unwrap_or_default();
+            let sub: Progress = {
+                let p = progress.clone();
+                Arc::new(move |f, m| p(0.3 * f, format!("calibrating the cell: {m}")))
+            };
+            let (c, report) = run_calibration(cell.clone(), layout, cal_opts, table, sub, cancel.clone())
+                .await
+                .map_err(|e| match e {
+                    CalibrationError::Cancelled => ScanError::Cancelled,
+                    CalibrationError::Table(m) => ScanError::Table(m),
+                    e => ScanError::Calibration(e.to_string()),
+                })?;
+            let cell = Cell { calibration: Some(c), ..cell };
+            made = Some(MadeCalibration { calibration: c, report, during_scan: false, why_not: Some(why) });
+            if opts.passes.is_none() {
+                let at = table.position_deg().await.map_err(terr)?;
+                opts.table_angles_deg = crate::domain::scan::plan::visit_order(&opts.table_angles_deg, at);
+            }
+            planned(mesh.clone(), opts, layout, cell).await?
+        }
+        Some(Err(e)) => return Err(e),
+        None => planned(mesh.clone(), opts, layout, cell).await?,
+    };
     tracing::info!(
         stations = plan.stations.len(),
         passes = plan.passes(),
@@ -234,6 +303,18 @@ pub async fn run_scan<S: AsyncRead + AsyncWrite + Unpin>(
         .then(|| session.rescan_angles(plan.stations.last().map(|s| s.table_deg)).first().copied())
         .flatten();
     let mut session = run_plan(session, &plan, false, then, table, &progress, first_span, &cancel).await?;
+    if session.calibrating_in_scan() {
+        progress(first_span.1 * 0.97, "fitting the table and the scanner mount to the sphere's scans".into());
+        let (s, fitted) = blocking(move || {
+            let mut session = session;
+            let r = session.calibrate_in_scan();
+            (session, r)
+        })
+        .await?;
+        session = s;
+        let (c, report) = fitted?;
+        made = Some(MadeCalibration { calibration: c, report, during_scan: true, why_not: None });
+    }
     if adaptive {
         progress(0.75, "coverage map of the first scan".into());
         let (s, found) = blocking(move || {
@@ -273,5 +354,5 @@ pub async fn run_scan<S: AsyncRead + AsyncWrite + Unpin>(
     }
     let out = session.finish();
     progress(1.0, format!("{} points from {} frames", out.report.points, out.report.frames));
-    Ok(out)
+    Ok((out, made))
 }

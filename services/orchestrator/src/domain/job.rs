@@ -372,6 +372,18 @@ pub struct StageOutputs {
     /// kept.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub diagnostics: Vec<StageDiagnostic>,
+    /// A cell calibration the scan stage made on its way (stored apart by the worker, as the next
+    /// calibration version; not part of the stored result).
+    #[serde(skip)]
+    pub calibration_made: Option<CalibrationMade>,
+}
+
+/// A cell calibration made by the scanning service during a job's scan: its parameters and its
+/// fit report, the scanning service's JSON.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CalibrationMade {
+    pub calibration_json: String,
+    pub report_json: String,
 }
 
 /// Most diagnostics one stage's result keeps; a service that says more is cut here, with a last

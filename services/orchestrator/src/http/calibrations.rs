@@ -21,7 +21,8 @@ pub struct CalibrationView {
     /// 1, 2, ... in the order they were made; the highest is in force.
     pub version: i64,
     pub created_at_ms: i64,
-    /// `api` (asked for) or `auto` (made before a scan when none was in force).
+    /// `api` (asked for) or `scan` (made by the first scan job when none was in force; `auto` in
+    /// stores from before, made by the routine ahead of that scan).
     pub trigger: String,
     /// The parameters: the table model (axis position and tilt, encoder zero, top runout) and
     /// the scanner's mount correction.

@@ -16,7 +16,7 @@ const EXTRA_STANDOFFS_MM: [f64; 2] = [100.0, 200.0];
 /// needed: these look at the sphere).
 const VIEW_TILT_DEG: f64 = 20.0;
 /// Length of the table-top pass across the axis, mm.
-const TABLE_PASS_MM: f64 = 80.0;
+pub(crate) const TABLE_PASS_MM: f64 = 80.0;
 
 /// How to calibrate: where the reference sphere stands and which table angles to use.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -156,33 +156,71 @@ pub fn calibration_session(
     opts: &CalibrationOptions,
 ) -> Result<(ScanSession, ScanPlan), CalibrationError> {
     opts.validate(&layout)?;
-    let scan_opts = ScanOptions {
+    let scan_opts = scan_options(opts);
+    let centre = Point3::from(opts.sphere_at_mm);
+    let mesh = sphere_mesh(centre, opts.sphere_radius_mm);
+    let scan = |e: &dyn std::fmt::Display| CalibrationError::Scan(e.to_string());
+    let session = ScanSession::for_calibration(&mesh, scan_opts.clone(), layout, cell.clone(), opts.clone())
+        .map_err(|e| scan(&e))?;
+    let away = 0.4 * opts.sphere_at_mm[0].hypot(opts.sphere_at_mm[1]);
+    let stations =
+        calibration_stations(session.arm(), session.layout(), opts, &scan_opts, &[], (false, away), 1)
+            .map_err(|e| scan(&e))?;
+    Ok((session, ScanPlan { stations, skipped: Vec::new() }))
+}
+
+/// The scan options of the calibration passes.
+pub(crate) fn scan_options(opts: &CalibrationOptions) -> ScanOptions {
+    ScanOptions {
         mode: ScanMode::Dynamic,
         table_angles_deg: opts.table_angles_deg.clone(),
         line_spacing_mm: opts.line_spacing_mm,
         adaptive_rescan: false,
         seed: opts.seed,
         ..ScanOptions::default()
-    };
+    }
+}
+
+/// The routine's passes at every angle of `opts` (ids from `first_id`), planned for `arm` on
+/// `layout` (as believed) clear of `obstacles`: straight down over the sphere everywhere, and
+/// tilted and from farther at the angle where it comes nearest the robot; then the table top
+/// across, `table_pass.1` from the axis: on the side away from the sphere, or (`table_pass.0`)
+/// on the side nearest the robot, where the arm works in its most accurate posture.
+pub(crate) fn calibration_stations(
+    arm: &depthmill_geometry::arm::ArmModel,
+    layout: &CellLayout,
+    opts: &CalibrationOptions,
+    scan_opts: &ScanOptions,
+    obstacles: &[crate::domain::scan::obstacles::Obstacle],
+    table_pass: (bool, f64),
+    first_id: u16,
+) -> Result<Vec<Station>, crate::domain::scan::ScanError> {
     let centre = Point3::from(opts.sphere_at_mm);
-    let mesh = sphere_mesh(centre, opts.sphere_radius_mm);
-    let scan = |e: &dyn std::fmt::Display| CalibrationError::Scan(e.to_string());
-    let session = ScanSession::for_calibration(&mesh, scan_opts.clone(), layout, cell.clone(), opts.clone())
-        .map_err(|e| scan(&e))?;
     let r = opts.sphere_radius_mm;
     let mut stations = Vec::with_capacity(opts.table_angles_deg.len());
-    let mut id = 0u16;
+    let mut id = first_id.saturating_sub(1);
+    let mut next_id = || {
+        id = id.checked_add(1).ok_or_else(|| crate::domain::scan::ScanError::InvalidOption {
+            field: "passes".into(),
+            value: String::new(),
+            reason: "pass ids exhausted (65535 passes)".into(),
+        })?;
+        Ok::<u16, crate::domain::scan::ScanError>(id)
+    };
     let mut seed = depthmill_geometry::arm::ArmModel::HOME_DEG;
     // The turned views where the sphere comes nearest the robot (the arm has room to lean).
     let nearest = opts
         .table_angles_deg
         .iter()
-        .map(|&deg| (session.layout().world_from_table(deg) * centre).coords.xy().norm())
+        .map(|&deg| (layout.world_from_table(deg) * centre).coords.xy().norm())
         .enumerate()
         .min_by(|a, b| a.1.total_cmp(&b.1))
         .map_or(0, |(k, _)| k);
+    let outward = Vector3::new(opts.sphere_at_mm[0], opts.sphere_at_mm[1], 0.0)
+        .try_normalize(1e-9)
+        .unwrap_or_else(Vector3::x);
     for (k, &deg) in opts.table_angles_deg.iter().enumerate() {
-        let w = session.layout().world_from_table(deg);
+        let w = layout.world_from_table(deg);
         let top = w * (centre + Vector3::new(0.0, 0.0, r));
         // (direction, tilt, standoff) of the sphere passes.
         let mut views = vec![(Vector3::y(), 0.0, STANDOFF_MM)];
@@ -199,25 +237,37 @@ pub fn calibration_session(
         let mut passes: Vec<Pass> = Vec::new();
         let half = r + 12.0;
         for (dir, tilt, standoff) in views {
-            id += 1;
             let axis = plan::sensor_orientation(&dir, tilt) * Vector3::z();
             let (a, b) = (top - dir * half - axis * standoff, top + dir * half - axis * standoff);
             let o = ScanOptions { tilt_deg: tilt, ..scan_opts.clone() };
-            let p = plan::make_pass(session.arm(), &o, &[], id, deg, a, b, &seed).map_err(|e| scan(&e))?;
+            let p = plan::make_pass(arm, &o, obstacles, next_id()?, deg, a, b, &seed)?;
             seed = p.q_end_deg;
             passes.push(p);
         }
-        // The table top across the axis, on the side away from the sphere.
-        id += 1;
-        let away = w * Point3::new(-0.4 * opts.sphere_at_mm[0], -0.4 * opts.sphere_at_mm[1], 0.0);
+        // The table top across the axis, on the side away from the sphere or nearest the robot.
+        let away = if table_pass.0 {
+            let axis = w * Point3::origin();
+            let toward =
+                Vector3::new(-axis.x, -axis.y, 0.0).try_normalize(1e-9).unwrap_or_else(|| -Vector3::x());
+            axis + toward * table_pass.1
+        } else {
+            w * Point3::from(-outward * table_pass.1)
+        };
         let d = Vector3::y() * (0.5 * TABLE_PASS_MM);
         let lift = Vector3::new(0.0, 0.0, STANDOFF_MM);
-        let p =
-            plan::make_pass(session.arm(), &scan_opts, &[], id, deg, away - d + lift, away + d + lift, &seed)
-                .map_err(|e| scan(&e))?;
+        let p = plan::make_pass(
+            arm,
+            scan_opts,
+            obstacles,
+            next_id()?,
+            deg,
+            away - d + lift,
+            away + d + lift,
+            &seed,
+        )?;
         seed = p.q_end_deg;
         passes.push(p);
         stations.push(Station { table_deg: deg, passes, table_offset_deg: 0.0 });
     }
-    Ok((session, ScanPlan { stations, skipped: Vec::new() }))
+    Ok(stations)
 }

@@ -295,6 +295,96 @@ fn a_scan_registers_within_twice_the_noise_only_once_calibrated() {
 }
 
 #[test]
+fn a_scan_calibrates_the_cell_at_its_own_stations_and_places_the_part_with_it() {
+    let layout = CellLayout::default();
+    let errors = CellErrors::default();
+    let mesh = dome_mesh();
+    let opts = ScanOptions::default();
+    let cell = || Cell::new(&layout, &errors, None);
+    let mut s = ScanSession::with_cell_calibrating(
+        &mesh,
+        opts.clone(),
+        layout,
+        cell(),
+        CalibrationOptions::default(),
+    )
+    .unwrap();
+    let plan = s.plan().unwrap();
+    let alone = ScanSession::with_cell(&mesh, opts.clone(), layout, cell()).unwrap().plan().unwrap();
+    // The table turns once: the routine's passes head each of the scan's own stations.
+    let angles =
+        |p: &crate::domain::scan::ScanPlan| p.stations.iter().map(|s| s.table_deg).collect::<Vec<_>>();
+    assert_eq!(angles(&plan), angles(&alone));
+    for (both, scan) in plan.stations.iter().zip(&alone.stations) {
+        assert!(both.passes.len() >= scan.passes.len() + 2, "{} passes", both.passes.len());
+        let ids: Vec<u16> = both.passes.iter().rev().take(scan.passes.len()).rev().map(|p| p.id).collect();
+        assert_eq!(
+            ids,
+            scan.passes.iter().map(|p| p.id).collect::<Vec<_>>(),
+            "the part's passes keep their ids"
+        );
+    }
+    for st in &plan.stations {
+        s.run_station(st, st.table_deg, false, &mut |_, _| {}, &|| false).unwrap();
+    }
+    assert!(s.calibrating_in_scan());
+    assert!(s.points().is_empty(), "the part's frames wait for the calibration");
+    let (cal, report) = s.calibrate_in_scan().unwrap();
+    assert!(!s.calibrating_in_scan());
+    assert!(matches!(s.calibrate_in_scan(), Err(crate::domain::scan::ScanError::Calibration(_))));
+    let truth = report.truth.as_ref().unwrap();
+    eprintln!("in-scan calibration: {truth:?}, after {:?}", report.registration_after);
+    assert!(truth.table_error_before_mm > 1.0 && truth.table_error_mm < 0.05, "{truth:?}");
+    assert!(truth.mount_error_before_mm > 0.4 && truth.mount_error_mm < 0.03, "{truth:?}");
+    assert!(cal.validate(&layout).is_ok());
+    let out = s.finish();
+    let noise = crate::domain::scanner::ScannerSpec::slp400().noise_sigma_mm;
+    let r = &out.report;
+    eprintln!("registration rms {:.4} merge {:.4} mm", r.registration_rms_mm, r.registration_merge_rms_mm);
+    assert!(r.calibrated);
+    assert!(r.registration_rms_mm <= 2.0 * noise && r.registration_merge_rms_mm <= 2.0 * noise, "{r:?}");
+    // Only the part: the sphere 100 mm from the axis is left out of the cloud.
+    assert!(r.points > 100_000, "{}", r.points);
+    let far = out.cloud.points.iter().filter(|p| p.x.abs() > 47.0 || p.y.abs() > 47.0).count();
+    assert_eq!(far, 0, "points off the part");
+    // Each pass reports the points it placed; the sphere's passes place none.
+    let per_pass: u64 = r.stations.iter().flat_map(|s| &s.passes).map(|p| p.points).sum();
+    assert_eq!(per_pass, r.points);
+    for (both, scan) in plan.stations.iter().zip(&alone.stations) {
+        let report = r.stations.iter().find(|x| x.table_deg_commanded == both.table_deg).unwrap();
+        let sphere_passes = both.passes.len() - scan.passes.len();
+        assert!(report.passes[..sphere_passes].iter().all(|p| p.points == 0));
+        assert!(report.passes[sphere_passes..].iter().all(|p| p.points > 0));
+    }
+
+    // A part that reaches the nest, or stations that cannot find the axis: the caller calibrates
+    // first, told why.
+    let mut big = dome_mesh();
+    for v in &mut big.vertices {
+        v.x *= 1.3;
+        v.y *= 1.3;
+    }
+    let e =
+        ScanSession::with_cell_calibrating(&big, opts.clone(), layout, cell(), CalibrationOptions::default())
+            .err()
+            .unwrap();
+    assert!(
+        matches!(&e, crate::domain::scan::ScanError::NotInScan(m) if m.contains("reference sphere")),
+        "{e}"
+    );
+    let one = ScanOptions { table_angles_deg: vec![90.0], ..opts };
+    let e =
+        match ScanSession::with_cell_calibrating(&mesh, one, layout, cell(), CalibrationOptions::default())
+            .unwrap()
+            .plan()
+        {
+            Ok(p) => panic!("planned at {:?}", angles(&p)),
+            Err(e) => e,
+        };
+    assert!(matches!(&e, crate::domain::scan::ScanError::NotInScan(m) if m.contains("3 or more")), "{e}");
+}
+
+#[test]
 fn degenerate_calibration_data_is_refused_saying_what_is_missing() {
     let layout = CellLayout::default();
     let cell = Cell::new(&layout, &CellErrors::default(), None);

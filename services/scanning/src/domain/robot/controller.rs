@@ -352,6 +352,12 @@ impl MotionController {
         &self.model
     }
 
+    /// Sets the tool frame (`flange_from_tool`) poses are reported and solved in, as a
+    /// controller's TCP is set after the tool is measured; joint motion is unaffected.
+    pub fn set_tool(&mut self, tool: nalgebra::Isometry3<f64>) {
+        self.model.tool = tool;
+    }
+
     /// The home position (degrees).
     pub fn home_deg(&self) -> [f64; 6] {
         self.home_deg

@@ -67,6 +67,16 @@ const STEP_SPEED: f64 = 0.3;
 const RESCAN_TILTS_DEG: [f64; 3] = [0.0, 30.0, -30.0];
 /// Wait after the arm arrives before a pass or a stop-and-move frame, s.
 const SETTLE_S: f64 = 0.05;
+/// In a calibration made during a scan, a point is the sphere's when it lies within this of the
+/// sphere where the calibration in force places it, mm (more than that calibration's error on a
+/// cell assembled to its drawing, about 2 mm at the nest).
+pub const SPHERE_GATE_MM: f64 = 6.0;
+/// Least gap between the part (its bounding circle about the axis) and the reference sphere for a
+/// calibration during the scan, mm: twice the gate, so no point of the part passes for the sphere.
+pub const NEST_CLEARANCE_MM: f64 = 12.0;
+/// Points within this of the sphere's axis (beyond its radius), in the table's plane, are the
+/// sphere and its post and are left out of the part's cloud, mm.
+const NEST_MASK_MM: f64 = 5.0;
 
 /// Why a scan cannot be planned or run.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -93,6 +103,12 @@ pub enum ScanError {
     Table(String),
     #[error("coverage map: {0}")]
     Coverage(String),
+    /// The cell cannot be calibrated during this scan (the caller calibrates before it instead).
+    #[error("no calibration during this scan: {0}")]
+    NotInScan(String),
+    /// The calibration made during the scan did not fit.
+    #[error("cell calibration: {0}")]
+    Calibration(String),
     #[error("the scan was cancelled")]
     Cancelled,
 }
@@ -207,6 +223,15 @@ impl PartPlacement {
     }
 
     /// Part height, mm.
+    /// The table top the part stands on, in the part frame: rays past the part see it.
+    fn floor(&self, layout: &CellLayout) -> Floor {
+        Floor {
+            z_mm: self.min.z,
+            center_xy_mm: [0.5 * (self.min.x + self.max.x), 0.5 * (self.min.y + self.max.y)],
+            radius_mm: layout.table_radius_mm,
+        }
+    }
+
     pub fn height_mm(&self) -> f64 {
         self.max.z - self.min.z
     }
@@ -374,6 +399,20 @@ pub struct ScanOutput {
     pub free_space: Vec<Point3<f64>>,
 }
 
+/// A frame ray cast and not yet placed.
+struct RawFrame {
+    pass: u16,
+    /// The table's encoder reading, degrees.
+    table_deg: f64,
+    /// `world_from_flange` as measured.
+    world_from_flange: Isometry3<f64>,
+    /// `part_from_sensor` as it truly was (for the registration error).
+    truth: Isometry3<f64>,
+    /// The sensor looked straight down (its table points say where the part is not).
+    looks_down: bool,
+    profile: super::scanner::Profile,
+}
+
 /// One frame's timing and poses before acquisition.
 struct FrameRec {
     frame: u64,
@@ -438,12 +477,20 @@ pub struct ScanSession {
     moments: AlignmentMoments,
     /// Calibration scans: every frame kept for the fit.
     capture: Option<Capture>,
+    /// A scan's frames ray cast before the calibration made during it is fitted.
+    pending: Vec<RawFrame>,
+    /// The reference sphere's nest on the table (table frame: its centre, and the radius within
+    /// which points are left out of the cloud) when it stands there during the scan.
+    nest: Option<(Point3<f64>, f64)>,
 }
 
 /// A calibration scan's frames.
 struct Capture {
     opts: CalibrationOptions,
     frames: Vec<CapturedFrame>,
+    /// The calibration passes of a scan that calibrates the cell at its own stations; `None`: a
+    /// calibration routine, every pass is one.
+    passes: Option<Vec<u16>>,
 }
 
 impl ScanSession {
@@ -465,16 +512,8 @@ impl ScanSession {
         let spec = ScannerSpec { line_rate_hz: opts.line_rate_hz, ..ScannerSpec::slp400() };
         opts.validate(&spec)?;
         let placement = PartPlacement::on_table(mesh, &layout)?;
-        // The part stands on the table: rays past it see the table top.
-        let floor = Floor {
-            z_mm: placement.min.z,
-            center_xy_mm: [
-                0.5 * (placement.min.x + placement.max.x),
-                0.5 * (placement.min.y + placement.max.y),
-            ],
-            radius_mm: layout.table_radius_mm,
-        };
-        Self::build(mesh, opts, spec, layout, cell, placement, floor, None)
+        let floor = placement.floor(&layout);
+        Self::build(mesh, None, opts, spec, layout, cell, placement, floor, None)
     }
 
     /// A calibration scan of `mesh` (the reference sphere, in the table's frame) on `cell`:
@@ -490,13 +529,66 @@ impl ScanSession {
         opts.validate(&spec)?;
         let placement = PartPlacement::in_table_frame(mesh)?;
         let floor = Floor { z_mm: 0.0, center_xy_mm: [0.0, 0.0], radius_mm: layout.table_radius_mm };
-        let capture = Capture { opts: calibration, frames: Vec::new() };
-        Self::build(mesh, opts, spec, layout, cell, placement, floor, Some(capture))
+        let capture = Capture { opts: calibration, frames: Vec::new(), passes: None };
+        Self::build(mesh, None, opts, spec, layout, cell, placement, floor, Some(capture))
+    }
+
+    /// A scan of `mesh` that calibrates `cell` at its own stations: the reference sphere stays on
+    /// its nest during the scan, each station scans it and the table top (the routine's passes,
+    /// [`super::calibration::routine`]) before the part, and the part's frames are placed once the
+    /// calibration is fitted ([`ScanSession::calibrate_in_scan`], after the first scan's stations).
+    /// The table turns once for both. [`ScanError::NotInScan`] names why it cannot be done (the
+    /// part over the nest, explicit passes; the stations are checked by [`ScanSession::plan`]):
+    /// then calibrate first.
+    pub fn with_cell_calibrating(
+        mesh: &Mesh,
+        opts: ScanOptions,
+        layout: CellLayout,
+        cell: Cell,
+        calibration: CalibrationOptions,
+    ) -> Result<Self, ScanError> {
+        if opts.passes.is_some() {
+            return Err(ScanError::NotInScan(
+                "the scan's passes are given: the calibration's stations are the automatic plan's".into(),
+            ));
+        }
+        let spec = ScannerSpec { line_rate_hz: opts.line_rate_hz, ..ScannerSpec::slp400() };
+        opts.validate(&spec)?;
+        let placement = PartPlacement::on_table(mesh, &layout)?;
+        let centre = Point3::from(calibration.sphere_at_mm);
+        let r = calibration.sphere_radius_mm;
+        let reach = 0.5 * (placement.max.x - placement.min.x).hypot(placement.max.y - placement.min.y);
+        let nest = centre.x.hypot(centre.y);
+        if reach + NEST_CLEARANCE_MM > nest - r {
+            return Err(ScanError::NotInScan(format!(
+                "the part reaches {reach:.1} mm from the table's axis, within {NEST_CLEARANCE_MM} mm of the reference sphere (radius {r} mm, {nest:.1} mm from the axis)"
+            )));
+        }
+        // The sphere in the part frame, in the scene the scanner sees with the part.
+        let mut scene = mesh.clone();
+        let sphere =
+            super::calibration::routine::sphere_mesh(placement.table_from_part.inverse() * centre, r);
+        let base = u32::try_from(scene.vertices.len())
+            .map_err(|_| ScanError::Mesh("more than 2^32 vertices".into()))?;
+        scene.vertices.extend(sphere.vertices);
+        scene.triangles.extend(sphere.triangles.iter().map(|t| t.map(|i| i + base)));
+        let floor = placement.floor(&layout);
+        let capture = Capture { opts: calibration, frames: Vec::new(), passes: Some(Vec::new()) };
+        let mut s =
+            Self::build(mesh, Some(&scene), opts, spec, layout, cell, placement, floor, Some(capture))?;
+        s.nest = Some((centre, r + NEST_MASK_MM));
+        Ok(s)
+    }
+
+    /// Whether this scan calibrates the cell and the fit is still to come.
+    pub fn calibrating_in_scan(&self) -> bool {
+        self.capture.as_ref().is_some_and(|c| c.passes.is_some())
     }
 
     #[allow(clippy::too_many_arguments)]
     fn build(
         mesh: &Mesh,
+        scene: Option<&Mesh>,
         opts: ScanOptions,
         spec: ScannerSpec,
         mut layout: CellLayout,
@@ -514,9 +606,9 @@ impl ScanSession {
             })?;
             layout.table = Some(c.table);
         }
-        let scanner = Scanner::new(spec, mesh, opts.seed)?.with_floor(floor);
+        let scanner = Scanner::new(spec, scene.unwrap_or(mesh), opts.seed)?.with_floor(floor);
         // At least two lines to a cell, so a cell between two lines is not taken for unseen.
-        let silhouette = if capture.is_some() {
+        let silhouette = if capture.as_ref().is_some_and(|c| c.passes.is_none()) {
             None
         } else {
             silhouette::Silhouette::of(mesh, opts.rescan_pixel_mm.max(2.0 * opts.line_spacing_mm))
@@ -563,6 +655,8 @@ impl ScanSession {
             calibrated: cell.calibration.is_some(),
             moments: AlignmentMoments::default(),
             capture,
+            pending: Vec::new(),
+            nest: None,
         })
     }
 
@@ -599,12 +693,22 @@ impl ScanSession {
 
     /// The first scan's plan (automatic or given), with the frame guard applied.
     pub fn plan(&mut self) -> Result<ScanPlan, ScanError> {
-        let plan = plan_scan(&self.placement, &self.layout, &self.arm, self.scanner.spec(), &self.opts)?;
+        let mut plan = plan_scan(&self.placement, &self.layout, &self.arm, self.scanner.spec(), &self.opts)?;
+        if self.calibrating_in_scan() {
+            self.add_calibration_passes(&mut plan)?;
+        }
         let frames = plan.estimated_frames(&self.opts);
         if frames > self.opts.max_frames {
             return Err(ScanError::TooManyFrames { frames, max: self.opts.max_frames });
         }
-        self.last_pass_id = plan.stations.iter().flat_map(|s| &s.passes).map(|p| p.id).max().unwrap_or(0);
+        self.last_pass_id = plan
+            .stations
+            .iter()
+            .flat_map(|s| &s.passes)
+            .map(|p| p.id)
+            .max()
+            .unwrap_or(0)
+            .max(self.last_pass_id);
         for s in &plan.skipped {
             self.diagnostics.push(format!("pass left out: {s}"));
         }
@@ -617,6 +721,108 @@ impl ScanSession {
             }
         }
         Ok(plan)
+    }
+
+    /// Puts the calibration routine's passes at the head of every station of `plan` (a scan that
+    /// calibrates the cell, [`ScanSession::with_cell_calibrating`]): the calibration's angles are
+    /// the stations'. [`ScanError::NotInScan`] when they cannot serve (fewer than three, spread
+    /// over less than 90°), there is no room for the table-top pass or a pass is out of reach.
+    fn add_calibration_passes(&mut self, plan: &mut ScanPlan) -> Result<(), ScanError> {
+        let Some(capture) = self.capture.as_mut() else { return Ok(()) };
+        let mut opts = capture.opts.clone();
+        opts.table_angles_deg = plan.stations.iter().map(|s| s.table_deg).collect();
+        let not = |e: &dyn std::fmt::Display| ScanError::NotInScan(e.to_string());
+        opts.validate(&self.layout).map_err(|e| not(&format!("the scan's stations: {e}")))?;
+        // The table-top pass runs across, clear of the part by the gap the sphere keeps.
+        let reach = 0.5
+            * (self.placement.max.x - self.placement.min.x)
+                .hypot(self.placement.max.y - self.placement.min.y);
+        let half = 0.5 * super::calibration::routine::TABLE_PASS_MM;
+        let from_axis =
+            (0.4 * opts.sphere_at_mm[0].hypot(opts.sphere_at_mm[1])).max(reach + NEST_CLEARANCE_MM + half);
+        if from_axis.hypot(half) + 5.0 > self.layout.table_radius_mm {
+            return Err(not(&format!(
+                "no room on the {} mm table beside the part (reaching {reach:.1} mm from the axis) for the table-top pass",
+                self.layout.table_radius_mm
+            )));
+        }
+        let first =
+            plan.stations.iter().flat_map(|s| &s.passes).map(|p| p.id).max().unwrap_or(0).saturating_add(1);
+        let mut obstacles = obstacles::cell_obstacles(&self.layout, &self.placement);
+        obstacles.extend(self.opts.obstacles.iter().cloned());
+        let scan_opts = ScanOptions { table_angles_deg: opts.table_angles_deg.clone(), ..self.opts.clone() };
+        let stations = super::calibration::routine::calibration_stations(
+            &self.arm,
+            &self.layout,
+            &opts,
+            &scan_opts,
+            &obstacles,
+            (true, from_axis),
+            first,
+        )
+        .map_err(|e| not(&format!("calibration pass: {e}")))?;
+        let mut ids = Vec::new();
+        for (station, cal) in plan.stations.iter_mut().zip(stations) {
+            ids.extend(cal.passes.iter().map(|p| p.id));
+            let scan = std::mem::take(&mut station.passes);
+            station.passes = cal.passes.into_iter().chain(scan).collect();
+        }
+        capture.opts = opts;
+        capture.passes = Some(ids);
+        Ok(())
+    }
+
+    /// Fits the calibration made during this scan to its sphere and table frames, takes it in
+    /// force (the table model and the scanner mount, for the robot's tool frame too) and places
+    /// the part's frames held for it. Called after the first scan's stations, before the rescan.
+    pub fn calibrate_in_scan(
+        &mut self,
+    ) -> Result<(super::calibration::Calibration, super::calibration::CalibrationReport), ScanError> {
+        let Some(capture) = self.capture.take_if(|c| c.passes.is_some()) else {
+            return Err(ScanError::Calibration("this scan does not calibrate the cell".into()));
+        };
+        let (cal, mut report) = self.fit(&capture).map_err(|e| ScanError::Calibration(e.to_string()))?;
+        report.scan_time_s = self.t_s;
+        self.layout.table = Some(cal.table);
+        let tool = cal.flange_from_scanner();
+        self.arm.tool = tool;
+        self.robot.set_tool(tool);
+        self.calibrated = true;
+        let pending = std::mem::take(&mut self.pending);
+        self.place(pending);
+        // The passes' point counts, now that their points are placed.
+        let mut counts: std::collections::HashMap<u16, u64> = std::collections::HashMap::new();
+        for id in &self.pass {
+            *counts.entry(*id).or_default() += 1;
+        }
+        for p in self.stations.iter_mut().flat_map(|s| s.passes.iter_mut()) {
+            p.points = counts.get(&p.id).copied().unwrap_or(0);
+        }
+        Ok((cal, report))
+    }
+
+    /// The calibration fitted to `capture`'s frames, starting from the calibration in force.
+    fn fit(
+        &self,
+        capture: &Capture,
+    ) -> Result<
+        (super::calibration::Calibration, super::calibration::CalibrationReport),
+        super::calibration::CalibrationError,
+    > {
+        let previous = super::calibration::Calibration {
+            table: self.layout.table.unwrap_or_else(|| TableModel::nominal(&self.layout)),
+            scanner_mount: super::calibration::Offset::from_iso(
+                &(ArmModel::scanner_bracket().inverse() * self.arm.tool),
+            ),
+        };
+        let nominal_layout = CellLayout { table: None, ..self.layout };
+        super::calibration::fit::solve(
+            &capture.frames,
+            &capture.opts,
+            &nominal_layout,
+            &previous,
+            Some(&self.truth),
+        )
     }
 
     /// Runs every pass of `station` with the table at rest at `table_deg_measured` (its encoder
@@ -784,76 +990,143 @@ impl ScanSession {
         Ok((recs, t - t_start))
     }
 
-    /// Ray casts the frames in parallel and appends their points, placed with the measured poses
-    /// and the believed table; the true sensor and table poses make the physics. A calibration
-    /// scan keeps every frame (station `station`) for the fit.
+    /// Ray casts the frames in parallel (the true sensor and table poses make the physics) and
+    /// hands them on: a calibration pass's frames are kept for the fit (station `station`), a
+    /// scan pass's are placed ([`ScanSession::place`]), or held until the calibration made in
+    /// this scan is fitted.
     fn acquire(&mut self, frames: &[FrameRec], table_deg: f64, pass_id: u16, station: Option<usize>) {
         let part_from_world_true =
             (self.truth.table.world_from_table(table_deg) * self.placement.table_from_part).inverse();
         let scanner = &self.scanner;
         let seed = self.opts.seed;
-        let placement = &self.placement;
-        let layout = &self.layout;
-        let capturing = self.capture.is_some();
-        let tool_inv = self.arm.tool.inverse();
-        let results: Vec<_> = frames
+        let robot_tool_inv = self.robot.model().tool.inverse();
+        let raw: Vec<RawFrame> = frames
             .par_iter()
             .map(|f| {
                 let truth = part_from_world_true * f.true_pose;
-                let placed = placement.world_from_part(layout, f.table_deg).inverse() * f.measured_pose;
-                let profile = scanner.profile_seeded(&truth, f.frame, seed);
+                RawFrame {
+                    pass: pass_id,
+                    table_deg: f.table_deg,
+                    world_from_flange: f.measured_pose * robot_tool_inv,
+                    truth,
+                    looks_down: (f.true_pose.rotation * Vector3::z()).dot(&-Vector3::z())
+                        >= FREE_SPACE_MAX_TILT_DEG.to_radians().cos(),
+                    profile: scanner.profile_seeded(&truth, f.frame, seed),
+                }
+            })
+            .collect();
+        let calibration_pass =
+            self.capture.as_ref().is_some_and(|c| c.passes.as_ref().is_none_or(|p| p.contains(&pass_id)));
+        if calibration_pass {
+            self.capture_frames(&raw, station.unwrap_or(usize::MAX));
+        }
+        let in_scan = self.capture.as_ref().is_some_and(|c| c.passes.is_some());
+        if calibration_pass && in_scan {
+            // The sphere's frames of a calibration made in this scan add nothing to the cloud.
+            for r in &raw {
+                self.dropped.add(&r.profile.dropped);
+            }
+        } else if in_scan {
+            self.pending.extend(raw);
+        } else {
+            self.place(raw);
+        }
+    }
+
+    /// Keeps a calibration pass's frames for the fit. In a calibration made during a scan the
+    /// sphere shares the table with the part: only the points within [`SPHERE_GATE_MM`] of where
+    /// the calibration in force places the sphere are the sphere's.
+    fn capture_frames(&mut self, raw: &[RawFrame], station: usize) {
+        let table_from_part = self.placement.table_from_part;
+        let tool = self.arm.tool;
+        let layout = self.layout;
+        let Some(c) = self.capture.as_mut() else { return };
+        let gate = c.passes.is_some().then(|| (Point3::from(c.opts.sphere_at_mm), c.opts.sphere_radius_mm));
+        for r in raw {
+            let sphere = match gate {
+                None => r.profile.points.clone(),
+                Some((centre, radius)) => {
+                    let sensor_from_world = (r.world_from_flange * tool).inverse();
+                    let c_s = sensor_from_world * (layout.world_from_table(r.table_deg) * centre);
+                    r.profile
+                        .points
+                        .iter()
+                        .filter(|p| (*p - c_s).norm() <= radius + SPHERE_GATE_MM)
+                        .copied()
+                        .collect()
+                }
+            };
+            c.frames.push(CapturedFrame {
+                station,
+                table_deg: r.table_deg,
+                world_from_flange: r.world_from_flange,
+                true_table_from_sensor: table_from_part * r.truth,
+                sphere,
+                table: r.profile.floor.clone(),
+            });
+        }
+    }
+
+    /// Places ray-cast frames into the part frame with their measured flange poses, the scanner
+    /// mount and the table as the session believes them, and appends them to the cloud (and the
+    /// table seen around the part to the free space). The points on the reference sphere's nest,
+    /// when it stands on the table, are left out.
+    fn place(&mut self, raw: Vec<RawFrame>) {
+        let placement = &self.placement;
+        let layout = &self.layout;
+        let tool = self.arm.tool;
+        let nest = self.nest;
+        let results: Vec<_> = raw
+            .into_par_iter()
+            .map(|r| {
+                let placed =
+                    placement.world_from_part(layout, r.table_deg).inverse() * (r.world_from_flange * tool);
+                let profile = r.profile;
+                let truth = r.truth;
                 let mut sq = 0.0;
                 let mut mx: f64 = 0.0;
                 let mut moments = AlignmentMoments::default();
-                let pts: Vec<Point3<f64>> = profile
-                    .points
-                    .iter()
-                    .map(|p| {
-                        let q = placed * p;
-                        let t = truth * p;
-                        let e = (q - t).norm_squared();
-                        sq += e;
-                        mx = mx.max(e);
-                        moments.add(&q, &t);
-                        q
-                    })
-                    .collect();
+                let mut pts = Vec::with_capacity(profile.points.len());
+                let mut inten = Vec::with_capacity(profile.points.len());
+                for (p, i) in profile.points.iter().zip(&profile.intensity) {
+                    let q = placed * p;
+                    if let Some((c, radius)) = nest {
+                        let t = placement.table_from_part * q;
+                        if (t.x - c.x).hypot(t.y - c.y) <= radius {
+                            continue;
+                        }
+                    }
+                    let t = truth * p;
+                    let e = (q - t).norm_squared();
+                    sq += e;
+                    mx = mx.max(e);
+                    moments.add(&q, &t);
+                    pts.push(q);
+                    inten.push(*i);
+                }
                 let (lo, hi) = (placement.min, placement.max);
                 let m = FREE_SPACE_MARGIN_MM;
                 // A tilted sensor sees the table far under an overhang (its rays reach under by
                 // the height times the tilt's tangent): only a sensor looking down says where
                 // the part is not.
-                let down = (f.true_pose.rotation * Vector3::z()).dot(&-Vector3::z());
-                let floor_rays: &[Point3<f64>] =
-                    if down >= FREE_SPACE_MAX_TILT_DEG.to_radians().cos() { &profile.floor } else { &[] };
+                let floor_rays: &[Point3<f64>] = if r.looks_down { &profile.floor } else { &[] };
                 let floor: Vec<Point3<f64>> = floor_rays
                     .iter()
                     .map(|p| placed * p)
                     .filter(|q| q.x >= lo.x - m && q.x <= hi.x + m && q.y >= lo.y - m && q.y <= hi.y + m)
                     .collect();
-                let captured = capturing.then(|| CapturedFrame {
-                    station: station.unwrap_or(usize::MAX),
-                    table_deg: f.table_deg,
-                    world_from_flange: f.measured_pose * tool_inv,
-                    true_table_from_sensor: truth,
-                    sphere: profile.points.clone(),
-                    table: profile.floor.clone(),
-                });
-                (pts, profile.intensity, profile.dropped, sq, mx.sqrt(), floor, moments, captured)
+                (r.pass, pts, inten, profile.dropped, sq, mx.sqrt(), floor, moments)
             })
             .collect();
-        for (pts, inten, dropped, sq, mx, floor, moments, captured) in results {
+        for (pass, pts, inten, dropped, sq, mx, floor, moments) in results {
             self.free_space.extend(floor);
-            self.pass.extend(std::iter::repeat_n(pass_id, pts.len()));
+            self.pass.extend(std::iter::repeat_n(pass, pts.len()));
             self.points.extend(pts);
             self.intensity.extend(inten);
             self.dropped.add(&dropped);
             self.err_sq += sq;
             self.err_max = self.err_max.max(mx);
             self.moments.merge(&moments);
-            if let (Some(c), Some(frame)) = (self.capture.as_mut(), captured) {
-                c.frames.push(frame);
-            }
         }
     }
 
@@ -1015,20 +1288,7 @@ impl ScanSession {
                 "this session is not a calibration scan".into(),
             ));
         };
-        let previous = super::calibration::Calibration {
-            table: self.layout.table.unwrap_or_else(|| TableModel::nominal(&self.layout)),
-            scanner_mount: super::calibration::Offset::from_iso(
-                &(ArmModel::scanner_bracket().inverse() * self.arm.tool),
-            ),
-        };
-        let nominal_layout = CellLayout { table: None, ..self.layout };
-        let (cal, mut report) = super::calibration::fit::solve(
-            &capture.frames,
-            &capture.opts,
-            &nominal_layout,
-            &previous,
-            Some(&self.truth),
-        )?;
+        let (cal, mut report) = self.fit(&capture)?;
         report.scan_time_s = self.t_s;
         report.diagnostics = std::mem::take(&mut self.diagnostics);
         Ok((cal, report))
