@@ -404,13 +404,22 @@ struct RawFrame {
     pass: u16,
     /// The table's encoder reading, degrees.
     table_deg: f64,
-    /// `world_from_flange` as measured.
-    world_from_flange: Isometry3<f64>,
+    /// `world_from_sensor` as measured, with the tool frame `tool` the controller reported in.
+    measured_pose: Isometry3<f64>,
+    tool: Isometry3<f64>,
     /// `part_from_sensor` as it truly was (for the registration error).
     truth: Isometry3<f64>,
     /// The sensor looked straight down (its table points say where the part is not).
     looks_down: bool,
     profile: super::scanner::Profile,
+}
+
+impl RawFrame {
+    /// `world_from_sensor` with the scanner mount `tool`: the measured pose itself when the
+    /// controller reported in that tool frame, else moved to it through the flange.
+    fn world_from_sensor(&self, tool: &Isometry3<f64>) -> Isometry3<f64> {
+        if self.tool == *tool { self.measured_pose } else { self.measured_pose * self.tool.inverse() * tool }
+    }
 }
 
 /// One frame's timing and poses before acquisition.
@@ -999,7 +1008,7 @@ impl ScanSession {
             (self.truth.table.world_from_table(table_deg) * self.placement.table_from_part).inverse();
         let scanner = &self.scanner;
         let seed = self.opts.seed;
-        let robot_tool_inv = self.robot.model().tool.inverse();
+        let robot_tool = self.robot.model().tool;
         let raw: Vec<RawFrame> = frames
             .par_iter()
             .map(|f| {
@@ -1007,7 +1016,8 @@ impl ScanSession {
                 RawFrame {
                     pass: pass_id,
                     table_deg: f.table_deg,
-                    world_from_flange: f.measured_pose * robot_tool_inv,
+                    measured_pose: f.measured_pose,
+                    tool: robot_tool,
                     truth,
                     looks_down: (f.true_pose.rotation * Vector3::z()).dot(&-Vector3::z())
                         >= FREE_SPACE_MAX_TILT_DEG.to_radians().cos(),
@@ -1046,7 +1056,7 @@ impl ScanSession {
             let sphere = match gate {
                 None => r.profile.points.clone(),
                 Some((centre, radius)) => {
-                    let sensor_from_world = (r.world_from_flange * tool).inverse();
+                    let sensor_from_world = r.world_from_sensor(&tool).inverse();
                     let c_s = sensor_from_world * (layout.world_from_table(r.table_deg) * centre);
                     r.profile
                         .points
@@ -1059,7 +1069,7 @@ impl ScanSession {
             c.frames.push(CapturedFrame {
                 station,
                 table_deg: r.table_deg,
-                world_from_flange: r.world_from_flange,
+                world_from_flange: r.measured_pose * r.tool.inverse(),
                 true_table_from_sensor: table_from_part * r.truth,
                 sphere,
                 table: r.profile.floor.clone(),
@@ -1080,7 +1090,7 @@ impl ScanSession {
             .into_par_iter()
             .map(|r| {
                 let placed =
-                    placement.world_from_part(layout, r.table_deg).inverse() * (r.world_from_flange * tool);
+                    placement.world_from_part(layout, r.table_deg).inverse() * r.world_from_sensor(&tool);
                 let profile = r.profile;
                 let truth = r.truth;
                 let mut sq = 0.0;
