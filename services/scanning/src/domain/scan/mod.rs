@@ -1213,7 +1213,7 @@ impl ScanSession {
 
     /// Passes aimed at `targets`: from each first-scan angle + 45°, farther away, three short
     /// passes per hole across it (straight down, tilted ±30°, each aimed so its optical axis meets
-    /// the hole at the standoff). Passes the arm cannot reach are left out with a diagnostic.
+    /// the hole at the standoff). Passes the arm cannot reach are left out, with one diagnostic per station.
     pub fn rescan_plan(&mut self, targets: &[HoleTarget]) -> ScanPlan {
         let spec = self.scanner.spec().clone();
         let standoff = self.opts.rescan_standoff_mm.unwrap_or_else(|| {
@@ -1227,6 +1227,8 @@ impl ScanSession {
         for deg in angles {
             let w = self.placement.world_from_part(&self.layout, deg);
             let mut passes = Vec::new();
+            // Passes out of reach at this station: (tilt, hole centre, why), said in one line.
+            let mut skipped: Vec<(f64, [f64; 2], String)> = Vec::new();
             'holes: for (k, h) in targets.iter().enumerate() {
                 let c = w * Point3::new(h.center_x_mm, h.center_y_mm, self.placement.max.z);
                 let half = 0.5 * h.extent_mm + self.opts.margin_mm + 2.0;
@@ -1248,12 +1250,19 @@ impl ScanSession {
                             seed = p.q_end_deg;
                             passes.push(p);
                         }
-                        Err(e) => self.diagnostics.push(format!(
-                            "rescan pass (tilt {tilt}°) over the hole at ({:.1}, {:.1}) mm skipped: {e}",
-                            h.center_x_mm, h.center_y_mm
-                        )),
+                        Err(e) => skipped.push((tilt, [h.center_x_mm, h.center_y_mm], e.to_string())),
                     }
                 }
+            }
+            if let Some((tilt, [x, y], why)) = skipped.first() {
+                let tilts: std::collections::BTreeSet<String> =
+                    skipped.iter().map(|s| format!("{}°", s.0)).collect();
+                self.diagnostics.push(format!(
+                    "rescan at table angle {deg}°: {} of {} passes skipped, out of reach (tilts {}); the first, tilt {tilt}° over the hole at ({x:.1}, {y:.1}) mm: {why}",
+                    skipped.len(),
+                    skipped.len() + passes.len(),
+                    tilts.into_iter().collect::<Vec<_>>().join(", ")
+                ));
             }
             if !passes.is_empty() {
                 stations.push(Station { table_deg: deg, passes, table_offset_deg: 0.0 });
