@@ -421,6 +421,26 @@ fn a_scanned_job_shows_its_scan() {
     ] {
         assert!(out.html.contains(needle), "{needle} missing from the scan summary");
     }
+    // A calibration made for this scan: its version from the job's metrics, and how it was made.
+    let mut made = report.clone();
+    made["calibration"] = serde_json::json!({"made_for_this_scan": true, "during_scan": true,
+                                            "why_not_during_scan": null, "sphere_rms_mm": 0.0331,
+                                            "table_fit_rms_mm": 0.0024});
+    let mut arts2 = arts.clone();
+    arts2.insert("scan_report".into(), serde_json::to_vec(&made).expect("json"));
+    let mut job2 = job.clone();
+    job2["metrics"]["scan_calibration_version"] = serde_json::json!(1.0);
+    let out2 = render_ok(&job2, &arts2);
+    assert!(
+        out2.html.contains("version 1, made for this scan at its own stations: sphere fit RMS 0.0331 mm"),
+        "the calibration made during the scan"
+    );
+    made["calibration"]["why_not_during_scan"] = serde_json::json!("the part reaches <the nest>");
+    arts2.insert("scan_report".into(), serde_json::to_vec(&made).expect("json"));
+    let out3 = render_ok(&job2, &arts2);
+    assert!(
+        out3.html.contains("made for this scan by the routine before it (the part reaches &lt;the nest&gt;)")
+    );
     // Without a scan report there is no scan table.
     let plain = render_ok(&job, &full_artifacts());
     assert!(!plain.html.contains("Registration error"));

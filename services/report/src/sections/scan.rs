@@ -74,10 +74,22 @@ impl Ctx<'_> {
                     "—".to_string()
                 };
             }
+            // A calibration the scan made has its version from the job (stored after the scan).
+            let head = if c["made_for_this_scan"] == Value::Bool(true) {
+                let version =
+                    self.metric("scan_calibration_version").map_or("—".to_string(), |v| format!("{v:.0}"));
+                match c["why_not_during_scan"].as_str() {
+                    Some(why) => format!(
+                        "version {version}, made for this scan by the routine before it ({})",
+                        esc(why)
+                    ),
+                    None => format!("version {version}, made for this scan at its own stations"),
+                }
+            } else {
+                format!("version {} ({})", c["version"], esc(c["id"].as_str().unwrap_or("?")))
+            };
             let mut s = format!(
-                "version {} ({}): sphere fit RMS {} mm, table fit RMS {} mm",
-                c["version"],
-                esc(c["id"].as_str().unwrap_or("?")),
+                "{head}: sphere fit RMS {} mm, table fit RMS {} mm",
                 f(&c["sphere_rms_mm"], 4),
                 f(&c["table_fit_rms_mm"], 4)
             );
