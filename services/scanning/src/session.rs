@@ -260,6 +260,7 @@ pub async fn run_scan<S: AsyncRead + AsyncWrite + Unpin>(
         }
     };
     let mut made = None;
+    let mut progress = progress;
     let (session, plan) = match in_scan {
         Some(Ok(found)) => found,
         Some(Err(ScanError::NotInScan(why))) => {
@@ -279,6 +280,9 @@ pub async fn run_scan<S: AsyncRead + AsyncWrite + Unpin>(
                 })?;
             let cell = Cell { calibration: Some(c), ..cell };
             made = Some(MadeCalibration { calibration: c, report, during_scan: false, why_not: Some(why) });
+            // The scan's own progress goes on from where the routine's ended.
+            let p = progress.clone();
+            progress = Arc::new(move |f, m| p(0.3 + 0.7 * f, m));
             if opts.passes.is_none() {
                 let at = table.position_deg().await.map_err(terr)?;
                 opts.table_angles_deg = crate::domain::scan::plan::visit_order(&opts.table_angles_deg, at);
