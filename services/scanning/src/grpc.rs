@@ -381,7 +381,7 @@ impl pb::scanning_service_server::ScanningService for ScanningServiceImpl {
                     // The calibration made for this scan and its figures, for the job report.
                     out.report.calibration = Some(serde_json::json!({
                         "made_for_this_scan": true,
-                        "during_scan": m.during_scan,
+                        "during_scan": m.during_scan(),
                         "why_not_during_scan": m.why_not,
                         "calibration": m.calibration,
                         "sphere_rms_mm": m.report.sphere_rms_mm,
@@ -509,7 +509,7 @@ impl pb::scanning_service_server::ScanningService for ScanningServiceImpl {
                     registration_merge_rms_mm: r.registration_merge_rms_mm,
                     calibration_id: cal_id,
                     calibration_version: cal_version,
-                    calibrated_during_scan: made.as_ref().is_some_and(|m| m.during_scan),
+                    calibrated_during_scan: made.as_ref().is_some_and(|m| m.during_scan()),
                     new_calibration,
                     new_calibration_report_json,
                 })

@@ -214,9 +214,15 @@ async fn planned(
 pub struct MadeCalibration {
     pub calibration: Calibration,
     pub report: CalibrationReport,
-    /// Made at the scan's stations (else by the routine before the scan, for `why_not`).
-    pub during_scan: bool,
+    /// Why it was not made at the scan's stations (then the routine ran before the scan).
     pub why_not: Option<String>,
+}
+
+impl MadeCalibration {
+    /// Made at the scan's own stations.
+    pub fn during_scan(&self) -> bool {
+        self.why_not.is_none()
+    }
 }
 
 /// Scans `mesh` with `opts` on `cell` (the physics on its truth, the points placed with its
@@ -279,7 +285,7 @@ pub async fn run_scan<S: AsyncRead + AsyncWrite + Unpin>(
                     e => ScanError::Calibration(e.to_string()),
                 })?;
             let cell = Cell { calibration: Some(c), ..cell };
-            made = Some(MadeCalibration { calibration: c, report, during_scan: false, why_not: Some(why) });
+            made = Some(MadeCalibration { calibration: c, report, why_not: Some(why) });
             // The scan's own progress goes on from where the routine's ended.
             let p = progress.clone();
             progress = Arc::new(move |f, m| p(0.3 + 0.7 * f, m));
@@ -317,7 +323,7 @@ pub async fn run_scan<S: AsyncRead + AsyncWrite + Unpin>(
         .await?;
         session = s;
         let (c, report) = fitted?;
-        made = Some(MadeCalibration { calibration: c, report, during_scan: true, why_not: None });
+        made = Some(MadeCalibration { calibration: c, report, why_not: None });
     }
     if adaptive {
         progress(0.75, "coverage map of the first scan".into());

@@ -223,6 +223,12 @@ impl PartPlacement {
     }
 
     /// Part height, mm.
+    /// The radius of the part's footprint about the table's axis (half its bounding box's
+    /// diagonal in X and Y: the box is centred on the axis), mm.
+    pub fn reach_mm(&self) -> f64 {
+        0.5 * (self.max.x - self.min.x).hypot(self.max.y - self.min.y)
+    }
+
     /// The table top the part stands on, in the part frame: rays past the part see it.
     fn floor(&self, layout: &CellLayout) -> Floor {
         Floor {
@@ -566,7 +572,7 @@ impl ScanSession {
         let placement = PartPlacement::on_table(mesh, &layout)?;
         let centre = Point3::from(calibration.sphere_at_mm);
         let r = calibration.sphere_radius_mm;
-        let reach = 0.5 * (placement.max.x - placement.min.x).hypot(placement.max.y - placement.min.y);
+        let reach = placement.reach_mm();
         let nest = centre.x.hypot(centre.y);
         if reach + NEST_CLEARANCE_MM > nest - r {
             return Err(ScanError::NotInScan(format!(
@@ -743,9 +749,7 @@ impl ScanSession {
         let not = |e: &dyn std::fmt::Display| ScanError::NotInScan(e.to_string());
         opts.validate(&self.layout).map_err(|e| not(&format!("the scan's stations: {e}")))?;
         // The table-top pass runs across, clear of the part by the gap the sphere keeps.
-        let reach = 0.5
-            * (self.placement.max.x - self.placement.min.x)
-                .hypot(self.placement.max.y - self.placement.min.y);
+        let reach = self.placement.reach_mm();
         let half = 0.5 * super::calibration::routine::TABLE_PASS_MM;
         let from_axis =
             (0.4 * opts.sphere_at_mm[0].hypot(opts.sphere_at_mm[1])).max(reach + NEST_CLEARANCE_MM + half);

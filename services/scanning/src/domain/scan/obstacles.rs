@@ -95,7 +95,7 @@ impl Obstacle {
 /// bounding cylinder about the table's axis, so it holds at every table angle).
 pub fn cell_obstacles(layout: &CellLayout, placement: &PartPlacement) -> Vec<Obstacle> {
     let c = [layout.table_axis_x_mm, layout.table_axis_y_mm];
-    let half = 0.5 * (placement.max.x - placement.min.x).hypot(placement.max.y - placement.min.y);
+    let half = placement.reach_mm();
     vec![
         Obstacle::Cylinder {
             name: "table".into(),
