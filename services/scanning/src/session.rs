@@ -66,14 +66,12 @@ async fn index_table<S: AsyncRead + AsyncWrite + Unpin>(
 /// Runs the stations of `plan`, indexing the table before each. A station's passes are
 /// simulated (on a blocking thread, from the encoder reading the table settled at) while the
 /// table already turns to the next station: the frames were latched at the settled angle, so
-/// only their processing overlaps the turn, as on a real cell. After the last station the table
-/// turns on to `then` when given (where the next plan starts).
+/// only their processing overlaps the turn, as on a real cell.
 #[allow(clippy::too_many_arguments)]
 async fn run_plan<S: AsyncRead + AsyncWrite + Unpin>(
     mut session: ScanSession,
     plan: &ScanPlan,
     rescan: bool,
-    then: Option<f64>,
     table: &mut TableClient<S>,
     progress: &Progress,
     span: (f64, f64),
@@ -125,12 +123,10 @@ async fn run_plan<S: AsyncRead + AsyncWrite + Unpin>(
             (session, r)
         });
         done += station.passes.len();
-        let next = plan.stations.get(k + 1).map(|s| s.table_deg).or(then);
+        let next = plan.stations.get(k + 1).map(|s| s.table_deg);
         let ((s, r), next) = match next {
             Some(deg) => {
-                if k + 1 < n {
-                    turn(k + 1, deg, done);
-                }
+                turn(k + 1, deg, done);
                 let indexing = async {
                     let waited = std::time::Instant::now();
                     let m = index_table(table, deg, cancel).await;
@@ -178,9 +174,8 @@ pub async fn run_calibration<S: AsyncRead + AsyncWrite + Unpin>(
             .map_err(scan_err)??;
     table.set_speed(TABLE_SPEED_DEG_S).await.map_err(terr)?;
     table.set_accel(TABLE_ACCEL_DEG_S2).await.map_err(terr)?;
-    let session = run_plan(session, &plan, false, None, table, &progress, (0.0, 0.9), &cancel)
-        .await
-        .map_err(scan_err)?;
+    let session =
+        run_plan(session, &plan, false, table, &progress, (0.0, 0.9), &cancel).await.map_err(scan_err)?;
     progress(0.9, "fitting the table and the scanner mount".into());
     let (cal, report) = blocking(move || session.finish_calibration()).await.map_err(scan_err)??;
     progress(
@@ -308,11 +303,10 @@ pub async fn run_scan<S: AsyncRead + AsyncWrite + Unpin>(
     table.set_accel(TABLE_ACCEL_DEG_S2).await.map_err(terr)?;
     let adaptive = session.options().adaptive_rescan;
     let first_span = if adaptive { (0.0, 0.75) } else { (0.0, 1.0) };
-    // The table goes on to the rescan's first angle while the last station is simulated.
-    let then = adaptive
-        .then(|| session.rescan_angles(plan.stations.last().map(|s| s.table_deg)).first().copied())
-        .flatten();
-    let mut session = run_plan(session, &plan, false, then, table, &progress, first_span, &cancel).await?;
+    // The table stays at the last station: the rescan's views are chosen from there (its own
+    // angle costs no turn).
+    let table_at = plan.stations.last().map_or(0.0, |s| s.table_deg);
+    let mut session = run_plan(session, &plan, false, table, &progress, first_span, &cancel).await?;
     if session.calibrating_in_scan() {
         progress(first_span.1 * 0.97, "fitting the table and the scanner mount to the sphere's scans".into());
         let (s, fitted) = blocking(move || {
@@ -330,7 +324,7 @@ pub async fn run_scan<S: AsyncRead + AsyncWrite + Unpin>(
         let (s, found) = blocking(move || {
             let mut session = session;
             let r = session.holes().map(|(before, targets)| {
-                let plan = session.rescan_plan(&targets);
+                let plan = session.rescan_plan(&targets, table_at);
                 (before, targets, plan)
             });
             (session, r)
@@ -352,7 +346,7 @@ pub async fn run_scan<S: AsyncRead + AsyncWrite + Unpin>(
             ));
             session.record_rescan(before, None, targets);
         } else {
-            session = run_plan(session, &rescan, true, None, table, &progress, (0.78, 0.98), &cancel).await?;
+            session = run_plan(session, &rescan, true, table, &progress, (0.78, 0.98), &cancel).await?;
             let (s, after) = blocking(move || {
                 let r = session.holes().map(|(a, _)| a);
                 (session, r)

@@ -32,15 +32,19 @@
 //! # Adaptive rescan
 //! [`ScanSession::holes`] rasterises the cloud so far with `depthmill_geometry::raster`'s binning and
 //! coverage code at `rescan_pixel_mm` and lists the enclosed holes (unmeasured cells of the
-//! footprint). [`ScanSession::rescan_plan`] aims short passes at them from table angles halfway
-//! between the first ones and from farther away (a smaller triangulation angle sees deeper),
-//! looking straight down and tilted ±30° across the pass (a wall too steep for the incidence limit
-//! from above faces one of the tilted views).
+//! footprint). [`ScanSession::rescan_plan`] aims short passes at them, looking straight down and
+//! tilted ±30° across the pass (a wall too steep for the incidence limit from above faces one of
+//! the tilted views), from farther away (a smaller triangulation angle sees deeper), at the first
+//! scan's table angles and halfway between them. Which of these candidate views run is a
+//! next-best-view choice ([`views`]): what each would fill is predicted on the part's mesh, and
+//! stations are taken by the unseen surface they add per second of turning and scanning, so the
+//! table turns only where a view adds something.
 
 pub mod obstacles;
 pub mod options;
 pub mod plan;
 pub mod silhouette;
+pub mod views;
 
 use depthmill_geometry::Mesh;
 use depthmill_geometry::raster::{COVERAGE_HOLE, Roi, coverage, grid_for_roi, try_rasterize_max};
@@ -65,6 +69,11 @@ const APPROACH_SPEED: f64 = 0.5;
 const STEP_SPEED: f64 = 0.3;
 /// Tilts of the rescan passes about their direction, degrees.
 const RESCAN_TILTS_DEG: [f64; 3] = [0.0, 30.0, -30.0];
+/// Directions of the rescan passes: `false` across the robot's reach (world Y), `true` along it
+/// (world X).
+const RESCAN_DIRECTIONS: [bool; 2] = [false, true];
+/// The arm's approach to a rescan pass and its settling, s (for choosing the rescan's views).
+const RESCAN_PASS_OVERHEAD_S: f64 = 1.0;
 /// Wait after the arm arrives before a pass or a stop-and-move frame, s.
 const SETTLE_S: f64 = 0.05;
 /// In a calibration made during a scan, a point is the sphere's when it lies within this of the
@@ -483,6 +492,8 @@ pub struct ScanSession {
     table_wait_s: f64,
     /// The part's top-view silhouette at the rescan pixel (from its mesh).
     silhouette: Option<silhouette::Silhouette>,
+    /// The part's mesh for predicting what a rescan pass sees (with the silhouette).
+    views: Option<views::ViewModel>,
     /// Table points seen past the part within [`FREE_SPACE_MARGIN_MM`] of its footprint (part frame).
     free_space: Vec<Point3<f64>>,
     /// The cell as it truly is (the physics); `layout` and `arm` hold what the software believes.
@@ -621,12 +632,15 @@ impl ScanSession {
             })?;
             layout.table = Some(c.table);
         }
-        let scanner = Scanner::new(spec, scene.unwrap_or(mesh), opts.seed)?.with_floor(floor);
+        let scanner = Scanner::new(spec.clone(), scene.unwrap_or(mesh), opts.seed)?.with_floor(floor);
         // At least two lines to a cell, so a cell between two lines is not taken for unseen.
-        let silhouette = if capture.as_ref().is_some_and(|c| c.passes.is_none()) {
-            None
+        let (silhouette, views) = if capture.as_ref().is_some_and(|c| c.passes.is_none()) {
+            (None, None)
         } else {
-            silhouette::Silhouette::of(mesh, opts.rescan_pixel_mm.max(2.0 * opts.line_spacing_mm))
+            (
+                silhouette::Silhouette::of(mesh, opts.rescan_pixel_mm.max(2.0 * opts.line_spacing_mm)),
+                opts.adaptive_rescan.then(|| views::ViewModel::new(mesh, &spec)).flatten(),
+            )
         };
         let model = ArmModel::viper_s650().with_tool(belief.flange_from_scanner());
         let mut robot = MotionController::new(model, ArmModel::READY_DEG)?;
@@ -665,6 +679,7 @@ impl ScanSession {
             last_pass_id: 0,
             table_wait_s: 0.0,
             silhouette,
+            views,
             free_space: Vec::new(),
             truth: cell.truth,
             calibrated: cell.calibration.is_some(),
@@ -1193,80 +1208,269 @@ impl ScanSession {
         Ok((summary, targets))
     }
 
-    /// The table angles a rescan visits, in order, when the first scan ended at `last`: each
-    /// first-scan angle turned by 45°, one turn of the table starting from the angle nearest
-    /// `last`. They do not depend on the holes, so the table can be on its way to the first
-    /// while the first scan's last station is still being simulated.
-    pub fn rescan_angles(&self, last: Option<f64>) -> Vec<f64> {
+    /// The first scan's table angles, each turned by 45°: the rescan's candidate stations besides
+    /// the first scan's own angles.
+    fn rescan_angles(&self) -> Vec<f64> {
         let mut angles: Vec<f64> = Vec::new();
-        let first: Vec<f64> = match &self.opts.passes {
-            Some(p) => p.iter().map(|p| p.table_deg).collect(),
-            None => self.opts.table_angles_deg.clone(),
-        };
-        for a in first {
+        for a in self.first_angles() {
             let r = (a + 45.0).rem_euclid(360.0);
             if !angles.iter().any(|b| (b - r).abs() < 1e-6) {
                 angles.push(r);
             }
         }
-        if let Some(last) = last {
-            angles.sort_by(|a, b| (a - last).rem_euclid(360.0).total_cmp(&(b - last).rem_euclid(360.0)));
-        }
         angles
     }
 
-    /// Passes aimed at `targets`: from each first-scan angle + 45°, farther away, three short
-    /// passes per hole across it (straight down, tilted ±30°, each aimed so its optical axis meets
-    /// the hole at the standoff). Passes the arm cannot reach are left out, with one diagnostic per station.
-    pub fn rescan_plan(&mut self, targets: &[HoleTarget]) -> ScanPlan {
+    /// The first scan's table angles, as asked for.
+    fn first_angles(&self) -> Vec<f64> {
+        match &self.opts.passes {
+            Some(p) => p.iter().map(|p| p.table_deg).collect(),
+            None => self.opts.table_angles_deg.clone(),
+        }
+    }
+
+    /// The cells the cloud so far leaves unseen, at `rescan_pixel_mm` (part frame, cell centres,
+    /// mm): the enclosed holes of its coverage map and the unseen part of the mesh's top-view
+    /// silhouette.
+    fn unseen_cells(&self) -> Vec<[f64; 2]> {
+        let pixel = self.opts.rescan_pixel_mm;
+        let mut cells = Vec::new();
+        let mut keys = std::collections::HashSet::new();
+        let mut add = |c: [f64; 2], cells: &mut Vec<[f64; 2]>| {
+            if keys.insert(((c[0] / pixel).floor() as i64, (c[1] / pixel).floor() as i64)) {
+                cells.push(c);
+            }
+        };
+        if let Some(roi) = Roi::around(&self.points, 2.0 * pixel)
+            && let Ok(grid) = grid_for_roi(&roi, pixel)
+            && let Ok((raw, _)) = try_rasterize_max(&self.points, &grid)
+        {
+            let (cov, _) = coverage(&raw, &raw);
+            let w = grid.width as usize;
+            for (i, _) in cov.data().iter().enumerate().filter(|(_, v)| **v == COVERAGE_HOLE) {
+                let c = [
+                    grid.origin_x_mm + ((i % w) as f64 + 0.5) * pixel,
+                    grid.origin_y_mm + ((i / w) as f64 + 0.5) * pixel,
+                ];
+                add(c, &mut cells);
+            }
+        }
+        if let Some(sil) = &self.silhouette {
+            for c in sil.unseen_cells(&self.points) {
+                add(c, &mut cells);
+            }
+        }
+        cells
+    }
+
+    /// Passes aimed at `targets`, with the table at `table_at_deg`: a next-best-view choice.
+    ///
+    /// Candidates: at each first-scan angle and each first-scan angle + 45°, three short passes
+    /// per hole across it (straight down, tilted ±30°, each aimed so its optical axis meets the
+    /// hole at the rescan standoff, or at the scan's own standoff where the arm cannot reach that).
+    /// Each candidate's view of the unseen cells is predicted on the part's mesh
+    /// ([`views::ViewModel::sees`]). Stations are chosen greedily by the unseen cells they add per
+    /// second of the cell's time (the table's turn on the shortest tour from where it stands, and
+    /// the passes), while one adds at least `rescan_min_hole_mm2`; within a chosen station only
+    /// the passes that add cells are kept. Stations are visited in the tour's order.
+    pub fn rescan_plan(&mut self, targets: &[HoleTarget], table_at_deg: f64) -> ScanPlan {
         let spec = self.scanner.spec().clone();
-        let standoff = self.opts.rescan_standoff_mm.unwrap_or_else(|| {
+        let far = self.opts.rescan_standoff_mm.unwrap_or_else(|| {
             (spec.standoff_max_mm - self.placement.height_mm() - 10.0).min(220.0).max(self.opts.standoff_mm)
         });
-        let angles = self.rescan_angles(self.stations.last().map(|s| s.table_deg_commanded));
-        let mut seed = ArmModel::HOME_DEG;
-        let mut stations = Vec::new();
+        let standoffs: Vec<f64> = if (far - self.opts.standoff_mm).abs() > 1.0 {
+            vec![far, self.opts.standoff_mm]
+        } else {
+            vec![far]
+        };
+        let mut angles = self.rescan_angles();
+        for a in self.first_angles() {
+            let a = a.rem_euclid(360.0);
+            if !angles.iter().any(|b| (b - a).abs() < 1e-6) {
+                angles.push(a);
+            }
+        }
+        let (cells, stride) = match &self.views {
+            Some(v) => {
+                let unseen = self.unseen_cells();
+                (v.surface(&unseen, self.opts.rescan_pixel_mm), views::thinning(unseen.len()))
+            }
+            None => (Vec::new(), 1),
+        };
         let mut obstacles = obstacles::cell_obstacles(&self.layout, &self.placement);
         obstacles.extend(self.opts.obstacles.iter().cloned());
-        for deg in angles {
-            let w = self.placement.world_from_part(&self.layout, deg);
-            let mut passes = Vec::new();
-            // Passes out of reach at this station: (tilt, hole centre, why), said in one line.
-            let mut skipped: Vec<(f64, [f64; 2], String)> = Vec::new();
-            'holes: for (k, h) in targets.iter().enumerate() {
-                let c = w * Point3::new(h.center_x_mm, h.center_y_mm, self.placement.max.z);
-                let half = 0.5 * h.extent_mm + self.opts.margin_mm + 2.0;
-                let (pa, pb) = (Point3::new(c.x, c.y - half, c.z), Point3::new(c.x, c.y + half, c.z));
-                let (pa, pb) = if k % 2 == 0 { (pa, pb) } else { (pb, pa) };
-                // Straight down, and tilted both ways across the pass: a wall too steep for the
-                // incidence limit seen from above faces one of the tilted views.
-                for tilt in RESCAN_TILTS_DEG {
-                    let Some(id) = self.last_pass_id.checked_add(1) else {
-                        self.diagnostics.push("rescan: pass ids exhausted (65535 passes)".into());
-                        break 'holes;
-                    };
-                    let axis = plan::sensor_orientation(&(pb - pa), tilt) * Vector3::z();
-                    let (a, b) = (pa - axis * standoff, pb - axis * standoff);
-                    let opts = ScanOptions { tilt_deg: tilt, ..self.opts.clone() };
-                    match plan::make_pass(&self.arm, &opts, &obstacles, id, deg, a, b, &seed) {
-                        Ok(p) => {
-                            self.last_pass_id = id;
-                            seed = p.q_end_deg;
-                            passes.push(p);
+        // Every candidate station: its passes, the cells each would fill, and the passes out of reach.
+        struct Candidate {
+            deg: f64,
+            passes: Vec<(Pass, Vec<u32>)>,
+            skipped: Vec<(f64, [f64; 2], String)>,
+        }
+        // Each station planned on its own (in parallel): the arm's seed runs through its passes.
+        let this = &*self;
+        let candidates: Vec<Candidate> = angles
+            .par_iter()
+            .map(|&deg| {
+                let w = this.placement.world_from_part(&this.layout, deg);
+                let part_from_world = w.inverse();
+                let mut seed = ArmModel::HOME_DEG;
+                let mut passes = Vec::new();
+                let mut skipped = Vec::new();
+                for (k, h) in targets.iter().enumerate() {
+                    let c = w * Point3::new(h.center_x_mm, h.center_y_mm, this.placement.max.z);
+                    let half = 0.5 * h.extent_mm + this.opts.margin_mm + 2.0;
+                    // Across the robot's reach (world Y) and along it (world X), each straight
+                    // down and tilted both ways across the pass: a wall too steep for the
+                    // incidence limit seen from above faces one of the tilted views, and the
+                    // camera's baseline along the pass sees past the other side of a step.
+                    for (along, tilt) in
+                        RESCAN_DIRECTIONS.iter().flat_map(|&d| RESCAN_TILTS_DEG.map(|t| (d, t)))
+                    {
+                        if along && this.views.is_none() {
+                            continue;
                         }
-                        Err(e) => skipped.push((tilt, [h.center_x_mm, h.center_y_mm], e.to_string())),
+                        let dir = if along { Vector3::x() } else { Vector3::y() };
+                        let (pa, pb) = (c - dir * half, c + dir * half);
+                        let (pa, pb) = if k % 2 == 0 { (pa, pb) } else { (pb, pa) };
+                        let axis = plan::sensor_orientation(&(pb - pa), tilt) * Vector3::z();
+                        let opts = ScanOptions { tilt_deg: tilt, ..this.opts.clone() };
+                        let mut why = None;
+                        for &standoff in &standoffs {
+                            let (a, b) = (pa - axis * standoff, pb - axis * standoff);
+                            match plan::make_pass(&this.arm, &opts, &obstacles, 0, deg, a, b, &seed) {
+                                Ok(p) => {
+                                    seed = p.q_end_deg;
+                                    let (s0, s1) = (part_from_world * p.start, part_from_world * p.end);
+                                    let seen = match &this.views {
+                                        Some(v) => (0..cells.len() as u32)
+                                            .filter(|&i| v.sees(&s0, &s1, &cells[i as usize]))
+                                            .collect(),
+                                        None => Vec::new(),
+                                    };
+                                    passes.push((p, seen));
+                                    why = None;
+                                    break;
+                                }
+                                Err(e) => why = why.or(Some(e.to_string())),
+                            }
+                        }
+                        if let Some(why) = why {
+                            skipped.push((tilt, [h.center_x_mm, h.center_y_mm], why));
+                        }
                     }
                 }
+                Candidate { deg, passes, skipped }
+            })
+            .collect();
+        let table = |from: f64, to: f64| {
+            TableMove::between(from, to, plan::TABLE_INDEX_SPEED_DEG_S, plan::TABLE_INDEX_ACCEL_DEG_S2).time_s
+        };
+        let pass_s = |p: &Pass| self.opts.pass_time_s(p.length_mm) + RESCAN_PASS_OVERHEAD_S;
+        let pixel = self.opts.rescan_pixel_mm;
+        let min_cells = ((self.opts.rescan_min_hole_mm2 / (pixel * pixel)).ceil() as usize / stride).max(1);
+        let chosen: Vec<usize> = if self.views.is_none() {
+            // No model to predict with: every candidate station at the first-scan angles + 45°.
+            (0..candidates.len().min(self.rescan_angles().len())).collect()
+        } else {
+            let mut covered = vec![false; cells.len()];
+            let mut chosen: Vec<usize> = Vec::new();
+            let mut gains = Vec::new();
+            loop {
+                let tour_now = tour(
+                    table_at_deg,
+                    &chosen.iter().map(|&i| candidates[i].deg).collect::<Vec<_>>(),
+                    &table,
+                )
+                .0;
+                let mut best: Option<(f64, usize)> = None;
+                for (i, c) in candidates.iter().enumerate() {
+                    if chosen.contains(&i) {
+                        continue;
+                    }
+                    let (gain, secs) = station_gain(&c.passes, &covered, &pass_s);
+                    if gain < min_cells {
+                        continue;
+                    }
+                    let mut with: Vec<f64> = chosen.iter().map(|&j| candidates[j].deg).collect();
+                    with.push(c.deg);
+                    let dt = tour(table_at_deg, &with, &table).0 - tour_now + secs;
+                    let score = gain as f64 / dt.max(0.1);
+                    if best.is_none_or(|(s, _)| score > s) {
+                        best = Some((score, i));
+                    }
+                }
+                let Some((_, i)) = best else { break };
+                let (gain, _) = station_gain(&candidates[i].passes, &covered, &pass_s);
+                gains.push(format!(
+                    "{}° {:.1} mm²",
+                    candidates[i].deg,
+                    (gain * stride) as f64 * pixel * pixel
+                ));
+                for (_, seen) in &candidates[i].passes {
+                    for &k in seen {
+                        covered[k as usize] = true;
+                    }
+                }
+                chosen.push(i);
             }
-            if let Some((tilt, [x, y], why)) = skipped.first() {
+            let out_of_sight = covered.iter().filter(|c| !**c).count();
+            self.diagnostics.push(format!(
+                "rescan views, predicted on the part's mesh: {} of {} candidate table angles chosen ({}); about {:.1} mm² of the unseen surface is out of sight of them",
+                chosen.len(),
+                candidates.len(),
+                if gains.is_empty() { "none adds anything".to_string() } else { gains.join(", ") },
+                (out_of_sight * stride) as f64 * pixel * pixel,
+            ));
+            chosen
+        };
+        let degs: Vec<f64> = chosen.iter().map(|&i| candidates[i].deg).collect();
+        let order = tour(table_at_deg, &degs, &table).1;
+        let mut covered = vec![false; cells.len()];
+        let mut stations = Vec::new();
+        for k in order {
+            let c = &candidates[chosen[k]];
+            let deg = c.deg;
+            // The passes that add cells, most first, then in the order they were planned.
+            let mut keep: Vec<usize> = Vec::new();
+            if self.views.is_some() {
+                let mut left: Vec<usize> = (0..c.passes.len()).collect();
+                loop {
+                    let new = |j: &usize| c.passes[*j].1.iter().filter(|&&k| !covered[k as usize]).count();
+                    let Some(&j) = left.iter().max_by_key(|j| (new(j), std::cmp::Reverse(**j))) else {
+                        break;
+                    };
+                    if new(&j) < min_cells {
+                        break;
+                    }
+                    for &k in &c.passes[j].1 {
+                        covered[k as usize] = true;
+                    }
+                    keep.push(j);
+                    left.retain(|&x| x != j);
+                }
+                keep.sort_unstable();
+            } else {
+                keep = (0..c.passes.len()).collect();
+            }
+            if let Some((tilt, [x, y], why)) = c.skipped.first() {
                 let tilts: std::collections::BTreeSet<String> =
-                    skipped.iter().map(|s| format!("{}°", s.0)).collect();
+                    c.skipped.iter().map(|s| format!("{}°", s.0)).collect();
                 self.diagnostics.push(format!(
-                    "rescan at table angle {deg}°: {} of {} passes skipped, out of reach (tilts {}); the first, tilt {tilt}° over the hole at ({x:.1}, {y:.1}) mm: {why}",
-                    skipped.len(),
-                    skipped.len() + passes.len(),
+                    "rescan at table angle {deg}°: {} of {} passes out of reach (tilts {}); the first, tilt {tilt}° over the hole at ({x:.1}, {y:.1}) mm: {why}",
+                    c.skipped.len(),
+                    c.skipped.len() + c.passes.len(),
                     tilts.into_iter().collect::<Vec<_>>().join(", ")
                 ));
+            }
+            let mut passes = Vec::new();
+            for j in keep {
+                let Some(id) = self.last_pass_id.checked_add(1) else {
+                    self.diagnostics.push("rescan: pass ids exhausted (65535 passes)".into());
+                    break;
+                };
+                self.last_pass_id = id;
+                let mut p = c.passes[j].0.clone();
+                p.id = id;
+                passes.push(p);
             }
             if !passes.is_empty() {
                 stations.push(Station { table_deg: deg, passes, table_offset_deg: 0.0 });
@@ -1374,6 +1578,68 @@ fn interpolate_pose(a: &(f64, Isometry3<f64>), b: &(f64, Isometry3<f64>), t: f64
     let rel = ra.inverse() * b.1.rotation;
     let rot = ra * rel.powf(u);
     Isometry3::from_parts(Translation3::from(pa + (pb - pa) * u), rot)
+}
+
+/// The quickest way for the table from `from_deg` through every angle of `degs`: its time, s, and
+/// the order (indices into `degs`). Every order is tried up to six angles; more are visited in
+/// their cyclic order from the nearest.
+fn tour(from_deg: f64, degs: &[f64], table: &dyn Fn(f64, f64) -> f64) -> (f64, Vec<usize>) {
+    let time = |order: &[usize]| {
+        let mut at = from_deg;
+        order.iter().fold(0.0, |t, &i| {
+            let dt = table(at, degs[i]);
+            at = degs[i];
+            t + dt
+        })
+    };
+    if degs.len() > 6 {
+        let mut order: Vec<usize> = (0..degs.len()).collect();
+        order.sort_by(|&a, &b| {
+            (degs[a] - from_deg).rem_euclid(360.0).total_cmp(&(degs[b] - from_deg).rem_euclid(360.0))
+        });
+        return (time(&order), order);
+    }
+    let mut best = (f64::INFINITY, Vec::new());
+    let mut order: Vec<usize> = (0..degs.len()).collect();
+    permute(&mut order, 0, &mut |o| {
+        let t = time(o);
+        if t < best.0 - 1e-12 {
+            best = (t, o.to_vec());
+        }
+    });
+    best
+}
+
+/// Calls `f` with every permutation of `items[k..]` (Heap's recursion by swaps).
+fn permute(items: &mut [usize], k: usize, f: &mut dyn FnMut(&[usize])) {
+    if k + 1 >= items.len() {
+        f(items);
+        return;
+    }
+    for i in k..items.len() {
+        items.swap(k, i);
+        permute(items, k + 1, f);
+        items.swap(k, i);
+    }
+}
+
+/// The unseen cells a station's passes would add to `covered`, and the time of the passes that
+/// add any, s.
+fn station_gain(
+    passes: &[(Pass, Vec<u32>)],
+    covered: &[bool],
+    pass_s: &dyn Fn(&Pass) -> f64,
+) -> (usize, f64) {
+    let mut new: std::collections::HashSet<u32> = std::collections::HashSet::new();
+    let mut secs = 0.0;
+    for (p, seen) in passes {
+        let before = new.len();
+        new.extend(seen.iter().copied().filter(|&k| !covered[k as usize]));
+        if new.len() > before {
+            secs += pass_s(p);
+        }
+    }
+    (new.len(), secs)
 }
 
 /// 8-connected components of the hole cells (value [`COVERAGE_HOLE`]) of a coverage map.

@@ -120,6 +120,18 @@ impl Default for ScanOptions {
     }
 }
 
+impl ScanOptions {
+    /// Time the sensor takes over a pass of `length_mm`, s: at `line_rate_hz · line_spacing_mm`
+    /// in dynamic mode, one frame per stop at `stop_and_move_rate_hz` in stop-and-move mode.
+    pub fn pass_time_s(&self, length_mm: f64) -> f64 {
+        let lines = (length_mm / self.line_spacing_mm).ceil().max(1.0) + 1.0;
+        match self.mode {
+            ScanMode::Dynamic => lines / self.line_rate_hz,
+            ScanMode::StopAndMove => lines / self.stop_and_move_rate_hz,
+        }
+    }
+}
+
 fn bad(field: &str, value: impl ToString, reason: impl Into<String>) -> ScanError {
     ScanError::InvalidOption {
         field: format!("scan.{field}"),

@@ -92,6 +92,25 @@ impl Silhouette {
     }
 }
 
+impl Silhouette {
+    /// Centres of the silhouette's cells with no point of `points` (part frame), mm.
+    pub fn unseen_cells(&self, points: &[Point3<f64>]) -> Vec<[f64; 2]> {
+        let meta = *self.top.meta();
+        let seen = try_rasterize_max(points, &meta).ok().map(|(m, _)| m);
+        let w = meta.width as usize;
+        let p = meta.pixel_mm;
+        self.top
+            .data()
+            .iter()
+            .enumerate()
+            .filter(|&(i, z)| z.is_finite() && !seen.as_ref().is_some_and(|m| m.data()[i].is_finite()))
+            .map(|(i, _)| {
+                [meta.origin_x_mm + ((i % w) as f64 + 0.5) * p, meta.origin_y_mm + ((i / w) as f64 + 0.5) * p]
+            })
+            .collect()
+    }
+}
+
 impl SilhouetteCoverage {
     /// A line for the job's diagnostics when part of the silhouette went unseen.
     pub fn diagnostic(&self) -> Option<String> {
