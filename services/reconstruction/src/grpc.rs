@@ -368,6 +368,15 @@ impl pb::reconstruction_service_server::ReconstructionService for Reconstruction
                             fc.unreached_pct
                         ),
                     });
+                    for e in &fc.excluded {
+                        diagnostics.push(Diagnostic {
+                            code: "face_excluded".into(),
+                            message: format!(
+                                "face {} was left out of the choice: its map came out {:.1} % measured (the scan hardly saw the part from that side), so the faces were chosen again without it and nothing is cut blind from there",
+                                e.face, e.measured_pct
+                            ),
+                        });
+                    }
                     for d in fc.diagnostics() {
                         diagnostics.push(Diagnostic { code: "unreachable_surface".into(), message: d });
                     }

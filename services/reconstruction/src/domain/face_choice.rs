@@ -336,6 +336,15 @@ fn closing_then_neighbourhood_min(h: &HeightMap, radius_mm: f64) -> Result<Heigh
     Ok(out)
 }
 
+/// An orientation left out of the choice.
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct ExcludedFace {
+    /// The face as text (`A=-30`).
+    pub face: String,
+    /// Share of that face's depth map the scan measured when it was chosen, percent.
+    pub measured_pct: f64,
+}
+
 /// One chosen face.
 #[derive(Debug, Clone, Serialize, PartialEq)]
 pub struct ChosenFace {
@@ -388,6 +397,10 @@ pub struct FaceChoiceReport {
     pub unreached_regions: Vec<UnreachedRegion>,
     /// True when every face count was searched exhaustively (else greedily past some count).
     pub exact: bool,
+    /// Orientations left out of the choice: chosen before, their depth maps were mostly assumed
+    /// (the scan hardly saw the part from that side), so a program from them would cut blind.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub excluded: Vec<ExcludedFace>,
     pub seconds: f64,
 }
 
@@ -560,6 +573,7 @@ fn enough(best: &[Best], any: u64, n: u64, min_gain_pct: f64) -> Option<&Best> {
 pub fn choose_faces(
     samples: &SurfaceSamples,
     s: &FaceChoiceSettings,
+    exclude: &[ExcludedFace],
     cancelled: &(dyn Fn() -> bool + Sync),
 ) -> Result<(Vec<Face>, FaceChoiceReport)> {
     let started = std::time::Instant::now();
@@ -567,7 +581,13 @@ pub fn choose_faces(
     if n == 0 {
         return Err(ReconError::Empty("face choice: no surface samples".into()));
     }
-    let cands = candidates(s.step_deg, samples.max_turn_deg);
+    let cands: Vec<Face> = candidates(s.step_deg, samples.max_turn_deg)
+        .into_iter()
+        .filter(|f| !exclude.iter().any(|e| e.face == f.to_string()))
+        .collect();
+    if cands.is_empty() {
+        return Err(ReconError::Empty("face choice: every candidate orientation is excluded".into()));
+    }
     let reach: Vec<Vec<bool>> = cands.par_iter().map(|&f| reached(samples, f, s)).collect::<Result<_>>()?;
     if cancelled() {
         return Err(ReconError::Cancelled);
@@ -638,6 +658,7 @@ pub fn choose_faces(
             (2.0 * s.reach_radius_mm).max(2.0 * samples.cell_mm),
         ),
         exact,
+        excluded: exclude.to_vec(),
         seconds: started.elapsed().as_secs_f64(),
     };
     // A lone face straight up is the plain 3-axis job; several turn the part on the A axis.

@@ -25,7 +25,7 @@ use serde::{Deserialize, Serialize};
 
 use super::error::{ReconError, Result};
 use super::face_choice::{
-    FaceChoiceOptions, FaceChoiceReport, FaceChoiceSettings, SurfaceSamples, choose_faces,
+    ExcludedFace, FaceChoiceOptions, FaceChoiceReport, FaceChoiceSettings, SurfaceSamples, choose_faces,
 };
 use super::filters::{
     FilterReport, intensity_window, radius_outlier_removal, rigid_from_matrix, statistical_outlier_removal,
@@ -459,8 +459,18 @@ pub struct FaceStats {
 /// to two assumed cells per measured one (the sides the scan saw at a slant); a view along a
 /// side the scan never saw holds tens.
 pub const ASSUMED_PER_MEASURED_WARN: usize = 3;
+/// Most times the faces of a cloud are chosen again without the turned faces whose maps came out
+/// mostly assumed (a choice that leaves out at least one more each time ends well before: a
+/// cloud's candidates are 13 at the default 15° step).
+const MAX_RECHOICES: usize = 12;
 
 impl FaceStats {
+    /// Share of the map's cells the scan measured, percent.
+    pub fn measured_pct(&self) -> f64 {
+        let c = &self.coverage;
+        if c.cells == 0 { 0.0 } else { 100.0 * c.measured as f64 / c.cells as f64 }
+    }
+
     /// A warning when the face's map holds more than [`ASSUMED_PER_MEASURED_WARN`] assumed cells
     /// (never shown by a point, set at the height around them: [`fill_unseen`]) per measured
     /// one: the scan hardly saw the part from that side, so its program leaves material over
@@ -591,84 +601,109 @@ pub fn reconstruct_with_free_space(
                 }));
             }
             check_cancel(cancelled)?;
-            if let Some(settings) = r.face_choice {
-                progress(0.2, "choosing the faces from the shape");
-                let samples = SurfaceSamples::from_cloud(&cloud, settings.cell_mm)?;
-                choice_report = Some(choose(&mut r, &samples, &settings, cancelled)?);
-            }
-            centre_turned_faces(&mut r, cloud.bounds());
-            // A cloud the scanner took from above, the part on the table (its free space says
-            // so), is solid under what the scanner saw: a turned face sees only the points that
-            // body does not hide from the side it looks from.
-            let body = match free_space {
-                Some(f) if !f.is_empty() && r.faces.iter().any(|fr| fr.face != Face::PosZ) => {
-                    progress(0.25, "the part's body seen from above, for the turned faces");
-                    let map = body_from_above(&cloud.points, f, &r, cancelled)?;
-                    let surface = body_surface(&map, table_height(f, &map));
-                    Some((map, surface))
+            let samples = match r.face_choice {
+                Some(settings) => {
+                    progress(0.2, "choosing the faces from the shape");
+                    Some((SurfaceSamples::from_cloud(&cloud, settings.cell_mm)?, settings))
                 }
-                _ => None,
+                None => None,
             };
-            let n_faces = r.faces.len() as f64;
+            // A turned face the choice took whose map comes out mostly assumed (the scan hardly
+            // saw the part from that side) would be cut blind: it is left out and the faces are
+            // chosen again, until none is (at most MAX_RECHOICES times).
+            let mut excluded: Vec<ExcludedFace> = Vec::new();
             let kept = cloud.len();
-            for (i, frame) in r.faces.iter().enumerate() {
-                progress(0.3 + 0.7 * i as f64 / n_faces, &format!("face {}: rasterising", frame.face));
-                let iso = frame.face_from_part();
-                let visible = body.as_ref().filter(|_| frame.face != Face::PosZ).map(|(b, _)| {
-                    let up = iso.rotation.inverse() * Vector3::z();
-                    visible_from(&cloud.points, &up, b, occlusion_tolerance_mm(r.pixel_mm))
-                });
-                // The cloud itself for a face that views it as it is (`+Z`, no origin), else a
-                // turned copy (single precision, like the cloud) of the points it sees.
-                let turned: Vec<Point3<f32>>;
-                // The region the whole turned cloud covers, hidden points included.
-                let mut whole_roi = None;
-                let points: &[Point3<f32>] = if iso == Isometry3::identity() && visible.is_none() {
-                    &cloud.points
-                } else {
-                    let all: Vec<Point3<f32>> =
-                        cloud.points.par_iter().map(|p| single(&(iso * p.at()))).collect();
-                    turned = match &visible {
-                        Some(v) => {
-                            whole_roi = Roi::around(&all, r.margin_mm);
-                            all.into_iter().zip(v).filter(|(_, seen)| **seen).map(|(p, _)| p).collect()
-                        }
-                        None => all,
-                    };
-                    &turned
+            for attempt in 0..=MAX_RECHOICES {
+                if let Some((samples, settings)) = &samples {
+                    choice_report = Some(choose(&mut r, samples, settings, &excluded, cancelled)?);
+                }
+                centre_turned_faces(&mut r, cloud.bounds());
+                faces.clear();
+                // A cloud the scanner took from above, the part on the table (its free space says
+                // so), is solid under what the scanner saw: a turned face sees only the points that
+                // body does not hide from the side it looks from.
+                let body = match free_space {
+                    Some(f) if !f.is_empty() && r.faces.iter().any(|fr| fr.face != Face::PosZ) => {
+                        progress(0.25, "the part's body seen from above, for the turned faces");
+                        let map = body_from_above(&cloud.points, f, &r, cancelled)?;
+                        let surface = body_surface(&map, table_height(f, &map));
+                        Some((map, surface))
+                    }
+                    _ => None,
                 };
-                if points.is_empty() {
-                    return Err(ReconError::Empty(format!(
-                        "reconstruct.faces[{i}] ({}): the scanned part's body hides every point of the cloud from that side (the scanner saw it from above)",
-                        frame.face
-                    )));
-                }
-                // Seen past the body, an empty cell is surface nobody saw from that side (a wall
-                // the scanner saw edge-on, or not at all), not a gap between scan lines: it is
-                // lidded at the height around it, never interpolated from what lies behind. The
-                // map covers the whole part as the face sees it, hidden points and the body's
-                // surface included; that surface bounds the part from that side.
-                let bound: Option<Vec<Point3<f32>>> = body
-                    .as_ref()
-                    .filter(|_| visible.is_some())
-                    .map(|(_, surface)| surface.par_iter().map(|p| single(&(iso * p))).collect());
-                let face_r = bound.as_ref().map(|bound| {
-                    let roi = r.roi.or_else(|| match (whole_roi, Roi::around(bound, r.margin_mm)) {
-                        (Some(a), Some(b)) => Some(roi_union(a, b)),
-                        (a, b) => a.or(b),
+                let n_faces = r.faces.len() as f64;
+                for (i, frame) in r.faces.iter().enumerate() {
+                    progress(0.3 + 0.7 * i as f64 / n_faces, &format!("face {}: rasterising", frame.face));
+                    let iso = frame.face_from_part();
+                    let visible = body.as_ref().filter(|_| frame.face != Face::PosZ).map(|(b, _)| {
+                        let up = iso.rotation.inverse() * Vector3::z();
+                        visible_from(&cloud.points, &up, b, occlusion_tolerance_mm(r.pixel_mm))
                     });
-                    Resolved { roi, fill: FillParams { max_hole_mm: 0.0, ..r.fill }, ..r.clone() }
-                });
-                // Free space is what the scanner saw from above: it speaks for the top view only.
-                let free: Option<Vec<Point3<f64>>> = free_space
-                    .filter(|f| !f.is_empty() && frame.face == depthmill_geometry::Face::PosZ)
-                    .map(|f| f.iter().map(|p| iso * p.at()).collect());
-                let face_r = face_r.as_ref().unwrap_or(&r);
-                let mut face = cloud_face(points, free.as_deref(), *frame, face_r, i, cancelled)?;
-                if let Some(bound) = &bound {
-                    lid_with_body(&mut face, bound, face_r)?;
+                    // The cloud itself for a face that views it as it is (`+Z`, no origin), else a
+                    // turned copy (single precision, like the cloud) of the points it sees.
+                    let turned: Vec<Point3<f32>>;
+                    // The region the whole turned cloud covers, hidden points included.
+                    let mut whole_roi = None;
+                    let points: &[Point3<f32>] = if iso == Isometry3::identity() && visible.is_none() {
+                        &cloud.points
+                    } else {
+                        let all: Vec<Point3<f32>> =
+                            cloud.points.par_iter().map(|p| single(&(iso * p.at()))).collect();
+                        turned = match &visible {
+                            Some(v) => {
+                                whole_roi = Roi::around(&all, r.margin_mm);
+                                all.into_iter().zip(v).filter(|(_, seen)| **seen).map(|(p, _)| p).collect()
+                            }
+                            None => all,
+                        };
+                        &turned
+                    };
+                    if points.is_empty() {
+                        return Err(ReconError::Empty(format!(
+                            "reconstruct.faces[{i}] ({}): the scanned part's body hides every point of the cloud from that side (the scanner saw it from above)",
+                            frame.face
+                        )));
+                    }
+                    // Seen past the body, an empty cell is surface nobody saw from that side (a wall
+                    // the scanner saw edge-on, or not at all), not a gap between scan lines: it is
+                    // lidded at the height around it, never interpolated from what lies behind. The
+                    // map covers the whole part as the face sees it, hidden points and the body's
+                    // surface included; that surface bounds the part from that side.
+                    let bound: Option<Vec<Point3<f32>>> = body
+                        .as_ref()
+                        .filter(|_| visible.is_some())
+                        .map(|(_, surface)| surface.par_iter().map(|p| single(&(iso * p))).collect());
+                    let face_r = bound.as_ref().map(|bound| {
+                        let roi = r.roi.or_else(|| match (whole_roi, Roi::around(bound, r.margin_mm)) {
+                            (Some(a), Some(b)) => Some(roi_union(a, b)),
+                            (a, b) => a.or(b),
+                        });
+                        Resolved { roi, fill: FillParams { max_hole_mm: 0.0, ..r.fill }, ..r.clone() }
+                    });
+                    // Free space is what the scanner saw from above: it speaks for the top view only.
+                    let free: Option<Vec<Point3<f64>>> = free_space
+                        .filter(|f| !f.is_empty() && frame.face == depthmill_geometry::Face::PosZ)
+                        .map(|f| f.iter().map(|p| iso * p.at()).collect());
+                    let face_r = face_r.as_ref().unwrap_or(&r);
+                    let mut face = cloud_face(points, free.as_deref(), *frame, face_r, i, cancelled)?;
+                    if let Some(bound) = &bound {
+                        lid_with_body(&mut face, bound, face_r)?;
+                    }
+                    faces.push(face);
                 }
-                faces.push(face);
+                let blind: Vec<ExcludedFace> = faces
+                    .iter()
+                    .filter(|f| f.face.face != Face::PosZ && f.stats.mostly_assumed().is_some())
+                    .map(|f| ExcludedFace {
+                        face: f.stats.face.clone(),
+                        measured_pct: f.stats.measured_pct(),
+                    })
+                    .collect();
+                if samples.is_none() || blind.is_empty() || attempt == MAX_RECHOICES {
+                    break;
+                }
+                tracing::info!(faces = ?blind.iter().map(|b| b.face.clone()).collect::<Vec<_>>(), "faces mostly assumed: choosing again without them");
+                excluded.extend(blind);
             }
             ("point_cloud", kept, reports)
         }
@@ -676,7 +711,7 @@ pub fn reconstruct_with_free_space(
             if let Some(settings) = r.face_choice {
                 progress(0.02, "choosing the faces from the shape");
                 let samples = SurfaceSamples::from_mesh(&mesh, settings.cell_mm)?;
-                choice_report = Some(choose(&mut r, &samples, &settings, cancelled)?);
+                choice_report = Some(choose(&mut r, &samples, &settings, &[], cancelled)?);
             }
             centre_turned_faces(&mut r, mesh.bounds());
             let n_faces = r.faces.len() as f64;
@@ -947,9 +982,10 @@ fn choose(
     r: &mut Resolved,
     samples: &SurfaceSamples,
     settings: &FaceChoiceSettings,
+    exclude: &[ExcludedFace],
     cancelled: CancelFn<'_>,
 ) -> Result<FaceChoiceReport> {
-    let (faces, report) = choose_faces(samples, settings, cancelled)?;
+    let (faces, report) = choose_faces(samples, settings, exclude, cancelled)?;
     tracing::info!(faces = ?faces.iter().map(ToString::to_string).collect::<Vec<_>>(), covered_pct = report.covered_pct, "faces chosen");
     r.faces = faces.into_iter().map(|face| FaceFrame { face, origin: None }).collect();
     Ok(report)

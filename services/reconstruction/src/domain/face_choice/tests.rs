@@ -82,7 +82,7 @@ fn a_block_needs_its_top_and_its_bottom() {
     let m = Mesh::cuboid(20.0, 16.0, 12.0);
     let s = FaceChoiceSettings { step_deg: 45.0, ..Default::default() };
     let samples = SurfaceSamples::from_mesh(&m, s.cell_mm).expect("samples");
-    let (faces, report) = choose_faces(&samples, &s, &never).expect("choice");
+    let (faces, report) = choose_faces(&samples, &s, &[], &never).expect("choice");
     // From above: the top and the four walls (cut with the tool's side); turned to A=90 the +Y
     // wall, the top and bottom (walls now) and the ends. Two setups reach everything, and no
     // single one does.
@@ -109,7 +109,7 @@ fn an_overhang_is_reached_from_below_and_a_tunnel_along_the_axis_from_nowhere() 
     let under = sample_index(&samples, Point3::new(3.0, 3.0, 10.0));
     assert!(!reached(&samples, Face::PosZ, &s).expect("reach")[under], "the underside is hidden from above");
     assert!(reached(&samples, Face::A { angle_deg: 180.0 }, &s).expect("reach")[under]);
-    let (faces, _) = choose_faces(&samples, &s, &never).expect("choice");
+    let (faces, _) = choose_faces(&samples, &s, &[], &never).expect("choice");
     assert!(faces.contains(&Face::A { angle_deg: 180.0 }), "{faces:?}");
 
     // A 4 x 4 mm tunnel along X (the A axis) through a block: no turn about X looks into it.
@@ -124,7 +124,7 @@ fn an_overhang_is_reached_from_below_and_a_tunnel_along_the_axis_from_nowhere() 
     for f in candidates(s.step_deg, 180.0) {
         assert!(!reached(&samples, f, &s).expect("reach")[floor], "{f} reaches the tunnel floor");
     }
-    let (_, report) = choose_faces(&samples, &s, &never).expect("choice");
+    let (_, report) = choose_faces(&samples, &s, &[], &never).expect("choice");
     let r = report
         .unreached_regions
         .iter()
@@ -167,7 +167,7 @@ fn a_scanned_cloud_is_not_seen_from_inside() {
         !reached(&samples, Face::A { angle_deg: 180.0 }, &s).expect("reach")[top],
         "seen through the table"
     );
-    let (faces, report) = choose_faces(&samples, &s, &never).expect("choice");
+    let (faces, report) = choose_faces(&samples, &s, &[], &never).expect("choice");
     assert_eq!(faces, vec![Face::PosZ], "{report:#?}");
     assert!(report.covered_pct > 99.5, "{report:#?}");
 }
@@ -197,7 +197,7 @@ fn a_cloud_seen_only_from_above_is_solid_from_the_side() {
         let f = Face::A { angle_deg: a };
         assert!(!reached(&samples, f, &s).expect("reach")[floor], "{f}: through the pocket's walls");
     }
-    let (faces, report) = choose_faces(&samples, &s, &never).expect("choice");
+    let (faces, report) = choose_faces(&samples, &s, &[], &never).expect("choice");
     assert_eq!(faces, vec![Face::PosZ], "{report:#?}");
 }
 
@@ -388,4 +388,20 @@ fn the_turning_tie_break_never_asks_for_another_face() {
     let sets = [range(0, 761), range(0, 750), range(742, 770)].map(|b| Bits::from_bools(&b));
     let (best, _) = best_subsets(&sets, 3, 10, &costs);
     assert_eq!(pick_faces(&sets, &best, 770, n as u64, 1.0, 10, &costs), vec![0]);
+}
+
+#[test]
+fn an_excluded_orientation_is_never_chosen_and_the_report_says_so() {
+    let m = Mesh::cuboid(20.0, 16.0, 12.0);
+    let s = FaceChoiceSettings { step_deg: 45.0, ..Default::default() };
+    let samples = SurfaceSamples::from_mesh(&m, s.cell_mm).expect("samples");
+    let (faces, _) = choose_faces(&samples, &s, &[], &never).expect("choice");
+    assert!(faces.contains(&Face::A { angle_deg: 90.0 }), "{faces:?}");
+    let out = [ExcludedFace { face: "A=90".into(), measured_pct: 5.0 }];
+    let (faces, report) = choose_faces(&samples, &s, &out, &never).expect("choice");
+    assert!(!faces.contains(&Face::A { angle_deg: 90.0 }), "{faces:?}");
+    assert!(report.candidates.iter().all(|c| c.face != "A=90"), "{report:#?}");
+    assert_eq!(report.excluded, out);
+    // Still every side of the block from the others (A=-90 sees what A=90 did).
+    assert!(report.covered_pct > 99.9, "{report:#?}");
 }
