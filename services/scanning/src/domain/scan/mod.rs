@@ -1265,9 +1265,10 @@ impl ScanSession {
 
     /// Passes aimed at `targets`, with the table at `table_at_deg`: a next-best-view choice.
     ///
-    /// Candidates: at each first-scan angle and each first-scan angle + 45°, three short passes
-    /// per hole across it (straight down, tilted ±30°, each aimed so its optical axis meets the
-    /// hole at the rescan standoff, or at the scan's own standoff where the arm cannot reach that).
+    /// Candidates: at each first-scan angle and each first-scan angle + 45°, six short passes per
+    /// hole, across the robot's reach and along it, each straight down and tilted ±30° (aimed so
+    /// its optical axis meets the hole at the rescan standoff, or at the scan's own standoff where
+    /// the arm cannot reach that).
     /// Each candidate's view of the unseen cells is predicted on the part's mesh
     /// ([`views::ViewModel::sees`]). Stations are chosen greedily by the unseen cells they add per
     /// second of the cell's time (the table's turn on the shortest tour from where it stands, and
@@ -1349,6 +1350,10 @@ impl ScanSession {
                                     passes.push((p, seen));
                                     why = None;
                                     break;
+                                }
+                                // The candidate has no pass id yet: the reason alone.
+                                Err(ScanError::Unreachable { reason, .. }) => {
+                                    why = why.or(Some(format!("the robot cannot reach the {reason}")))
                                 }
                                 Err(e) => why = why.or(Some(e.to_string())),
                             }
@@ -1438,7 +1443,8 @@ impl ScanSession {
                     let Some(&j) = left.iter().max_by_key(|j| (new(j), std::cmp::Reverse(**j))) else {
                         break;
                     };
-                    if new(&j) < min_cells {
+                    // A chosen station runs at least its best pass.
+                    if new(&j) < if keep.is_empty() { 1 } else { min_cells } {
                         break;
                     }
                     for &k in &c.passes[j].1 {
