@@ -62,19 +62,9 @@ impl Silhouette {
     pub fn coverage(&self, points: &[Point3<f64>]) -> SilhouetteCoverage {
         let meta = *self.top.meta();
         let p = meta.pixel_mm;
-        let seen_map = try_rasterize_max(points, &meta).ok().map(|(m, _)| m);
-        let mut unseen = vec![f32::NAN; self.top.data().len()];
-        let mut seen = 0usize;
-        for (i, z) in self.top.data().iter().enumerate() {
-            if !z.is_finite() {
-                continue;
-            }
-            if seen_map.as_ref().is_some_and(|m| m.data()[i].is_finite()) {
-                seen += 1;
-            } else {
-                unseen[i] = COVERAGE_HOLE;
-            }
-        }
+        let mask = self.unseen_mask(points);
+        let unseen: Vec<f32> = mask.iter().map(|&u| if u { COVERAGE_HOLE } else { f32::NAN }).collect();
+        let seen = self.cells - mask.iter().filter(|&&u| u).count();
         let mut regions = HeightMap::new(HeightMapMeta { z_min_mm: 0.0, z_max_mm: 1.0, ..meta }, unseen)
             .map(|m| hole_components(&m))
             .unwrap_or_default();
@@ -90,20 +80,27 @@ impl Silhouette {
             unseen_regions: regions,
         }
     }
-}
 
-impl Silhouette {
-    /// Centres of the silhouette's cells with no point of `points` (part frame), mm.
-    pub fn unseen_cells(&self, points: &[Point3<f64>]) -> Vec<[f64; 2]> {
-        let meta = *self.top.meta();
-        let seen = try_rasterize_max(points, &meta).ok().map(|(m, _)| m);
-        let w = meta.width as usize;
-        let p = meta.pixel_mm;
+    /// Per cell of the grid: part of the silhouette with no point of `points` in it.
+    fn unseen_mask(&self, points: &[Point3<f64>]) -> Vec<bool> {
+        let seen = try_rasterize_max(points, self.top.meta()).ok().map(|(m, _)| m);
         self.top
             .data()
             .iter()
             .enumerate()
-            .filter(|&(i, z)| z.is_finite() && !seen.as_ref().is_some_and(|m| m.data()[i].is_finite()))
+            .map(|(i, z)| z.is_finite() && !seen.as_ref().is_some_and(|m| m.data()[i].is_finite()))
+            .collect()
+    }
+
+    /// Centres of the silhouette's cells with no point of `points` (part frame), mm.
+    pub fn unseen_cells(&self, points: &[Point3<f64>]) -> Vec<[f64; 2]> {
+        let meta = *self.top.meta();
+        let w = meta.width as usize;
+        let p = meta.pixel_mm;
+        self.unseen_mask(points)
+            .iter()
+            .enumerate()
+            .filter(|&(_, &u)| u)
             .map(|(i, _)| {
                 [meta.origin_x_mm + ((i % w) as f64 + 0.5) * p, meta.origin_y_mm + ((i / w) as f64 + 0.5) * p]
             })
