@@ -554,6 +554,8 @@ pub struct Profile {
     /// Points on the floor (the table top under the part; [`Scanner::with_floor`]) where a ray
     /// missed the part, SENSOR frame, mm: where the scanner saw that there is no part.
     pub floor: Vec<Point3<f64>>,
+    /// Ray (column) index of each floor point.
+    pub floor_column: Vec<u32>,
 }
 
 /// The plane the part stands on, in the frame the scanner casts in (the part frame): the table
@@ -572,6 +574,10 @@ impl Profile {
         self.points.iter().map(|p| world_from_sensor * p).collect()
     }
 }
+
+/// A ray's return must lie this far past a vertical for the ray to show the vertical clear, mm
+/// (three times the SLP-400 class's range noise).
+pub const CLEAR_PAST_MM: f64 = 0.1;
 
 /// A simulated laser line scanner looking at one mesh.
 #[derive(Debug, Clone)]
@@ -642,6 +648,73 @@ impl Scanner {
         self.apex
     }
 
+    /// How high over each of `profile`'s floor points the vertical is shown clear: every ray of
+    /// the fan that crosses it below that height returned from beyond the crossing (the floor,
+    /// or the part past the vertical, by more than [`CLEAR_PAST_MM`]; the vertical starts three
+    /// times that over the point). `up` is the vertical in the SENSOR frame; heights are checked
+    /// up to the plane `up · x = top` (a height at or over it: clear all the way). A floor point
+    /// alone says only that its own ray is clear: a ray slanted past an overhang reaches the
+    /// table under it, and the vertical over that spot crosses the rays the overhang stopped. A
+    /// ray that gave no point (missed, too steep, hidden from the camera) shows nothing, and the
+    /// vertical is shown clear no higher than where it leaves the fan. The vertical is taken in
+    /// the laser plane: the caller keeps only lines from a sensor looking straight down.
+    pub fn floor_clear_height(&self, profile: &Profile, up: &Vector3<f64>, top: f64) -> Vec<f64> {
+        let n = self.dirs.len();
+        // How far along each ray its return lies (NaN: no return).
+        let mut ret = vec![f64::NAN; n];
+        let returns =
+            profile.points.iter().zip(&profile.column).chain(profile.floor.iter().zip(&profile.floor_column));
+        for (p, &c) in returns {
+            if let Some(slot) = ret.get_mut(c as usize) {
+                *slot = (p - self.apex).norm();
+            }
+        }
+        let half = self.spec.fan_half_tan().atan();
+        let step = 2.0 * half / (n.max(2) - 1) as f64;
+        let cross = |a: (f64, f64), b: (f64, f64)| a.0 * b.1 - a.1 * b.0;
+        let (ax, az) = (self.apex.x, self.apex.z);
+        let u = (up.x, up.z);
+        let start = 3.0 * CLEAR_PAST_MM;
+        profile
+            .floor
+            .iter()
+            .zip(&profile.floor_column)
+            .map(|(p, &col)| {
+                let height = top - up.dot(&p.coords);
+                if !height.is_finite() || height <= start {
+                    return height.max(start);
+                }
+                // The rays crossing the vertical higher up lie to this side of the point's own.
+                let q = p + up * height;
+                let outward = (q.x - ax).atan2(q.z - az) >= -half + step * f64::from(col);
+                let rel = (p.x - ax, p.z - az);
+                let mut clear = start;
+                let mut j = col as i64;
+                while (0..n as i64).contains(&j) {
+                    let d = (self.dirs[j as usize].x, self.dirs[j as usize].z);
+                    let den = cross(d, u);
+                    if den.abs() > 1e-12 {
+                        // Where ray j crosses the vertical, and how high over the point.
+                        let t = cross(rel, u) / den;
+                        let above = (d.0 * t - rel.0) * u.0 + (d.1 * t - rel.1) * u.1;
+                        if above >= start {
+                            let returned_past = ret[j as usize] >= t + CLEAR_PAST_MM; // NaN: no return
+                            if !returned_past {
+                                return clear;
+                            }
+                            clear = above;
+                            if above >= height {
+                                return above;
+                            }
+                        }
+                    }
+                    j += if outward { 1 } else { -1 };
+                }
+                clear
+            })
+            .collect()
+    }
+
     /// Acquire one line with the sensor at `world_from_sensor`; frame number `frame`. The noise
     /// comes from the scanner's own generator (seeded at construction), so successive calls draw
     /// successive noise.
@@ -674,6 +747,7 @@ impl Scanner {
             column: Vec::with_capacity(n),
             dropped: DropCounts::default(),
             floor: Vec::new(),
+            floor_column: Vec::new(),
         };
         let origin_w = world_from_sensor * self.apex;
         let camera_w = world_from_sensor * self.camera_in_sensor();
@@ -694,6 +768,7 @@ impl Scanner {
                     {
                         let t = t + self.spec.noise_sigma_mm * gauss(rng);
                         out.floor.push(self.apex + d * t);
+                        out.floor_column.push(i as u32);
                     }
                 }
                 continue;
@@ -1014,6 +1089,69 @@ mod tests {
         let p = sc.profile(&down, 0);
         assert!(p.floor.iter().map(|q| down * q).all(|q| q.x.hypot(q.y) <= 12.5));
         assert!((p.floor.len() as u32) < p.dropped.miss);
+    }
+
+    #[test]
+    fn a_table_point_is_clear_above_only_when_every_ray_over_it_reached_the_table() {
+        // Blocks on the floor and slabs floating over it (an overhang on every side), seen by a
+        // sensor looking straight down: the fan's slanted rays reach the floor under a slab's
+        // edges, and pass over the floor next to a block's wall. The
+        // reference is the vertical itself, cast up from the floor point against the mesh.
+        let mut rng = StdRng::seed_from_u64(7);
+        let (mut under, mut clear, mut open) = (0usize, 0usize, 0usize);
+        for _ in 0..60 {
+            let hx = rng.random_range(3.0..15.0);
+            let hy = rng.random_range(3.0..15.0);
+            // Every other one stands on the floor: walls, no overhang.
+            let z0 = if rng.random_bool(0.5) { 0.0 } else { rng.random_range(5.0..25.0) };
+            let z1 = z0 + rng.random_range(1.0..8.0);
+            let mut m = Mesh { vertices: Vec::new(), triangles: Vec::new() };
+            add_box(&mut m, [-hx, -hy, z0], [hx, hy, z1]);
+            let floor = Floor { z_mm: 0.0, center_xy_mm: [0.0, 0.0], radius_mm: 500.0 };
+            let sc = Scanner::new(ScannerSpec::slp400(), &m, 3).expect("scanner").with_floor(floor);
+            let world_from_sensor = Isometry3::from_parts(
+                Translation3::new(
+                    rng.random_range(-25.0..25.0),
+                    rng.random_range(-hy - 3.0..hy + 3.0),
+                    z1 + rng.random_range(90.0..200.0),
+                ),
+                UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI),
+            );
+            let p = sc.profile_seeded(&world_from_sensor, 0, 11);
+            let up = world_from_sensor.rotation.inverse() * Vector3::z();
+            let top = z1 + 1.0 - world_from_sensor.translation.vector.z;
+            let heights = sc.floor_clear_height(&p, &up, top);
+            assert_eq!(heights.len(), p.floor.len());
+            for (q, h) in p.floor.iter().zip(heights) {
+                // The verticals at the point and 0.02 mm around it (the range noise moves a
+                // slanted ray's point sideways by a few micrometres): all blocked or all open.
+                let w = world_from_sensor * q;
+                let first_hits: Vec<Option<f64>> =
+                    [(0.0, 0.0), (0.02, 0.0), (-0.02, 0.0), (0.0, 0.02), (0.0, -0.02)]
+                        .iter()
+                        .map(|(dx, dy)| {
+                            let o = Point3::new(w.x + dx, w.y + dy, 0.01);
+                            sc.bvh().cast(&o, &Vector3::z(), z1 + 1.0).map(|hit| hit.t + 0.01)
+                        })
+                        .collect();
+                if first_hits.iter().all(Option::is_some) {
+                    under += 1;
+                    // The reference: what the vertical meets first. Shown clear no higher.
+                    let hit = first_hits.iter().flatten().fold(f64::INFINITY, |a, b| a.min(*b));
+                    assert!(
+                        h <= hit + 0.05,
+                        "a table point's vertical shown clear to {h} mm meets the part at {hit} mm: {w:?}"
+                    );
+                } else if first_hits.iter().all(Option::is_none) {
+                    open += 1;
+                    clear += usize::from(h >= z1 + 1.0);
+                }
+            }
+        }
+        assert!(under > 50, "the fan reaches under the slabs: {under}");
+        // Of the table points with nothing over them, those near the slab's edge on the
+        // fan's outer side and at the fan's ends are not shown clear; the rest are.
+        assert!(clear as f64 > 0.7 * open as f64, "{clear} of {open} clear");
     }
 
     #[test]

@@ -231,7 +231,6 @@ impl PartPlacement {
         layout.world_from_table(deg) * self.table_from_part
     }
 
-    /// Part height, mm.
     /// The radius of the part's footprint about the table's axis (half its bounding box's
     /// diagonal in X and Y: the box is centred on the axis), mm.
     pub fn reach_mm(&self) -> f64 {
@@ -247,6 +246,7 @@ impl PartPlacement {
         }
     }
 
+    /// Part height, mm.
     pub fn height_mm(&self) -> f64 {
         self.max.z - self.min.z
     }
@@ -400,8 +400,13 @@ pub struct ScanReport {
 /// depth map needs around the part (more than the largest tool's radius).
 pub const FREE_SPACE_MARGIN_MM: f64 = 6.0;
 
-/// Table points are kept only from a sensor within this of looking straight down, degrees.
-pub const FREE_SPACE_MAX_TILT_DEG: f64 = 5.0;
+/// Table points are kept only from a sensor within this of looking straight down, degrees: the
+/// vertical over a table point then stays within the laser plane (0.44 mm off it 25 mm up).
+pub const FREE_SPACE_MAX_TILT_DEG: f64 = 1.0;
+
+/// A table point is free space when the fan shows the vertical over it clear up to this much
+/// over the part's top, mm.
+pub const FREE_SPACE_CLEARANCE_MM: f64 = 1.0;
 
 /// The scan's result: the registered cloud (part frame, with intensity), the pass id of every
 /// point, and the report.
@@ -494,8 +499,9 @@ pub struct ScanSession {
     silhouette: Option<silhouette::Silhouette>,
     /// The part's mesh for predicting what a rescan pass sees (with the silhouette).
     views: Option<views::ViewModel>,
-    /// Table points seen past the part within [`FREE_SPACE_MARGIN_MM`] of its footprint (part frame).
-    free_space: Vec<Point3<f64>>,
+    /// Table points seen past the part within [`FREE_SPACE_MARGIN_MM`] of its footprint (part
+    /// frame), with how high the vertical over each was shown clear.
+    free_space: Vec<FreeSample>,
     /// The cell as it truly is (the physics); `layout` and `arm` hold what the software believes.
     truth: CellTruth,
     calibrated: bool,
@@ -1105,6 +1111,7 @@ impl ScanSession {
         let layout = &self.layout;
         let tool = self.arm.tool;
         let nest = self.nest;
+        let scanner = &self.scanner;
         let results: Vec<_> = raw
             .into_par_iter()
             .map(|r| {
@@ -1137,13 +1144,29 @@ impl ScanSession {
                 let m = FREE_SPACE_MARGIN_MM;
                 // A tilted sensor sees the table far under an overhang (its rays reach under by
                 // the height times the tilt's tangent): only a sensor looking down says where
-                // the part is not.
-                let floor_rays: &[Point3<f64>] = if r.looks_down { &profile.floor } else { &[] };
-                let floor: Vec<Point3<f64>> = floor_rays
-                    .iter()
-                    .map(|p| placed * p)
-                    .filter(|q| q.x >= lo.x - m && q.x <= hi.x + m && q.y >= lo.y - m && q.y <= hi.y + m)
-                    .collect();
+                // the part is not, and the fan's own slant reaches under an overhang too: each
+                // table point keeps the height up to which the fan shows the vertical over it
+                // clear ([`FreeSample`]).
+                let floor: Vec<FreeSample> = if r.looks_down {
+                    let up = placed.rotation.inverse() * Vector3::z();
+                    let top = hi.z + FREE_SPACE_CLEARANCE_MM - placed.translation.vector.z;
+                    let clear = scanner.floor_clear_height(&profile, &up, top);
+                    profile
+                        .floor
+                        .iter()
+                        .zip(clear)
+                        .map(|(p, h)| {
+                            let at = placed * p;
+                            FreeSample { at, clear_to_z: at.z + h }
+                        })
+                        .filter(|f| {
+                            let q = f.at;
+                            q.x >= lo.x - m && q.x <= hi.x + m && q.y >= lo.y - m && q.y <= hi.y + m
+                        })
+                        .collect()
+                } else {
+                    Vec::new()
+                };
                 (r.pass, pts, inten, profile.dropped, sq, mx.sqrt(), floor, moments)
             })
             .collect();
@@ -1530,6 +1553,8 @@ impl ScanSession {
     /// The registered cloud, the pass ids and the report.
     pub fn finish(mut self) -> ScanOutput {
         let n = self.points.len();
+        let slant = (self.scanner.spec().fan_half_tan().atan() + FREE_SPACE_MAX_TILT_DEG.to_radians()).tan();
+        let free_space = free_space(&self.free_space, &self.points, self.placement.height_mm() * slant);
         let silhouette = self.silhouette.as_ref().map(|s| s.coverage(&self.points));
         if let Some(line) = silhouette.as_ref().and_then(|s| s.diagnostic()) {
             self.diagnostics.push(line);
@@ -1565,9 +1590,67 @@ impl ScanSession {
             },
             pass: self.pass,
             report,
-            free_space: self.free_space,
+            free_space,
         }
     }
+}
+
+/// A table point a sensor looking down saw, part frame, and how high over the table the fan
+/// showed the vertical over it clear ([`Scanner::floor_clear_height`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct FreeSample {
+    at: Point3<f64>,
+    clear_to_z: f64,
+}
+
+/// The table points that show there is no part over them: those whose vertical was shown clear
+/// to [`FREE_SPACE_CLEARANCE_MM`] over every point of the cloud within `reach` mm around (in X
+/// and Y). Material over a table point the fan reached at a slant stands no farther than the
+/// fan's slant times the part's height from where the ray passed it, and the part the scanner
+/// saw there bounds it; far from every point of the cloud, no height needs showing clear.
+fn free_space(samples: &[FreeSample], cloud: &[Point3<f64>], reach: f64) -> Vec<Point3<f64>> {
+    /// Cell of the grid the cloud's heights are kept on, mm.
+    const CELL_MM: f64 = 0.5;
+    let (Some(lo), Some(hi)) = (
+        samples.iter().map(|s| s.at).reduce(|a, b| a.inf(&b)),
+        samples.iter().map(|s| s.at).reduce(|a, b| a.sup(&b)),
+    ) else {
+        return Vec::new();
+    };
+    let w = ((hi.x - lo.x) / CELL_MM).floor() as usize + 1;
+    let h = ((hi.y - lo.y) / CELL_MM).floor() as usize + 1;
+    let cell = |p: &Point3<f64>| -> Option<usize> {
+        let (cx, cy) = (((p.x - lo.x) / CELL_MM).floor(), ((p.y - lo.y) / CELL_MM).floor());
+        (cx >= 0.0 && cy >= 0.0 && (cx as usize) < w && (cy as usize) < h)
+            .then(|| cy as usize * w + cx as usize)
+    };
+    // The cloud's highest point per cell, then the highest within `reach` (a square around:
+    // the disc's bound, rounded out).
+    let mut top = vec![f64::NEG_INFINITY; w * h];
+    for p in cloud {
+        if let Some(i) = cell(p) {
+            top[i] = top[i].max(p.z);
+        }
+    }
+    let k = (reach / CELL_MM).ceil() as usize + 1;
+    let mut rows = vec![f64::NEG_INFINITY; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            let (a, b) = (x.saturating_sub(k), (x + k).min(w - 1));
+            rows[y * w + x] = top[y * w + a..=y * w + b].iter().fold(f64::NEG_INFINITY, |m, v| m.max(*v));
+        }
+    }
+    for y in 0..h {
+        for x in 0..w {
+            let (a, b) = (y.saturating_sub(k), (y + k).min(h - 1));
+            top[y * w + x] = (a..=b).map(|yy| rows[yy * w + x]).fold(f64::NEG_INFINITY, f64::max);
+        }
+    }
+    samples
+        .iter()
+        .filter(|s| cell(&s.at).is_none_or(|i| s.clear_to_z >= top[i] + FREE_SPACE_CLEARANCE_MM))
+        .map(|s| s.at)
+        .collect()
 }
 
 /// The pose at time `t` on the line through two timed poses (slerp for the rotation; `t` may lie

@@ -630,3 +630,50 @@ fn the_tour_takes_the_quickest_order_from_where_the_table_stands() {
         }
     }
 }
+
+#[test]
+fn a_table_point_is_free_space_when_shown_clear_over_the_part_around_it() {
+    // The reference: every cloud point within `reach` (a disc) of the sample, by brute force.
+    let mut rng = StdRng::seed_from_u64(5);
+    let reach = 2.0;
+    for _ in 0..20 {
+        let cloud: Vec<Point3<f64>> = (0..400)
+            .map(|_| {
+                Point3::new(
+                    rng.random_range(-10.0..10.0),
+                    rng.random_range(-10.0..10.0),
+                    rng.random_range(0.0..20.0),
+                )
+            })
+            .collect();
+        let samples: Vec<FreeSample> = (0..500)
+            .map(|_| {
+                let at = Point3::new(rng.random_range(-20.0..20.0), rng.random_range(-20.0..20.0), 0.0);
+                FreeSample { at, clear_to_z: rng.random_range(0.0..25.0) }
+            })
+            .collect();
+        let kept = free_space(&samples, &cloud, reach);
+        let within = |s: &FreeSample, r: f64| {
+            cloud
+                .iter()
+                .filter(|p| (p.x - s.at.x).hypot(p.y - s.at.y) <= r)
+                .map(|p| p.z)
+                .fold(f64::NEG_INFINITY, f64::max)
+        };
+        for s in &samples {
+            let is_kept = kept.contains(&s.at);
+            // Kept: clear over everything within `reach`. Clear over everything within the
+            // grid's rounded-out square window (0.5 mm cells, `reach` and two cells more across
+            // each side): kept.
+            if is_kept {
+                assert!(s.clear_to_z >= within(s, reach) + FREE_SPACE_CLEARANCE_MM, "{s:?}");
+            }
+            let window = std::f64::consts::SQRT_2 * (reach + 1.0);
+            if s.clear_to_z >= within(s, window) + FREE_SPACE_CLEARANCE_MM {
+                assert!(is_kept, "{s:?}");
+            }
+        }
+        // Far from the cloud, a table point needs nothing shown clear.
+        assert!(kept.iter().any(|p| p.x.abs() > 14.0 || p.y.abs() > 14.0));
+    }
+}
