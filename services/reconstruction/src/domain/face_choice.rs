@@ -161,6 +161,11 @@ pub struct SurfaceSamples {
     pub max_turn_deg: f64,
     /// The sampling cell actually used, mm (coarsened from the requested one for huge parts).
     pub cell_mm: f64,
+    /// A scan's body as the scanner saw it from above (the part solid under it, unseen regions
+    /// lidded at the height around them), with the height it must stand over a sample's line of
+    /// sight to hide it, mm: a turned view reaches only the samples it sees past that body
+    /// ([`crate::domain::pipeline::visible_from`]), as that face's depth map will.
+    pub body: Option<(HeightMap, f64)>,
 }
 
 /// A cell size no finer than `cell_mm` that keeps about `area_mm2` under [`MAX_SAMPLES`] samples.
@@ -217,7 +222,7 @@ impl SurfaceSamples {
                 }
             }
         }
-        Ok(SurfaceSamples { points, occluders, cell_mm: cell, max_turn_deg: 90.0 })
+        Ok(SurfaceSamples { points, occluders, cell_mm: cell, max_turn_deg: 90.0, body: None })
     }
 
     /// Samples of a mesh: each triangle sampled on a barycentric lattice of about `cell_mm`, then
@@ -253,7 +258,7 @@ impl SurfaceSamples {
         }
         let keep = voxel_keep_mask(&raw, cell)?;
         let points = raw.iter().zip(&keep).filter(|(_, k)| **k).map(|(p, _)| *p).collect();
-        Ok(SurfaceSamples { points, occluders: Vec::new(), cell_mm: cell, max_turn_deg: 180.0 })
+        Ok(SurfaceSamples { points, occluders: Vec::new(), cell_mm: cell, max_turn_deg: 180.0, body: None })
     }
 }
 
@@ -305,13 +310,22 @@ pub fn reached(samples: &SurfaceSamples, face: Face, s: &FaceChoiceSettings) -> 
     }
     let m = closing_then_neighbourhood_min(&h, s.reach_radius_mm)?;
     let tol = s.tolerance_mm as f32;
-    Ok(view
+    let mut out: Vec<bool> = view
         .iter()
         .map(|p| match raster_cell(&grid, p.x, p.y) {
             Some((c, r)) => m.get(c, r).is_none_or(|lo| p.z as f32 >= lo - tol),
             None => true,
         })
-        .collect())
+        .collect();
+    if let Some((body, occlusion_tol)) = samples.body.as_ref().filter(|_| face != Face::PosZ) {
+        let up = rot.inverse() * Vector3::z();
+        let points: Vec<Point3<f32>> = samples.points.iter().map(depthmill_geometry::cloud::single).collect();
+        let seen = crate::domain::pipeline::visible_from(&points, &up, body, *occlusion_tol);
+        for (o, v) in out.iter_mut().zip(seen) {
+            *o &= v;
+        }
+    }
+    Ok(out)
 }
 
 /// `H` closed by a flat disk of `radius_mm`, then the min over each cell's 3 × 3 neighbourhood.

@@ -601,13 +601,28 @@ pub fn reconstruct_with_free_space(
                 }));
             }
             check_cancel(cancelled)?;
+            // A cloud the scanner took from above, the part on the table (its free space says
+            // so), is solid under what the scanner saw: a turned face sees only the points that
+            // body does not hide from the side it looks from, and the face choice counts only
+            // those.
+            let turned_named = r.faces.iter().any(|fr| fr.face != Face::PosZ);
+            let body_map = match free_space {
+                Some(f) if !f.is_empty() && (r.face_choice.is_some() || turned_named) => {
+                    progress(0.15, "the part's body seen from above");
+                    Some(body_from_above(&cloud.points, f, &r, cancelled)?)
+                }
+                _ => None,
+            };
             let samples = match r.face_choice {
                 Some(settings) => {
                     progress(0.2, "choosing the faces from the shape");
-                    Some((SurfaceSamples::from_cloud(&cloud, settings.cell_mm)?, settings))
+                    let mut samples = SurfaceSamples::from_cloud(&cloud, settings.cell_mm)?;
+                    samples.body = body_map.clone().map(|b| (b, occlusion_tolerance_mm(r.pixel_mm)));
+                    Some((samples, settings))
                 }
                 None => None,
             };
+            let mut body_surface_points: Option<Vec<Point3<f64>>> = None;
             // A turned face the choice took whose map comes out mostly assumed (the scan hardly
             // saw the part from that side) would be cut blind: it is left out and the faces are
             // chosen again, until none is (at most MAX_RECHOICES times).
@@ -619,15 +634,11 @@ pub fn reconstruct_with_free_space(
                 }
                 centre_turned_faces(&mut r, cloud.bounds());
                 faces.clear();
-                // A cloud the scanner took from above, the part on the table (its free space says
-                // so), is solid under what the scanner saw: a turned face sees only the points that
-                // body does not hide from the side it looks from.
-                let body = match free_space {
-                    Some(f) if !f.is_empty() && r.faces.iter().any(|fr| fr.face != Face::PosZ) => {
-                        progress(0.25, "the part's body seen from above, for the turned faces");
-                        let map = body_from_above(&cloud.points, f, &r, cancelled)?;
-                        let surface = body_surface(&map, table_height(f, &map));
-                        Some((map, surface))
+                let body = match (free_space, &body_map) {
+                    (Some(f), Some(map)) if r.faces.iter().any(|fr| fr.face != Face::PosZ) => {
+                        let surface = body_surface_points
+                            .get_or_insert_with(|| body_surface(map, table_height(f, map)));
+                        Some((map, &*surface))
                     }
                     _ => None,
                 };

@@ -4,6 +4,7 @@ use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
 use super::*;
+use depthmill_geometry::HeightMapMeta;
 
 fn never() -> bool {
     false
@@ -304,7 +305,7 @@ fn reach_equals_the_reference_on_random_surfaces() {
                 .map(|_| Point3::new(rng.random_range(0.0..8.0), rng.random_range(0.0..6.0), 0.0))
                 .collect()
         };
-        let samples = SurfaceSamples { points, occluders, cell_mm: 0.5, max_turn_deg: 180.0 };
+        let samples = SurfaceSamples { points, occluders, cell_mm: 0.5, max_turn_deg: 180.0, body: None };
         // 2.6 cells: no cell centre lies near the disk's edge.
         let s = FaceChoiceSettings { reach_radius_mm: 1.3, tolerance_mm: 0.1, ..Default::default() };
         for face in [Face::PosZ, Face::A { angle_deg: 60.0 }, Face::A { angle_deg: 180.0 }] {
@@ -404,4 +405,64 @@ fn an_excluded_orientation_is_never_chosen_and_the_report_says_so() {
     assert_eq!(report.excluded, out);
     // Still every side of the block from the others (A=-90 sees what A=90 did).
     assert!(report.covered_pct > 99.9, "{report:#?}");
+}
+
+#[test]
+fn a_turned_view_reaches_only_what_the_scanned_body_does_not_hide() {
+    // A plateau (z = 10, y in [0, 20]) and a terrace (z = 2, y in [24, 30]) scanned from above;
+    // between them a band no point and no table showed, which the body lids at the plateau's
+    // height. The samples alone leave the band open, so one of the views tilted about A sees the
+    // terrace across it; past the body, neither does.
+    let mut points = Vec::new();
+    for i in 0..=40 {
+        for j in 0..=40 {
+            points.push(Point3::new(0.5 * f64::from(i), 0.5 * f64::from(j), 10.0));
+        }
+        for j in 0..=12 {
+            points.push(Point3::new(0.5 * f64::from(i), 24.0 + 0.5 * f64::from(j), 2.0));
+        }
+    }
+    let cloud = PointCloud::from_points(points);
+    let s = FaceChoiceSettings { step_deg: 45.0, ..Default::default() };
+    let mut samples = SurfaceSamples::from_cloud(&cloud, s.cell_mm).expect("samples");
+    let terrace: Vec<usize> = (0..samples.points.len()).filter(|&i| samples.points[i].y > 23.0).collect();
+    assert!(terrace.len() > 100);
+    let open: Vec<(Face, usize)> = candidates(s.step_deg, samples.max_turn_deg)
+        .into_iter()
+        .map(|f| {
+            let r = reached(&samples, f, &s).expect("reach");
+            (f, terrace.iter().filter(|&&i| r[i]).count())
+        })
+        .collect();
+    // The views from the plateau's side: the tool comes from -Y, over the band.
+    let tilted = open
+        .iter()
+        .filter(|(f, _)| (f.view_from_part().inverse() * Vector3::z()).y < -0.1)
+        .max_by_key(|(_, n)| *n)
+        .copied()
+        .expect("a tilted candidate");
+    assert!(tilted.1 * 4 > terrace.len(), "without the body, {} sees the terrace: {open:?}", tilted.0);
+    let meta = HeightMapMeta { origin_x_mm: -2.0, origin_y_mm: -2.0, ..HeightMapMeta::new(100, 140, 0.25) };
+    let body = HeightMap::from_fn(meta, |c, r| {
+        let (_, y) = meta.cell_center(c, r);
+        if (-0.25..24.0).contains(&y) {
+            10.0
+        } else if (24.0..30.25).contains(&y) {
+            2.0
+        } else {
+            f32::NAN
+        }
+    })
+    .expect("body");
+    samples.body = Some((body.clone(), 0.125));
+    let r = reached(&samples, tilted.0, &s).expect("reach");
+    let seen = terrace.iter().filter(|&&i| r[i]).count();
+    assert_eq!(seen, 0, "{} sees {seen} terrace samples through the lidded band", tilted.0);
+    // From above nothing is hidden, and elsewhere the body takes nothing the view reached.
+    assert_eq!(
+        reached(&samples, Face::PosZ, &s).expect("reach").iter().filter(|v| **v).count(),
+        samples.points.len()
+    );
+    let plateau = sample_index(&samples, Point3::new(10.0, 10.0, 10.0));
+    assert!(r[plateau], "the plateau's top is seen from {}", tilted.0);
 }
