@@ -146,6 +146,54 @@ async fn a_malformed_cloud_fails_the_reconstruct_stage_naming_the_line() -> anyh
 }
 
 #[tokio::test]
+async fn a_scan_in_its_sensors_frame_stands_on_the_table_it_was_found_on() -> anyhow::Result<()> {
+    // The dome on a table 55 x 44 mm, seen by a sensor tilted 30° about X and 300 mm away, with
+    // a 4 mm block 12 mm off to the side: the job finds the table, stands the dome on it and
+    // keeps the dome alone.
+    let (c, s) = (30f64.to_radians().cos(), 30f64.to_radians().sin());
+    let mut text = String::from("# x y z\n");
+    let mut put = |x: f64, y: f64, z: f64| {
+        let _ = writeln!(text, "{:.4} {:.4} {:.4}", x, c * y - s * z, s * y + c * z - 300.0);
+    };
+    for j in 0..=88 {
+        for i in 0..=110 {
+            let (x, y) = (-13.0 + 0.5 * f64::from(i), -12.0 + 0.5 * f64::from(j));
+            if (0.0..=24.0).contains(&x) && (0.0..=20.0).contains(&y) {
+                put(x, y, dome(x, y));
+            } else if !((36.0..=40.0).contains(&x) && (8.0..=12.0).contains(&y)) {
+                put(x, y, 0.0);
+            } else {
+                put(x, y, 4.0);
+            }
+        }
+    }
+    let stack = TestStack::start().await?;
+    let sha = stack.upload("text/x-xyz", text.into_bytes()).await?;
+    let job = json!({"input": {"kind": "point_cloud", "artifact": sha},
+                     "reconstruct": {"pixel_mm": 0.5, "filters": {"table": {}}},
+                     "plan": {"stock": {"z_mm": 12, "material": "wax"}}});
+    let (status, created) = stack.post_job(&job, None).await?;
+    assert_eq!(status, 201, "{created}");
+    let done = stack.wait_for_end(created["id"].as_str().expect("id"), Duration::from_secs(300)).await?;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    let sha = done["artifacts"]["reconstruct_report"]["sha256"].as_str().unwrap_or_default();
+    let report: Value =
+        stack.http.get(stack.url(&format!("/v1/artifacts/{sha}"))).send().await?.json().await?;
+    let table = &report["table"];
+    assert!((table["tilt_deg"].as_f64().unwrap_or(0.0) - 30.0).abs() < 0.05, "{table}");
+    assert_eq!(table["groups"], 2, "{table}");
+    assert_eq!(table["in_other_groups"], 81, "the block: {table}");
+    assert_eq!(report["filters"][0]["filter"], "table", "{report}");
+    // The dome's plinth stands 2 mm over the table and its top at 9 mm, in the depth map too.
+    let face = &report["faces"][0];
+    let z_max = face["z_max_mm"].as_f64().unwrap_or(0.0);
+    assert!(z_max > 8.5 && z_max < 10.5, "{face}");
+    let width = face["width"].as_f64().unwrap_or(0.0) * face["pixel_mm"].as_f64().unwrap_or(0.0);
+    assert!(width > 23.0 && width < 28.5, "the dome alone, 24 mm wide: {face}");
+    stack.shutdown().await
+}
+
+#[tokio::test]
 async fn reconstruct_parameters_are_checked_at_submission() -> anyhow::Result<()> {
     let stack = TestStack::start().await?;
     let sha = stack.upload("text/x-xyz", b"1 2 3\n".to_vec()).await?;
@@ -154,6 +202,7 @@ async fn reconstruct_parameters_are_checked_at_submission() -> anyhow::Result<()
         (json!({"faces": [{"normal": [0, 0, 0]}]}), "reconstruct.faces[0].normal"),
         (json!({"faces": [{"view": "+Z", "origin": [0, 0, 0]}]}), "reconstruct.faces[0].origin"),
         (json!({"filters": {"statistical": {"k": 0, "n_sigma": 2}}}), "reconstruct.filters.statistical.k"),
+        (json!({"filters": {"table": {"tolerance_mm": 0}}}), "reconstruct.filters.table.tolerance_mm"),
         (json!({"roughing_factor": 0}), "reconstruct.roughing_factor"),
         (json!({"z_min_mm": 5, "z_max_mm": 1}), "reconstruct.z_max_mm"),
     ] {

@@ -12,7 +12,7 @@ use crate::domain::spec::{
     AdaptiveMode, CellEstimator, Dialect, ExecuteParams, FaceChoice, FaceSpec, FillMethod, FillParams,
     Filters, Finishing, FinishingStrategy, InputKind, InputUnits, IntensityWindow, JobInput, Obstacle,
     PlanParams, Process, RadiusFilter, ReconstructParams, Rest, RobotParams, Roi, Roughing,
-    RoughingDirection, ScanMode, ScanParams, ScanPassSpec, StatisticalFilter, Stock,
+    RoughingDirection, ScanMode, ScanParams, ScanPassSpec, StatisticalFilter, Stock, TableFilter,
 };
 use crate::domain::{Job, JobMetrics, JobSpec, JobStatus, SpecError, Stage};
 use depthmill_proto::types::v1::Vec3;
@@ -173,6 +173,11 @@ pub fn reconstruct_params(p: &ReconstructParams) -> rec::ReconstructParams {
                 min_neighbours: r.min_neighbours.min(u32::MAX as usize) as u32,
             }),
             transform: f.transform.map(|m| m.iter().flatten().copied().collect()).unwrap_or_default(),
+            table: f.table.map(|t| rec::TableParams {
+                tolerance_mm: t.tolerance_mm,
+                largest_only: t.largest_only,
+                gap_mm: t.gap_mm,
+            }),
         }),
         roughing_factor: p.roughing_factor,
         estimator: match p.estimator {
@@ -622,6 +627,11 @@ pub fn job_spec_from_pb(s: pb::JobSpec) -> Result<JobSpec, SpecError> {
                             min_neighbours: r.min_neighbours as usize,
                         }),
                         transform,
+                        table: f.table.map(|t| TableFilter {
+                            tolerance_mm: t.tolerance_mm,
+                            largest_only: t.largest_only,
+                            gap_mm: t.gap_mm,
+                        }),
                     })
                 })
                 .transpose()?;

@@ -22,7 +22,7 @@ use crate::domain::error::ReconError;
 use crate::domain::face_choice::FaceChoiceOptions;
 use crate::domain::pipeline::{
     FaceFrame, FaceOptions, FillOptions, FilterOptions, IntensityOptions, RadiusOptions, ReconstructOptions,
-    RoiOptions, StatisticalOptions, reconstruct_with_free_space,
+    RoiOptions, StatisticalOptions, TableOptions, reconstruct_with_free_space,
 };
 use depthmill_geometry::formats::{FormatError, ReadLimits, read_any_from};
 
@@ -108,6 +108,11 @@ pub(crate) fn options(p: pb::ReconstructParams) -> Result<ReconstructOptions, St
                     min_neighbours: r.min_neighbours as usize,
                 }),
                 transform,
+                table: f.table.map(|t| TableOptions {
+                    tolerance_mm: t.tolerance_mm,
+                    largest_only: t.largest_only,
+                    gap_mm: t.gap_mm,
+                }),
             })
         }
     };

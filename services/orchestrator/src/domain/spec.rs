@@ -405,7 +405,8 @@ pub struct Roi {
     pub y_max_mm: f64,
 }
 
-/// Clean-up filters, applied in this order: transform, intensity, voxel, statistical, radius.
+/// Clean-up filters, applied in this order: transform, table, intensity, voxel, statistical,
+/// radius.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Filters {
@@ -424,6 +425,29 @@ pub struct Filters {
     /// Rigid transform applied first: a row-major 4x4 matrix.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub transform: Option<[[f64; 4]; 4]>,
+    /// The table the part stood on, found in the cloud and made the XY plane (`{}` for the
+    /// defaults): for a range scan in its sensor's frame.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub table: Option<TableFilter>,
+}
+
+/// Finds the table in the cloud (the plane most points lie within `tolerance_mm` of), turns the
+/// cloud to stand on it at z = 0, removes the table and what lies under it and, unless
+/// `largest_only` is false, keeps only the largest group of points above it (points more than
+/// `gap_mm`, at most twice that, apart make separate groups). The reconstruct report's `table`
+/// gives the plane, the counts and the transform applied.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct TableFilter {
+    /// mm, default 1.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tolerance_mm: Option<f64>,
+    /// Default true.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub largest_only: Option<bool>,
+    /// mm, default 3.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gap_mm: Option<f64>,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, ToSchema)]

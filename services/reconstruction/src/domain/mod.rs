@@ -10,6 +10,7 @@
 //!   voxel decimation), sphere fitting and beacon frames, rigid user transforms.
 //! - [`roughing`]: block-max and continuous over-approximations for roughing.
 //! - [`image_ops`]: histogram stretch, median and bilateral denoise, morphology, foreign images.
+//! - [`table`]: the table a scanned part stood on, found in the cloud and made the XY plane.
 //! - [`pipeline`]: the reconstruct stage: options (the job's `reconstruct` object) -> maps.
 
 pub mod error;
@@ -18,5 +19,6 @@ pub mod filters;
 pub mod image_ops;
 pub mod pipeline;
 pub mod roughing;
+pub mod table;
 
 pub use error::{ReconError, Result};

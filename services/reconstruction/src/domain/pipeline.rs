@@ -32,6 +32,7 @@ use super::filters::{
     voxel_decimate,
 };
 use super::roughing::continuous_over;
+use super::table::{TableReport, TableSettings, level_on_table};
 use depthmill_geometry::Mesh;
 use depthmill_geometry::formats::Geometry;
 use depthmill_geometry::mesh_raster::rasterize_mesh_with_stats;
@@ -158,6 +159,49 @@ pub struct FilterOptions {
     /// Rigid transform applied first: a row-major 4x4 matrix.
     #[serde(default)]
     pub transform: Option<[[f64; 4]; 4]>,
+    /// The table the part stood on, found in the cloud and made the XY plane (after the
+    /// transform, before the other filters; [`crate::domain::table`]).
+    #[serde(default)]
+    pub table: Option<TableOptions>,
+}
+
+/// `reconstruct.filters.table`: every field optional.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TableOptions {
+    /// Points within this of the plane are the table's, mm (default 1).
+    #[serde(default)]
+    pub tolerance_mm: Option<f64>,
+    /// Keep only the largest group of points above the table (default true).
+    #[serde(default)]
+    pub largest_only: Option<bool>,
+    /// Points farther apart than this (twice this, at most) make separate groups, mm (default 3).
+    #[serde(default)]
+    pub gap_mm: Option<f64>,
+}
+
+impl TableOptions {
+    /// Applies defaults and checks every value, naming the job field at fault.
+    pub fn resolve(&self) -> Result<TableSettings> {
+        let d = TableSettings::default();
+        let tolerance_mm = self.tolerance_mm.unwrap_or(d.tolerance_mm);
+        if !(tolerance_mm.is_finite() && tolerance_mm > 0.0 && tolerance_mm <= 100.0) {
+            return Err(ReconError::param(
+                "reconstruct.filters.table.tolerance_mm",
+                tolerance_mm,
+                "must be in (0, 100] mm",
+            ));
+        }
+        let gap_mm = self.gap_mm.unwrap_or(d.gap_mm);
+        if !(gap_mm.is_finite() && (0.01..=1000.0).contains(&gap_mm)) {
+            return Err(ReconError::param(
+                "reconstruct.filters.table.gap_mm",
+                gap_mm,
+                "must be in [0.01, 1000] mm",
+            ));
+        }
+        Ok(TableSettings { tolerance_mm, largest_only: self.largest_only.unwrap_or(d.largest_only), gap_mm })
+    }
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -356,6 +400,9 @@ impl ReconstructOptions {
             ));
         }
         let filters = self.filters.clone().unwrap_or_else(FilterOptions::defaults);
+        if let Some(t) = filters.table {
+            t.resolve()?;
+        }
         if let Some(s) = filters.statistical
             && !(1..=256).contains(&s.k)
         {
@@ -515,6 +562,9 @@ pub struct ReconstructReport {
     /// How the faces were chosen, when the job asked for a choice (`reconstruct.face_choice`).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub face_choice: Option<FaceChoiceReport>,
+    /// The table the cloud was found standing on (`reconstruct.filters.table`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub table: Option<TableReport>,
 }
 
 /// Progress callback: fraction in [0, 1] and a short message.
@@ -527,11 +577,22 @@ fn check_cancel(cancelled: CancelFn<'_>) -> Result<()> {
 }
 
 /// Runs the clean-up filters of `opts` on `cloud`, in the documented order.
-pub fn clean(mut cloud: PointCloud, opts: &FilterOptions) -> Result<(PointCloud, Vec<FilterReport>)> {
+pub fn clean(
+    mut cloud: PointCloud,
+    opts: &FilterOptions,
+) -> Result<(PointCloud, Vec<FilterReport>, Option<TableReport>)> {
     let mut reports = Vec::new();
     if let Some(m) = opts.transform {
         let iso = rigid_from_matrix(m)?;
         cloud.transform(&iso);
+    }
+    let mut table = None;
+    if let Some(t) = opts.table {
+        let before = cloud.len();
+        let (c, r) = level_on_table(cloud, &t.resolve()?)?;
+        cloud = c;
+        reports.push(FilterReport { filter: "table", kept: cloud.len(), removed: before - cloud.len() });
+        table = Some(r);
     }
     if let Some(w) = opts.intensity {
         let (c, r) = intensity_window(cloud, w.min, w.max)?;
@@ -553,7 +614,7 @@ pub fn clean(mut cloud: PointCloud, opts: &FilterOptions) -> Result<(PointCloud,
         cloud = c;
         reports.push(r);
     }
-    Ok((cloud, reports))
+    Ok((cloud, reports, table))
 }
 
 /// The whole stage on an already-read input.
@@ -583,6 +644,7 @@ pub fn reconstruct_with_free_space(
     let started = Instant::now();
     let mut r = opts.resolve()?;
     let mut choice_report = None;
+    let mut table_report = None;
     let (points_in, triangles) = match &input {
         Geometry::Cloud(c) => (c.len(), 0),
         Geometry::Mesh(m) => (m.vertices.len(), m.triangles.len()),
@@ -591,7 +653,8 @@ pub fn reconstruct_with_free_space(
     let (kind, points_kept, filter_reports) = match input {
         Geometry::Cloud(cloud) => {
             progress(0.02, "cleaning the point cloud");
-            let (cloud, reports) = clean(cloud, &r.filters)?;
+            let (cloud, reports, table) = clean(cloud, &r.filters)?;
+            table_report = table;
             if cloud.is_empty() {
                 return Err(ReconError::Empty(if points_in == 0 {
                     "the input holds no point with finite coordinates (NaN or infinite ones are dropped)"
@@ -749,6 +812,7 @@ pub fn reconstruct_with_free_space(
         seconds: started.elapsed().as_secs_f64(),
         units: None,
         face_choice: choice_report,
+        table: table_report,
     };
     Ok(ReconstructOutput { faces, report })
 }
