@@ -1617,6 +1617,9 @@ fn free_space(samples: &[FreeSample], cloud: &[Point3<f64>], reach: f64) -> Vec<
     ) else {
         return Vec::new();
     };
+    // Every cloud point within `reach` of a sample falls on the grid.
+    let grow = Vector3::new(reach + CELL_MM, reach + CELL_MM, 0.0);
+    let (lo, hi) = (lo - grow, hi + grow);
     let w = ((hi.x - lo.x) / CELL_MM).floor() as usize + 1;
     let h = ((hi.y - lo.y) / CELL_MM).floor() as usize + 1;
     let cell = |p: &Point3<f64>| -> Option<usize> {

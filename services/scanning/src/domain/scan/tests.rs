@@ -636,7 +636,7 @@ fn a_table_point_is_free_space_when_shown_clear_over_the_part_around_it() {
     // The reference: every cloud point within `reach` (a disc) of the sample, by brute force.
     let mut rng = StdRng::seed_from_u64(5);
     let reach = 2.0;
-    for _ in 0..20 {
+    for round in 0..20 {
         let cloud: Vec<Point3<f64>> = (0..400)
             .map(|_| {
                 Point3::new(
@@ -646,9 +646,12 @@ fn a_table_point_is_free_space_when_shown_clear_over_the_part_around_it() {
                 )
             })
             .collect();
+        // Every other round the table was seen on one side only, up to the cloud's edge: cloud
+        // points beyond the samples' extent still count.
+        let x_max = if round % 2 == 0 { 20.0 } else { -9.0 };
         let samples: Vec<FreeSample> = (0..500)
             .map(|_| {
-                let at = Point3::new(rng.random_range(-20.0..20.0), rng.random_range(-20.0..20.0), 0.0);
+                let at = Point3::new(rng.random_range(-20.0..x_max), rng.random_range(-20.0..20.0), 0.0);
                 FreeSample { at, clear_to_z: rng.random_range(0.0..25.0) }
             })
             .collect();
@@ -675,5 +678,9 @@ fn a_table_point_is_free_space_when_shown_clear_over_the_part_around_it() {
         }
         // Far from the cloud, a table point needs nothing shown clear.
         assert!(kept.iter().any(|p| p.x.abs() > 14.0 || p.y.abs() > 14.0));
+        // Next to it, something is kept and something is not.
+        let near: Vec<&FreeSample> =
+            samples.iter().filter(|s| s.at.x > -11.0 && s.at.y.abs() < 9.0).collect();
+        assert!(near.iter().any(|s| kept.contains(&s.at)) && near.iter().any(|s| !kept.contains(&s.at)));
     }
 }
