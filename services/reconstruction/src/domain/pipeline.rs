@@ -576,15 +576,26 @@ fn check_cancel(cancelled: CancelFn<'_>) -> Result<()> {
     if cancelled() { Err(ReconError::Cancelled) } else { Ok(()) }
 }
 
+/// A cloud after the clean-up filters.
+#[derive(Debug, Clone)]
+pub struct Cleaned {
+    pub cloud: PointCloud,
+    pub reports: Vec<FilterReport>,
+    /// What the table filter found, when it ran.
+    pub table: Option<TableReport>,
+    /// The rigid motion the cloud went through (`transform`, then the table's), when it moved:
+    /// anything in the input's frame (the scan's free space) must follow it.
+    pub moved: Option<Isometry3<f64>>,
+}
+
 /// Runs the clean-up filters of `opts` on `cloud`, in the documented order.
-pub fn clean(
-    mut cloud: PointCloud,
-    opts: &FilterOptions,
-) -> Result<(PointCloud, Vec<FilterReport>, Option<TableReport>)> {
+pub fn clean(mut cloud: PointCloud, opts: &FilterOptions) -> Result<Cleaned> {
     let mut reports = Vec::new();
+    let mut moved = None;
     if let Some(m) = opts.transform {
         let iso = rigid_from_matrix(m)?;
         cloud.transform(&iso);
+        moved = Some(iso);
     }
     let mut table = None;
     if let Some(t) = opts.table {
@@ -592,6 +603,7 @@ pub fn clean(
         let (c, r) = level_on_table(cloud, &t.resolve()?)?;
         cloud = c;
         reports.push(FilterReport { filter: "table", kept: cloud.len(), removed: before - cloud.len() });
+        moved = Some(r.motion() * moved.unwrap_or_else(Isometry3::identity));
         table = Some(r);
     }
     if let Some(w) = opts.intensity {
@@ -614,7 +626,7 @@ pub fn clean(
         cloud = c;
         reports.push(r);
     }
-    Ok((cloud, reports, table))
+    Ok(Cleaned { cloud, reports, table, moved })
 }
 
 /// The whole stage on an already-read input.
@@ -653,8 +665,12 @@ pub fn reconstruct_with_free_space(
     let (kind, points_kept, filter_reports) = match input {
         Geometry::Cloud(cloud) => {
             progress(0.02, "cleaning the point cloud");
-            let (cloud, reports, table) = clean(cloud, &r.filters)?;
+            let Cleaned { cloud, reports, table, moved } = clean(cloud, &r.filters)?;
             table_report = table;
+            // The free space was seen in the input's frame: it follows the cloud.
+            let moved_free: Option<Vec<Point3<f32>>> =
+                moved.zip(free_space).map(|(iso, f)| f.par_iter().map(|p| single(&(iso * p.at()))).collect());
+            let free_space = moved_free.as_deref().or(free_space);
             if cloud.is_empty() {
                 return Err(ReconError::Empty(if points_in == 0 {
                     "the input holds no point with finite coordinates (NaN or infinite ones are dropped)"
@@ -1656,6 +1672,57 @@ mod tests {
         let free = PointCloud::from_points(table.iter().copied()).points;
         reconstruct_with_free_space(Geometry::Cloud(cloud), opts, Some(&free), &|_, _| {}, &|| false)
             .expect("reconstruct")
+    }
+
+    #[test]
+    fn the_free_space_moves_with_the_cloud() {
+        // The reference: the plateau and its table given where the filters put them. The same
+        // scene given tilted and shifted, stood back by `filters.transform` or found again by
+        // `filters.table`, makes the same map: the free space went with the cloud.
+        let (cloud, table) = plateau_with_band();
+        let opts = ReconstructOptions {
+            pixel_mm: Some(0.25),
+            filters: Some(FilterOptions::default()),
+            ..Default::default()
+        };
+        let reference = over_table(cloud.clone(), &table, &opts);
+        let away = Isometry3::from_parts(
+            Translation3::new(3.0, -40.0, 200.0),
+            nalgebra::UnitQuaternion::from_axis_angle(&Vector3::x_axis(), 0.5),
+        );
+        let moved = |p: Point3<f64>| away * p;
+        let tilted = PointCloud::from_points(cloud.points.iter().map(|p| moved(p.at())));
+        let tilted_table: Vec<Point3<f64>> = table.iter().map(|p| moved(*p)).collect();
+        let m = away.inverse().to_homogeneous();
+        let back: [[f64; 4]; 4] = std::array::from_fn(|r| std::array::from_fn(|c| m[(r, c)]));
+        let by_transform = ReconstructOptions {
+            filters: Some(FilterOptions { transform: Some(back), ..Default::default() }),
+            ..opts.clone()
+        };
+        let out = over_table(tilted.clone(), &tilted_table, &by_transform);
+        let (a, b) = (&reference.faces[0], &out.faces[0]);
+        assert_eq!(a.stats.unseen_filled, b.stats.unseen_filled);
+        assert_eq!(a.stats.coverage.footprint, b.stats.coverage.footprint);
+        // Found by the table filter, in a raw scan that holds the table too: the plateau's top
+        // stands 8 mm over the table, and the cells the table was seen in are left empty as in
+        // the reference (the frame differs by a turn about Z, so the counts are compared).
+        let by_table = ReconstructOptions {
+            filters: Some(FilterOptions { table: Some(TableOptions::default()), ..Default::default() }),
+            ..opts.clone()
+        };
+        let raw =
+            PointCloud::from_points(tilted.points.iter().map(|p| p.at()).chain(tilted_table.iter().copied()));
+        let out = over_table(raw, &tilted_table, &by_table);
+        let c = &out.faces[0];
+        assert!((c.stats.z_max_mm - 8.0).abs() < 0.3, "{:?}", c.stats);
+        let empty = |f: &FaceOutput| f.depth_map.data().iter().filter(|z| z.is_nan()).count();
+        assert!(
+            empty(c) > 0 && c.stats.unseen_filled <= a.stats.unseen_filled + 40,
+            "{:?} against {:?}",
+            c.stats,
+            a.stats
+        );
+        assert!(empty(c) + 200 > empty(a), "{} empty against {}", empty(c), empty(a));
     }
 
     #[test]

@@ -70,6 +70,18 @@ pub struct TableReport {
     pub transform: [[f64; 4]; 4],
 }
 
+impl TableReport {
+    /// The rigid motion applied ([`TableReport::transform`]).
+    pub fn motion(&self) -> Isometry3<f64> {
+        let m = nalgebra::Matrix4::from_fn(|r, c| self.transform[r][c]);
+        let rotation = nalgebra::Rotation3::from_matrix_unchecked(m.fixed_view::<3, 3>(0, 0).into_owned());
+        Isometry3::from_parts(
+            Translation3::new(m[(0, 3)], m[(1, 3)], m[(2, 3)]),
+            UnitQuaternion::from_rotation_matrix(&rotation),
+        )
+    }
+}
+
 /// Finds the table in `cloud`, turns the cloud to stand on it at `z = 0` and keeps what stands
 /// above it (the largest group only, when asked). Errors when no plane can be found (fewer than
 /// three points, all on one line) or nothing is left above it.

@@ -143,10 +143,10 @@ impl Ctx<'_> {
     /// (a simulated scan): the mesh's top surface, seen as the first face sees it (turned to its
     /// view when that is not `+Z`), rasterised on the final stock's grid (exact z-buffer at cell
     /// centres). Only when the maps are in the mesh's own frame up to that turn and the point
-    /// the map's frame is centred on: no `filters.transform`.
+    /// the map's frame is centred on: no `filters.transform` nor `filters.table`.
     pub(crate) fn against_part(&mut self) -> Result<String, ReportError> {
         let rec = &self.job["spec"]["reconstruct"];
-        let same_frame = rec["filters"]["transform"].is_null();
+        let same_frame = rec["filters"]["transform"].is_null() && rec["filters"]["table"].is_null();
         // The first face's view (chosen from the shape or named) and the part's point it is
         // centred on, as the depth map records them.
         let Ok(view_from_part) = self.decode("depth_map").map(|d| d.map.meta().view_from_part()) else {
