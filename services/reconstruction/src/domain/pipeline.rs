@@ -603,7 +603,7 @@ pub fn clean(mut cloud: PointCloud, opts: &FilterOptions) -> Result<Cleaned> {
         let (c, r) = level_on_table(cloud, &t.resolve()?)?;
         cloud = c;
         reports.push(FilterReport { filter: "table", kept: cloud.len(), removed: before - cloud.len() });
-        moved = Some(r.motion() * moved.unwrap_or_else(Isometry3::identity));
+        moved = Some(r.motion * moved.unwrap_or_else(Isometry3::identity));
         table = Some(r);
     }
     if let Some(w) = opts.intensity {

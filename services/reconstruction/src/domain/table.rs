@@ -66,20 +66,11 @@ pub struct TableReport {
     pub groups: usize,
     pub in_other_groups: usize,
     pub kept: usize,
-    /// The rigid motion applied, input frame to the table's, row-major 4x4.
+    /// The rigid motion applied, input frame to the table's, row-major 4x4 ([`Self::motion`]).
     pub transform: [[f64; 4]; 4],
-}
-
-impl TableReport {
-    /// The rigid motion applied ([`TableReport::transform`]).
-    pub fn motion(&self) -> Isometry3<f64> {
-        let m = nalgebra::Matrix4::from_fn(|r, c| self.transform[r][c]);
-        let rotation = nalgebra::Rotation3::from_matrix_unchecked(m.fixed_view::<3, 3>(0, 0).into_owned());
-        Isometry3::from_parts(
-            Translation3::new(m[(0, 3)], m[(1, 3)], m[(2, 3)]),
-            UnitQuaternion::from_rotation_matrix(&rotation),
-        )
-    }
+    /// The same motion, for what must follow the cloud (a scan's free space).
+    #[serde(skip)]
+    pub motion: Isometry3<f64>,
 }
 
 /// Finds the table in `cloud`, turns the cloud to stand on it at `z = 0` and keeps what stands
@@ -137,6 +128,7 @@ pub fn level_on_table(cloud: PointCloud, s: &TableSettings) -> Result<(PointClou
         in_other_groups,
         kept: cloud.len(),
         transform,
+        motion: iso,
     };
     tracing::info!(
         tilt_deg = report.tilt_deg,
