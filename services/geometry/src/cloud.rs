@@ -53,6 +53,15 @@ pub fn single(p: &Point3<f64>) -> Point3<f32> {
     Point3::new(p.x as f32, p.y as f32, p.z as f32)
 }
 
+/// The scanner's free-space artifact is a PLY cloud whose points carry this `ushort` property
+/// ([`crate::formats::write_ply_labelled`]): [`FREE_KIND_TABLE`] or [`FREE_KIND_SHADOWED`].
+pub const FREE_KIND: &str = "kind";
+/// A table point the scanner saw with nothing over it: no part there.
+pub const FREE_KIND_TABLE: u16 = 0;
+/// A point of the scanned cloud whose vertical the scanner did not show clear under a wall or
+/// an overhang's edge beside it: in a top view it may lie under material nobody saw.
+pub const FREE_KIND_SHADOWED: u16 = 1;
+
 /// A point cloud in millimetres, in whatever frame its producer documents.
 ///
 /// Points are stored in single precision (`f32`: 24 bits of mantissa, under 0.031 µm of

@@ -22,9 +22,9 @@ use crate::domain::error::ReconError;
 use crate::domain::face_choice::FaceChoiceOptions;
 use crate::domain::pipeline::{
     FaceFrame, FaceOptions, FillOptions, FilterOptions, IntensityOptions, RadiusOptions, ReconstructOptions,
-    RoiOptions, StatisticalOptions, TableOptions, reconstruct_with_free_space,
+    RoiOptions, ScanSpace, StatisticalOptions, TableOptions, reconstruct_with_free_space,
 };
-use depthmill_geometry::formats::{FormatError, ReadLimits, read_any_from};
+use depthmill_geometry::formats::{FormatError, ReadLimits, read_any_from, read_ply_cloud_with_label};
 
 pub(crate) const SERVICE_NAME: &str = "depthmill.reconstruction.v1.ReconstructionService";
 
@@ -271,15 +271,19 @@ impl pb::reconstruction_service_server::ReconstructionService for Reconstruction
                             let file = std::fs::File::open(p).map_err(|source| {
                                 ReconError::from(FormatError::Io { file: fname.clone(), source })
                             })?;
-                            let (g, _) =
-                                read_any_from(BufReader::with_capacity(1 << 20, file), &fname, None, &limits)
-                                    .map_err(ReconError::from)?;
-                            Some(g.into_cloud().points)
+                            let (cloud, kind, _) = read_ply_cloud_with_label(
+                                BufReader::with_capacity(1 << 20, file),
+                                &fname,
+                                depthmill_geometry::cloud::FREE_KIND,
+                                &limits,
+                            )
+                            .map_err(ReconError::from)?;
+                            Some(ScanSpace::from_labelled(cloud.points, kind)?)
                         }
                         None => None,
                     };
                     let mut out =
-                        reconstruct_with_free_space(geometry, &opts, free.as_deref(), &progress, &cancelled)?;
+                        reconstruct_with_free_space(geometry, &opts, free.as_ref(), &progress, &cancelled)?;
                     out.report.units = units;
                     // Encode on this thread too; the async side only stores bytes.
                     let mut encoded = Vec::with_capacity(out.faces.len());

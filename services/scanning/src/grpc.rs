@@ -9,7 +9,8 @@ use depthmill_common::artifacts::{ArtifactStore, ObjectArtifactStore};
 use depthmill_common::stage::StageRegistry;
 use depthmill_geometry::Mesh;
 use depthmill_geometry::UnitsDecision;
-use depthmill_geometry::formats::{Geometry, PlyEncoding, ReadLimits, write_ply};
+use depthmill_geometry::cloud::{FREE_KIND, FREE_KIND_SHADOWED, FREE_KIND_TABLE};
+use depthmill_geometry::formats::{Geometry, PlyEncoding, ReadLimits, write_ply, write_ply_labelled};
 use depthmill_proto::ErrorCode;
 use depthmill_proto::scanning::v1 as pb;
 use depthmill_proto::types::v1::{
@@ -419,13 +420,28 @@ impl pb::scanning_service_server::ScanningService for ScanningServiceImpl {
                     .put_bytes("application/x-ply", &ply)
                     .await
                     .map_err(depthmill_common::artifacts::grpc_status)?;
-                let free_space = if out.free_space.is_empty() {
+                let free_space = if out.free_space.is_empty() && out.shadowed.is_empty() {
                     None
                 } else {
-                    let mut bytes = Vec::with_capacity(out.free_space.len() * 12 + 256);
-                    let cloud = depthmill_geometry::PointCloud::from_points(out.free_space.clone());
-                    write_ply(&mut bytes, &cloud, None, PlyEncoding::BinaryLittleEndian, &["free space: the table seen past the part".to_string(), "units mm".to_string()])
-                        .map_err(|e| Status::internal(format!("writing the free-space cloud failed: {e}")))?;
+                    let n = out.free_space.len() + out.shadowed.len();
+                    let mut bytes = Vec::with_capacity(n * 14 + 256);
+                    let cloud = depthmill_geometry::PointCloud::from_points(
+                        out.free_space.iter().chain(&out.shadowed).copied(),
+                    );
+                    let kind: Vec<u16> = std::iter::repeat_n(FREE_KIND_TABLE, out.free_space.len())
+                        .chain(std::iter::repeat_n(FREE_KIND_SHADOWED, out.shadowed.len()))
+                        .collect();
+                    write_ply_labelled(
+                        &mut bytes,
+                        &cloud,
+                        Some((FREE_KIND, &kind)),
+                        PlyEncoding::BinaryLittleEndian,
+                        &[
+                            "free space: the table seen past the part (kind 0), and points of the cloud the scanner did not show clear above (kind 1)".to_string(),
+                            "units mm".to_string(),
+                        ],
+                    )
+                    .map_err(|e| Status::internal(format!("writing the free-space cloud failed: {e}")))?;
                     Some(
                         cell.store
                             .put_bytes("application/x-ply", &bytes)

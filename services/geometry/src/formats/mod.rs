@@ -49,7 +49,10 @@ use crate::mesh::Mesh;
 pub use error::{FormatError, Location, Result};
 
 pub use mesh_ply::{read_mesh_ply, write_mesh_ply};
-pub use ply::{PlyEncoding, read_ply_cloud_with_pass, read_ply_from, write_ply};
+pub use ply::{
+    PlyEncoding, read_ply_cloud_with_label, read_ply_cloud_with_pass, read_ply_from, write_ply,
+    write_ply_labelled,
+};
 pub use stl::{read_stl_from, write_stl};
 pub use xyz::read_xyz_from;
 
@@ -340,7 +343,7 @@ fn read_with<R: BufRead>(
             xyz::read_xyz_src(&mut src, name, limits, keep).map(|(c, s)| (Geometry::Cloud(c), s))
         }
         InputFormat::PlyAscii | InputFormat::PlyBinaryLe | InputFormat::PlyBinaryBe => {
-            let opts = ply::Options { want, pass: false, force_var: false, keep };
+            let opts = ply::Options { want, pass: None, force_var: false, keep };
             ply::read_ply_src(&mut src, name, size, limits, opts).map(|o| (o.geometry, o.stats))
         }
         InputFormat::StlAscii | InputFormat::StlBinary => {

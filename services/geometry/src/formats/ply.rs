@@ -92,22 +92,49 @@ impl PlyEncoding {
 /// wrong length or a comment with a line break ([`FormatError::InvalidParameter`]), and write
 /// failures ([`FormatError::Io`] with file `PLY output`).
 pub fn write_ply<W: Write>(
-    mut w: W,
+    w: W,
     cloud: &PointCloud,
     pass: Option<&[u16]>,
     encoding: PlyEncoding,
     extra_comments: &[String],
 ) -> Result<()> {
+    write_ply_labelled(w, cloud, pass.map(|p| ("pass", p)), encoding, extra_comments)
+}
+
+/// [`write_ply`] with the per-point `ushort` property named by `label` (`pass` in
+/// [`write_ply`]; a lower-case ASCII name) instead of the scan pass.
+///
+/// Errors: those of [`write_ply`], and a label name that is not lower-case ASCII letters and
+/// underscores or is one of the other properties ([`FormatError::InvalidParameter`]).
+pub fn write_ply_labelled<W: Write>(
+    mut w: W,
+    cloud: &PointCloud,
+    label: Option<(&str, &[u16])>,
+    encoding: PlyEncoding,
+    extra_comments: &[String],
+) -> Result<()> {
     cloud.validate()?;
-    if let Some(p) = pass
+    if let Some((name, _)) = label
+        && (name.is_empty()
+            || !name.bytes().all(|b| b.is_ascii_lowercase() || b == b'_')
+            || ["x", "y", "z", "intensity", "nx", "ny", "nz"].contains(&name))
+    {
+        return Err(FormatError::param(
+            "label",
+            format!("{name:?}"),
+            "a label property is named by lower-case letters and underscores, not as another property",
+        ));
+    }
+    if let Some((name, p)) = label
         && p.len() != cloud.len()
     {
         return Err(FormatError::param(
-            "pass",
+            name,
             format!("{} ids", p.len()),
-            format!("one pass id per point is needed; the cloud has {} points", cloud.len()),
+            format!("one {name} id per point is needed; the cloud has {} points", cloud.len()),
         ));
     }
+    let pass = label.map(|(_, p)| p);
     if let Some(bad) = extra_comments.iter().find(|c| c.contains(['\n', '\r'])) {
         return Err(FormatError::param("extra_comments", format!("{bad:?}"), "a comment must be one line"));
     }
@@ -126,8 +153,8 @@ pub fn write_ply<W: Write>(
     if cloud.normals.is_some() {
         head.push_str("property float nx\nproperty float ny\nproperty float nz\n");
     }
-    if pass.is_some() {
-        head.push_str("property ushort pass\n");
+    if let Some((name, _)) = label {
+        head.push_str(&format!("property ushort {name}\n"));
     }
     head.push_str("end_header\n");
     w.write_all(head.as_bytes()).map_err(io)?;
@@ -192,7 +219,7 @@ pub fn write_ply<W: Write>(
 /// [`read_ply_cloud_with_pass`].
 pub fn read_ply_from<R: BufRead>(r: R, name: &str, limits: &ReadLimits) -> Result<(Geometry, ReadStats)> {
     let mut src = Src::new(r, limits.max_bytes);
-    let opts = Options { want: Want::Any, pass: false, force_var: false, keep: None };
+    let opts = Options { want: Want::Any, pass: None, force_var: false, keep: None };
     read_ply_src(&mut src, name, None, limits, opts).map(|o| (o.geometry, o.stats))
 }
 
@@ -206,7 +233,21 @@ pub fn read_ply_cloud_with_pass<R: BufRead>(
     limits: &ReadLimits,
 ) -> Result<(PointCloud, Option<Vec<u16>>, ReadStats)> {
     let mut src = Src::new(r, limits.max_bytes);
-    let opts = Options { want: Want::Cloud, pass: true, force_var: false, keep: None };
+    let opts = Options { want: Want::Cloud, pass: Some("pass"), force_var: false, keep: None };
+    let out = read_ply_src(&mut src, name, None, limits, opts)?;
+    Ok((out.geometry.into_cloud(), out.pass, out.stats))
+}
+
+/// [`read_ply_cloud_with_pass`] for the per-point label property named `label` (an integer in
+/// `0..=65535`), as [`write_ply_labelled`] writes it.
+pub fn read_ply_cloud_with_label<R: BufRead>(
+    r: R,
+    name: &str,
+    label: &'static str,
+    limits: &ReadLimits,
+) -> Result<(PointCloud, Option<Vec<u16>>, ReadStats)> {
+    let mut src = Src::new(r, limits.max_bytes);
+    let opts = Options { want: Want::Cloud, pass: Some(label), force_var: false, keep: None };
     let out = read_ply_src(&mut src, name, None, limits, opts)?;
     Ok((out.geometry.into_cloud(), out.pass, out.stats))
 }
@@ -476,8 +517,8 @@ fn read_header<R: BufRead>(src: &mut Src<R>, name: &str, lines: &mut Lines) -> R
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct Options {
     pub(crate) want: Want,
-    /// Read the `pass` property.
-    pub(crate) pass: bool,
+    /// Read this per-point label property (`pass`: the scan pass).
+    pub(crate) pass: Option<&'static str>,
     /// Decode fixed-layout binary vertices with the field-by-field path (tests compare the two).
     pub(crate) force_var: bool,
     /// Keep a uniform sample of at most this many points (a cloud only).
@@ -502,7 +543,7 @@ impl Plan {
     }
 }
 
-fn plan_vertex(elem: &Element, name: &str, attributes: bool, pass: bool) -> Result<Plan> {
+fn plan_vertex(elem: &Element, name: &str, attributes: bool, pass: Option<&str>) -> Result<Plan> {
     let find = |want: &str| elem.props.iter().position(|p| p.name == want);
     let scalar_at = |i: usize| -> Result<usize> {
         match elem.props[i].kind {
@@ -535,7 +576,7 @@ fn plan_vertex(elem: &Element, name: &str, attributes: bool, pass: bool) -> Resu
         (Some(a), Some(b), Some(c)) if attributes && [a, b, c].iter().all(scalar) => Some([a, b, c]),
         _ => None,
     };
-    let pass = if pass { find("pass").filter(scalar) } else { None };
+    let pass = pass.and_then(|label| find(label).filter(scalar));
     Ok(Plan { xyz, intensity, normal, pass })
 }
 
@@ -1319,6 +1360,27 @@ mod tests {
         let cloud = sample_cloud(3, false, false);
         let e = write_ply(Vec::new(), &cloud, Some(&[1]), PlyEncoding::Ascii, &[]).expect_err("pass");
         assert!(e.to_string().contains("the cloud has 3 points"), "{e}");
+        // A label of another name: written under it, read back by it, not taken for the pass.
+        let kind = [0u16, 1, 0];
+        for enc in [PlyEncoding::Ascii, PlyEncoding::BinaryLittleEndian, PlyEncoding::BinaryBigEndian] {
+            let mut bytes = Vec::new();
+            write_ply_labelled(&mut bytes, &cloud, Some(("kind", &kind)), enc, &[]).expect("labelled");
+            let (got, label, _) =
+                read_ply_cloud_with_label(Cursor::new(&bytes), "k.ply", "kind", &ReadLimits::default())
+                    .expect("read");
+            assert_eq!((got, label), (cloud.clone(), Some(kind.to_vec())), "{enc:?}");
+            let (_, pass, _) =
+                read_ply_cloud_with_pass(Cursor::new(&bytes), "k.ply", &ReadLimits::default()).expect("read");
+            assert_eq!(pass, None);
+        }
+        for bad in ["", "Kind", "x", "intensity", "a b"] {
+            let e = write_ply_labelled(Vec::new(), &cloud, Some((bad, &kind)), PlyEncoding::Ascii, &[])
+                .expect_err("bad label");
+            assert!(e.to_string().contains("label"), "{e}");
+        }
+        let e = write_ply_labelled(Vec::new(), &cloud, Some(("kind", &kind[..2])), PlyEncoding::Ascii, &[])
+            .expect_err("short");
+        assert!(e.to_string().contains("one kind id per point"), "{e}");
         let e =
             write_ply(Vec::new(), &cloud, None, PlyEncoding::Ascii, &["a\nb".into()]).expect_err("comment");
         assert!(e.to_string().contains("one line"), "{e}");
@@ -1904,7 +1966,7 @@ mod tests {
             );
             assert_eq!(s.points as usize, r.points.len());
             // The block decoder and the field-by-field reference agree.
-            let opts = Options { want: Want::Any, pass: false, force_var: true, keep: None };
+            let opts = Options { want: Want::Any, pass: None, force_var: true, keep: None };
             let mut src = Src::new(Cursor::new(&r.bytes), u64::MAX);
             let slow = read_ply_src(&mut src, "r.ply", None, &ReadLimits::default(), opts).expect("slow");
             assert_eq!(slow.geometry, Geometry::Cloud(c), "seed {seed}");

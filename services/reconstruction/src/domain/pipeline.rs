@@ -492,6 +492,9 @@ pub struct FaceStats {
     /// Cells the scanner saw neither the part nor the table in, filled with the highest height
     /// around them (only with free-space evidence; see [`reconstruct_with_free_space`]).
     pub unseen_filled: usize,
+    /// Of those, cells whose highest point the scanner did not show clear above (under a wall's
+    /// or an overhang's edge: [`ScanSpace::shadowed`]), lidded instead of taken from that point.
+    pub shadowed_lidded: usize,
     /// [`FaceStats::mostly_assumed`]'s warning, when the face's map is more assumed than measured.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub warning: Option<String>,
@@ -639,6 +642,56 @@ pub fn reconstruct(
     reconstruct_with_free_space(input, opts, None, progress, cancelled)
 }
 
+/// What the scanner showed of the space around the part, part frame (the free-space artifact,
+/// [`depthmill_geometry::cloud::FREE_KIND`]).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ScanSpace {
+    /// Table points seen with nothing over them: no part there.
+    pub table: Vec<Point3<f32>>,
+    /// Points of the cloud whose vertical the scanner did not show clear under a wall or an
+    /// overhang's edge beside them: a `+Z` cell whose highest point is one of these is lidded
+    /// at the height around it instead of taken from that point.
+    pub shadowed: Vec<Point3<f32>>,
+}
+
+impl ScanSpace {
+    /// Table points only (a free space without shadowed points).
+    pub fn table(table: Vec<Point3<f32>>) -> Self {
+        ScanSpace { table, shadowed: Vec::new() }
+    }
+
+    /// Splits a free-space cloud by its per-point kind (every point a table point when the file
+    /// carries none).
+    ///
+    /// Errors: a kind other than the two known, named with its point.
+    pub fn from_labelled(points: Vec<Point3<f32>>, kind: Option<Vec<u16>>) -> Result<Self> {
+        use depthmill_geometry::cloud::{FREE_KIND, FREE_KIND_SHADOWED, FREE_KIND_TABLE};
+        let Some(kind) = kind else { return Ok(ScanSpace::table(points)) };
+        let mut out = ScanSpace::default();
+        for (i, (p, k)) in points.into_iter().zip(kind).enumerate() {
+            match k {
+                FREE_KIND_TABLE => out.table.push(p),
+                FREE_KIND_SHADOWED => out.shadowed.push(p),
+                other => {
+                    return Err(ReconError::InvalidParameter {
+                        field: format!("free_space: vertex {i}: {FREE_KIND}"),
+                        value: other.to_string(),
+                        reason: format!(
+                            "expected {FREE_KIND_TABLE} (a table point) or {FREE_KIND_SHADOWED} (a shadowed point)"
+                        ),
+                    });
+                }
+            }
+        }
+        Ok(out)
+    }
+
+    fn moved(&self, iso: &Isometry3<f64>) -> ScanSpace {
+        let mv = |v: &[Point3<f32>]| v.par_iter().map(|p| single(&(iso * p.at()))).collect();
+        ScanSpace { table: mv(&self.table), shadowed: mv(&self.shadowed) }
+    }
+}
+
 /// [`reconstruct`] with the scanner's free-space evidence: `free_space` holds points where the
 /// scanner saw the table past the part (same frame as the input). On a `+Z` face of a cloud, the
 /// automatic region of interest also covers them, and a cell left without data after the fill
@@ -649,7 +702,7 @@ pub fn reconstruct(
 pub fn reconstruct_with_free_space(
     input: Geometry,
     opts: &ReconstructOptions,
-    free_space: Option<&[Point3<f32>]>,
+    scan_space: Option<&ScanSpace>,
     progress: ProgressFn<'_>,
     cancelled: CancelFn<'_>,
 ) -> Result<ReconstructOutput> {
@@ -668,9 +721,10 @@ pub fn reconstruct_with_free_space(
             let Cleaned { cloud, reports, table, moved } = clean(cloud, &r.filters)?;
             table_report = table;
             // The free space was seen in the input's frame: it follows the cloud.
-            let moved_free: Option<Vec<Point3<f32>>> =
-                moved.zip(free_space).map(|(iso, f)| f.par_iter().map(|p| single(&(iso * p.at()))).collect());
-            let free_space = moved_free.as_deref().or(free_space);
+            let moved_space: Option<ScanSpace> = moved.zip(scan_space).map(|(iso, s)| s.moved(&iso));
+            let scan_space = moved_space.as_ref().or(scan_space);
+            let free_space = scan_space.map(|s| &s.table[..]);
+            let shadowed: &[Point3<f32>] = scan_space.map_or(&[], |s| &s.shadowed[..]);
             if cloud.is_empty() {
                 return Err(ReconError::Empty(if points_in == 0 {
                     "the input holds no point with finite coordinates (NaN or infinite ones are dropped)"
@@ -774,8 +828,15 @@ pub fn reconstruct_with_free_space(
                     let free: Option<Vec<Point3<f64>>> = free_space
                         .filter(|f| !f.is_empty() && frame.face == depthmill_geometry::Face::PosZ)
                         .map(|f| f.iter().map(|p| iso * p.at()).collect());
+                    // So are the points it did not show clear above (see `ScanSpace::shadowed`).
+                    let shadow: Vec<Point3<f32>> = if frame.face == depthmill_geometry::Face::PosZ {
+                        shadowed.iter().map(|p| single(&(iso * p.at()))).collect()
+                    } else {
+                        Vec::new()
+                    };
                     let face_r = face_r.as_ref().unwrap_or(&r);
-                    let mut face = cloud_face(points, free.as_deref(), *frame, face_r, i, cancelled)?;
+                    let mut face =
+                        cloud_face(points, free.as_deref(), &shadow, *frame, face_r, i, cancelled)?;
                     if let Some(bound) = &bound {
                         lid_with_body(&mut face, bound, face_r)?;
                     }
@@ -849,7 +910,7 @@ fn body_from_above(
     let fill = FillParams { max_hole_mm: 0.0, ..r.fill };
     let rb = Resolved { roi: None, estimator: CellEstimator::Max, fill, ..r.clone() };
     let frame = FaceFrame { face: Face::PosZ, origin: None };
-    Ok(cloud_face(points, Some(&free), frame, &rb, 0, cancelled)?.depth_map)
+    Ok(cloud_face(points, Some(&free), &[], frame, &rb, 0, cancelled)?.depth_map)
 }
 
 /// The height of the table the part stood on: the median of the free space's heights (the
@@ -1214,6 +1275,7 @@ pub fn fill_unseen(map: &mut HeightMap, free: &[bool]) -> usize {
 fn cloud_face(
     points: &[Point3<f32>],
     free: Option<&[Point3<f64>]>,
+    shadowed: &[Point3<f32>],
     frame: FaceFrame,
     r: &Resolved,
     index: usize,
@@ -1256,6 +1318,17 @@ fn cloud_face(
         )));
     }
     check_cancel(cancelled)?;
+    // A cell whose highest point is one the scanner did not show clear above (under a wall's or
+    // an overhang's edge) has an unknown top: it is lidded like an unseen cell, never cut to
+    // that point.
+    let lid: Option<Vec<bool>> = if shadowed.is_empty() {
+        None
+    } else {
+        let (shadow, _) = try_rasterize_max(shadowed, &grid)?;
+        let lid: Vec<bool> =
+            shadow.data().iter().zip(max.data()).map(|(s, m)| s.is_finite() && s >= m).collect();
+        lid.contains(&true).then_some(lid)
+    };
     let mut fit = None;
     let (raw, upper) = match r.estimator {
         CellEstimator::Max => (max, None),
@@ -1274,7 +1347,8 @@ fn cloud_face(
     };
     check_cancel(cancelled)?;
     let counts = (raster.points_binned, raster.points_outside);
-    let mut out = finish_face(raw, upper, free_cells.as_ref(), frame, r, counts, started, cancelled)?;
+    let mut out =
+        finish_face(raw, upper, free_cells.as_ref(), lid.as_deref(), frame, r, counts, started, cancelled)?;
     out.stats.fit = fit;
     Ok(out)
 }
@@ -1298,7 +1372,7 @@ fn mesh_face(
         )));
     }
     check_cancel(cancelled)?;
-    finish_face(raw, None, None, frame, r, (0, 0), started, cancelled)
+    finish_face(raw, None, None, None, frame, r, (0, 0), started, cancelled)
 }
 
 /// Z range, fill, coverage and roughing of one face. `raw` is the finishing target as rasterised;
@@ -1306,11 +1380,14 @@ fn mesh_face(
 /// which the roughing map is built from instead so it never cuts into the part. `free`, when
 /// given, marks the cells where the scanner saw the table: the other empty cells are unseen and
 /// filled by [`fill_unseen`] after the hole fill, in the target and in the roughing bound alike.
+/// `lid`, when given, marks cells whose top the scan left unknown: they are emptied after the
+/// hole fill and lidded by [`fill_unseen`] too (never free).
 #[allow(clippy::too_many_arguments)]
 fn finish_face(
     mut raw: HeightMap,
     upper: Option<HeightMap>,
     free: Option<&FreeCells>,
+    lid: Option<&[bool]>,
     frame: FaceFrame,
     r: &Resolved,
     (points_binned, points_outside): (usize, usize),
@@ -1330,7 +1407,17 @@ fn finish_face(
     } else {
         (raw.clone(), FillReport::default())
     };
-    let free = free.map(|f| f.effective(&depth_map));
+    let mut free = free.map(|f| f.effective(&depth_map));
+    if let Some(lid) = lid {
+        let n = lid.len();
+        let free = free.get_or_insert_with(|| vec![false; n]);
+        for ((z, f), &l) in depth_map.data_mut().iter_mut().zip(free.iter_mut()).zip(lid) {
+            if l {
+                *z = f32::NAN;
+                *f = false;
+            }
+        }
+    }
     // The cells empty before the unseen fill (only when there is one).
     let empty_before: Option<Vec<bool>> =
         free.as_ref().map(|_| depth_map.data().iter().map(|z| !z.is_finite()).collect());
@@ -1355,6 +1442,13 @@ fn finish_face(
             // over the same cells), so the filled bound stays above the filled target; the
             // unseen fill takes the highest neighbour, also monotone.
             let mut filled = if r.fill.max_hole_mm > 0.0 { fill_holes(&upper, &r.fill)?.0 } else { upper };
+            if let Some(lid) = lid {
+                for (z, &l) in filled.data_mut().iter_mut().zip(lid) {
+                    if l {
+                        *z = f32::NAN;
+                    }
+                }
+            }
             if let Some(f) = &free {
                 fill_unseen(&mut filled, f);
             }
@@ -1378,6 +1472,7 @@ fn finish_face(
         coverage,
         fill,
         unseen_filled,
+        shadowed_lidded: lid.map_or(0, |l| l.iter().filter(|&&l| l).count()),
         warning: None,
         fit: None,
         seconds: started.elapsed().as_secs_f64(),
@@ -1669,9 +1764,116 @@ mod tests {
 
     /// `cloud` reconstructed with `table` as its free-space evidence.
     fn over_table(cloud: PointCloud, table: &[Point3<f64>], opts: &ReconstructOptions) -> ReconstructOutput {
-        let free = PointCloud::from_points(table.iter().copied()).points;
+        let free = ScanSpace::table(PointCloud::from_points(table.iter().copied()).points);
         reconstruct_with_free_space(Geometry::Cloud(cloud), opts, Some(&free), &|_, _| {}, &|| false)
             .expect("reconstruct")
+    }
+
+    #[test]
+    fn a_cell_whose_highest_point_the_scanner_did_not_show_clear_above_is_lidded() {
+        // A terrace at z = 2 with a block to z = 12 beside it (x >= 12), the table around. The
+        // terrace's points at 9 <= x < 12 are shadowed (a wall or an overhang's edge beside
+        // them, their vertical not shown clear); at 9 <= x < 9.5 a point shown clear stands
+        // over them in every cell.
+        let (mut part, mut table, mut shadowed) = (Vec::new(), Vec::new(), Vec::new());
+        let step = 0.1;
+        for j in 0..300 {
+            for i in 0..300 {
+                let (x, y) = (-5.0 + step * (f64::from(i) + 0.5), -5.0 + step * (f64::from(j) + 0.5));
+                if !((0.0..20.0).contains(&x) && (0.0..20.0).contains(&y)) {
+                    table.push(Point3::new(x, y, 0.0));
+                } else if x >= 12.0 {
+                    part.push(Point3::new(x, y, 12.0));
+                } else if x >= 9.0 {
+                    shadowed.push(single(&Point3::new(x, y, 2.0)));
+                    part.push(Point3::new(x, y, 2.0));
+                    if (9.0..9.5).contains(&x) && i % 2 == 0 {
+                        part.push(Point3::new(x, y, 2.05));
+                    }
+                } else {
+                    part.push(Point3::new(x, y, 2.0));
+                }
+            }
+        }
+        let free = PointCloud::from_points(table.iter().copied()).points;
+        for estimator in ["max", "median"] {
+            let opts = ReconstructOptions {
+                pixel_mm: Some(0.25),
+                estimator: Some(estimator.into()),
+                ..Default::default()
+            };
+            let run = |shadowed: Vec<Point3<f32>>| {
+                let space = ScanSpace { table: free.clone(), shadowed };
+                let cloud = PointCloud::from_points(part.iter().copied());
+                reconstruct_with_free_space(Geometry::Cloud(cloud), &opts, Some(&space), &|_, _| {}, &|| {
+                    false
+                })
+                .expect("reconstruct")
+                .faces
+                .remove(0)
+            };
+            let (plain, lidded) = (run(Vec::new()), run(shadowed.clone()));
+            let m = *lidded.depth_map.meta();
+            let (mut lid, mut kept, mut far) = (0, 0, 0);
+            for row in 0..m.height {
+                let y = m.origin_y_mm + (f64::from(row) + 0.5) * m.pixel_mm;
+                if !(1.0..19.0).contains(&y) {
+                    continue;
+                }
+                for col in 0..m.width {
+                    let x = m.origin_x_mm + (f64::from(col) + 0.5) * m.pixel_mm;
+                    let at = |f: &FaceOutput| f.depth_map.get(col, row).expect("cell");
+                    let coverage = lidded.coverage_map.get(col, row).expect("cell");
+                    let rough = lidded.roughing_map.get(col, row).expect("cell");
+                    if !(0.5..19.5).contains(&x) {
+                        continue;
+                    }
+                    assert!(
+                        rough >= at(&lidded) - 1e-3,
+                        "{estimator}: roughing {rough} under {}",
+                        at(&lidded)
+                    );
+                    if (9.8..11.7).contains(&x) {
+                        // Lidded at the block beside it, and read as assumed.
+                        assert!((at(&plain) - 2.0).abs() < 1e-3, "{estimator}: {}", at(&plain));
+                        assert!(
+                            (at(&lidded) - 12.0).abs() < 1e-3,
+                            "{estimator}: ({x}, {y}) at {}",
+                            at(&lidded)
+                        );
+                        assert_eq!(coverage, COVERAGE_ASSUMED);
+                        lid += 1;
+                    } else if (9.1..9.4).contains(&x) {
+                        // The highest point is shown clear: the cell keeps its measurement.
+                        assert!(
+                            at(&lidded) <= 2.05 + 1e-3 && at(&lidded) >= 2.0 - 1e-3,
+                            "{estimator}: {}",
+                            at(&lidded)
+                        );
+                        assert_eq!(at(&lidded), at(&plain));
+                        kept += 1;
+                    } else if (1.0..8.0).contains(&x) || x > 12.5 {
+                        assert_eq!(at(&lidded), at(&plain), "{estimator}: ({x}, {y})");
+                        far += 1;
+                    }
+                }
+            }
+            assert!(lid > 300 && kept > 50 && far > 3000, "{lid} {kept} {far}");
+            assert!(lidded.stats.unseen_filled >= lid, "{}", lidded.stats.unseen_filled);
+        }
+    }
+
+    #[test]
+    fn a_free_space_cloud_splits_by_its_kind_and_names_an_unknown_one() {
+        let pts: Vec<Point3<f32>> = (0..4).map(|i| Point3::new(i as f32, 0.0, 0.0)).collect();
+        let all = ScanSpace::from_labelled(pts.clone(), None).expect("no kinds");
+        assert_eq!((all.table.len(), all.shadowed.len()), (4, 0));
+        let split = ScanSpace::from_labelled(pts.clone(), Some(vec![0, 1, 0, 1])).expect("kinds");
+        assert_eq!(split.table, vec![pts[0], pts[2]]);
+        assert_eq!(split.shadowed, vec![pts[1], pts[3]]);
+        let e = ScanSpace::from_labelled(pts, Some(vec![0, 1, 7, 0])).expect_err("kind 7");
+        let text = e.to_string();
+        assert!(text.contains("vertex 2") && text.contains("kind") && text.contains('7'), "{text}");
     }
 
     #[test]

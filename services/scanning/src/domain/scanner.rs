@@ -659,6 +659,24 @@ impl Scanner {
     /// vertical is shown clear no higher than where it leaves the fan. The vertical is taken in
     /// the laser plane: the caller keeps only lines from a sensor looking straight down.
     pub fn floor_clear_height(&self, profile: &Profile, up: &Vector3<f64>, top: f64) -> Vec<f64> {
+        self.clear_height(profile, &profile.floor, &profile.floor_column, up, top)
+    }
+
+    /// [`Scanner::floor_clear_height`] for the profile's part points: how high over each the
+    /// vertical is shown clear by the other rays of its line. A point under an overhang (seen at
+    /// the fan's slant past the overhang's edge) is shown clear no higher than the overhang.
+    pub fn point_clear_height(&self, profile: &Profile, up: &Vector3<f64>, top: f64) -> Vec<f64> {
+        self.clear_height(profile, &profile.points, &profile.column, up, top)
+    }
+
+    fn clear_height(
+        &self,
+        profile: &Profile,
+        points: &[Point3<f64>],
+        columns: &[u32],
+        up: &Vector3<f64>,
+        top: f64,
+    ) -> Vec<f64> {
         let n = self.dirs.len();
         // How far along each ray its return lies (NaN: no return).
         let mut ret = vec![f64::NAN; n];
@@ -675,10 +693,9 @@ impl Scanner {
         let (ax, az) = (self.apex.x, self.apex.z);
         let u = (up.x, up.z);
         let start = 3.0 * CLEAR_PAST_MM;
-        profile
-            .floor
+        points
             .iter()
-            .zip(&profile.floor_column)
+            .zip(columns)
             .map(|(p, &col)| {
                 let height = top - up.dot(&p.coords);
                 if !height.is_finite() || height <= start {
@@ -1151,6 +1168,66 @@ mod tests {
         assert!(under > 50, "the fan reaches under the slabs: {under}");
         // Of the table points with nothing over them, those near the slab's edge on the
         // fan's outer side and at the fan's ends are not shown clear; the rest are.
+        assert!(clear as f64 > 0.7 * open as f64, "{clear} of {open} clear");
+    }
+
+    #[test]
+    fn a_part_point_is_clear_above_only_when_every_ray_over_it_returned_past_it() {
+        // A block on the floor and a slab floating over part of it (an overhang), seen by a
+        // sensor looking straight down: the fan's slanted rays reach the block's top under the
+        // slab's edge. The reference is the vertical cast up from the point against the mesh.
+        let mut rng = StdRng::seed_from_u64(17);
+        let (mut under, mut clear, mut open) = (0usize, 0usize, 0usize);
+        for _ in 0..60 {
+            let (hx, hy) = (rng.random_range(8.0..20.0), rng.random_range(8.0..20.0));
+            let z0 = rng.random_range(2.0..10.0);
+            let s0 = z0 + rng.random_range(1.0..8.0);
+            let s1 = s0 + rng.random_range(1.0..5.0);
+            let sx = rng.random_range(-hx..hx);
+            let mut m = Mesh { vertices: Vec::new(), triangles: Vec::new() };
+            add_box(&mut m, [-hx, -hy, 0.0], [hx, hy, z0]);
+            add_box(&mut m, [sx, -hy - 5.0, s0], [sx + 12.0, hy + 5.0, s1]);
+            let sc = Scanner::new(ScannerSpec::slp400(), &m, 3).expect("scanner");
+            let world_from_sensor = Isometry3::from_parts(
+                Translation3::new(
+                    rng.random_range(-25.0..25.0),
+                    rng.random_range(-hy..hy),
+                    s1 + rng.random_range(90.0..200.0),
+                ),
+                UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI),
+            );
+            let p = sc.profile_seeded(&world_from_sensor, 0, 11);
+            let up = world_from_sensor.rotation.inverse() * Vector3::z();
+            let top = s1 + 1.0 - world_from_sensor.translation.vector.z;
+            let heights = sc.point_clear_height(&p, &up, top);
+            assert_eq!(heights.len(), p.points.len());
+            for (q, h) in p.points.iter().zip(heights) {
+                let w = world_from_sensor * q;
+                if w.z > z0 + 0.5 {
+                    continue; // the slab's own top
+                }
+                let first_hits: Vec<Option<f64>> =
+                    [(0.0, 0.0), (0.02, 0.0), (-0.02, 0.0), (0.0, 0.02), (0.0, -0.02)]
+                        .iter()
+                        .map(|(dx, dy)| {
+                            let o = Point3::new(w.x + dx, w.y + dy, z0 + 0.2);
+                            sc.bvh().cast(&o, &Vector3::z(), s1 + 1.0).map(|hit| hit.t + z0 + 0.2 - w.z)
+                        })
+                        .collect();
+                if first_hits.iter().all(Option::is_some) {
+                    under += 1;
+                    let hit = first_hits.iter().flatten().fold(f64::INFINITY, |a, b| a.min(*b));
+                    assert!(
+                        h <= hit + 0.05,
+                        "a point's vertical shown clear to {h} mm meets the slab at {hit} mm: {w:?}"
+                    );
+                } else if first_hits.iter().all(Option::is_none) {
+                    open += 1;
+                    clear += usize::from(h >= s1 + 1.0 - w.z - 1e-9);
+                }
+            }
+        }
+        assert!(under > 50, "the fan reaches under the slab: {under}");
         assert!(clear as f64 > 0.7 * open as f64, "{clear} of {open} clear");
     }
 

@@ -359,6 +359,9 @@ pub struct ScanReport {
     pub stations: Vec<StationReport>,
     pub frames: u64,
     pub points: u64,
+    /// Points whose vertical the scan did not show clear under a wall or an overhang's edge
+    /// beside them ([`ScanOutput::shadowed`]): a top view lids their cells.
+    pub shadowed_points: u64,
     /// Simulated time from the first command to the last frame, table moves excluded, s.
     pub scan_time_s: f64,
     /// Rays that gave no point.
@@ -417,6 +420,9 @@ pub struct ScanOutput {
     pub report: ScanReport,
     /// Table points seen past the part around its footprint (part frame): where there is no part.
     pub free_space: Vec<Point3<f64>>,
+    /// Points of the cloud (part frame) that may lie under material the scanner did not see
+    /// ([`shadowed`]): the highest point of a cell of a top view is not its top when it is one.
+    pub shadowed: Vec<Point3<f64>>,
 }
 
 /// A frame ray cast and not yet placed.
@@ -502,6 +508,9 @@ pub struct ScanSession {
     /// Table points seen past the part within [`FREE_SPACE_MARGIN_MM`] of its footprint (part
     /// frame), with how high the vertical over each was shown clear.
     free_space: Vec<FreeSample>,
+    /// Per point of the cloud: the height (part frame) up to which a sensor looking down showed
+    /// the vertical over it clear (the point's own height when none did).
+    clear_to: Vec<f64>,
     /// The cell as it truly is (the physics); `layout` and `arm` hold what the software believes.
     truth: CellTruth,
     calibrated: bool,
@@ -687,6 +696,7 @@ impl ScanSession {
             silhouette,
             views,
             free_space: Vec::new(),
+            clear_to: Vec::new(),
             truth: cell.truth,
             calibrated: cell.calibration.is_some(),
             moments: AlignmentMoments::default(),
@@ -1124,7 +1134,17 @@ impl ScanSession {
                 let mut moments = AlignmentMoments::default();
                 let mut pts = Vec::with_capacity(profile.points.len());
                 let mut inten = Vec::with_capacity(profile.points.len());
-                for (p, i) in profile.points.iter().zip(&profile.intensity) {
+                let mut clear_to = Vec::with_capacity(profile.points.len());
+                // How high over each point the fan showed its vertical clear (a sensor looking
+                // down only; a tilted one's laser plane holds no vertical but the point's own).
+                let up = placed.rotation.inverse() * Vector3::z();
+                let top = placement.max.z + FREE_SPACE_CLEARANCE_MM - placed.translation.vector.z;
+                let point_clear = if r.looks_down {
+                    scanner.point_clear_height(&profile, &up, top)
+                } else {
+                    vec![0.0; profile.points.len()]
+                };
+                for ((p, i), h) in profile.points.iter().zip(&profile.intensity).zip(point_clear) {
                     let q = placed * p;
                     if let Some((c, radius)) = nest {
                         let t = placement.table_from_part * q;
@@ -1139,6 +1159,7 @@ impl ScanSession {
                     moments.add(&q, &t);
                     pts.push(q);
                     inten.push(*i);
+                    clear_to.push(q.z + h);
                 }
                 let (lo, hi) = (placement.min, placement.max);
                 let m = FREE_SPACE_MARGIN_MM;
@@ -1148,8 +1169,6 @@ impl ScanSession {
                 // table point keeps the height up to which the fan shows the vertical over it
                 // clear ([`FreeSample`]).
                 let floor: Vec<FreeSample> = if r.looks_down {
-                    let up = placed.rotation.inverse() * Vector3::z();
-                    let top = hi.z + FREE_SPACE_CLEARANCE_MM - placed.translation.vector.z;
                     let clear = scanner.floor_clear_height(&profile, &up, top);
                     profile
                         .floor
@@ -1167,11 +1186,12 @@ impl ScanSession {
                 } else {
                     Vec::new()
                 };
-                (r.pass, pts, inten, profile.dropped, sq, mx.sqrt(), floor, moments)
+                (r.pass, pts, inten, clear_to, profile.dropped, sq, mx.sqrt(), floor, moments)
             })
             .collect();
-        for (pass, pts, inten, dropped, sq, mx, floor, moments) in results {
+        for (pass, pts, inten, clear_to, dropped, sq, mx, floor, moments) in results {
             self.free_space.extend(floor);
+            self.clear_to.extend(clear_to);
             self.pass.extend(std::iter::repeat_n(pass, pts.len()));
             self.points.extend(pts);
             self.intensity.extend(inten);
@@ -1555,6 +1575,12 @@ impl ScanSession {
         let n = self.points.len();
         let slant = (self.scanner.spec().fan_half_tan().atan() + FREE_SPACE_MAX_TILT_DEG.to_radians()).tan();
         let free_space = free_space(&self.free_space, &self.points, self.placement.height_mm() * slant);
+        let shadowed: Vec<Point3<f64>> = shadowed(&self.points, &self.clear_to)
+            .into_iter()
+            .zip(&self.points)
+            .filter(|(s, _)| *s)
+            .map(|(_, p)| *p)
+            .collect();
         let silhouette = self.silhouette.as_ref().map(|s| s.coverage(&self.points));
         if let Some(line) = silhouette.as_ref().and_then(|s| s.diagnostic()) {
             self.diagnostics.push(line);
@@ -1567,6 +1593,7 @@ impl ScanSession {
             stations: self.stations,
             frames: self.next_frame,
             points: n as u64,
+            shadowed_points: shadowed.len() as u64,
             scan_time_s: self.t_s,
             dropped: self.dropped,
             registration_rms_mm: if n > 0 { (self.err_sq / n as f64).sqrt() } else { 0.0 },
@@ -1591,6 +1618,7 @@ impl ScanSession {
             pass: self.pass,
             report,
             free_space,
+            shadowed,
         }
     }
 }
@@ -1655,6 +1683,129 @@ fn free_space(samples: &[FreeSample], cloud: &[Point3<f64>], reach: f64) -> Vec<
         .map(|s| s.at)
         .collect()
 }
+
+/// Slope (tangent) past which a rise beside a point is a wall or an overhang rather than the
+/// surface the point lies on: 75°, the report's wall test.
+const STEP_TAN: f64 = 3.732_050_807_568_877;
+
+/// Which points of `cloud` may lie under material the scanner did not see: those with a point
+/// of the cloud higher by more than [`FREE_SPACE_CLEARANCE_MM`] and by more than a 75° slope
+/// from it (a wall, or the edge of an overhang that may reach over it), whose vertical no sensor
+/// looking down showed clear to [`FREE_SPACE_CLEARANCE_MM`] over that point (`clear_to`, per
+/// point, part frame), nor that of a point within [`SHADOW_NEIGHBOUR_MM`] beside it and within
+/// [`SHADOW_LEVEL_MM`] of its height. A line scanner sees under an overhang's edge at its fan's slant, or from
+/// a tilted pass, and a surface sloped toward grazing may give no point at all: the highest point
+/// in a cell of a top view is then the floor under the overhang, and a target taken from it cuts
+/// the overhang away. Points on slopes under 75°, and every point shown clear, are not shadowed.
+fn shadowed(cloud: &[Point3<f64>], clear_to: &[f64]) -> Vec<bool> {
+    /// Cell of the grid the cloud is binned on, mm.
+    const CELL_MM: f64 = 0.5;
+    let (Some(lo), Some(hi)) =
+        (cloud.iter().copied().reduce(|a, b| a.inf(&b)), cloud.iter().copied().reduce(|a, b| a.sup(&b)))
+    else {
+        return Vec::new();
+    };
+    let w = ((hi.x - lo.x) / CELL_MM).floor() as usize + 1;
+    let h = ((hi.y - lo.y) / CELL_MM).floor() as usize + 1;
+    let cell_xy = |p: &Point3<f64>| {
+        (
+            (((p.x - lo.x) / CELL_MM).floor() as usize).min(w - 1),
+            (((p.y - lo.y) / CELL_MM).floor() as usize).min(h - 1),
+        )
+    };
+    // The points by cell (counting sort), and each cell's highest.
+    let mut start = vec![0usize; w * h + 1];
+    for p in cloud {
+        let (x, y) = cell_xy(p);
+        start[y * w + x + 1] += 1;
+    }
+    for i in 0..w * h {
+        start[i + 1] += start[i];
+    }
+    let mut fill = start.clone();
+    let mut order = vec![0usize; cloud.len()];
+    let mut top = vec![f64::NEG_INFINITY; w * h];
+    for (i, p) in cloud.iter().enumerate() {
+        let (x, y) = cell_xy(p);
+        let c = y * w + x;
+        order[fill[c]] = i;
+        fill[c] += 1;
+        top[c] = top[c].max(p.z);
+    }
+    cloud
+        .par_iter()
+        .zip(clear_to)
+        .map(|(p, &clear)| {
+            let need = p.z + FREE_SPACE_CLEARANCE_MM;
+            if clear >= hi.z + FREE_SPACE_CLEARANCE_MM || hi.z <= need {
+                return false;
+            }
+            // No point farther than the cloud's top allows at the slope can rise over it.
+            let reach = (hi.z - p.z) / STEP_TAN;
+            let k = (reach / CELL_MM).ceil() as usize + 1;
+            let (cx, cy) = cell_xy(p);
+            let mut threat = f64::NEG_INFINITY;
+            for y in cy.saturating_sub(k)..=(cy + k).min(h - 1) {
+                for x in cx.saturating_sub(k)..=(cx + k).min(w - 1) {
+                    let c = y * w + x;
+                    if top[c] <= need.max(threat) {
+                        continue;
+                    }
+                    // The cell's nearest point to `p`, for the slope bound.
+                    let gx = (lo.x + x as f64 * CELL_MM - p.x)
+                        .max(p.x - (lo.x + (x + 1) as f64 * CELL_MM))
+                        .max(0.0);
+                    let gy = (lo.y + y as f64 * CELL_MM - p.y)
+                        .max(p.y - (lo.y + (y + 1) as f64 * CELL_MM))
+                        .max(0.0);
+                    if top[c] - p.z <= gx.hypot(gy) * STEP_TAN {
+                        continue;
+                    }
+                    for &j in &order[start[c]..start[c + 1]] {
+                        let q = &cloud[j];
+                        let rise = q.z - p.z;
+                        if q.z > threat
+                            && rise > FREE_SPACE_CLEARANCE_MM
+                            && rise > (q.x - p.x).hypot(q.y - p.y) * STEP_TAN
+                        {
+                            threat = q.z;
+                        }
+                    }
+                }
+            }
+            if !threat.is_finite() || clear >= threat + FREE_SPACE_CLEARANCE_MM {
+                return false;
+            }
+            // Another line may have shown the vertical beside it clear: one along a wall (whose
+            // rays over the foot return from the floor beyond, where a line across the wall
+            // meets the wall's face and gives no point), or from another station.
+            let k = (SHADOW_NEIGHBOUR_MM / CELL_MM).ceil() as usize;
+            for y in cy.saturating_sub(k)..=(cy + k).min(h - 1) {
+                for x in cx.saturating_sub(k)..=(cx + k).min(w - 1) {
+                    let c = y * w + x;
+                    for &j in &order[start[c]..start[c + 1]] {
+                        let q = &cloud[j];
+                        if clear_to[j] >= threat + FREE_SPACE_CLEARANCE_MM
+                            && (q.z - p.z).abs() <= SHADOW_LEVEL_MM
+                            && (q.x - p.x).hypot(q.y - p.y) <= SHADOW_NEIGHBOUR_MM
+                        {
+                            return false;
+                        }
+                    }
+                }
+            }
+            true
+        })
+        .collect()
+}
+
+/// A point shown clear above within this distance (in X and Y) of a point, and within
+/// [`SHADOW_LEVEL_MM`] of its height, shows its vertical clear too, mm: the depth map's usual
+/// cell. (A point higher up beside it is material over it, not evidence of space.)
+pub const SHADOW_NEIGHBOUR_MM: f64 = 0.25;
+
+/// See [`SHADOW_NEIGHBOUR_MM`], mm: where the fan's vertical test starts over a point.
+const SHADOW_LEVEL_MM: f64 = 0.3;
 
 /// The pose at time `t` on the line through two timed poses (slerp for the rotation; `t` may lie
 /// outside the two times, which extrapolates).

@@ -684,3 +684,154 @@ fn a_table_point_is_free_space_when_shown_clear_over_the_part_around_it() {
         assert!(near.iter().any(|s| kept.contains(&s.at)) && near.iter().any(|s| !kept.contains(&s.at)));
     }
 }
+
+#[test]
+fn a_point_is_shadowed_when_a_steep_rise_beside_it_was_not_shown_clear_over_it() {
+    // Terraces and towers of points (steps of 0-20 mm, slopes and cliffs) with random clear
+    // heights, against the brute-force reading of the rule: every other point of the cloud
+    // tried as the rise.
+    let mut rng = StdRng::seed_from_u64(41);
+    let (mut flagged, mut certified_near_rise) = (0usize, 0usize);
+    for round in 0..12 {
+        let mut cloud = Vec::new();
+        let towers: Vec<(f64, f64, f64, f64)> = (0..6)
+            .map(|_| {
+                (
+                    rng.random_range(-8.0..8.0),
+                    rng.random_range(-8.0..8.0),
+                    rng.random_range(0.3..3.0),
+                    rng.random_range(0.0..20.0),
+                )
+            })
+            .collect();
+        let slope = rng.random_range(0.0..2.0);
+        for _ in 0..1500 {
+            let (x, y) = (rng.random_range(-10.0..10.0), rng.random_range(-10.0..10.0));
+            let mut z = slope * x + rng.random_range(-0.05..0.05);
+            for (tx, ty, r, h) in &towers {
+                if (x - tx).hypot(y - ty) < *r {
+                    z = z.max(slope * tx + h);
+                }
+            }
+            cloud.push(Point3::new(x, y, z));
+        }
+        let top = cloud.iter().map(|p| p.z).fold(f64::NEG_INFINITY, f64::max);
+        let clear_to: Vec<f64> = cloud
+            .iter()
+            .map(|p| match rng.random_range(0..3) {
+                0 => p.z,
+                1 => top + FREE_SPACE_CLEARANCE_MM,
+                _ => p.z + rng.random_range(0.0..25.0),
+            })
+            .collect();
+        let fast = shadowed(&cloud, &clear_to);
+        assert_eq!(fast.len(), cloud.len());
+        for (i, p) in cloud.iter().enumerate() {
+            let threat = cloud
+                .iter()
+                .filter(|q| {
+                    let rise = q.z - p.z;
+                    rise > FREE_SPACE_CLEARANCE_MM && rise > (q.x - p.x).hypot(q.y - p.y) * STEP_TAN
+                })
+                .map(|q| q.z)
+                .fold(f64::NEG_INFINITY, f64::max);
+            let shown_beside = cloud.iter().zip(&clear_to).any(|(q, c)| {
+                *c >= threat + FREE_SPACE_CLEARANCE_MM
+                    && (q.z - p.z).abs() <= SHADOW_LEVEL_MM
+                    && (q.x - p.x).hypot(q.y - p.y) <= SHADOW_NEIGHBOUR_MM
+            });
+            let reference = threat.is_finite() && !shown_beside;
+            assert_eq!(
+                fast[i], reference,
+                "round {round}, point {i} {p:?}, threat {threat}, clear {}",
+                clear_to[i]
+            );
+            flagged += usize::from(reference);
+            certified_near_rise += usize::from(threat.is_finite() && !reference);
+        }
+    }
+    assert!(
+        flagged > 500 && certified_near_rise > 500,
+        "{flagged} shadowed, {certified_near_rise} shown clear"
+    );
+    assert!(shadowed(&[], &[]).is_empty());
+}
+
+#[test]
+fn the_floor_seen_under_an_overhang_is_shadowed_and_open_surface_is_not() {
+    // A mushroom on a base plate: a 4 mm stem and a 12 x 12 mm cap from z = 20 to 22 over a
+    // base at z = 5. The fan's slanted rays see the base under the cap's rim; a top view taken
+    // from those points would cut the cap away. (Within SHADOW_NEIGHBOUR_MM of the rim, the open
+    // floor beside a point speaks for it.)
+    let mut mesh = height_field(25.0, 25.0, 1.0, |_, _| 5.0);
+    let mut add_box = |lo: [f64; 3], hi: [f64; 3]| {
+        let b = mesh.vertices.len() as u32;
+        for k in 0..8 {
+            mesh.vertices.push(Point3::new(
+                if k & 1 == 0 { lo[0] } else { hi[0] },
+                if k & 2 == 0 { lo[1] } else { hi[1] },
+                if k & 4 == 0 { lo[2] } else { hi[2] },
+            ));
+        }
+        for q in [[0, 2, 3, 1], [4, 5, 7, 6], [0, 1, 5, 4], [2, 6, 7, 3], [0, 4, 6, 2], [1, 3, 7, 5]] {
+            mesh.triangles.push([b + q[0], b + q[1], b + q[2]]);
+            mesh.triangles.push([b + q[0], b + q[2], b + q[3]]);
+        }
+    };
+    add_box([-2.0, -2.0, 5.0], [2.0, 2.0, 20.0]);
+    add_box([-6.0, -6.0, 20.0], [6.0, 6.0, 22.0]);
+    // Straight-down passes off to each side of the cap: its rim sits near the fan's ends, whose
+    // rays slant under it.
+    let pass = |start: [f64; 3], end: [f64; 3]| PassSpec { table_deg: 0.0, start_mm: start, end_mm: end };
+    let opts = ScanOptions {
+        passes: Some(vec![
+            pass([20.0, -25.0, 165.0], [20.0, 25.0, 165.0]),
+            pass([-20.0, -25.0, 165.0], [-20.0, 25.0, 165.0]),
+            pass([-25.0, 20.0, 165.0], [25.0, 20.0, 165.0]),
+            pass([-25.0, -20.0, 165.0], [25.0, -20.0, 165.0]),
+        ]),
+        line_spacing_mm: 0.25,
+        ..ScanOptions::default()
+    };
+    let mut sess = ScanSession::new(&mesh, opts, CellLayout::default()).unwrap();
+    let plan = sess.plan().unwrap();
+    for st in &plan.stations {
+        sess.run_station(st, st.table_deg, false, &mut |_, _| {}, &|| false).unwrap();
+    }
+    let out = sess.finish();
+    // The cloud holds single-precision copies of the points: compare through them.
+    let key = |p: &Point3<f32>| [p.x.to_bits(), p.y.to_bits(), p.z.to_bits()];
+    let shadowed: std::collections::HashSet<[u32; 3]> =
+        out.shadowed.iter().map(|p| key(&depthmill_geometry::cloud::single(p))).collect();
+    assert_eq!(out.report.shadowed_points as usize, out.shadowed.len());
+    let is_shadowed = |p: &Point3<f32>| shadowed.contains(&key(p));
+    let (mut under, mut open, mut open_flagged, mut near, mut near_flagged, mut cap) = (0, 0, 0, 0, 0, 0);
+    for p in &out.cloud.points {
+        let outside = (p.x.abs() - 6.0).max(p.y.abs() - 6.0);
+        if p.z < 19.0
+            && p.z > 4.0
+            && f64::from(outside) < -(SHADOW_NEIGHBOUR_MM + 0.05)
+            && (p.x.abs() > 2.3 || p.y.abs() > 2.3)
+        {
+            under += 1;
+            assert!(is_shadowed(p), "the base under the cap is shadowed: {p:?}");
+        } else if p.z > 21.5 {
+            cap += 1;
+            assert!(!is_shadowed(p), "the cap's top is open: {p:?}");
+        } else if p.z < 6.0 && outside > 3.5 {
+            open += 1;
+            open_flagged += usize::from(is_shadowed(p));
+        } else if p.z < 6.0 && outside > 0.5 {
+            near += 1;
+            near_flagged += usize::from(is_shadowed(p));
+        }
+    }
+    println!(
+        "under the cap {under}, cap {cap}; near the cap {near_flagged} of {near} shadowed, far {open_flagged} of {open}"
+    );
+    assert!(under > 20, "the fan reaches under the cap's rim: {under}");
+    assert!(cap > 100 && open > 1000);
+    assert_eq!(open_flagged, 0);
+    // Beside the cap, on open floor, the lines along the cap's edge show the vertical clear.
+    assert!(near_flagged * 2 < near, "{near_flagged} of {near}");
+}
