@@ -1409,8 +1409,10 @@ fn finish_face(
     };
     let mut free = free.map(|f| f.effective(&depth_map));
     if let Some(lid) = lid {
+        // Without table evidence, the lidded cells are the only unseen ones (the rest of an
+        // empty map stays empty, as without free space).
         let n = lid.len();
-        let free = free.get_or_insert_with(|| vec![false; n]);
+        let free = free.get_or_insert_with(|| vec![true; n]);
         for ((z, f), &l) in depth_map.data_mut().iter_mut().zip(free.iter_mut()).zip(lid) {
             if l {
                 *z = f32::NAN;
@@ -1860,6 +1862,26 @@ mod tests {
             }
             assert!(lid > 300 && kept > 50 && far > 3000, "{lid} {kept} {far}");
             assert!(lidded.stats.unseen_filled >= lid, "{}", lidded.stats.unseen_filled);
+            assert_eq!(lidded.stats.shadowed_lidded, lidded.stats.unseen_filled);
+            // Without table points, the shadowed cells are lidded alike and nothing else is:
+            // the map's empty surroundings stay empty.
+            let space = ScanSpace { table: Vec::new(), shadowed: shadowed.clone() };
+            let cloud = PointCloud::from_points(part.iter().copied());
+            let bare =
+                reconstruct_with_free_space(Geometry::Cloud(cloud), &opts, Some(&space), &|_, _| {}, &|| {
+                    false
+                })
+                .expect("reconstruct")
+                .faces
+                .remove(0);
+            assert_eq!(bare.stats.unseen_filled, bare.stats.shadowed_lidded);
+            assert!(bare.stats.shadowed_lidded >= lid, "{}", bare.stats.shadowed_lidded);
+            let (mut lidded_at_block, mut empty) = (0, 0);
+            for (z, c) in bare.depth_map.data().iter().zip(bare.coverage_map.data()) {
+                lidded_at_block += usize::from(*c == COVERAGE_ASSUMED && (z - 12.0).abs() < 1e-3);
+                empty += usize::from(z.is_nan());
+            }
+            assert!(lidded_at_block >= lid && empty > 0, "{lidded_at_block} {empty}");
         }
     }
 
