@@ -1693,10 +1693,11 @@ const STEP_TAN: f64 = 3.732_050_807_568_877;
 /// from it (a wall, or the edge of an overhang that may reach over it), whose vertical no sensor
 /// looking down showed clear to [`FREE_SPACE_CLEARANCE_MM`] over that point (`clear_to`, per
 /// point, part frame), nor that of a point within [`SHADOW_NEIGHBOUR_MM`] beside it and within
-/// [`SHADOW_LEVEL_MM`] of its height. A line scanner sees under an overhang's edge at its fan's slant, or from
-/// a tilted pass, and a surface sloped toward grazing may give no point at all: the highest point
-/// in a cell of a top view is then the floor under the overhang, and a target taken from it cuts
-/// the overhang away. Points on slopes under 75°, and every point shown clear, are not shadowed.
+/// [`SHADOW_LEVEL_MM`] of its height. A line scanner sees under an overhang's edge at its fan's
+/// slant, or from a tilted pass, and a surface sloped toward grazing may give no point at all:
+/// the highest point in a cell of a top view is then the floor under the overhang, and a target
+/// taken from it cuts the overhang away. Points on slopes under 75°, and every point shown
+/// clear, are not shadowed.
 fn shadowed(cloud: &[Point3<f64>], clear_to: &[f64]) -> Vec<bool> {
     /// Cell of the grid the cloud is binned on, mm.
     const CELL_MM: f64 = 0.5;
