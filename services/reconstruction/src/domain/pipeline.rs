@@ -673,13 +673,13 @@ impl ScanSpace {
                 FREE_KIND_TABLE => out.table.push(p),
                 FREE_KIND_SHADOWED => out.shadowed.push(p),
                 other => {
-                    return Err(ReconError::InvalidParameter {
-                        field: format!("free_space: vertex {i}: {FREE_KIND}"),
-                        value: other.to_string(),
-                        reason: format!(
+                    return Err(ReconError::param(
+                        format!("free_space: vertex {i}: {FREE_KIND}"),
+                        other,
+                        format!(
                             "expected {FREE_KIND_TABLE} (a table point) or {FREE_KIND_SHADOWED} (a shadowed point)"
                         ),
-                    });
+                    ));
                 }
             }
         }

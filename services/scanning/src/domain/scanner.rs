@@ -828,7 +828,7 @@ fn gauss(rng: &mut StdRng) -> f64 {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use nalgebra::{Rotation3, Translation3, UnitQuaternion};
 
@@ -844,7 +844,8 @@ mod tests {
     }
 
     /// Closed axis-aligned box.
-    fn add_box(m: &mut Mesh, lo: [f64; 3], hi: [f64; 3]) {
+    /// Appends the axis-aligned box `lo`..`hi` to `m` (12 triangles, outward faces).
+    pub(crate) fn add_box(m: &mut Mesh, lo: [f64; 3], hi: [f64; 3]) {
         let b = m.vertices.len() as u32;
         for k in 0..8 {
             m.vertices.push(Point3::new(

@@ -1,6 +1,7 @@
 #![allow(clippy::unwrap_used)] // tests may unwrap
 
 use super::*;
+use crate::domain::scanner::tests::add_box;
 use depthmill_geometry::arm::pose_distance;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
@@ -764,22 +765,8 @@ fn the_floor_seen_under_an_overhang_is_shadowed_and_open_surface_is_not() {
     // from those points would cut the cap away. (Within SHADOW_NEIGHBOUR_MM of the rim, the open
     // floor beside a point speaks for it.)
     let mut mesh = height_field(25.0, 25.0, 1.0, |_, _| 5.0);
-    let mut add_box = |lo: [f64; 3], hi: [f64; 3]| {
-        let b = mesh.vertices.len() as u32;
-        for k in 0..8 {
-            mesh.vertices.push(Point3::new(
-                if k & 1 == 0 { lo[0] } else { hi[0] },
-                if k & 2 == 0 { lo[1] } else { hi[1] },
-                if k & 4 == 0 { lo[2] } else { hi[2] },
-            ));
-        }
-        for q in [[0, 2, 3, 1], [4, 5, 7, 6], [0, 1, 5, 4], [2, 6, 7, 3], [0, 4, 6, 2], [1, 3, 7, 5]] {
-            mesh.triangles.push([b + q[0], b + q[1], b + q[2]]);
-            mesh.triangles.push([b + q[0], b + q[2], b + q[3]]);
-        }
-    };
-    add_box([-2.0, -2.0, 5.0], [2.0, 2.0, 20.0]);
-    add_box([-6.0, -6.0, 20.0], [6.0, 6.0, 22.0]);
+    add_box(&mut mesh, [-2.0, -2.0, 5.0], [2.0, 2.0, 20.0]);
+    add_box(&mut mesh, [-6.0, -6.0, 20.0], [6.0, 6.0, 22.0]);
     // Straight-down passes off to each side of the cap: its rim sits near the fan's ends, whose
     // rays slant under it.
     let pass = |start: [f64; 3], end: [f64; 3]| PassSpec { table_deg: 0.0, start_mm: start, end_mm: end };
