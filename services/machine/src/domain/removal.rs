@@ -387,6 +387,27 @@ impl Stock {
         Ok(self.run(tool, &[Job::Line(job), Job::Probe(job.frame)], true))
     }
 
+    /// [`Stock::cut_line`] for a move that continues the same tool's previous cut on this stock
+    /// from where that cut ended (the next revolution of a feed move, the next move of a
+    /// path): `from` must be a point the previous cut's tool passed through, with nothing else
+    /// cut since. The cells behind `from` that the tool's position there already bounds are not
+    /// visited (on a level or rising move every cell behind it; see [`LineJob::skip_before`]), so
+    /// a revolution of a feed move visits about half its footprint. Same result as `cut_line`
+    /// up to f32 rounding of the envelope (a cell the two positions bound equally).
+    ///
+    /// Errors: a non-finite point ([`RemovalError::InvalidPoint`]).
+    pub fn cut_line_after(
+        &mut self,
+        tool: &ToolProfile,
+        from: Point3<f64>,
+        to: Point3<f64>,
+    ) -> Result<Cut, RemovalError> {
+        check_point(|| "from".into(), &from)?;
+        check_point(|| "to".into(), &to)?;
+        let job = LineJob { after: true, ..LineJob::new(from, to) };
+        Ok(self.run(tool, &[Job::Line(job), Job::Probe(job.frame)], true))
+    }
+
     /// [`Stock::cut_line`] without the per-row column clipping and the per-cell early-out: every
     /// cell of the move's bounding box gets the exact envelope. Same result; the benchmark's
     /// reference for the speed-ups.
@@ -570,7 +591,8 @@ pub fn cut_line_per_rev(
     let mut prev = from;
     for i in 1..=n {
         let next = if i == n { to } else { from + (to - from) * (i as f64 * feed_per_rev_mm / len) };
-        let job = LineJob::new(prev, next);
+        // Each piece after the first continues the one before it.
+        let job = LineJob { after: i > 1, ..LineJob::new(prev, next) };
         let cut = stock.run(tool, &[Job::Line(job), Job::Probe(job.frame)], true);
         per_rev(&cut);
         total.accumulate(&cut);
@@ -852,6 +874,10 @@ struct LineJob {
     /// Level or vertical: `E = zlo + h(d)`.
     level: bool,
     frame: Frame,
+    /// The same tool's previous cut on this stock ended at this move's start (the next
+    /// revolution of one feed move): cells the tool's position at the start already bounds are
+    /// not visited (see [`Stock::cut_line_after`]).
+    after: bool,
 }
 
 impl LineJob {
@@ -873,6 +899,7 @@ impl LineJob {
                 zlo,
                 level: true,
                 frame: Frame::Axis { ex: b.x, ey: b.y, ez: b.z },
+                after: false,
             };
         }
         let (ux, uy) = ((b.x - a.x) / len, (b.y - a.y) / len);
@@ -892,7 +919,33 @@ impl LineJob {
             zlo,
             level: b.z == a.z,
             frame: Frame::Dir { ex: b.x, ey: b.y, ez: b.z, dx: ux, dy: uy },
+            after: false,
         }
+    }
+
+    /// Along coordinate (from the start, in the move's direction) below which no cell can be
+    /// lowered, when the same tool's previous cut ended at the start; `-∞` otherwise.
+    ///
+    /// With `P` the start, a cell behind it (`s <= 0`) is farther from every later tool position
+    /// than from `P` (`|q − p(σ)|` grows with `σ` once `s <= 0`), and on a level or rising move
+    /// the tip does not go down either: since `h` is non-decreasing the envelope over the cell is
+    /// the tool's value at `P`, which the previous cut already applied. A ball's envelope along a
+    /// descending move is convex in `σ` with its minimum at `σ* = −m·w/√(1+m²)` (`w <= R`), so
+    /// it is still the value at `P` for `s <= m·R/√(1+m²)`. Other profiles on a descending move
+    /// (a flat end's bottom comes down over the cells behind it) skip nothing.
+    fn skip_before(&self, ball: bool, r: f64) -> f64 {
+        if !self.after || self.len <= 0.0 {
+            return f64::NEG_INFINITY;
+        }
+        let bound = if self.m >= 0.0 {
+            0.0
+        } else if ball {
+            self.mk * r
+        } else {
+            return f64::NEG_INFINITY;
+        };
+        // A hair of slack for the rounding of the cells' along coordinates.
+        bound - 1e-9 * (1.0 + r)
     }
 
     /// X range of the capsule (segment ⊕ disc of radius `r`) on the line `y = cy`.
@@ -1502,20 +1555,22 @@ impl Env for PolySlope<'_> {
 
 fn run_job<const FAST: bool>(job: &Job, sh: &Shape, ctx: &Ctx<'_>, band: &mut Band<'_>, t: &mut Tally) {
     let (r, r2, inv2r) = (sh.r, sh.r2, 0.5 / sh.r);
+    let skip =
+        |j: &LineJob| if FAST { j.skip_before(matches!(sh.kind, Kind::Ball), r) } else { f64::NEG_INFINITY };
     match (job, &sh.kind) {
         (Job::Line(j), Kind::Ball) if j.level => {
-            sweep_line::<FAST, _>(j, &BallLevel { z: j.zlo, r, r2, inv2r }, ctx, band, t)
+            sweep_line::<FAST, _>(j, &BallLevel { z: j.zlo, r, r2, inv2r }, skip(j), ctx, band, t)
         }
         (Job::Line(j), Kind::Ball) => {
             let env = BallSlope { az: j.az, r, r2, inv2r, len: j.len, m: j.m, mk: j.mk, k2: 1.0 + j.m * j.m };
-            sweep_line::<FAST, _>(j, &env, ctx, band, t)
+            sweep_line::<FAST, _>(j, &env, skip(j), ctx, band, t)
         }
         (Job::Line(j), Kind::Pieces(_)) if j.level => {
-            sweep_line::<FAST, _>(j, &PolyLevel { z: j.zlo, sh }, ctx, band, t)
+            sweep_line::<FAST, _>(j, &PolyLevel { z: j.zlo, sh }, skip(j), ctx, band, t)
         }
         (Job::Line(j), Kind::Pieces(pieces)) => {
             let env = PolySlope { az: j.az, len: j.len, m: j.m, sh, pieces };
-            sweep_line::<FAST, _>(j, &env, ctx, band, t)
+            sweep_line::<FAST, _>(j, &env, skip(j), ctx, band, t)
         }
         (Job::Arc(a), Kind::Ball) => {
             sweep_arc::<FAST, _>(a, &BallLevel { z: a.z, r, r2, inv2r }, ctx, band, t)
@@ -1583,11 +1638,13 @@ fn probe_rim(frame: &Frame, sh: &Shape, ctx: &Ctx<'_>, band: &mut Band<'_>, t: &
     }
 }
 
-/// Lowers the cells of `band` under a straight move.
+/// Lowers the cells of `band` under a straight move; cells whose along coordinate is below
+/// `skip_before` are known to stay (see [`LineJob::skip_before`]) and are not visited.
 #[inline(never)]
 fn sweep_line<const FAST: bool, E: Env>(
     j: &LineJob,
     env: &E,
+    skip_before: f64,
     ctx: &Ctx<'_>,
     band: &mut Band<'_>,
     t: &mut Tally,
@@ -1614,9 +1671,32 @@ fn sweep_line<const FAST: bool, E: Env>(
         } else {
             (bxlo, bxhi)
         };
-        let Some((c_lo, c_hi)) = index_range(xlo, xhi, g.x0, g.p, 0, g.w) else { continue };
+        let Some((mut c_lo, mut c_hi)) = index_range(xlo, xhi, g.x0, g.p, 0, g.w) else { continue };
         let dyr = cy - j.ay;
         let (s0, e0) = (dx0 * j.ux + dyr * j.uy, dyr * j.ux - dx0 * j.uy);
+        if skip_before > f64::NEG_INFINITY {
+            // s0 + c·ds >= skip_before, kept one column wide of the exact bound.
+            let lim = (c_lo as f64 - 1.0, c_hi as f64 + 1.0);
+            if ds > 0.0 {
+                let c = ((skip_before - s0) / ds).clamp(lim.0, lim.1).floor();
+                if c > c_lo as f64 {
+                    c_lo = c as usize;
+                }
+            } else if ds < 0.0 {
+                let c = ((skip_before - s0) / ds).clamp(lim.0, lim.1).ceil();
+                if c < c_hi as f64 {
+                    if c < c_lo as f64 {
+                        continue;
+                    }
+                    c_hi = c as usize;
+                }
+            } else if s0 < skip_before {
+                continue;
+            }
+            if c_lo > c_hi {
+                continue;
+            }
+        }
         let at = |c: usize| {
             // Columns fit in i32 (at most MAX_CELLS cells); i32 → f64 vectorises, usize does not.
             let cf = f64::from(c as i32);
@@ -2118,6 +2198,87 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// A cut that continues the previous one ([`Stock::cut_line_after`]) leaves what a plain
+    /// [`Stock::cut_line`] leaves, piece by piece, on random reliefs, tools and moves (level,
+    /// rising, descending, steep, at any angle to the grid, on a coarse step grid), and visits
+    /// fewer cells.
+    #[test]
+    fn a_continued_cut_equals_the_plain_cut_and_visits_fewer_cells() {
+        let mut rng = StdRng::seed_from_u64(17);
+        let (mut visited_plain, mut visited_after) = (0u64, 0u64);
+        for (name, tool) in tools() {
+            for case in 0..12 {
+                // A relief: a few random cuts by a coarse flat end and a ball.
+                let mut plain = Stock::block(p(-4.0, -4.0, -10.0), 8.0, 8.0, 10.0, 0.05).expect("stock");
+                for (t, _) in [("flat-2", 0), ("ball-1", 1), ("ball-1", 2)] {
+                    let t: ToolProfile = t.parse().expect("tool");
+                    let a = p(
+                        rng.random_range(-4.0..4.0),
+                        rng.random_range(-4.0..4.0),
+                        rng.random_range(-1.5..0.0),
+                    );
+                    let b = p(
+                        rng.random_range(-4.0..4.0),
+                        rng.random_range(-4.0..4.0),
+                        rng.random_range(-1.5..0.0),
+                    );
+                    plain.cut_line(&t, a, b).expect("relief");
+                }
+                let mut after = plain.clone();
+                let a =
+                    p(rng.random_range(-3.0..3.0), rng.random_range(-3.0..3.0), rng.random_range(-1.8..0.2));
+                let mut b =
+                    p(rng.random_range(-3.0..3.0), rng.random_range(-3.0..3.0), rng.random_range(-1.8..0.2));
+                match case % 4 {
+                    0 => b.z = a.z,                             // level
+                    1 => b.z = a.z + 2.0 * (b - a).xy().norm(), // steep rise
+                    2 => b.z = a.z - 2.0 * (b - a).xy().norm(), // steep descent
+                    _ => {}
+                }
+                // Pieces of one revolution on a 0.01 mm step grid (their directions wobble).
+                let n = rng.random_range(5..40);
+                let step = |q: Point3<f64>| {
+                    p(
+                        (q.x * 100.0).round() / 100.0,
+                        (q.y * 100.0).round() / 100.0,
+                        (q.z * 100.0).round() / 100.0,
+                    )
+                };
+                let pts: Vec<Point3<f64>> =
+                    (0..=n).map(|i| step(a + (b - a) * (i as f64 / n as f64))).collect();
+                for (i, w) in pts.windows(2).enumerate() {
+                    let u = plain.cut_line(&tool, w[0], w[1]).expect("plain");
+                    let v = if i == 0 {
+                        after.cut_line(&tool, w[0], w[1])
+                    } else {
+                        after.cut_line_after(&tool, w[0], w[1])
+                    }
+                    .expect("after");
+                    let what = format!("{name} case {case} piece {i}");
+                    assert!(
+                        (u.volume_mm3 - v.volume_mm3).abs() <= 1e-6 * (1.0 + u.volume_mm3),
+                        "{what}: {u:?} {v:?}"
+                    );
+                    assert!((u.engagement_deg - v.engagement_deg).abs() <= 1e-9, "{what}: {u:?} {v:?}");
+                    assert!((u.axial_depth_mm - v.axial_depth_mm).abs() <= 1e-6, "{what}: {u:?} {v:?}");
+                    assert!(v.cells_visited <= u.cells_visited, "{what}: {u:?} {v:?}");
+                    visited_plain += u.cells_visited;
+                    visited_after += v.cells_visited;
+                }
+                for (k, (u, v)) in plain.height_map().data().iter().zip(after.height_map().data()).enumerate()
+                {
+                    assert!((u - v).abs() <= 2e-6, "{name} case {case} cell {k}: {u} vs {v}");
+                }
+            }
+        }
+        // The rear half of every continued piece's footprint is skipped (all but the steep
+        // descents of non-ball tools).
+        assert!(
+            (visited_after as f64) < 0.8 * visited_plain as f64,
+            "visited {visited_after} of {visited_plain}"
+        );
     }
 
     #[test]

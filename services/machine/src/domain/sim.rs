@@ -949,7 +949,7 @@ impl<'a> Machine<'a> {
             let tip = self.work(point_at(&m, s1 / plen));
             let cut = match (self.tool, self.dexel.is_some()) {
                 (Some(ti), true) => self.cut_dexel(&m, ti, s / plen, s1 / plen)?,
-                _ => self.cut_piece(&m, &tool.profile, prev_tip, tip)?,
+                _ => self.cut_piece(&m, &tool.profile, prev_tip, tip, s > 0.0)?,
             };
             if cut.volume_mm3 > 1e-6 && rpm <= 0.0 {
                 return Err(SimError::Crash {
@@ -968,12 +968,15 @@ impl<'a> Machine<'a> {
         Ok(())
     }
 
+    /// Cuts one revolution's piece of move `m` on the Z-map stock of its face; `after`: the
+    /// piece before it, of the same move, ended at `from`.
     fn cut_piece(
         &mut self,
         m: &Pending,
         tool: &ToolProfile,
         from: Point3<f64>,
         to: Point3<f64>,
+        after: bool,
     ) -> Result<Cut, SimError> {
         let a = m.canon.end_point().map_or(0.0, |p| p.a);
         let Some(i) = self.face_index(a) else { return Ok(Cut::default()) };
@@ -985,6 +988,7 @@ impl<'a> Machine<'a> {
                 // A piece is less than a full turn: no extra turns.
                 Ok(stock.cut_arc_xy(tool, from, to, c, rotation > 0, 0)?)
             }
+            _ if after => Ok(stock.cut_line_after(tool, from, to)?),
             _ => Ok(stock.cut_line(tool, from, to)?),
         }
     }
