@@ -394,6 +394,11 @@ pub struct Machine<'a> {
     avg: RevAverager,
     pub report: SimReport,
     last_row: Option<TelemetryRow>,
+    /// The last cut on a Z-map stock: the stock's index, the tool's and the tip's end point. A
+    /// cut from that point with that tool continues it ([`Stock::cut_line_after`]).
+    last_cut: Option<(usize, Option<usize>, Point3<f64>)>,
+    /// Continue cuts (off: every piece is cut as a fresh move, the reference in the tests).
+    continue_cuts: bool,
 }
 
 impl<'a> Machine<'a> {
@@ -435,6 +440,8 @@ impl<'a> Machine<'a> {
             pos: interp_cfg.initial_position,
             interp_cfg,
             stocks,
+            last_cut: None,
+            continue_cuts: true,
             dexel,
             sensors: SensorBank::new(p.sensors, setup.seed),
             policy,
@@ -863,7 +870,12 @@ impl<'a> Machine<'a> {
                     // step) would read as a full column of material in the way.
                     let (f, e) =
                         (work_tip(prof, self.tlo_mm, m.from, true), work_tip(prof, self.tlo_mm, to, true));
-                    let cut = stock.cut_line(&tool.profile, f, e)?;
+                    let cut = if self.continue_cuts && self.last_cut == Some((i, self.tool, f)) {
+                        stock.cut_line_after(&tool.profile, f, e)?
+                    } else {
+                        stock.cut_line(&tool.profile, f, e)?
+                    };
+                    self.last_cut = Some((i, self.tool, e));
                     // A rapid that shaves a sliver (left by the feed move's last partial
                     // revolution, or the steps' rounding) marks the part; one that engages the
                     // tool's face deeper than RAPID_SCRAPE_MM is a crash.
@@ -949,7 +961,7 @@ impl<'a> Machine<'a> {
             let tip = self.work(point_at(&m, s1 / plen));
             let cut = match (self.tool, self.dexel.is_some()) {
                 (Some(ti), true) => self.cut_dexel(&m, ti, s / plen, s1 / plen)?,
-                _ => self.cut_piece(&m, &tool.profile, prev_tip, tip, s > 0.0)?,
+                _ => self.cut_piece(&m, &tool.profile, prev_tip, tip)?,
             };
             if cut.volume_mm3 > 1e-6 && rpm <= 0.0 {
                 return Err(SimError::Crash {
@@ -968,18 +980,19 @@ impl<'a> Machine<'a> {
         Ok(())
     }
 
-    /// Cuts one revolution's piece of move `m` on the Z-map stock of its face; `after`: the
-    /// piece before it, of the same move, ended at `from`.
+    /// Cuts one revolution's piece of move `m` on the Z-map stock of its face. A straight piece
+    /// that starts where the last cut on that stock, by the same tool, ended continues it.
     fn cut_piece(
         &mut self,
         m: &Pending,
         tool: &ToolProfile,
         from: Point3<f64>,
         to: Point3<f64>,
-        after: bool,
     ) -> Result<Cut, SimError> {
         let a = m.canon.end_point().map_or(0.0, |p| p.a);
         let Some(i) = self.face_index(a) else { return Ok(Cut::default()) };
+        let after = self.continue_cuts && self.last_cut == Some((i, self.tool, from));
+        self.last_cut = Some((i, self.tool, to));
         let stock = &mut self.stocks[i].1;
         match m.canon {
             Canon::Arc { plane: Plane::Xy, center, rotation, .. } => {
@@ -1333,7 +1346,16 @@ pub fn simulate_stock<R: BufRead>(
     stop: &dyn Fn() -> bool,
     observe: Observer<'_>,
 ) -> Result<SimOutcome, SimError> {
-    let mut machine = Machine::new(setup)?;
+    run_machine(program, Machine::new(setup)?, stop, observe)
+}
+
+/// Runs `program` on `machine` (see [`simulate_stock`]).
+fn run_machine<R: BufRead>(
+    program: R,
+    mut machine: Machine<'_>,
+    stop: &dyn Fn() -> bool,
+    observe: Observer<'_>,
+) -> Result<SimOutcome, SimError> {
     let mut interp = Interpreter::new(machine.interp_config());
     let mut buf: Vec<Canon> = Vec::with_capacity(8);
     let mut line = String::new();
@@ -1594,6 +1616,71 @@ mod tests {
             g94.cycle_time_s
         );
         assert!(g93.cycle_time_s > 10.0, "{}", g93.cycle_time_s);
+    }
+
+    /// Cuts that continue the last one ([`Stock::cut_line_after`]: the next revolution, the
+    /// next move, a rapid after a feed) leave the run as cutting every piece as a fresh move
+    /// does: a random program of short moves over a relief, with rapids, a second tool and both
+    /// policies.
+    #[test]
+    fn continued_cuts_run_the_program_as_fresh_cuts_do() {
+        use rand::rngs::StdRng;
+        use rand::{Rng, SeedableRng};
+        let mut rng = StdRng::seed_from_u64(23);
+        let mut program = String::from("%\nG21 G90 G17 G94 G40 G49 G80\n");
+        for tool in [1, 2] {
+            program += &format!("G53 G0 Z0\nT{tool} M6\nS2000 M3\nG43 H{tool}\nG0 X2 Y2\nG0 Z12\n");
+            for pass in 0..6 {
+                let (mut x, mut y): (f64, f64) = (rng.random_range(2.0..28.0), rng.random_range(2.0..18.0));
+                program += &format!("G0 X{x:.3} Y{y:.3}\nG1 Z{:.3} F150\n", rng.random_range(7.0..9.5));
+                for _ in 0..40 {
+                    x = (x + rng.random_range(-1.5..1.5)).clamp(0.0, 30.0);
+                    y = (y + rng.random_range(-1.5..1.5)).clamp(0.0, 20.0);
+                    let z = rng.random_range(6.5..9.8);
+                    program += &format!("G1 X{x:.3} Y{y:.3} Z{z:.3} F{}\n", 120 + 40 * pass);
+                }
+                program += "G0 Z12\n";
+            }
+        }
+        program += "G53 G0 Z0\nM30\n%\n";
+        for policy in [PolicyKind::Aco, PolicyKind::Off] {
+            let mut setup = setup(policy);
+            setup.tools.push(MachineTool {
+                number: 2,
+                name: "ball-3".into(),
+                profile: "ball-3".parse().expect("ball"),
+                teeth: 2,
+                length_mm: 50.0,
+            });
+            let run_with = |continue_cuts: bool| {
+                let mut machine = Machine::new(&setup).expect("machine");
+                machine.continue_cuts = continue_cuts;
+                let mut rows = Vec::new();
+                let (report, maps, _) =
+                    run_machine(Cursor::new(program.as_str()), machine, &|| false, &mut |r| rows.push(*r))
+                        .expect("run");
+                (report, rows, maps)
+            };
+            let (fast, fast_rows, fast_maps) = run_with(true);
+            let (fresh, fresh_rows, fresh_maps) = run_with(false);
+            assert!(fresh.revolutions > 2000, "{policy:?}: {} revolutions", fresh.revolutions);
+            assert_eq!(fast.revolutions, fresh.revolutions, "{policy:?}");
+            let close = |a: f64, b: f64, what: &str| {
+                assert!((a - b).abs() <= 1e-6 * (1.0 + a.abs()), "{policy:?} {what}: {a} vs {b}");
+            };
+            close(fast.removed_mm3, fresh.removed_mm3, "removed volume");
+            close(fast.cycle_time_s, fresh.cycle_time_s, "cycle time");
+            close(fast.max_torque_nm, fresh.max_torque_nm, "peak torque");
+            assert_eq!(fast_rows.len(), fresh_rows.len(), "{policy:?}");
+            for (a, b) in fast_rows.iter().zip(&fresh_rows) {
+                close(a.torque_true_nm, b.torque_true_nm, "torque");
+                close(a.feed_mm_min, b.feed_mm_min, "feed");
+            }
+            let (a, b) = (&fast_maps[0].1, &fresh_maps[0].1);
+            for (u, v) in a.data().iter().zip(b.data()) {
+                assert!((u - v).abs() <= 2e-6, "{policy:?}: final stock {u} vs {v}");
+            }
+        }
     }
 
     #[test]
