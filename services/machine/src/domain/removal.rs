@@ -115,6 +115,12 @@
 //! - Other tools: a lower bound `z_low + h_lb(d²)` (the lowest tip Z plus `h` at the distance
 //!   to the segment, from a 256-entry table of `h` by `d²` rounded down) against the top.
 //!
+//! A cut that continues the same tool's last one from where it ended ([`Stock::cut_line_after`]:
+//! the next revolution of a feed move, which the simulator cuts one after another) skips the
+//! cells behind its start that the tool's position there already bounds: every cell behind it on
+//! a level or rising move, those more than `R·|m|/√(1+m²)` behind it for a ball on a descending
+//! one (see `LineJob::skip_before`). About half of a revolution's footprint.
+//!
 //! [`Stock::cut_path`] runs a program of straight moves in parallel strips: rows are split into
 //! bands of [`BAND_ROWS`], each band applies, in program order, the moves whose footprint reaches
 //! it (in batches of 4096 moves); every cell sees the same sequence of updates as in a sequential
