@@ -397,7 +397,7 @@ impl Stock {
     /// from where that cut ended (the next revolution of a feed move, the next move of a
     /// path): `from` must be a point the previous cut's tool passed through, with nothing else
     /// cut since. The cells behind `from` that the tool's position there already bounds are not
-    /// visited (on a level or rising move every cell behind it; see [`LineJob::skip_before`]), so
+    /// visited (on a level or rising move every cell behind it; see the module docs), so
     /// a revolution of a feed move visits about half its footprint. Same result as `cut_line`
     /// up to f32 rounding of the envelope (a cell the two positions bound equally).
     ///
