@@ -354,15 +354,7 @@ impl pb::reconstruction_service_server::ReconstructionService for Reconstruction
                         diagnostics.push(Diagnostic { code: "face_mostly_assumed".into(), message: message.clone() });
                     }
                     if f.stats.unseen_filled > 0 {
-                        let p = f.stats.pixel_mm;
-                        diagnostics.push(Diagnostic {
-                            code: "unseen_filled".into(),
-                            message: format!(
-                                "face {}: {:.1} mm² where the scanner saw neither the part nor the table were filled at the height around them: material is left there, not cut",
-                                f.stats.face,
-                                f.stats.unseen_filled as f64 * p * p
-                            ),
-                        });
+                        diagnostics.push(Diagnostic { code: "unseen_filled".into(), message: f.stats.unseen_message() });
                     }
                 }
                 if let Some(fc) = &out.report.face_choice {

@@ -541,6 +541,28 @@ impl FaceStats {
     }
 }
 
+impl FaceStats {
+    /// The `unseen_filled` diagnostic: the area lidded at the height around it, and how much of
+    /// it lay under a wall's or an overhang's edge (points the scanner did not show clear above,
+    /// [`FaceStats::shadowed_lidded`]).
+    pub fn unseen_message(&self) -> String {
+        let area = |cells: usize| cells as f64 * self.pixel_mm * self.pixel_mm;
+        let shadowed = if self.shadowed_lidded > 0 {
+            format!(
+                " ({:.1} mm² of it under a wall's or an overhang's edge, where the scanner saw points but did not show the space above them clear)",
+                area(self.shadowed_lidded)
+            )
+        } else {
+            String::new()
+        };
+        format!(
+            "face {}: {:.1} mm² where the scanner saw neither the part nor the table were filled at the height around them{shadowed}: material is left there, not cut",
+            self.face,
+            area(self.unseen_filled)
+        )
+    }
+}
+
 /// What [`reconstruct`] produced.
 #[derive(Debug, Clone)]
 pub struct ReconstructOutput {
@@ -1863,6 +1885,15 @@ mod tests {
             assert!(lid > 300 && kept > 50 && far > 3000, "{lid} {kept} {far}");
             assert!(lidded.stats.unseen_filled >= lid, "{}", lidded.stats.unseen_filled);
             assert_eq!(lidded.stats.shadowed_lidded, lidded.stats.unseen_filled);
+            // The job's diagnostic names the shadowed share.
+            let area =
+                |n: usize| format!("{:.1} mm²", n as f64 * lidded.stats.pixel_mm * lidded.stats.pixel_mm);
+            let message = lidded.stats.unseen_message();
+            assert!(message.contains(&format!("{} where", area(lidded.stats.unseen_filled))), "{message}");
+            assert!(
+                message.contains(&format!("({} of it under", area(lidded.stats.shadowed_lidded))),
+                "{message}"
+            );
             // Without table points, the shadowed cells are lidded alike and nothing else is:
             // the map's empty surroundings stay empty.
             let space = ScanSpace { table: Vec::new(), shadowed: shadowed.clone() };
