@@ -764,7 +764,7 @@ pub fn reconstruct_with_free_space(
             let body_map = match free_space {
                 Some(f) if !f.is_empty() && (r.face_choice.is_some() || turned_named) => {
                     progress(0.15, "the part's body seen from above");
-                    Some(body_from_above(&cloud.points, f, &r, cancelled)?)
+                    Some(body_from_above(&cloud.points, f, shadowed, &r, cancelled)?)
                 }
                 _ => None,
             };
@@ -918,11 +918,15 @@ pub fn reconstruct_with_free_space(
 
 /// The part's body as the scanner saw it from above: the `+Z` map of the cloud at the job's
 /// pixel, highest point per cell, with the free space and the unseen fill of a `+Z` face (a cell
-/// where the table was seen is empty, any other empty one is lidded at the height around it),
-/// over the whole cloud whatever the job's region of interest. The part lies under it.
+/// where the table was seen is empty, any other empty one is lidded at the height around it, and
+/// so is a cell whose highest point the scanner did not show clear above: `shadowed`, under a
+/// wall's or an overhang's edge), over the whole cloud whatever the job's region of interest.
+/// The part lies under it: a turned face does not take a point under a tooth's flank or an
+/// overhang for the surface it sees.
 fn body_from_above(
     points: &[Point3<f32>],
     free_space: &[Point3<f32>],
+    shadowed: &[Point3<f32>],
     r: &Resolved,
     cancelled: CancelFn<'_>,
 ) -> Result<HeightMap> {
@@ -932,7 +936,7 @@ fn body_from_above(
     let fill = FillParams { max_hole_mm: 0.0, ..r.fill };
     let rb = Resolved { roi: None, estimator: CellEstimator::Max, fill, ..r.clone() };
     let frame = FaceFrame { face: Face::PosZ, origin: None };
-    Ok(cloud_face(points, Some(&free), &[], frame, &rb, 0, cancelled)?.depth_map)
+    Ok(cloud_face(points, Some(&free), shadowed, frame, &rb, 0, cancelled)?.depth_map)
 }
 
 /// The height of the table the part stood on: the median of the free space's heights (the
@@ -1914,6 +1918,29 @@ mod tests {
             }
             assert!(lidded_at_block >= lid && empty > 0, "{lidded_at_block} {empty}");
         }
+        // The body seen from above, which a turned face's view is checked against, is lidded
+        // alike: a point under the edge is not the top of the part's body.
+        let r = ReconstructOptions { pixel_mm: Some(0.25), ..Default::default() }.resolve().expect("resolve");
+        let points = PointCloud::from_points(part.iter().copied()).points;
+        let body = |sh: &[Point3<f32>]| body_from_above(&points, &free, sh, &r, &|| false).expect("body");
+        let (plain, lidded) = (body(&[]), body(&shadowed));
+        let m = *lidded.meta();
+        let (mut lid, mut same) = (0, 0);
+        for row in 0..m.height {
+            let y = m.origin_y_mm + (f64::from(row) + 0.5) * m.pixel_mm;
+            for col in 0..m.width {
+                let x = m.origin_x_mm + (f64::from(col) + 0.5) * m.pixel_mm;
+                let (a, b) = (plain.get(col, row).expect("cell"), lidded.get(col, row).expect("cell"));
+                if (1.0..19.0).contains(&y) && (9.8..11.7).contains(&x) {
+                    assert!((a - 2.0).abs() < 1e-3 && (b - 12.0).abs() < 1e-3, "({x}, {y}): {a} -> {b}");
+                    lid += 1;
+                } else if !(9.0..12.0).contains(&x) {
+                    assert!(a == b || (a.is_nan() && b.is_nan()), "({x}, {y}): {a} -> {b}");
+                    same += 1;
+                }
+            }
+        }
+        assert!(lid > 300 && same > 5000, "{lid} {same}");
     }
 
     #[test]
