@@ -95,7 +95,13 @@
 //! of its bridge within that cap; a 1-pixel stripe sees both of its sides and little more, so the
 //! fill stays local (a fixed radius of `max_hole/2` would average, or for `Max` take the top of, a
 //! 2 mm wide neighbourhood across every stripe). A selected cell without any sample within the
-//! radius stays empty ([`FillReport::left_empty_enclosed`]). The search walks the offsets nearest
+//! radius stays empty ([`FillReport::left_empty_enclosed`]). An IDW cell whose highest and lowest
+//! samples (each at its nearest distance) differ by more than a slope of [`FILL_STEP_SLOPE`]
+//! (60°) rises over the path between them through the cell lies at a step whose edge the scan
+//! did not show (a chamfer or a wall's top between a high and a low level): the mean there is
+//! neither level and would cut into the edge, so the cell takes the highest sample, as the
+//! roughing map does (material is left at the foot of the step, never cut from its edge). The
+//! search walks the offsets nearest
 //! first and stops at the radius: cost `O(cells)` for bridges and components plus
 //! `O(Σ (radius/p)²)` over the filled cells only.
 //!
@@ -1194,10 +1200,37 @@ impl Offsets {
     }
 }
 
+/// Steepest slope (rise over run, `tan 60°`) an IDW fill interpolates across: where the highest
+/// and the lowest sample around an empty cell imply a steeper one, even over the longest path
+/// between them (through the cell), the cell lies at a step whose edge nobody saw, and it takes
+/// the highest sample (see the module docs).
+pub const FILL_STEP_SLOPE: f64 = 1.732_050_807_568_877_2;
+
+/// Whether samples `hi` (at `d_hi_sq` cells²) and `lo` (at `d_lo_sq`) around an empty cell imply a
+/// slope steeper than [`FILL_STEP_SLOPE`] through it (`pixel_mm` the cell size).
+fn fill_at_step(hi: f32, d_hi_sq: u32, lo: f32, d_lo_sq: u32, pixel_mm: f64) -> bool {
+    let run = pixel_mm * (f64::from(d_hi_sq).sqrt() + f64::from(d_lo_sq).sqrt());
+    f64::from(hi) - f64::from(lo) > FILL_STEP_SLOPE * run
+}
+
 /// The fill value of cell `(c, r)` from the valid cells of `data` within the (fixed or adaptive)
-/// radius, NaN without any.
-fn fill_value(data: &[f32], w: usize, h: usize, c: usize, r: usize, offsets: &Offsets, max: bool) -> f32 {
+/// radius, NaN without any. With `max` the highest sample; otherwise the IDW mean, or the highest
+/// sample when the samples span a step ([`fill_at_step`]; `pixel_mm` the cell size).
+#[allow(clippy::too_many_arguments)]
+fn fill_value(
+    data: &[f32],
+    w: usize,
+    h: usize,
+    c: usize,
+    r: usize,
+    offsets: &Offsets,
+    max: bool,
+    pixel_mm: f64,
+) -> f32 {
     let (mut best, mut sw, mut swz) = (f32::NEG_INFINITY, 0.0f64, 0.0f64);
+    // The lowest and highest samples with their distances (the nearest of equal ones: the
+    // offsets come nearest first).
+    let (mut lo, mut d_lo, mut d_hi) = (f32::INFINITY, 0u32, 0u32);
     let mut limit_sq = offsets.limit_sq;
     let mut found = false;
     for &(dx, dy, d_sq, wt) in &offsets.list {
@@ -1218,16 +1251,20 @@ fn fill_value(data: &[f32], w: usize, h: usize, c: usize, r: usize, offsets: &Of
                 limit_sq = adaptive_limit_sq(d_sq, offsets.limit_sq);
             }
         }
-        if max {
-            best = best.max(z);
-        } else {
+        if z > best {
+            (best, d_hi) = (z, d_sq);
+        }
+        if !max {
+            if z < lo {
+                (lo, d_lo) = (z, d_sq);
+            }
             sw += wt;
             swz += wt * f64::from(z);
         }
     }
     if !found {
         f32::NAN
-    } else if max {
+    } else if max || fill_at_step(best, d_hi, lo, d_lo, pixel_mm) {
         best
     } else {
         (swz / sw) as f32
@@ -1259,7 +1296,7 @@ pub fn fill_holes(raw: &HeightMap, params: &FillParams) -> Result<(HeightMap, Fi
             let (mut f, mut n) = (0usize, 0usize);
             for (c, (o, &s)) in orow.iter_mut().zip(srow).enumerate() {
                 if s != 0 {
-                    let v = fill_value(data, w, h, c, r, &offsets, max);
+                    let v = fill_value(data, w, h, c, r, &offsets, max, p);
                     if v.is_finite() {
                         *o = v;
                         f += 1;
@@ -1924,23 +1961,30 @@ mod tests {
                 _ => cap,
             };
             let (mut best, mut sw, mut swz) = (f32::NAN, 0.0, 0.0);
+            let mut samples = Vec::new();
             for (j, &z) in d.iter().enumerate() {
                 let (dx, dy) = offset(j);
                 if !z.is_finite() || ((dx * dx + dy * dy) as f64) > rc2 {
                     continue;
                 }
+                samples.push((z, d_sq(j)));
                 let dist = p * ((dx * dx + dy * dy) as f64).sqrt();
-                match method {
-                    FillMethod::Max => best = if best.is_nan() || z > best { z } else { best },
-                    FillMethod::Idw { power } => {
-                        let wt = 1.0 / dist.powf(power);
-                        sw += wt;
-                        swz += wt * f64::from(z);
-                    }
+                best = if best.is_nan() || z > best { z } else { best };
+                if let FillMethod::Idw { power } = method {
+                    let wt = 1.0 / dist.powf(power);
+                    sw += wt;
+                    swz += wt * f64::from(z);
                 }
             }
+            // The step rule: the highest and the lowest sample, each at its nearest distance,
+            // farther apart in height than a 60° slope through the cell rises.
+            let lo = samples.iter().map(|s| s.0).fold(f32::INFINITY, f32::min);
+            let near = |v: f32| samples.iter().filter(|s| s.0 == v).map(|s| s.1).min().unwrap_or(0);
+            let run = p * (f64::from(near(best)).sqrt() + f64::from(near(lo)).sqrt());
+            let step = f64::from(best) - f64::from(lo) > 3f64.sqrt() * run;
             out[i] = match method {
                 FillMethod::Max => best,
+                FillMethod::Idw { .. } if step => best,
                 FillMethod::Idw { .. } if sw > 0.0 => (swz / sw) as f32,
                 FillMethod::Idw { .. } => f32::NAN,
             };
@@ -1948,11 +1992,26 @@ mod tests {
         out
     }
 
-    /// A smooth surface with random rectangles, stripes, single cells and a border margin removed.
+    /// A smooth surface, on half the maps with a step across it in each direction (0 to 3 mm),
+    /// with random rectangles, stripes, single cells and a border margin removed.
     fn holey_map(rng: &mut StdRng, w: u32, h: u32, p: f64) -> HeightMap {
         let m = meta(w, h, p, rng.random_range(-3.0..3.0), rng.random_range(-3.0..3.0));
-        let mut map =
-            HeightMap::from_fn(m, |c, r| (f64::from(c) * 0.3).sin() as f32 + 0.1 * r as f32).expect("map");
+        let steps = rng.random_bool(0.5).then(|| {
+            (
+                rng.random_range(0..w),
+                rng.random_range(0.0..3.0f32),
+                rng.random_range(0..h),
+                rng.random_range(-3.0..3.0f32),
+            )
+        });
+        let mut map = HeightMap::from_fn(m, |c, r| {
+            let z = (f64::from(c) * 0.3).sin() as f32 + 0.1 * r as f32;
+            match steps {
+                Some((sc, dc, sr, dr)) => z + if c >= sc { dc } else { 0.0 } + if r >= sr { dr } else { 0.0 },
+                None => z,
+            }
+        })
+        .expect("map");
         let (wi, hi) = (w as usize, h as usize);
         let d = map.data_mut();
         for _ in 0..rng.random_range(0..4) {
@@ -2013,6 +2072,47 @@ mod tests {
             let sel = fill_selection(d, wi, hi, axis, diag).0;
             let want_sel = brute_selection(d, wi, hi, axis, diag);
             assert_eq!(sel.iter().map(|&s| s != 0).collect::<Vec<_>>(), want_sel, "case {case}");
+        }
+    }
+
+    /// A band nobody saw between a high level and a low one (a chamfer or a wall's top edge) is
+    /// filled at the high level, not at a height between the two; the same band on a 30° slope
+    /// is interpolated.
+    #[test]
+    fn an_idw_fill_across_a_step_takes_the_high_side() {
+        let p = 0.25;
+        for (what, step) in [("step", true), ("slope", false)] {
+            let m = meta(20, 12, p, 0.0, 0.0);
+            let slope = 30f64.to_radians().tan() as f32 * p as f32;
+            let mut map = HeightMap::from_fn(m, |c, _| match (step, c) {
+                (true, c) if c < 8 => 13.0,
+                (true, _) => 3.0,
+                (false, c) => 3.0 + slope * c as f32,
+            })
+            .expect("map");
+            let w = 20;
+            for r in 0..12 {
+                for c in 8..10 {
+                    map.data_mut()[r * w + c] = f32::NAN;
+                }
+            }
+            let params =
+                FillParams { method: FillMethod::Idw { power: 2.0 }, max_hole_mm: 2.0, radius_mm: None };
+            let (out, report) = fill_holes(&map, &params).expect("fill");
+            assert_eq!(report.filled, 24, "{what}");
+            for r in 0..12 {
+                for c in 8..10 {
+                    let z = out.data()[r * w + c];
+                    if step {
+                        assert_eq!(z, 13.0, "{what} ({c}, {r})");
+                    } else {
+                        // Near the plane through the band (within one cell of its rise; the
+                        // highest sample would stand three above it).
+                        let plane = 3.0 + slope * c as f32;
+                        assert!((z - plane).abs() < slope, "{what} ({c}, {r}): {z} vs {plane}");
+                    }
+                }
+            }
         }
     }
 
