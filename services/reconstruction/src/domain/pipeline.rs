@@ -1141,10 +1141,14 @@ pub fn visible_from(points: &[Point3<f32>], up: &Vector3<f64>, body: &HeightMap,
 /// instead of the origin of the file's frame, which may lie anywhere (an assembly's origin, a
 /// scanner's): turned about that, the part would swing out of the machine's travel. Each map
 /// carries the point ([`depthmill_geometry::HeightMapMeta::part_origin_mm`]) for the stages that
-/// compare with the part in its own frame. A part cut from `+Z` alone stays where it lies.
+/// compare with the part in its own frame. A part cut from `+Z` alone stays where it lies, and so
+/// does one whose job frames the faces itself: a region of interest or a Z window is given in
+/// the view of the file's own frame (a scan's `roi` and `z_min_mm` around the part where the
+/// sensor saw it), and moving the faces' origin would leave the part outside them.
 fn centre_turned_faces(r: &mut Resolved, bounds: Option<depthmill_geometry::Aabb>) {
     let turned = r.faces.iter().any(|f| f.face != depthmill_geometry::Face::PosZ);
-    let Some(b) = bounds.filter(|_| turned) else { return };
+    let framed = r.roi.is_some() || r.z_range.0.is_some() || r.z_range.1.is_some();
+    let Some(b) = bounds.filter(|_| turned && !framed) else { return };
     let centre = nalgebra::center(&b.min, &b.max).map(|c| (c * 100.0).round() / 100.0);
     if !centre.coords.iter().all(|c| c.is_finite()) {
         return;
@@ -1717,6 +1721,32 @@ mod tests {
         ]);
         assert_eq!(own.faces[0].depth_map.part_origin_mm(), centre);
         assert_eq!(own.faces[1].depth_map.part_origin_mm(), [100.0, -250.0, -400.0]);
+        // A job that frames the view itself (a region of interest, a Z window, in the file's
+        // frame seen from the face) keeps the file's origin: the part stays inside its frame.
+        // Seen from -Z (half a turn about X) the box's x 100..130, y -250..-230 read as x
+        // 100..130, y 230..250, its bottom at z = -400 on top at 400.
+        for (roi, z_range) in [(true, false), (false, true), (true, true)] {
+            let opts = ReconstructOptions {
+                pixel_mm: Some(0.5),
+                faces: Some(vec![FaceOptions { view: Some("-Z".into()), ..Default::default() }]),
+                roi: roi.then(|| RoiOptions {
+                    x_min_mm: 95.0,
+                    x_max_mm: 135.0,
+                    y_min_mm: 225.0,
+                    y_max_mm: 255.0,
+                }),
+                z_min_mm: z_range.then_some(380.0),
+                z_max_mm: z_range.then_some(420.0),
+                ..Default::default()
+            };
+            let out =
+                reconstruct(Geometry::Mesh(mesh.clone()), &opts, &|_, _| {}, &|| false).expect("reconstruct");
+            let f = &out.faces[0];
+            assert_eq!(f.depth_map.part_origin_mm(), [0.0; 3], "roi {roi} z {z_range}");
+            let top = f.depth_map.data().iter().copied().filter(|z| z.is_finite()).fold(f32::MIN, f32::max);
+            assert!((f64::from(top) - 400.0).abs() < 1e-3, "roi {roi} z {z_range}: top {top}");
+            assert!(f.stats.coverage.measured > 1000, "roi {roi} z {z_range}: {:?}", f.stats.coverage);
+        }
     }
 
     #[test]
