@@ -1175,11 +1175,14 @@ pub(crate) mod tests {
     #[test]
     fn a_part_point_is_clear_above_only_when_every_ray_over_it_returned_past_it() {
         // A block on the floor and a slab floating over part of it (an overhang), seen by a
-        // sensor looking straight down: the fan's slanted rays reach the block's top under the
-        // slab's edge. The reference is the vertical cast up from the point against the mesh.
+        // sensor looking straight down, or rolled up to 20° about its pass direction (sensor Y,
+        // the normal of its laser plane: the plane still holds the vertical): the fan's slanted
+        // rays reach the block's top under the slab's edge. The reference is the vertical cast
+        // up from the point against the mesh.
         let mut rng = StdRng::seed_from_u64(17);
         let (mut under, mut clear, mut open) = (0usize, 0usize, 0usize);
-        for _ in 0..60 {
+        for scene in 0..60 {
+            let roll = if scene % 2 == 0 { 0.0 } else { rng.random_range(-20f64..20.0).to_radians() };
             let (hx, hy) = (rng.random_range(8.0..20.0), rng.random_range(8.0..20.0));
             let z0 = rng.random_range(2.0..10.0);
             let s0 = z0 + rng.random_range(1.0..8.0);
@@ -1195,7 +1198,8 @@ pub(crate) mod tests {
                     rng.random_range(-hy..hy),
                     s1 + rng.random_range(90.0..200.0),
                 ),
-                UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI),
+                UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI)
+                    * UnitQuaternion::from_axis_angle(&Vector3::y_axis(), roll),
             );
             let p = sc.profile_seeded(&world_from_sensor, 0, 11);
             let up = world_from_sensor.rotation.inverse() * Vector3::z();

@@ -403,6 +403,14 @@ pub struct ScanReport {
 /// depth map needs around the part (more than the largest tool's radius).
 pub const FREE_SPACE_MARGIN_MM: f64 = 6.0;
 
+/// Whether the vertical lies in the laser plane (sensor `y = 0`) of a sensor turned by
+/// `world_from_sensor`, within [`FREE_SPACE_MAX_TILT_DEG`]: the plane's normal, sensor Y, is
+/// horizontal. True looking straight down and rolled about the pass direction (sensor Y, as
+/// [`plan::sensor_orientation`] tilts the rescan's passes); false pitched across it.
+fn vertical_in_plane(world_from_sensor: &UnitQuaternion<f64>) -> bool {
+    (world_from_sensor * Vector3::y()).dot(&Vector3::z()).abs() <= FREE_SPACE_MAX_TILT_DEG.to_radians().sin()
+}
+
 /// Table points are kept only from a sensor within this of looking straight down, degrees: the
 /// vertical over a table point then stays within the laser plane (0.44 mm off it 25 mm up).
 pub const FREE_SPACE_MAX_TILT_DEG: f64 = 1.0;
@@ -437,6 +445,10 @@ struct RawFrame {
     truth: Isometry3<f64>,
     /// The sensor looked straight down (its table points say where the part is not).
     looks_down: bool,
+    /// The vertical lay in the sensor's laser plane (within [`FREE_SPACE_MAX_TILT_DEG`]): a
+    /// sensor looking down, or one rolled about its pass direction (the rescan's tilted passes),
+    /// so the fan's rays show how high the vertical over each point is clear.
+    vertical_in_plane: bool,
     profile: super::scanner::Profile,
 }
 
@@ -1056,6 +1068,7 @@ impl ScanSession {
                     truth,
                     looks_down: (f.true_pose.rotation * Vector3::z()).dot(&-Vector3::z())
                         >= FREE_SPACE_MAX_TILT_DEG.to_radians().cos(),
+                    vertical_in_plane: vertical_in_plane(&f.true_pose.rotation),
                     profile: scanner.profile_seeded(&truth, f.frame, seed),
                 }
             })
@@ -1135,11 +1148,12 @@ impl ScanSession {
                 let mut pts = Vec::with_capacity(profile.points.len());
                 let mut inten = Vec::with_capacity(profile.points.len());
                 let mut clear_to = Vec::with_capacity(profile.points.len());
-                // How high over each point the fan showed its vertical clear (a sensor looking
-                // down only; a tilted one's laser plane holds no vertical but the point's own).
+                // How high over each point the fan showed its vertical clear (a sensor whose laser
+                // plane holds the vertical: looking down, or rolled about its pass direction; a
+                // plane tilted across the pass holds no vertical but the point's own).
                 let up = placed.rotation.inverse() * Vector3::z();
                 let top = placement.max.z + FREE_SPACE_CLEARANCE_MM - placed.translation.vector.z;
-                let point_clear = if r.looks_down {
+                let point_clear = if r.vertical_in_plane {
                     scanner.point_clear_height(&profile, &up, top)
                 } else {
                     vec![0.0; profile.points.len()]

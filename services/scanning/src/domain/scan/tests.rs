@@ -822,3 +822,17 @@ fn the_floor_seen_under_an_overhang_is_shadowed_and_open_surface_is_not() {
     // Beside the cap, on open floor, the lines along the cap's edge show the vertical clear.
     assert!(near_flagged * 2 < near, "{near_flagged} of {near}");
 }
+
+#[test]
+fn the_rescans_tilted_passes_keep_the_vertical_in_their_laser_plane() {
+    // Rolled about the pass direction, as the rescan tilts its passes: the fan's rays show how
+    // high each point's vertical is clear. Pitched across the pass, a plane holds no vertical.
+    for deg in [0.0, 10.0, -15.0, 30.0, -30.0, 45.0] {
+        for dir in [Vector3::x(), Vector3::y(), Vector3::new(0.6, -0.8, 0.0)] {
+            let rot = plan::sensor_orientation(&dir, deg);
+            assert!(vertical_in_plane(&rot), "rolled {deg}° along {dir:?}");
+            let pitched = rot * UnitQuaternion::from_axis_angle(&Vector3::x_axis(), 5f64.to_radians());
+            assert!(!vertical_in_plane(&pitched), "pitched 5° along {dir:?}");
+        }
+    }
+}
