@@ -387,10 +387,7 @@ impl Stock {
         from: Point3<f64>,
         to: Point3<f64>,
     ) -> Result<Cut, RemovalError> {
-        check_point(|| "from".into(), &from)?;
-        check_point(|| "to".into(), &to)?;
-        let job = LineJob::new(from, to);
-        Ok(self.run(tool, &[Job::Line(job), Job::Probe(job.frame)], true))
+        self.line(tool, from, to, false, true)
     }
 
     /// [`Stock::cut_line`] for a move that continues the same tool's previous cut on this stock
@@ -408,10 +405,7 @@ impl Stock {
         from: Point3<f64>,
         to: Point3<f64>,
     ) -> Result<Cut, RemovalError> {
-        check_point(|| "from".into(), &from)?;
-        check_point(|| "to".into(), &to)?;
-        let job = LineJob { after: true, ..LineJob::new(from, to) };
-        Ok(self.run(tool, &[Job::Line(job), Job::Probe(job.frame)], true))
+        self.line(tool, from, to, true, true)
     }
 
     /// [`Stock::cut_line`] without the per-row column clipping and the per-cell early-out: every
@@ -423,10 +417,23 @@ impl Stock {
         from: Point3<f64>,
         to: Point3<f64>,
     ) -> Result<Cut, RemovalError> {
+        self.line(tool, from, to, false, false)
+    }
+
+    /// One straight move as one cut: `after`, it continues the last cut; `fast`, with the
+    /// clipping and early-outs.
+    fn line(
+        &mut self,
+        tool: &ToolProfile,
+        from: Point3<f64>,
+        to: Point3<f64>,
+        after: bool,
+        fast: bool,
+    ) -> Result<Cut, RemovalError> {
         check_point(|| "from".into(), &from)?;
         check_point(|| "to".into(), &to)?;
-        let job = LineJob::new(from, to);
-        Ok(self.run(tool, &[Job::Line(job), Job::Probe(job.frame)], false))
+        let job = LineJob { after, ..LineJob::new(from, to) };
+        Ok(self.run(tool, &[Job::Line(job), Job::Probe(job.frame)], fast))
     }
 
     /// Arc in the XY plane around `center` (x, y) from `from` to `to`, `ccw` (G3) or clockwise
