@@ -981,7 +981,8 @@ impl<'a> Machine<'a> {
     }
 
     /// Cuts one revolution's piece of move `m` on the Z-map stock of its face. A straight piece
-    /// that starts where the last cut on that stock, by the same tool, ended continues it.
+    /// that starts where the last straight cut on that stock, by the same tool, ended continues
+    /// it.
     fn cut_piece(
         &mut self,
         m: &Pending,
@@ -996,6 +997,9 @@ impl<'a> Machine<'a> {
         let stock = &mut self.stocks[i].1;
         match m.canon {
             Canon::Arc { plane: Plane::Xy, center, rotation, .. } => {
+                // A level arc is cut on its mean radius, so its end may lie a fraction of a
+                // cell off `to`: what follows does not continue it.
+                self.last_cut = None;
                 let w = self.setup.profile.work_offset;
                 let c = (center[0] - w.x_mm, center[1] - w.y_mm);
                 // A piece is less than a full turn: no extra turns.

@@ -1729,7 +1729,7 @@ mod tests {
             let opts = ReconstructOptions {
                 pixel_mm: Some(0.5),
                 faces: Some(vec![FaceOptions { view: Some("-Z".into()), ..Default::default() }]),
-                roi: roi.then(|| RoiOptions {
+                roi: roi.then_some(RoiOptions {
                     x_min_mm: 95.0,
                     x_max_mm: 135.0,
                     y_min_mm: 225.0,
