@@ -12,9 +12,10 @@ use serde_json::json;
 /// A long slotting program: 200 passes across a 30 x 20 mm block, 0.2 mm deeper each time.
 fn long_program() -> Vec<u8> {
     let mut s = String::from("%\nG21 G90 G17 G94\nT1 M6\nS1500 M3\nG43 H1\nG0 X-5 Y5\nG0 Z12\n");
-    // Long enough (600 passes) that the run is still going when the test looks.
-    for k in 0..600 {
-        let z = 10.0 - 0.0167 * f64::from(k);
+    // Long enough (2400 passes, about 2 s of simulation) that the run is still going when the
+    // test looks, after a pause of up to 400 ms.
+    for k in 0..2400 {
+        let z = 10.0 - 0.0042 * f64::from(k);
         let _ = writeln!(s, "G1 Z{z:.3} F100");
         let _ = writeln!(s, "G1 X{} F300", if k % 2 == 0 { 35 } else { -5 });
     }
