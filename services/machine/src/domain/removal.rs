@@ -2225,7 +2225,7 @@ mod tests {
             for case in 0..12 {
                 // A relief: a few random cuts by a coarse flat end and a ball.
                 let mut plain = Stock::block(p(-4.0, -4.0, -10.0), 8.0, 8.0, 10.0, 0.05).expect("stock");
-                for (t, _) in [("flat-2", 0), ("ball-1", 1), ("ball-1", 2)] {
+                for t in ["flat-2", "ball-1", "ball-1"] {
                     let t: ToolProfile = t.parse().expect("tool");
                     let a = p(
                         rng.random_range(-4.0..4.0),
