@@ -167,6 +167,7 @@ pub fn reconstruct_params(p: &ReconstructParams) -> rec::ReconstructParams {
             statistical: f.statistical.map(|s| rec::StatisticalOutlierParams {
                 k: s.k.min(u32::MAX as usize) as u32,
                 n_sigma: s.n_sigma,
+                keep_surface: s.keep_surface,
             }),
             radius: f.radius.map(|r| rec::RadiusOutlierParams {
                 radius_mm: r.radius_mm,
@@ -619,9 +620,11 @@ pub fn job_spec_from_pb(s: pb::JobSpec) -> Result<JobSpec, SpecError> {
                     Ok(Filters {
                         intensity: f.intensity.map(|w| IntensityWindow { min: w.min, max: w.max }),
                         voxel_mm: f.voxel_mm,
-                        statistical: f
-                            .statistical
-                            .map(|s| StatisticalFilter { k: s.k as usize, n_sigma: s.n_sigma }),
+                        statistical: f.statistical.map(|s| StatisticalFilter {
+                            k: s.k as usize,
+                            n_sigma: s.n_sigma,
+                            keep_surface: s.keep_surface,
+                        }),
                         radius: f.radius.map(|r| RadiusFilter {
                             radius_mm: r.radius_mm,
                             min_neighbours: r.min_neighbours as usize,

@@ -100,9 +100,11 @@ pub(crate) fn options(p: pb::ReconstructParams) -> Result<ReconstructOptions, St
             Some(FilterOptions {
                 intensity: f.intensity.map(|w| IntensityOptions { min: w.min, max: w.max }),
                 voxel_mm: f.voxel_mm,
-                statistical: f
-                    .statistical
-                    .map(|s| StatisticalOptions { k: s.k as usize, n_sigma: s.n_sigma }),
+                statistical: f.statistical.map(|s| StatisticalOptions {
+                    k: s.k as usize,
+                    n_sigma: s.n_sigma,
+                    keep_surface: s.keep_surface,
+                }),
                 radius: f.radius.map(|r| RadiusOptions {
                     radius_mm: r.radius_mm,
                     min_neighbours: r.min_neighbours as usize,

@@ -277,7 +277,53 @@ pub fn statistical_outlier_removal(
     k: usize,
     n_sigma: f64,
 ) -> Result<(PointCloud, FilterReport)> {
-    sor_in_place(cloud, k, n_sigma, STORED_SLACK)
+    sor_in_place(cloud, k, n_sigma, STORED_SLACK, false)
+}
+
+/// [`statistical_outlier_removal`], then the points it flagged that lie on the surface their `k`
+/// nearest neighbours sample are kept after all (report name `statistical`).
+///
+/// Why: the rule compares every point's mean neighbour distance with the whole cloud's, so where
+/// the scanner samples a surface sparsely (a steep wall seen at a glancing angle, a pass from
+/// afar, the edge of a line's reach) it removes true points by the thousand; a depth map then
+/// fills those cells from around them, below the surface they showed. A flagged point is kept
+/// when its neighbours lie flat (their RMS distance from their plane at most a quarter of their
+/// spread along its shorter axis: a surface, not a scatter of strays nor a single line), it lies
+/// on their plane within four times that RMS, and among them (within twice their RMS spread
+/// along the plane of their centroid). A stray point above a densely sampled surface stands far
+/// off its neighbours' plane and stays removed. [`statistical_outlier_mask_keeping_surface`] is
+/// the same on a mask.
+pub fn statistical_outlier_removal_keeping_surface(
+    cloud: PointCloud,
+    k: usize,
+    n_sigma: f64,
+) -> Result<(PointCloud, FilterReport)> {
+    sor_in_place(cloud, k, n_sigma, STORED_SLACK, true)
+}
+
+/// [`statistical_outlier_mask`] with the points it flags on a sparsely sampled surface kept (see
+/// [`statistical_outlier_removal_keeping_surface`]).
+pub fn statistical_outlier_mask_keeping_surface(
+    points: &[Point3<f32>],
+    k: usize,
+    n_sigma: f64,
+) -> Result<Vec<bool>> {
+    let mut keep = statistical_outlier_mask(points, k, n_sigma)?;
+    let Some(bbox) = UsableBox::of(points) else { return Ok(keep) };
+    if !keep.iter().zip(points).any(|(&kp, p)| !kp && usable(p)) {
+        return Ok(keep);
+    }
+    let k = k.min(bbox.count);
+    let grid = Grid::build(points, &bbox, knn_cell_size(points, &bbox, k), false);
+    let dropped: Vec<usize> =
+        (0..grid.order.len().min(bbox.count)).filter(|&s| !keep[grid.order[s]]).collect();
+    let back: Vec<bool> = dropped.par_iter().map(|&s| grid_point_on_surface(&grid, s, k)).collect();
+    for (&s, b) in dropped.iter().zip(back) {
+        if b {
+            keep[grid.order[s]] = true;
+        }
+    }
+    Ok(keep)
 }
 
 /// A mean distance as stored by the in-place removal: the upper 16 bits of its `f32` (bfloat16:
@@ -307,6 +353,7 @@ fn sor_in_place(
     k: usize,
     n_sigma: f64,
     slack: f64,
+    keep_surface: bool,
 ) -> Result<(PointCloud, FilterReport)> {
     cloud.validate()?;
     check_sor(k, n_sigma)?;
@@ -354,6 +401,16 @@ fn sor_in_place(
             let exact: Vec<bool> = unsure.par_iter().map(|&s| rule(ring_knn(&grid, s, k))).collect();
             for (&s, e) in unsure.iter().zip(exact) {
                 means[s] = u16::from(e);
+            }
+        }
+        if keep_surface {
+            // The usable points are the first `bbox.count` of the sorted cloud.
+            let dropped: Vec<usize> = (0..bbox.count.min(means.len())).filter(|&s| means[s] == 0).collect();
+            let back: Vec<bool> = dropped.par_iter().map(|&s| grid_point_on_surface(&grid, s, k)).collect();
+            for (&s, b) in dropped.iter().zip(back) {
+                if b {
+                    means[s] = 1;
+                }
             }
         }
     }
@@ -2825,6 +2882,98 @@ fn ring_knn(grid: &Grid, s: usize, k: usize) -> f64 {
     }
 }
 
+/// The grid's `k` points nearest to its point `s` (`s` itself among them, at distance 0), by
+/// the blocks of [`ring_knn`]; fewer when the grid holds fewer.
+fn ring_knn_nearest(grid: &Grid, s: usize, k: usize) -> Vec<usize> {
+    let c = grid.starts.partition_point(|&st| st as usize <= s) - 1;
+    let cell = grid.coords(grid.keys[c]);
+    let q = &grid.xyz[s];
+    let (mut ranges, mut d) = (Vec::new(), Vec::<(f64, usize)>::new());
+    let widest = grid.dims.iter().copied().max().unwrap_or(1);
+    let mut ring = 1u64;
+    loop {
+        grid.block_ranges(c, ring, &mut ranges);
+        d.clear();
+        for r in &ranges {
+            d.extend(r.clone().map(|j| (dist2(q, &grid.xyz[j]), j)));
+        }
+        let whole = ring >= widest;
+        if d.len() >= k && k > 0 {
+            d.select_nth_unstable_by(k - 1, |a, b| a.0.total_cmp(&b.0));
+            let m = grid.block_margin(cell, ring, q);
+            if whole || (m > 0.0 && d[k - 1].0 <= m * m) {
+                return d[..k].iter().map(|&(_, j)| j).collect();
+            }
+        }
+        if whole {
+            return d.iter().map(|&(_, j)| j).collect();
+        }
+        ring = (ring * 2).min(widest);
+    }
+}
+
+/// How flat the neighbours of a point must lie for [`on_sampled_surface`]: the RMS distance
+/// from their plane at most this share of their spread across it (the second largest).
+const SURFACE_FLATNESS: f64 = 0.25;
+/// How far from the neighbours' plane the point may lie, in units of their RMS distance from it.
+const SURFACE_RESIDUALS: f64 = 4.0;
+/// How far along the neighbours' plane from their centroid the point may lie, in units of their
+/// RMS spread along it.
+const SURFACE_REACH: f64 = 2.0;
+/// Fewest neighbours a surface is judged from.
+const SURFACE_MIN_NEIGHBOURS: usize = 5;
+
+/// Whether `q` lies on the surface its neighbours `nb` sample: they lie flat (a surface, not a
+/// cloud of stray points nor a single line), `q` lies on their plane within
+/// [`SURFACE_RESIDUALS`] of their own scatter about it, and among them rather than beyond them.
+/// The rule that keeps a point statistical outlier removal flagged only for lying where the
+/// surface is sampled sparsely (a steep wall seen at a glancing angle, a pass from afar): see
+/// [`statistical_outlier_removal_keeping_surface`].
+fn on_sampled_surface(q: &[f64; 3], nb: &[[f64; 3]]) -> bool {
+    if nb.len() < SURFACE_MIN_NEIGHBOURS {
+        return false;
+    }
+    let n = nb.len() as f64;
+    let mut c = Vector3::zeros();
+    for p in nb {
+        c += Vector3::from(*p);
+    }
+    c /= n;
+    let mut cov = Matrix3::zeros();
+    for p in nb {
+        let d = Vector3::from(*p) - c;
+        cov += d * d.transpose();
+    }
+    cov /= n;
+    let eig = nalgebra::SymmetricEigen::new(cov);
+    let mut order = [0usize, 1, 2];
+    order.sort_by(|&a, &b| eig.eigenvalues[a].total_cmp(&eig.eigenvalues[b]));
+    let l = order.map(|i| eig.eigenvalues[i].max(0.0));
+    if !(l[0] <= SURFACE_FLATNESS * SURFACE_FLATNESS * l[1]) || l[1] <= 0.0 {
+        return false;
+    }
+    let normal = eig.eigenvectors.column(order[0]).into_owned();
+    let d = Vector3::from(*q) - c;
+    let off = normal.dot(&d);
+    // A floor for exact data (no scatter at all): a millionth of the neighbourhood's size.
+    let floor = 1e-6 * (l[1] + l[2]).sqrt();
+    if off.abs() > SURFACE_RESIDUALS * l[0].sqrt() + floor {
+        return false;
+    }
+    let along = (d - normal * off).norm_squared();
+    along <= SURFACE_REACH * SURFACE_REACH * (l[1] + l[2])
+}
+
+/// [`on_sampled_surface`] for the grid's point `s` and its `k` nearest other points.
+fn grid_point_on_surface(grid: &Grid, s: usize, k: usize) -> bool {
+    let nb: Vec<[f64; 3]> = ring_knn_nearest(grid, s, k + 1)
+        .into_iter()
+        .filter(|&j| j != s)
+        .map(|j| wide(&grid.xyz[j]))
+        .collect();
+    on_sampled_surface(&wide(&grid.xyz[s]), &nb)
+}
+
 /// Count, mean and sum of squared deviations of a set of values (Welford), mergeable (Chan et
 /// al.), so the statistics of values computed in parallel need not store them.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
@@ -3867,7 +4016,7 @@ mod tests {
                 want.sort_unstable();
                 // The stored single-precision means, and every mean measured again exactly.
                 for slack in [STORED_SLACK, 1.0] {
-                    let (out, report) = sor_in_place(cloud.clone(), k, n_sigma, slack).expect("sor");
+                    let (out, report) = sor_in_place(cloud.clone(), k, n_sigma, slack, false).expect("sor");
                     let (intensity, normals) =
                         (out.intensity.expect("intensity"), out.normals.expect("normals"));
                     let mut got: Vec<usize> = intensity.iter().map(|&i| i as usize).collect();
@@ -4033,6 +4182,113 @@ mod tests {
             let lost = keep[..n].iter().filter(|&&k| !k).count();
             assert!(lost * 1000 <= n, "sphere = {sphere}: ROR removed {lost} of {n} surface points");
         }
+    }
+
+    /// A densely scanned floor (0.1 mm apart), a steep wall beside it sampled four times more
+    /// sparsely (as a scanner sees a 79° face), and stray points 1 to 3 mm over the floor.
+    /// Returns the points and the ranges of the wall's and the strays'.
+    fn floor_wall_strays(rng: &mut StdRng) -> (Vec<Point3<f32>>, Range<usize>, Range<usize>) {
+        let mut pts = Vec::new();
+        for i in 0..120 {
+            for j in 0..120 {
+                let (x, y) = (f64::from(i) * 0.1, f64::from(j) * 0.1);
+                pts.push(pt(
+                    x + rng.random_range(-0.03..0.03),
+                    y + rng.random_range(-0.03..0.03),
+                    0.01 * gauss(rng),
+                ));
+            }
+        }
+        let wall = pts.len();
+        for i in 0..12 {
+            for j in 0..30 {
+                // Rising 5 mm per mm: 0.4 mm apart along the slope, 0.4 mm along Y.
+                let t = f64::from(i) * 0.08;
+                let y = f64::from(j) * 0.4 + rng.random_range(-0.05..0.05);
+                pts.push(pt(12.0 + t, y, 5.0 * t + 0.01 * gauss(rng)));
+            }
+        }
+        let strays = pts.len();
+        for _ in 0..40 {
+            let (x, y) = (rng.random_range(1.0..11.0), rng.random_range(1.0..11.0));
+            pts.push(pt(x, y, rng.random_range(1.0..3.0)));
+        }
+        let n = pts.len();
+        (pts, wall..strays, strays..n)
+    }
+
+    /// O(n²) reference of the surface rule: the brute-force SOR mask, then for every point it
+    /// drops, its `k` nearest other usable points by sorting every distance.
+    fn brute_sor_keeping_surface(points: &[Point3<f32>], k: usize, n_sigma: f64) -> Vec<bool> {
+        let mut keep = brute_sor_mask(points, k, n_sigma);
+        let all: Vec<usize> = (0..points.len()).filter(|&i| usable(&points[i])).collect();
+        let k = k.min(all.len());
+        for i in 0..points.len() {
+            if keep[i] || !usable(&points[i]) {
+                continue;
+            }
+            let mut others: Vec<(f64, usize)> =
+                all.iter().filter(|&&j| j != i).map(|&j| (dist2(&points[i], &points[j]), j)).collect();
+            others.sort_by(|a, b| a.0.total_cmp(&b.0));
+            let nb: Vec<[f64; 3]> = others.iter().take(k).map(|&(_, j)| wide(&points[j])).collect();
+            keep[i] = on_sampled_surface(&wide(&points[i]), &nb);
+        }
+        keep
+    }
+
+    #[test]
+    fn sor_keeping_surface_matches_its_brute_force_reference_in_place_and_as_a_mask() {
+        let mut rng = StdRng::seed_from_u64(29);
+        let (planted_pts, _) = planted(&mut rng, false);
+        let (wall_pts, _, _) = floor_wall_strays(&mut rng);
+        let mut with_nan = surface(&mut rng, 3000);
+        with_nan[5] = pt(f64::NAN, 1.0, 1.0);
+        let clouds: Vec<(&str, Vec<Point3<f32>>)> = vec![
+            ("planted", planted_pts[..6000].to_vec()),
+            ("floor, wall, strays", wall_pts),
+            ("clustered", clustered(&mut rng, 3000)),
+            ("uniform", uniform(&mut rng, 2000, 10.0)),
+            ("non-finite", with_nan),
+        ];
+        for (name, pts) in clouds {
+            let n = pts.len();
+            let intensity: Vec<f32> = (0..n).map(|i| i as f32).collect();
+            let cloud = PointCloud::new(pts.clone(), Some(intensity), None).expect("cloud");
+            for (k, n_sigma) in [(8usize, 1.0f64), (12, 3.0)] {
+                let want = brute_sor_keeping_surface(&pts, k, n_sigma);
+                let plain = brute_sor_mask(&pts, k, n_sigma);
+                let rescued = (0..n).filter(|&i| want[i] && !plain[i]).count();
+                let mask = statistical_outlier_mask_keeping_surface(&pts, k, n_sigma).expect("mask");
+                assert_eq!(
+                    mask, want,
+                    "{name}, k = {k}, n_sigma = {n_sigma}: the mask ({rescued} kept back)"
+                );
+                let (out, report) = sor_in_place(cloud.clone(), k, n_sigma, STORED_SLACK, true).expect("sor");
+                let mut got: Vec<usize> =
+                    out.intensity.expect("intensity").iter().map(|&i| i as usize).collect();
+                got.sort_unstable();
+                let want_idx: Vec<usize> = (0..n).filter(|&i| want[i]).collect();
+                assert_eq!(got, want_idx, "{name}, k = {k}, n_sigma = {n_sigma}: in place");
+                assert_eq!(report.kept, want_idx.len());
+            }
+        }
+    }
+
+    #[test]
+    fn sor_keeping_surface_keeps_a_sparsely_sampled_wall_and_still_drops_strays() {
+        let mut rng = StdRng::seed_from_u64(31);
+        let (pts, wall, strays) = floor_wall_strays(&mut rng);
+        let plain = statistical_outlier_mask(&pts, 12, 3.0).expect("sor");
+        let kept = statistical_outlier_mask_keeping_surface(&pts, 12, 3.0).expect("sor");
+        let wall_n = wall.len();
+        let lost_plain = wall.clone().filter(|&i| !plain[i]).count();
+        let lost_kept = wall.clone().filter(|&i| !kept[i]).count();
+        // Open3D's rule takes much of the wall as outliers (its points are 4x farther apart).
+        assert!(lost_plain * 4 >= wall_n, "plain SOR removed only {lost_plain} of {wall_n} wall points");
+        assert!(lost_kept * 100 <= wall_n, "{lost_kept} of {wall_n} wall points removed");
+        assert!(strays.clone().all(|i| !plain[i] && !kept[i]), "a stray point survived");
+        // Nothing the plain rule keeps is lost.
+        assert!(plain.iter().zip(&kept).all(|(&p, &k)| !p || k));
     }
 
     // ----- radius outlier removal --------------------------------------------------------------

@@ -12,8 +12,8 @@
 //! Options mirror the `reconstruct` object of a job request (DESIGN.md §7), extended with `roi`,
 //! `margin_mm`, `z_min_mm`/`z_max_mm`, `filters`, `roughing_factor` and `estimator`. Defaults: pixel 0.1 mm,
 //! one face `+Z`, IDW fill (power 2) of holes up to 2 mm, margin 2 pixels, statistical outlier
-//! removal with k = 12 and n·σ = 3 (when `filters` is absent; a given `filters` object runs
-//! exactly the filters it names), roughing lattice of 4 pixels, estimator `max`.
+//! removal with k = 12 and n·σ = 3, keeping the flagged points on a sparsely sampled surface
+//! (when `filters` is absent; a given `filters` object runs exactly the filters it names), roughing lattice of 4 pixels, estimator `max`.
 
 use std::time::Instant;
 
@@ -29,7 +29,7 @@ use super::face_choice::{
 };
 use super::filters::{
     FilterReport, intensity_window, radius_outlier_removal, rigid_from_matrix, statistical_outlier_removal,
-    voxel_decimate,
+    statistical_outlier_removal_keeping_surface, voxel_decimate,
 };
 use super::roughing::continuous_over;
 use super::table::{TableReport, TableSettings, level_on_table};
@@ -216,6 +216,10 @@ pub struct IntensityOptions {
 pub struct StatisticalOptions {
     pub k: usize,
     pub n_sigma: f64,
+    /// Keep the flagged points that lie on the surface their neighbours sample
+    /// ([`statistical_outlier_removal_keeping_surface`]); false: Open3D's rule alone.
+    #[serde(default)]
+    pub keep_surface: bool,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -228,7 +232,10 @@ pub struct RadiusOptions {
 impl FilterOptions {
     /// What runs when a job names no filters.
     pub fn defaults() -> Self {
-        FilterOptions { statistical: Some(StatisticalOptions { k: 12, n_sigma: 3.0 }), ..Default::default() }
+        FilterOptions {
+            statistical: Some(StatisticalOptions { k: 12, n_sigma: 3.0, keep_surface: true }),
+            ..Default::default()
+        }
     }
 }
 
@@ -642,7 +649,11 @@ pub fn clean(mut cloud: PointCloud, opts: &FilterOptions) -> Result<Cleaned> {
         reports.push(r);
     }
     if let Some(s) = opts.statistical {
-        let (c, r) = statistical_outlier_removal(cloud, s.k, s.n_sigma)?;
+        let (c, r) = if s.keep_surface {
+            statistical_outlier_removal_keeping_surface(cloud, s.k, s.n_sigma)?
+        } else {
+            statistical_outlier_removal(cloud, s.k, s.n_sigma)?
+        };
         cloud = c;
         reports.push(r);
     }
