@@ -2949,7 +2949,8 @@ fn on_sampled_surface(q: &[f64; 3], nb: &[[f64; 3]]) -> bool {
     let mut order = [0usize, 1, 2];
     order.sort_by(|&a, &b| eig.eigenvalues[a].total_cmp(&eig.eigenvalues[b]));
     let l = order.map(|i| eig.eigenvalues[i].max(0.0));
-    if !(l[0] <= SURFACE_FLATNESS * SURFACE_FLATNESS * l[1]) || l[1] <= 0.0 {
+    // `max` made every value a number (a NaN eigenvalue reads 0).
+    if l[0] > SURFACE_FLATNESS * SURFACE_FLATNESS * l[1] || l[1] <= 0.0 {
         return false;
     }
     let normal = eig.eigenvectors.column(order[0]).into_owned();
