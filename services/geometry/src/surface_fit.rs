@@ -27,13 +27,17 @@
 //!    is the fit's value at its centre. On a step the half-disk on the cell's own side wins, so
 //!    the other level never enters; a lone cell of outliers is weighted out of its neighbours'
 //!    fits and gets theirs. A fit that keeps less than half its window's weight and disagrees
-//!    with the cell's own mean (a convex edge on a steep slope) gives way to that mean.
+//!    with the cell's own mean (a convex edge on a steep slope) gives way to that mean. Where the
+//!    quadric bends down, a ridge through the cell (two planes meeting along a line across one of
+//!    four directions, fitted with the quadric's final weights) that fits no worse and stands
+//!    higher gives the cell its apex: a quadric rounds a crease by 3/16 of the drop over its
+//!    window, a cut into the edge ([`ridge_at_centre`]).
 //!
 //! Cells without points stay empty (NaN), as in the other rasterisers.
 
 use std::time::Instant;
 
-use nalgebra::{Matrix3, Matrix6, Vector3, Vector6};
+use nalgebra::{Matrix3, Matrix4, Matrix6, Vector3, Vector4, Vector6};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -118,6 +122,9 @@ pub struct FitReport {
     pub mean_cells: usize,
     /// Cells no fit kept half its window for and that disagree with it: their own mean.
     pub own_cells: usize,
+    /// Cells on a ridge a quadric would round: the apex of two planes meeting there.
+    #[serde(default)]
+    pub ridge_cells: usize,
     pub seconds: f64,
 }
 
@@ -158,6 +165,8 @@ enum Kind {
     Mean,
     /// The cell's own mean: no fit describes it.
     Own,
+    /// The apex of a ridge through the cell ([`ridge_at_centre`]).
+    Ridge,
 }
 
 /// The map of `points` on `grid` by a robust local quadric fit (see the module docs).
@@ -165,6 +174,16 @@ pub fn rasterize_fit<P: CloudPoint>(
     points: &[P],
     grid: &HeightMapMeta,
     params: &FitParams,
+) -> Result<(HeightMap, RasterStats, FitReport), RasterError> {
+    fit_map(points, grid, params, true)
+}
+
+/// [`rasterize_fit`], with or without the ridge apexes ([`ridge_at_centre`]; the tests compare).
+fn fit_map<P: CloudPoint>(
+    points: &[P],
+    grid: &HeightMapMeta,
+    params: &FitParams,
+    ridges: bool,
 ) -> Result<(HeightMap, RasterStats, FitReport), RasterError> {
     let started = Instant::now();
     params.validate()?;
@@ -207,8 +226,14 @@ pub fn rasterize_fit<P: CloudPoint>(
         })
         .collect();
     drop(sums);
-    let field =
-        Field { cells: &cells, w, h, pixel: p, kmax: ((params.max_radius_mm / p).floor() as usize).max(1) };
+    let field = Field {
+        cells: &cells,
+        w,
+        h,
+        pixel: p,
+        kmax: ((params.max_radius_mm / p).floor() as usize).max(1),
+        ridges,
+    };
     let (noise, estimated) = match params.noise_mm {
         Some(s) => (s, false),
         None => match field.estimate_noise(params.target_points) {
@@ -240,6 +265,7 @@ pub fn rasterize_fit<P: CloudPoint>(
             Kind::Plane => report.plane_cells += 1,
             Kind::Mean => report.mean_cells += 1,
             Kind::Own => report.own_cells += 1,
+            Kind::Ridge => report.ridge_cells += 1,
         }
     }
     if n > 0 {
@@ -258,6 +284,8 @@ struct Field<'a> {
     h: usize,
     pixel: f64,
     kmax: usize,
+    /// Whether a ridge's apex may replace the quadric at a cell ([`ridge_at_centre`]).
+    ridges: bool,
 }
 
 impl Field<'_> {
@@ -438,6 +466,12 @@ impl Field<'_> {
                 return (0.0, Kind::Own, points, k);
             }
         }
+        if let Model::Quadric(q) = model
+            && self.ridges
+            && let Some(apex) = ridge_at_centre(samples, &model, &q)
+        {
+            return (apex, Kind::Ridge, points, k);
+        }
         (model.at(0.0, 0.0), model.kind(), points, k)
     }
 
@@ -517,6 +551,74 @@ impl Model {
             Model::Mean(_) => Kind::Mean,
         }
     }
+}
+
+/// Directions across which a ridge through a cell's centre is tried: unit vectors in window
+/// units, across the crease (east-west, north-south and the two diagonals).
+const RIDGE_ACROSS: [(f64, f64); 4] = [
+    (1.0, 0.0),
+    (0.0, 1.0),
+    (std::f64::consts::FRAC_1_SQRT_2, std::f64::consts::FRAC_1_SQRT_2),
+    (std::f64::consts::FRAC_1_SQRT_2, -std::f64::consts::FRAC_1_SQRT_2),
+];
+
+/// The apex height of a ridge through the window's centre when one describes the samples at
+/// least as well as the fitted quadric `q` does, and stands above it there.
+///
+/// Why: a quadric rounds a crease (two faces meeting at a convex edge): its best fit of a tent
+/// `e·|x|` over a window of radius `R` lies `3/16·e·R` below the apex, a cut into the edge
+/// whatever the noise. So, when the quadric bends down across some direction, a tent
+/// `z = a + b·u + c·v − e·|n·(u, v)|` (`e > 0`: two planes meeting along the line through the
+/// centre across `n`) is fitted for each direction of [`RIDGE_ACROSS`] with the quadric's final
+/// weights; the best one replaces the quadric at the centre when its weighted residual is no
+/// larger than the quadric's (with two parameters fewer) and its apex is higher. On a smooth
+/// dome the quadric fits better and stays; a tent chosen where the surface bends smoothly lies
+/// above it (a tent over `−x²` peaks `R²/6` high), leaving material, never cutting.
+fn ridge_at_centre(samples: &[Sample], model: &Model, q: &Vector6<f64>) -> Option<f64> {
+    // The quadric's curvature across its most concave direction must point down.
+    let (h11, h12, h22) = (2.0 * q[3], q[4], 2.0 * q[5]);
+    let lowest = 0.5 * (h11 + h22) - (0.25 * (h11 - h22).powi(2) + h12 * h12).sqrt();
+    if lowest >= 0.0 {
+        return None;
+    }
+    let q0 = model.at(0.0, 0.0);
+    let weighted: Vec<(&Sample, f64)> = samples
+        .iter()
+        .filter_map(|s| {
+            let w = s.ws * tukey_weight(s.z - model.mean_over(s), s.cut);
+            (w > 0.0).then_some((s, w))
+        })
+        .collect();
+    if weighted.len() < 8 {
+        return None;
+    }
+    let quad_cost: f64 = weighted.iter().map(|(s, w)| w * (s.z - model.mean_over(s)).powi(2)).sum();
+    let mut best: Option<(f64, f64)> = None;
+    for (nu, nv) in RIDGE_ACROSS {
+        let phi = |s: &Sample| Vector4::new(1.0, s.u, s.v, (nu * s.u + nv * s.v).abs());
+        let (mut a, mut b) = (Matrix4::<f64>::zeros(), Vector4::<f64>::zeros());
+        for (s, w) in &weighted {
+            let f = phi(s);
+            a += f * f.transpose() * *w;
+            b += f * (*w * s.z);
+        }
+        let scale = a[(0, 0)];
+        let Some(chol) = a.cholesky() else { continue };
+        let l = chol.l();
+        if (0..4).any(|i| l[(i, i)] * l[(i, i)] < 1e-4 * scale) {
+            continue;
+        }
+        let beta = chol.solve(&b);
+        if beta[3] >= 0.0 {
+            // A valley (or nothing): the quadric's rounding there leaves material.
+            continue;
+        }
+        let cost: f64 = weighted.iter().map(|(s, w)| w * (s.z - phi(s).dot(&beta)).powi(2)).sum();
+        if best.is_none_or(|(c, _)| cost < c) {
+            best = Some((cost, beta[0]));
+        }
+    }
+    best.filter(|&(cost, apex)| cost <= quad_cost && apex > q0).map(|(_, apex)| apex)
 }
 
 fn plane_at(b: &Vector3<f64>, u: f64, v: f64) -> f64 {
@@ -758,6 +860,65 @@ mod tests {
         assert!(mean.abs() < 0.002 && rms < 0.006 && worst < 0.03, "mean {mean} RMS {rms} worst {worst}");
         let outlier = map.get(15, 45).expect("cell");
         assert!((f64::from(outlier) - f(1.55, 4.55)).abs() < 0.02, "outlier cell {outlier}");
+    }
+
+    /// The lowest error (most negative) at the cell centres where `keep(x, y)`.
+    fn lowest(map: &HeightMap, keep: impl Fn(f64, f64) -> bool, f: impl Fn(f64, f64) -> f64) -> f64 {
+        let m = *map.meta();
+        let mut lo = f64::INFINITY;
+        for r in 0..m.height {
+            for c in 0..m.width {
+                let (x, y) = m.cell_center(c, r);
+                if let Some(z) = map.get(c, r).filter(|z| z.is_finite() && keep(x, y)) {
+                    lo = lo.min(f64::from(z) - f(x, y));
+                }
+            }
+        }
+        lo
+    }
+
+    /// A signed distance across a ridge, mm.
+    type Across = dyn Fn(f64, f64) -> f64;
+
+    #[test]
+    fn a_ridge_keeps_its_apex_and_a_dome_stays_unbiased() {
+        let g = grid(60, 0.1);
+        let sigma = 0.035;
+        let inner = |x: f64, y: f64| x > 1.0 && y > 1.0 && x < 5.0 && y < 5.0;
+        for (deg, seed) in [(13.0f64, 5u64), (18.4, 6), (30.0, 7)] {
+            let t = deg.to_radians().tan();
+            // A ridge along y at x = 3.02 mm (off the cell centres), and one along the diagonal.
+            let across: [(&str, &Across); 2] =
+                [("along y", &|x, _| x - 3.02), ("diagonal", &|x, y| (x - y) / std::f64::consts::SQRT_2)];
+            for (name, d) in across {
+                let f = |x: f64, y: f64| 2.0 - t * d(x, y).abs();
+                let pts = cloud(&g, 4.0, sigma, seed, f);
+                let near = |x: f64, y: f64| inner(x, y) && d(x, y).abs() < 0.1;
+                let (with, _, rep) = fit_map(&pts, &g, &FitParams::default(), true).expect("fit");
+                let (without, _, _) = fit_map(&pts, &g, &FitParams::default(), false).expect("fit");
+                let (mean, _, _) = errors(&with, near, f);
+                let (mean_q, _, _) = errors(&without, near, f);
+                let (lo, lo_q) = (lowest(&with, near, f), lowest(&without, near, f));
+                // The quadric alone rounds the crease by 3/16 of the drop over its window.
+                assert!(mean_q < -0.005, "{deg}° {name}: the quadric's mean at the ridge {mean_q}");
+                assert!(mean.abs() < 0.005, "{deg}° {name}: mean at the ridge {mean} (quadric {mean_q})");
+                assert!(lo > lo_q && lo > -0.03, "{deg}° {name}: deepest {lo} (quadric {lo_q})");
+                assert!(rep.ridge_cells > 0);
+                // Away from the ridge both are the faces' planes.
+                let away = |x: f64, y: f64| inner(x, y) && d(x, y).abs() > 0.6;
+                let (m_away, _, _) = errors(&with, away, f);
+                assert!(m_away.abs() < 0.003, "{deg}° {name}: mean off the ridge {m_away}");
+            }
+        }
+        // A dome of radius 10 mm: the quadric fits it, the ridge test changes next to nothing.
+        let dome = |x: f64, y: f64| 2.0 - ((x - 3.0).powi(2) + (y - 3.0).powi(2)) / 20.0;
+        let pts = cloud(&g, 4.0, sigma, 8, dome);
+        let (with, _, _) = fit_map(&pts, &g, &FitParams::default(), true).expect("fit");
+        let (without, _, _) = fit_map(&pts, &g, &FitParams::default(), false).expect("fit");
+        let ((mean, rms, _), (mean_q, rms_q, _)) =
+            (errors(&with, inner, dome), errors(&without, inner, dome));
+        assert!(mean.abs() < 0.002 && rms < 0.006, "dome: mean {mean} RMS {rms}");
+        assert!((mean - mean_q).abs() < 0.001 && rms < 1.1 * rms_q, "dome: {mean} {rms} vs {mean_q} {rms_q}");
     }
 
     #[test]

@@ -460,8 +460,8 @@ pub struct IntensityWindow {
 /// Removes points whose mean distance to their `k` nearest neighbours exceeds the mean of that
 /// distance over the cloud by more than `n_sigma` standard deviations (Open3D's
 /// `remove_statistical_outlier`). With `keep_surface`, a point so flagged is kept when it lies on
-/// the surface its `k` nearest neighbours sample (flat around it, on their plane within four times
-/// their scatter, among them): a wall or a pass the scanner sampled sparsely, not a stray point.
+/// the surface its `k` nearest neighbours sample (close together and flat around it, on their
+/// plane within four times their scatter, among them): a wall or a pass the scanner sampled sparsely, not a stray point.
 /// The default filters (a job without `filters`) are `k` 12, `n_sigma` 3, `keep_surface` true.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]

@@ -287,7 +287,8 @@ pub fn statistical_outlier_removal(
 /// the scanner samples a surface sparsely (a steep wall seen at a glancing angle, a pass from
 /// afar, the edge of a line's reach) it removes true points by the thousand; a depth map then
 /// fills those cells from around them, below the surface they showed. A flagged point is kept
-/// when its neighbours lie flat (their RMS distance from their plane at most a quarter of their
+/// when its neighbours lie close together (the farthest at most four times as far as the
+/// median) and flat (their RMS distance from their plane at most a quarter of their
 /// spread along its shorter axis: a surface, not a scatter of strays nor a single line), it lies
 /// on their plane within four times that RMS, and among them (within twice their RMS spread
 /// along the plane of their centroid). A stray point above a densely sampled surface stands far
@@ -2922,8 +2923,13 @@ const SURFACE_RESIDUALS: f64 = 4.0;
 const SURFACE_REACH: f64 = 2.0;
 /// Fewest neighbours a surface is judged from.
 const SURFACE_MIN_NEIGHBOURS: usize = 5;
+/// How compact the neighbourhood must be: its farthest point at most this many times as far
+/// from the point as its median one (an evenly sampled patch: about 1.4; scan lines: 2 to 3; a
+/// row of stray points with the surface far below: tens).
+const SURFACE_COMPACT: f64 = 4.0;
 
-/// Whether `q` lies on the surface its neighbours `nb` sample: they lie flat (a surface, not a
+/// Whether `q` lies on the surface its neighbours `nb` sample: they lie close together (the
+/// farthest within [`SURFACE_COMPACT`] times the median's distance) and flat (a surface, not a
 /// cloud of stray points nor a single line), `q` lies on their plane within
 /// [`SURFACE_RESIDUALS`] of their own scatter about it, and among them rather than beyond them.
 /// The rule that keeps a point statistical outlier removal flagged only for lying where the
@@ -2931,6 +2937,11 @@ const SURFACE_MIN_NEIGHBOURS: usize = 5;
 /// [`statistical_outlier_removal_keeping_surface`].
 fn on_sampled_surface(q: &[f64; 3], nb: &[[f64; 3]]) -> bool {
     if nb.len() < SURFACE_MIN_NEIGHBOURS {
+        return false;
+    }
+    let mut dist: Vec<f64> = nb.iter().map(|p| (Vector3::from(*p) - Vector3::from(*q)).norm()).collect();
+    dist.sort_by(f64::total_cmp);
+    if dist[dist.len() - 1] > SURFACE_COMPACT * dist[dist.len() / 2] {
         return false;
     }
     let n = nb.len() as f64;
@@ -4203,7 +4214,7 @@ mod tests {
         let wall = pts.len();
         for i in 0..12 {
             for j in 0..30 {
-                // Rising 5 mm per mm: 0.4 mm apart along the slope, 0.4 mm along Y.
+                // Rising 5 mm per mm: 0.41 mm apart along the slope, 0.4 mm along Y.
                 let t = f64::from(i) * 0.08;
                 let y = f64::from(j) * 0.4 + rng.random_range(-0.05..0.05);
                 pts.push(pt(12.0 + t, y, 5.0 * t + 0.01 * gauss(rng)));
@@ -4214,6 +4225,7 @@ mod tests {
             let (x, y) = (rng.random_range(1.0..11.0), rng.random_range(1.0..11.0));
             pts.push(pt(x, y, rng.random_range(1.0..3.0)));
         }
+
         let n = pts.len();
         (pts, wall..strays, strays..n)
     }
@@ -4290,6 +4302,14 @@ mod tests {
         assert!(strays.clone().all(|i| !plain[i] && !kept[i]), "a stray point survived");
         // Nothing the plain rule keeps is lost.
         assert!(plain.iter().zip(&kept).all(|(&p, &k)| !p || k));
+
+        // A row of strays 1 mm apart 70 mm over the floor: with the floor's nearest points they
+        // make a flat neighbourhood, but not a compact one.
+        let mut pts = pts[..wall.start].to_vec();
+        let row = pts.len();
+        pts.extend((0..10).map(|i| pt(1.0 + f64::from(i), 4.0, 70.0)));
+        let kept = statistical_outlier_mask_keeping_surface(&pts, 12, 3.0).expect("sor");
+        assert!(kept[row..].iter().all(|&k| !k), "a stray of the row survived");
     }
 
     // ----- radius outlier removal --------------------------------------------------------------
