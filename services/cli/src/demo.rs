@@ -350,6 +350,14 @@ async fn drive(base: &str, part: Part, args: &DemoArgs, out: &Path) -> anyhow::R
                 _ => String::new(),
             },
         ));
+        if m["part_opened_measured_mean_mm"].is_f64() {
+            s.push_str(&format!(
+                "  of which where the scan measured: mean {} mm, RMS {} mm, max gouge {} mm\n",
+                g("part_opened_measured_mean_mm"),
+                g("part_opened_measured_rms_mm"),
+                g("part_opened_measured_max_gouge_mm"),
+            ));
+        }
     }
     s.push_str(&format!(
         "cycle time: {} s with the adaptive loop, {} s without\n",

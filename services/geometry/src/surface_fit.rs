@@ -11,7 +11,9 @@
 //!
 //! How, per map:
 //! 1. Every point is binned as [`crate::raster::rasterize_max`] bins it; a cell keeps its count and the mean of
-//!    its points (X, Y as offsets from its centre, Z).
+//!    its points (X, Y as offsets from its centre, Z). Only its top surface counts: points more
+//!    than [`TOP_BAND_NOISE`] noises plus a 75° slope's rise across the cell below its highest
+//!    point are left out (a floor under an overhang that a tilted pass saw, a wall's inner face).
 //! 2. The noise of one point, σ, unless given: per sampled cell, the residual of its mean against a
 //!    quadric fitted to the cells around it (itself left out), scaled by the variance it should
 //!    have; σ = 1.4826 × the median of those (steps and walls are a minority and do not move it).
@@ -26,7 +28,9 @@
 //!    cut-off 4, 2, 1 and 1 times the noise's. The cell's height
 //!    is the fit's value at its centre. On a step the half-disk on the cell's own side wins, so
 //!    the other level never enters; a lone cell of outliers is weighted out of its neighbours'
-//!    fits and gets theirs. A fit that keeps less than half its window's weight and disagrees
+//!    fits. A cell whose own mean stands above its fit by more than its cut-off keeps that mean
+//!    (a thin wall's top or a pin the window's majority does not share: the map is what the tools
+//!    cut to); one below it takes the fit. A fit that keeps less than half its window's weight and disagrees
 //!    with the cell's own mean (a convex edge on a steep slope) gives way to that mean. Where the
 //!    quadric bends down, a ridge through the cell (two planes meeting along a line across one of
 //!    four directions, fitted with the quadric's final weights) that fits no worse and stands
@@ -53,6 +57,12 @@ pub const DEFAULT_MAX_RADIUS_MM: f64 = 0.75;
 pub const FALLBACK_NOISE_MM: f64 = 0.035;
 /// Smallest noise the weights assume, mm: exact data must still tolerate a quadric's misfit.
 pub const MIN_NOISE_MM: f64 = 0.001;
+/// A cell's points more than this many noises (plus [`TOP_BAND_SLOPE`]'s rise) below its highest
+/// are on a surface under its top, and left out of the fit.
+pub const TOP_BAND_NOISE: f64 = 6.0;
+/// The steepest slope a cell's top surface is allowed across the cell's diagonal (tan 75°):
+/// steeper is a wall, whose lower points are not the top.
+pub const TOP_BAND_SLOPE: f64 = 3.732_050_807_568_877;
 /// Tukey's biweight constant (95 % efficiency under Gaussian noise).
 const TUKEY: f64 = 4.685;
 /// Rounds of iteratively reweighted least squares, each with its cut-off widened this much: a
@@ -125,6 +135,10 @@ pub struct FitReport {
     /// Cells on a ridge a quadric would round: the apex of two planes meeting there.
     #[serde(default)]
     pub ridge_cells: usize,
+    /// Points left out as lying under their cell's top surface (more than [`TOP_BAND_NOISE`]
+    /// noises plus the rise of a [`TOP_BAND_SLOPE`] slope across the cell below its highest).
+    #[serde(default)]
+    pub below_top_points: usize,
     pub seconds: f64,
 }
 
@@ -192,55 +206,71 @@ fn fit_map<P: CloudPoint>(
     // A reference height near the points so cell means keep their precision in f32.
     let z_ref = points.iter().map(|p| p.at().z).find(|z| z.is_finite()).unwrap_or(0.0);
     let (w, h, p) = (grid.width as usize, grid.height as usize, grid.pixel_mm);
-    // Per cell: count, sums of x, y, z, xx, xy, yy (x, y from the cell's centre).
-    let mut sums = vec![(0u32, [0.0f64; 6]); cells_n];
-    for (&i, pt) in index.iter().zip(points) {
-        let Some((n, s)) = sums.get_mut(i as usize) else { continue };
-        let pt = pt.at();
-        let (c, r) = ((i as usize % w) as f64, (i as usize / w) as f64);
-        let x = pt.x - (grid.origin_x_mm + (c + 0.5) * p);
-        let y = pt.y - (grid.origin_y_mm + (r + 0.5) * p);
-        *n += 1;
-        for (acc, v) in s.iter_mut().zip([x, y, pt.z - z_ref, x * x, x * y, y * y]) {
-            *acc += v;
+    // Per cell: count, sums of x, y, z, xx, xy, yy (x, y from the cell's centre), over the points
+    // `keep` lets in.
+    let bin = |keep: &dyn Fn(usize, f64) -> bool| -> Vec<Cell> {
+        let mut sums = vec![(0u32, [0.0f64; 6]); cells_n];
+        for (&i, pt) in index.iter().zip(points) {
+            let Some((n, s)) = sums.get_mut(i as usize) else { continue };
+            let pt = pt.at();
+            if !keep(i as usize, pt.z) {
+                continue;
+            }
+            let (c, r) = ((i as usize % w) as f64, (i as usize / w) as f64);
+            let x = pt.x - (grid.origin_x_mm + (c + 0.5) * p);
+            let y = pt.y - (grid.origin_y_mm + (r + 0.5) * p);
+            *n += 1;
+            for (acc, v) in s.iter_mut().zip([x, y, pt.z - z_ref, x * x, x * y, y * y]) {
+                *acc += v;
+            }
         }
-    }
-    drop(index);
-    let cells: Vec<Cell> = sums
-        .iter()
-        .map(|&(n, s)| {
-            if n == 0 {
-                return Cell::default();
-            }
-            let k = f64::from(n);
-            let (mx, my) = (s[0] / k, s[1] / k);
-            Cell {
-                n,
-                dx: mx as f32,
-                dy: my as f32,
-                z: (s[2] / k) as f32,
-                vxx: (s[3] / k - mx * mx).max(0.0) as f32,
-                vxy: (s[4] / k - mx * my) as f32,
-                vyy: (s[5] / k - my * my).max(0.0) as f32,
-            }
-        })
-        .collect();
-    drop(sums);
-    let field = Field {
-        cells: &cells,
-        w,
-        h,
-        pixel: p,
-        kmax: ((params.max_radius_mm / p).floor() as usize).max(1),
-        ridges,
+        sums.iter()
+            .map(|&(n, s)| {
+                if n == 0 {
+                    return Cell::default();
+                }
+                let k = f64::from(n);
+                let (mx, my) = (s[0] / k, s[1] / k);
+                Cell {
+                    n,
+                    dx: mx as f32,
+                    dy: my as f32,
+                    z: (s[2] / k) as f32,
+                    vxx: (s[3] / k - mx * mx).max(0.0) as f32,
+                    vxy: (s[4] / k - mx * my) as f32,
+                    vyy: (s[5] / k - my * my).max(0.0) as f32,
+                }
+            })
+            .collect()
     };
+    let all = bin(&|_, _| true);
+    let kmax = ((params.max_radius_mm / p).floor() as usize).max(1);
     let (noise, estimated) = match params.noise_mm {
         Some(s) => (s, false),
-        None => match field.estimate_noise(params.target_points) {
-            Some(s) => (s.max(MIN_NOISE_MM), true),
-            None => (FALLBACK_NOISE_MM, false),
-        },
+        None => {
+            match (Field { cells: &all, w, h, pixel: p, kmax, ridges }).estimate_noise(params.target_points) {
+                Some(s) => (s.max(MIN_NOISE_MM), true),
+                None => (FALLBACK_NOISE_MM, false),
+            }
+        }
     };
+    // Only a cell's top surface makes the map: a point lying farther below the cell's highest
+    // than the noise and the steepest slope a cell can hold explain is on a surface under it (the
+    // floor under an overhang seen by a tilted pass, a wall's inner face), and a fit would take
+    // the majority, cutting the top away.
+    let mut top = vec![f64::NEG_INFINITY; cells_n];
+    for (&i, pt) in index.iter().zip(points) {
+        if let Some(t) = top.get_mut(i as usize) {
+            *t = t.max(pt.at().z);
+        }
+    }
+    let band = TOP_BAND_NOISE * noise + TOP_BAND_SLOPE * std::f64::consts::SQRT_2 * p;
+    let under_top = |i: usize, z: f64| top.get(i).is_some_and(|&t| z < t - band);
+    let below_top = index.iter().zip(points).filter(|&(&i, pt)| under_top(i as usize, pt.at().z)).count();
+    let cells = if below_top == 0 { all } else { bin(&|i, z| !under_top(i, z)) };
+    drop(index);
+    drop(top);
+    let field = Field { cells: &cells, w, h, pixel: p, kmax, ridges };
     let fitted: Vec<(f32, Option<FitInfo>)> = (0..cells_n)
         .into_par_iter()
         .map_init(Vec::new, |buf, i| {
@@ -253,7 +283,12 @@ fn fit_map<P: CloudPoint>(
             ((f64::from(cell.z) + z + z_ref) as f32, Some((kind, pts, k)))
         })
         .collect();
-    let mut report = FitReport { noise_mm: noise, noise_estimated: estimated, ..FitReport::default() };
+    let mut report = FitReport {
+        noise_mm: noise,
+        noise_estimated: estimated,
+        below_top_points: below_top,
+        ..FitReport::default()
+    };
     let (mut n, mut pts, mut rad) = (0usize, 0u64, 0.0f64);
     for (_, info) in &fitted {
         let Some((kind, p_in, k)) = info else { continue };
@@ -453,18 +488,24 @@ impl Field<'_> {
                 break;
             };
         }
-        // A fit that keeps less than half the window's weight does not describe the surface here
-        // (a convex edge on a steep slope, a thin ridge): the cell keeps its own mean unless the
-        // fit agrees with it. With most of the window kept, a centre cell the fit rejects is the
-        // outlier and takes the fit.
+        // A centre cell whose points stand above the fit by more than its cut-off is a feature the
+        // window's majority does not share (a thin wall's top, a pin, a crest): it keeps its own
+        // mean, since the map is what the tools cut to and taking the fit would cut the feature
+        // away (stray points are the outlier filters' business). One that lies below the fit by
+        // as much takes the fit when most of the window is kept (a pit of outliers, or a hole
+        // narrower than any tool: material left, never a cut). A fit that keeps less than half the
+        // window's weight does not describe the surface here (a convex edge on a steep slope):
+        // the cell keeps its own mean unless the fit agrees with it.
+        let centre = self.cells[r * self.w + c];
+        let own = self.sample(centre, centre, 0, 0, (k as f64 + 1.0) * self.pixel, sigma);
+        let below = model.mean_over(&own);
+        if -below > own.cut {
+            return (0.0, Kind::Own, points, k);
+        }
         let total: f64 = samples.iter().map(|s| s.ws).sum();
         let kept: f64 = samples.iter().map(|s| s.ws * tukey_weight(s.z - model.mean_over(s), s.cut)).sum();
-        if kept < 0.5 * total {
-            let centre = self.cells[r * self.w + c];
-            let own = self.sample(centre, centre, 0, 0, (k as f64 + 1.0) * self.pixel, sigma);
-            if model.mean_over(&own).abs() > own.cut {
-                return (0.0, Kind::Own, points, k);
-            }
+        if kept < 0.5 * total && below.abs() > own.cut {
+            return (0.0, Kind::Own, points, k);
         }
         if let Model::Quadric(q) = model
             && self.ridges
@@ -847,19 +888,27 @@ mod tests {
         // A 2 mm step along x = 3 mm, on a gentle slope.
         let f = |x: f64, y: f64| 0.05 * y + if x < 3.0 { 2.0 } else { 0.0 };
         let mut pts = cloud(&g, 4.0, sigma, 3, f);
-        // Every point of one cell 0.5 mm high.
+        // Every point of one cell 0.5 mm low (a pit of outliers), and of another 0.5 mm high (a
+        // pin one cell wide).
         for p in pts.iter_mut() {
             if (p.x - 1.55).abs() < 0.05 && (p.y - 4.55).abs() < 0.05 {
+                p.z -= 0.5;
+            }
+            if (p.x - 4.55).abs() < 0.05 && (p.y - 1.55).abs() < 0.05 {
                 p.z += 0.5;
             }
         }
         let (map, _, _) = rasterize_fit(&pts, &g, &FitParams::default()).expect("fit");
         // Off the cells the step crosses: every cell on its own level, within 4 σ/√(points).
-        let off = |x: f64, _: f64| (x - 3.0).abs() > 0.06;
+        let pin = |x: f64, y: f64| (x - 4.55).abs() < 0.01 && (y - 1.55).abs() < 0.01;
+        let off = |x: f64, y: f64| (x - 3.0).abs() > 0.06 && !pin(x, y);
         let (mean, rms, worst) = errors(&map, off, f);
         assert!(mean.abs() < 0.002 && rms < 0.006 && worst < 0.03, "mean {mean} RMS {rms} worst {worst}");
         let outlier = map.get(15, 45).expect("cell");
         assert!((f64::from(outlier) - f(1.55, 4.55)).abs() < 0.02, "outlier cell {outlier}");
+        // The pin keeps its height (its own mean, within the noise of its points).
+        let pin_z = map.get(45, 15).expect("cell");
+        assert!((f64::from(pin_z) - f(4.55, 1.55) - 0.5).abs() < 0.06, "pin cell {pin_z}");
     }
 
     /// The lowest error (most negative) at the cell centres where `keep(x, y)`.
@@ -919,6 +968,29 @@ mod tests {
             (errors(&with, inner, dome), errors(&without, inner, dome));
         assert!(mean.abs() < 0.002 && rms < 0.006, "dome: mean {mean} RMS {rms}");
         assert!((mean - mean_q).abs() < 0.001 && rms < 1.1 * rms_q, "dome: {mean} {rms} vs {mean_q} {rms_q}");
+    }
+
+    #[test]
+    fn points_under_a_cells_top_surface_stay_out_of_the_fit() {
+        let g = grid(60, 0.25);
+        let sigma = 0.02;
+        // A floor at z = 2 and, over 5 <= x < 10 mm, a plate whose top is at z = 6; the floor
+        // under the plate is in the cloud too, three times as dense as the plate's top (a tilted
+        // pass saw it). Every cell gets top points (16 a cell on average).
+        let plate = |x: f64| (5.0..10.0).contains(&x);
+        let top = move |x: f64, _: f64| if plate(x) { 6.0 } else { 2.0 };
+        let mut pts = cloud(&g, 16.0, sigma, 9, top);
+        pts.extend(cloud(&g, 48.0, sigma, 10, |_, _| 2.0).into_iter().filter(|p| plate(p.x)));
+        let (map, _, rep) = rasterize_fit(&pts, &g, &FitParams::default()).expect("fit");
+        assert!(rep.below_top_points > 0, "{rep:?}");
+        let inner = |x: f64, y: f64| y > 1.0 && y < 14.0 && x > 1.0 && x < 14.0;
+        // On the plate away from its edges, and on the floor beside it: their own levels.
+        let on_plate = |x: f64, y: f64| inner(x, y) && (5.6..9.4).contains(&x);
+        let (mean, _, worst) = errors(&map, on_plate, top);
+        assert!(mean.abs() < 0.005 && worst < 0.05, "plate: mean {mean} worst {worst}");
+        let beside = |x: f64, y: f64| inner(x, y) && !(4.4..10.6).contains(&x);
+        let (mean, _, worst) = errors(&map, beside, top);
+        assert!(mean.abs() < 0.005 && worst < 0.05, "floor: mean {mean} worst {worst}");
     }
 
     #[test]

@@ -115,7 +115,9 @@ pub struct ReportOutput {
     /// `part_opened_mean_mm`, `part_opened_rms_mm`, `part_opened_cells` (off the walls where the
     /// program's smallest tool reaches the part, against the part opened by that tool;
     /// `part_opened_max_gouge_x_mm`, `part_opened_max_gouge_y_mm`: where the deepest of those
-    /// gouges is, in the depth map's frame, when there is one) and `preview_max_below_mm`, `preview_max_above_mm`,
+    /// gouges is, in the depth map's frame, when there is one; `part_opened_measured_max_gouge_mm`,
+    /// `_mean_mm`, `_rms_mm`, `_cells`: the same over the cells the first face's coverage map
+    /// marks measured, when it lies on the stock's grid) and `preview_max_below_mm`, `preview_max_above_mm`,
     /// `preview_mean_mm`, `preview_rms_mm` (against the CAM's predicted surface, the part opened
     /// by the tools).
     pub figures: BTreeMap<String, f64>,

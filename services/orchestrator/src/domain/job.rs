@@ -198,6 +198,14 @@ pub struct JobMetrics {
     pub part_opened_max_gouge_x_mm: Option<f64>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub part_opened_max_gouge_y_mm: Option<f64>,
+    /// The `part_opened_*` figures over the cells the scan measured (not filled nor lidded):
+    /// deepest gouge, signed mean, RMS, mm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub part_opened_measured_max_gouge_mm: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub part_opened_measured_mean_mm: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub part_opened_measured_rms_mm: Option<f64>,
     /// The machined part against the CAM's predicted surface (the part opened by the tools): RMS, mm.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub preview_rms_mm: Option<f64>,
@@ -325,6 +333,9 @@ impl JobMetrics {
                 "part_opened_rms_mm" => &mut self.part_opened_rms_mm,
                 "part_opened_max_gouge_x_mm" => &mut self.part_opened_max_gouge_x_mm,
                 "part_opened_max_gouge_y_mm" => &mut self.part_opened_max_gouge_y_mm,
+                "part_opened_measured_max_gouge_mm" => &mut self.part_opened_measured_max_gouge_mm,
+                "part_opened_measured_mean_mm" => &mut self.part_opened_measured_mean_mm,
+                "part_opened_measured_rms_mm" => &mut self.part_opened_measured_rms_mm,
                 "original_points" => &mut self.original_points,
                 "original_max_gouge_mm" => &mut self.original_max_gouge_mm,
                 "original_max_leftover_mm" => &mut self.original_max_leftover_mm,

@@ -200,6 +200,23 @@ impl Ctx<'_> {
         let tool = self.smallest_tool();
         let opened = tool.as_ref().and_then(|(_, t)| depthmill_geometry::compensate::opened(&part, t));
         let (mut op_gouge, mut op_sum, mut op_sq, mut op_n) = (0.0f64, 0.0f64, 0.0f64, 0usize);
+        // The stock's cells whose centre lies in a cell the first face's coverage map marks
+        // measured (the two grids share the face's frame; the stock's may be finer): the opened
+        // figures over those alone say how close the cut comes where the target is a measurement,
+        // not a hole's fill nor a lid over what nobody saw.
+        let measured: Option<Vec<bool>> = self.decode("coverage_map").ok().map(|c| {
+            let cm = *c.map.meta();
+            let w = meta.width as usize;
+            (0..w * meta.height as usize)
+                .map(|i| {
+                    let (x, y) = meta.cell_center((i % w) as u32, (i / w) as u32);
+                    cm.cell_of(x, y)
+                        .and_then(|(col, row)| c.map.get(col, row))
+                        .is_some_and(|v| maps::CoverageClass::of(v) == maps::CoverageClass::Measured)
+                })
+                .collect()
+        });
+        let (mut ms_gouge, mut ms_sum, mut ms_sq, mut ms_n) = (0.0f64, 0.0f64, 0.0f64, 0usize);
         let mut op_where: Option<usize> = None;
         let mut data = vec![f32::NAN; part.data().len()];
         let (mut gouge, mut left, mut sum_left, mut sum, mut sq, mut n) =
@@ -234,6 +251,12 @@ impl Ctx<'_> {
                     op_sum += d;
                     op_sq += d * d;
                     op_n += 1;
+                    if measured.as_ref().is_some_and(|m| m.get(i) == Some(&true)) {
+                        ms_gouge = ms_gouge.max(-d);
+                        ms_sum += d;
+                        ms_sq += d * d;
+                        ms_n += 1;
+                    }
                 }
             }
         }
@@ -256,6 +279,17 @@ impl Ctx<'_> {
                 ("part_opened_cells", m),
             ] {
                 self.figures.insert(k.into(), v);
+            }
+            if ms_n > 0 {
+                let m = ms_n as f64;
+                for (k, v) in [
+                    ("part_opened_measured_max_gouge_mm", ms_gouge),
+                    ("part_opened_measured_mean_mm", ms_sum / m),
+                    ("part_opened_measured_rms_mm", (ms_sq / m).sqrt()),
+                    ("part_opened_measured_cells", m),
+                ] {
+                    self.figures.insert(k.into(), v);
+                }
             }
             // Where the deepest gouge is (the centre of its cell, in the map's frame).
             if let Some(i) = op_where {
@@ -333,6 +367,17 @@ impl Ctx<'_> {
                     format!("{name} reaches no cell off the walls")
                 },
             ));
+            if ms_n > 0 {
+                let m = ms_n as f64;
+                rows.push((
+                    "... where the scan measured".to_string(),
+                    format!(
+                        "max gouge {ms_gouge:.4} mm, mean {:+.4} mm, RMS {:.4} mm over the {ms_n} of those cells the depth map measured (not filled between points nor lidded over what the scanner did not see)",
+                        ms_sum / m,
+                        (ms_sq / m).sqrt()
+                    ),
+                ));
+            }
         }
         body.push_str(&kv_table(&rows));
         Ok(body)
