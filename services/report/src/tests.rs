@@ -516,6 +516,25 @@ fn the_deepest_gouge_against_the_opened_part_is_located() {
     assert!((0.15..0.25).contains(&gouge), "gouge {gouge}");
     let (x, y) = (out.figures["part_opened_max_gouge_x_mm"], out.figures["part_opened_max_gouge_y_mm"]);
     assert!((x - 0.125).abs() <= P + 1e-9 && (y - 0.125).abs() <= P + 1e-9, "at ({x}, {y})");
+    // The dent lies where the scan measured: the measured cells' figures hold it too.
+    let measured = out.figures["part_opened_measured_max_gouge_mm"];
+    assert_eq!(measured, gouge);
+    assert!(out.figures["part_opened_measured_cells"] < out.figures["part_opened_cells"]);
+
+    // The same with the dent's cells filled between points rather than measured: the measured
+    // figures leave it out, the others keep it.
+    let mut cov = coverage_map();
+    for r in 38..=42 {
+        for c in 58..=62 {
+            let i = (r * W + c) as usize;
+            cov.data_mut()[i] = 0.5;
+        }
+    }
+    arts.insert("coverage_map".to_string(), map_png(&cov, PngDepth::Bits8));
+    let out = render_ok(&job, &arts);
+    assert_eq!(out.figures["part_opened_max_gouge_mm"], gouge);
+    let measured = out.figures["part_opened_measured_max_gouge_mm"];
+    assert!(measured < 0.01, "measured cells' gouge {measured}");
 }
 
 #[test]
