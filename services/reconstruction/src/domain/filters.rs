@@ -318,11 +318,8 @@ pub fn statistical_outlier_mask_keeping_surface(
     let grid = Grid::build(points, &bbox, knn_cell_size(points, &bbox, k), false);
     let dropped: Vec<usize> =
         (0..grid.order.len().min(bbox.count)).filter(|&s| !keep[grid.order[s]]).collect();
-    let back: Vec<bool> = dropped.par_iter().map(|&s| grid_point_on_surface(&grid, s, k)).collect();
-    for (&s, b) in dropped.iter().zip(back) {
-        if b {
-            keep[grid.order[s]] = true;
-        }
+    for s in kept_back(&grid, k, dropped) {
+        keep[grid.order[s]] = true;
     }
     Ok(keep)
 }
@@ -407,11 +404,8 @@ fn sor_in_place(
         if keep_surface {
             // The usable points are the first `bbox.count` of the sorted cloud.
             let dropped: Vec<usize> = (0..bbox.count.min(means.len())).filter(|&s| means[s] == 0).collect();
-            let back: Vec<bool> = dropped.par_iter().map(|&s| grid_point_on_surface(&grid, s, k)).collect();
-            for (&s, b) in dropped.iter().zip(back) {
-                if b {
-                    means[s] = 1;
-                }
+            for s in kept_back(&grid, k, dropped) {
+                means[s] = 1;
             }
         }
     }
@@ -2852,45 +2846,20 @@ fn knn_means_with_stats(points: &[Point3<f32>], k: usize) -> (Vec<f64>, KnnStats
 /// nearest lies within its margin (or it covers the grid). For the few queries that need an
 /// exact answer outside the batch (the block scans cost `O(ring²)` column seeks each).
 fn ring_knn(grid: &Grid, s: usize, k: usize) -> f64 {
-    let c = grid.starts.partition_point(|&st| st as usize <= s) - 1;
-    let cell = grid.coords(grid.keys[c]);
-    let q = &grid.xyz[s];
-    let (mut ranges, mut d) = (Vec::new(), Vec::new());
-    let widest = grid.dims.iter().copied().max().unwrap_or(1);
-    let mut ring = 1u64;
-    loop {
-        grid.block_ranges(c, ring, &mut ranges);
-        d.clear();
-        for r in &ranges {
-            d.extend(grid.xyz[r.clone()].iter().map(|p| dist2(q, p)));
-        }
-        let whole = ring >= widest;
-        if d.len() >= k {
-            d.select_nth_unstable_by(k - 1, f64::total_cmp);
-            let m = grid.block_margin(cell, ring, q);
-            if whole || (m > 0.0 && d[k - 1] <= m * m) {
-                let best = &mut d[..k];
-                best.sort_unstable_by(f64::total_cmp);
-                return mean_sqrt(best.iter().copied());
-            }
-        }
-        if whole {
-            // Fewer than k points in the whole grid: not a valid call; the mean of them all.
-            d.sort_unstable_by(f64::total_cmp);
-            return mean_sqrt(d.iter().copied());
-        }
-        ring = (ring * 2).min(widest);
-    }
+    mean_sqrt(ring_knn_nearest(grid, s, k).iter().map(|&(d2, _)| d2))
 }
 
-/// The grid's `k` points nearest to its point `s` (`s` itself among them, at distance 0), by
-/// the blocks of [`ring_knn`]; fewer when the grid holds fewer.
-fn ring_knn_nearest(grid: &Grid, s: usize, k: usize) -> Vec<usize> {
+/// The grid's `k` points nearest to its point `s` (`s` itself among them, at distance 0) as
+/// (squared distance, grid index), nearest first; all of them when the grid holds fewer. The
+/// block of cells doubles in ring until the `k`-th nearest lies within its margin (or it covers
+/// the grid).
+fn ring_knn_nearest(grid: &Grid, s: usize, k: usize) -> Vec<(f64, usize)> {
     let c = grid.starts.partition_point(|&st| st as usize <= s) - 1;
     let cell = grid.coords(grid.keys[c]);
     let q = &grid.xyz[s];
     let (mut ranges, mut d) = (Vec::new(), Vec::<(f64, usize)>::new());
     let widest = grid.dims.iter().copied().max().unwrap_or(1);
+    let by_distance = |a: &(f64, usize), b: &(f64, usize)| a.0.total_cmp(&b.0);
     let mut ring = 1u64;
     loop {
         grid.block_ranges(c, ring, &mut ranges);
@@ -2899,15 +2868,19 @@ fn ring_knn_nearest(grid: &Grid, s: usize, k: usize) -> Vec<usize> {
             d.extend(r.clone().map(|j| (dist2(q, &grid.xyz[j]), j)));
         }
         let whole = ring >= widest;
-        if d.len() >= k && k > 0 {
-            d.select_nth_unstable_by(k - 1, |a, b| a.0.total_cmp(&b.0));
+        if k > 0 && d.len() >= k {
+            d.select_nth_unstable_by(k - 1, by_distance);
             let m = grid.block_margin(cell, ring, q);
             if whole || (m > 0.0 && d[k - 1].0 <= m * m) {
-                return d[..k].iter().map(|&(_, j)| j).collect();
+                d.truncate(k);
+                d.sort_unstable_by(by_distance);
+                return d;
             }
         }
         if whole {
-            return d.iter().map(|&(_, j)| j).collect();
+            // Fewer than k points in the whole grid: all of them.
+            d.sort_unstable_by(by_distance);
+            return d;
         }
         ring = (ring * 2).min(widest);
     }
@@ -2976,12 +2949,18 @@ fn on_sampled_surface(q: &[f64; 3], nb: &[[f64; 3]]) -> bool {
     along <= SURFACE_REACH * SURFACE_REACH * (l[1] + l[2])
 }
 
+/// Of the grid's points `dropped`, those [`grid_point_on_surface`] keeps after all.
+fn kept_back(grid: &Grid, k: usize, dropped: Vec<usize>) -> Vec<usize> {
+    let back: Vec<bool> = dropped.par_iter().map(|&s| grid_point_on_surface(grid, s, k)).collect();
+    dropped.into_iter().zip(back).filter_map(|(s, b)| b.then_some(s)).collect()
+}
+
 /// [`on_sampled_surface`] for the grid's point `s` and its `k` nearest other points.
 fn grid_point_on_surface(grid: &Grid, s: usize, k: usize) -> bool {
     let nb: Vec<[f64; 3]> = ring_knn_nearest(grid, s, k + 1)
         .into_iter()
-        .filter(|&j| j != s)
-        .map(|j| wide(&grid.xyz[j]))
+        .filter(|&(_, j)| j != s)
+        .map(|(_, j)| wide(&grid.xyz[j]))
         .collect();
     on_sampled_surface(&wide(&grid.xyz[s]), &nb)
 }
