@@ -13,11 +13,12 @@
 # Output names:  mesh-*.stl  (triangle meshes; OFF sources converted to binary STL)
 #                scan-*.ply / scan-*.xyz  (real measured point clouds)
 #                bad/*      (broken / degenerate / odd-format inputs for reader tests)
+#                native/*   (sources in the format their package ships: OFF, PCD; read natively)
 set -euo pipefail
 
 if [ $# -ne 1 ]; then echo "usage: $0 DEST_DIR" >&2; exit 2; fi
 DEST=$(realpath -m "$1")
-mkdir -p "$DEST" "$DEST/bad"
+mkdir -p "$DEST" "$DEST/bad" "$DEST/native"
 T0=$(date +%s)
 
 if [ -n "${FETCH_CACHE:-}" ]; then
@@ -508,6 +509,11 @@ scan-face000.xyz|pip|pymeshlab|$PML/rangemaps/face000.ply|ply2xyz|mm (scanner fr
 scan-table-lms400.ply|apt|python3-pcl|$PCLD/table_scene_lms400.pcd|pcd2ply|m (sensor frame)|REAL SICK LMS400 laser scan of a table scene (PCL tutorial data; PCD fields incl. intensity/distance/scan id); converted from PCD binary_compressed
 scan-kinect-milk-clorox.ply|apt|python3-pcl|$PCLD/correspondence_grouping/milk_cartoon_all_small_clorox.pcd|pcd2ply|m (camera frame)|REAL Kinect-style RGB-D frame 640x480 (NaN-invalid pixels dropped), objects on a table
 scan-stereo-table-mug.ply|apt|python3-pcl|$PCLD/table_scene_mug_stereo_textured.pcd|pcd2ply|m (camera frame)|REAL textured-stereo depth frame 640x480 (NaNs dropped) of a mug on a table
+native/couplingdown.off|apt|libcgal-demo|$CGAL::data/meshes/couplingdown.off|copy|unitless (unit box)|mesh-couplingdown.stl as CGAL ships it (ASCII OFF), read by depthmill natively
+native/mech-holes-shark.off|apt|libcgal-demo|$CGAL::data/meshes/mech-holes-shark.off|copy|unitless|bad/open-mech-holes-shark.stl as CGAL ships it (ASCII OFF)
+native/table_scene_mug_stereo_textured.pcd|apt|python3-pcl|$PCLD/table_scene_mug_stereo_textured.pcd|copy|m (camera frame)|scan-stereo-table-mug.ply as PCL ships it (PCD binary_compressed, organised 640x480, NaN pixels)
+native/table_scene_lms400.pcd|apt|python3-pcl|$PCLD/table_scene_lms400.pcd|copy|m (sensor frame)|scan-table-lms400.ply as PCL ships it (PCD binary_compressed, intensity)
+native/milk_cartoon_all_small_clorox.pcd|apt|python3-pcl|$PCLD/correspondence_grouping/milk_cartoon_all_small_clorox.pcd|copy|m (camera frame)|scan-kinect-milk-clorox.ply as PCL ships it (PCD binary_compressed, organised, NaN pixels)
 bad/binary-with-solid-header.stl|apt|openscad-testing-data|$OS/scad/3D/features/import_bin_solid.stl|copy|unitless|BINARY STL whose 80-byte header starts with 'solid' (must not be parsed as ASCII)
 bad/invalid-vertex.stl|apt|openscad-testing-data|$OS/stl/invalidvertex.stl|copy|-|ASCII STL with a non-numeric vertex coordinate ('vertex 0 0 blah')
 bad/unparseable.stl|apt|openscad-testing-data|$OS/stl/unparseable.stl|copy|-|ASCII STL with a corrupted vertex line (control byte + padding) and junk after endloop/endfacet/endsolid

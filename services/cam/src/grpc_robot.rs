@@ -80,7 +80,7 @@ async fn read_mesh(
             Err(ErrorCode::InvalidArgument.status(format!("{}: the mesh has no triangles", read.name)))
         }
         Geometry::Cloud(_) => Err(ErrorCode::InvalidArgument.status(format!(
-            "{}: is a point cloud; robot milling needs the part's mesh (STL or PLY with faces)",
+            "{}: is a point cloud; robot milling needs the part's mesh (STL, OBJ, OFF, or PLY with faces)",
             read.name
         ))),
     }

@@ -85,6 +85,9 @@ pub fn classify(path: &Path) -> Option<(&'static str, &'static str)> {
     let ext = path.extension()?.to_str()?.to_ascii_lowercase();
     Some(match ext.as_str() {
         "stl" => ("mesh", "model/stl"),
+        "off" => ("mesh", "model/x-off"),
+        "obj" => ("mesh", "model/obj"),
+        "pcd" => ("point_cloud", "application/x-pcd"),
         "xyz" | "txt" | "asc" => ("point_cloud", "text/x-xyz"),
         "ply" if ply_has_faces(path) => ("mesh", "application/x-ply"),
         "ply" => ("point_cloud", "application/x-ply"),
@@ -255,6 +258,9 @@ pub fn artifact_file_name(name: &str, media_type: &str) -> String {
         "model/stl" => "stl",
         "application/x-ply" => "ply",
         "text/x-xyz" => "xyz",
+        "model/obj" => "obj",
+        "model/x-off" => "off",
+        "application/x-pcd" => "pcd",
         "image/png" => "png",
         "application/x-npy" => "npy",
         "text/x-gcode" => "ngc",

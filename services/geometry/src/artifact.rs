@@ -61,6 +61,12 @@ pub enum MediaType {
     Ply,
     /// `text/x-xyz`: point cloud, one `x y z [...]` per line.
     Xyz,
+    /// `model/obj`: Wavefront OBJ mesh (or, without faces, point cloud).
+    Obj,
+    /// `model/x-off`: OFF mesh.
+    Off,
+    /// `application/x-pcd`: the Point Cloud Library's point cloud.
+    Pcd,
     /// `image/png`: depth map.
     Png,
     /// `application/x-npy`: depth map as a NumPy array.
@@ -77,10 +83,13 @@ pub enum MediaType {
 
 impl MediaType {
     /// Every known media type.
-    pub const ALL: [MediaType; 9] = [
+    pub const ALL: [MediaType; 12] = [
         MediaType::Stl,
         MediaType::Ply,
         MediaType::Xyz,
+        MediaType::Obj,
+        MediaType::Off,
+        MediaType::Pcd,
         MediaType::Png,
         MediaType::Npy,
         MediaType::Gcode,
@@ -95,6 +104,9 @@ impl MediaType {
             MediaType::Stl => "model/stl",
             MediaType::Ply => "application/x-ply",
             MediaType::Xyz => "text/x-xyz",
+            MediaType::Obj => "model/obj",
+            MediaType::Off => "model/x-off",
+            MediaType::Pcd => "application/x-pcd",
             MediaType::Png => "image/png",
             MediaType::Npy => "application/x-npy",
             MediaType::Gcode => "text/x-gcode",
@@ -110,6 +122,9 @@ impl MediaType {
             MediaType::Stl => "stl",
             MediaType::Ply => "ply",
             MediaType::Xyz => "xyz",
+            MediaType::Obj => "obj",
+            MediaType::Off => "off",
+            MediaType::Pcd => "pcd",
             MediaType::Png => "png",
             MediaType::Npy => "npy",
             MediaType::Gcode => "ngc",
@@ -125,6 +140,9 @@ impl MediaType {
             "stl" => MediaType::Stl,
             "ply" => MediaType::Ply,
             "xyz" | "pts" | "txt" => MediaType::Xyz,
+            "obj" => MediaType::Obj,
+            "off" => MediaType::Off,
+            "pcd" => MediaType::Pcd,
             "png" => MediaType::Png,
             "npy" => MediaType::Npy,
             "ngc" | "nc" | "gcode" | "tap" => MediaType::Gcode,
@@ -151,8 +169,9 @@ impl FromStr for MediaType {
         MediaType::ALL.into_iter().find(|m| m.as_str() == essence).ok_or_else(|| GeometryError::Parse {
             what: "media type",
             input: s.to_string(),
-            expected: "one of model/stl, application/x-ply, text/x-xyz, image/png, application/x-npy, \
-                       text/x-gcode, application/json, text/html, application/octet-stream",
+            expected: "one of model/stl, application/x-ply, text/x-xyz, model/obj, model/x-off, \
+                       application/x-pcd, image/png, application/x-npy, text/x-gcode, application/json, \
+                       text/html, application/octet-stream",
         })
     }
 }

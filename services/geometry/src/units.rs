@@ -4,7 +4,7 @@
 //! scanners and scan repositories), inches (CAD exports for imperial shops) or millimetres.
 //! [`Units::Auto`] decides, in this order:
 //! 1. a unit named in the file's header text ([`header_hint`]: an STL `solid` line or binary
-//!    header, PLY `comment`/`obj_info` lines saying `units mm`, `unit: inch`, `metres`, ...);
+//!    header, PLY `comment`/`obj_info` lines, an OBJ's, OFF's or PCD's `#` comment lines, saying `units mm`, `unit: inch`, `metres`, ...);
 //! 2. the size: a model whose largest extent is under [`METRE_BELOW`] units is read as metres
 //!    (nothing that small in millimetres can be scanned or milled here, and every part this cell
 //!    can hold is under 2 m);
@@ -15,6 +15,8 @@
 use std::fmt;
 
 use serde::{Deserialize, Serialize};
+
+use crate::formats::InputFormat;
 
 /// A model whose largest extent is below this many units is read as metres by [`Units::Auto`].
 pub const METRE_BELOW: f64 = 2.0;
@@ -173,7 +175,7 @@ pub fn read_head(path: &std::path::Path) -> std::io::Result<Vec<u8>> {
     Ok(head)
 }
 
-/// A unit named in the header text of an STL or PLY file: the ASCII STL `solid` line or the
+/// A unit named in the header text of an STL, PLY, OBJ, OFF or PCD file: the ASCII STL `solid` line or the
 /// binary STL's 80-byte header, PLY `comment`/`obj_info` lines. Looks only at the header (the
 /// text before the first facet, `end_header`, or 80 bytes of a binary STL); returns the unit and
 /// the words that named it. Words: `mm`/`millimetre(s)`/`millimeter(s)`, `m`/`metre(s)`/`meter(s)`
@@ -216,6 +218,16 @@ fn header_text(head: &[u8]) -> String {
             .collect::<Vec<_>>()
             .join("\n");
     }
+    let format = crate::formats::sniff_format(head, None);
+    if matches!(format, InputFormat::Obj | InputFormat::Off | InputFormat::Pcd) {
+        // The comment lines (`# units: mm`); a PCD's `# .PCD v0.7` line says nothing.
+        return t
+            .lines()
+            .filter_map(|l| l.trim().strip_prefix('#'))
+            .filter(|l| !l.trim_start().starts_with(".PCD"))
+            .collect::<Vec<_>>()
+            .join("\n");
+    }
     if t.len() >= 5 && t[..5].eq_ignore_ascii_case("solid") && !head.iter().take(84).any(|&b| b == 0) {
         // ASCII STL: the solid line.
         return t.lines().next().unwrap_or("").to_string();
@@ -245,6 +257,12 @@ mod tests {
             (b"solid m\nfacet", None),
             (b"Exported from CAD, UNITS = MM\0\0\0\0", Some(LengthUnit::Millimetre)),
             (b"binary header without units\0\0\0\0\0inch after the NUL", None),
+            // OBJ, OFF and PCD: their `#` comment lines; vertex data and names say nothing.
+            (b"# Blender export\n# units: inches\nmtllib a.mtl\nv 1 2 3\n", Some(LengthUnit::Inch)),
+            (b"OFF\n# unit mm\n3 1 0\n", Some(LengthUnit::Millimetre)),
+            (b"# .PCD v0.7 - Point Cloud Data file format\n# metres\nVERSION 0.7\n", Some(LengthUnit::Metre)),
+            (b"# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS x y z\n", None),
+            (b"o inch_bracket\nv 1 2 3\n", None),
         ];
         for (head, want) in cases {
             assert_eq!(header_hint(head).map(|h| h.0), *want, "{}", String::from_utf8_lossy(head));

@@ -281,7 +281,7 @@ async fn read_mesh(cell: &Cell, sha: &str, units: i32) -> Result<(Mesh, Option<U
     match read.geometry {
         Geometry::Mesh(m) => Ok((m, read.units)),
         Geometry::Cloud(_) => Err(ErrorCode::InvalidArgument.status(format!(
-            "{}: is a point cloud; the simulated scan needs a mesh (STL or PLY with faces)",
+            "{}: is a point cloud; the simulated scan needs a mesh (STL, OBJ, OFF, or PLY with faces)",
             read.name
         ))),
     }

@@ -33,7 +33,11 @@
 
 pub mod error;
 pub mod mesh_ply;
+pub mod obj;
+pub mod off;
+pub mod pcd;
 pub mod ply;
+mod polygon;
 pub mod stl;
 pub mod xyz;
 
@@ -98,6 +102,12 @@ pub enum InputFormat {
     StlAscii,
     /// Binary STL (80-byte header, `u32` count, 50-byte records).
     StlBinary,
+    /// ASCII OFF (`OFF`, `COFF`, `NOFF`, `4OFF`, ... then counts, vertices, faces).
+    Off,
+    /// Wavefront OBJ (`v` and `f` statements).
+    Obj,
+    /// PCD, the Point Cloud Library's format (ascii, binary or binary_compressed body).
+    Pcd,
 }
 
 impl fmt::Display for InputFormat {
@@ -109,6 +119,9 @@ impl fmt::Display for InputFormat {
             InputFormat::PlyBinaryBe => "PLY (binary big-endian)",
             InputFormat::StlAscii => "STL (ascii)",
             InputFormat::StlBinary => "STL (binary)",
+            InputFormat::Off => "OFF",
+            InputFormat::Obj => "OBJ",
+            InputFormat::Pcd => "PCD",
         })
     }
 }
@@ -175,11 +188,17 @@ impl Geometry {
 ///    otherwise [`InputFormat::PlyAscii`]; the PLY reader takes the encoding from the header).
 /// 2. `size` known, at least 84 bytes and equal to 84 + 50·n with n the `u32` at byte 80: binary
 ///    STL (even when its header starts with `solid`, as many binary writers' do).
-/// 3. At least 84 bytes, some of which text never holds (NUL or control characters other than
+/// 3. A first line `# .PCD`, or a first line with data (past blank lines and `#` comments)
+///    starting with a PCD header keyword (`VERSION`, `FIELDS`, `COLUMNS`): PCD (whose binary body
+///    follows a text header).
+/// 4. At least 84 bytes, some of which text never holds (NUL or control characters other than
 ///    white space): binary STL (the reader then reports how the input fails the binary layout).
-/// 4. `solid` at the start (after white space, any case) and `facet` or `endsolid` further on:
+/// 5. `solid` at the start (after white space, any case) and `facet` or `endsolid` further on:
 ///    ASCII STL.
-/// 5. Otherwise XYZ text.
+/// 6. The first line with data starting with an OFF keyword (`OFF`, `COFF`, `NOFF`, `4OFF`, ...):
+///    OFF; with an OBJ statement (`v`, `vt`, `vn`, `f`, `o`, `g`, `s`, `mtllib`, `usemtl`, ...):
+///    OBJ.
+/// 7. Otherwise XYZ text.
 pub fn sniff_format(head: &[u8], size: Option<u64>) -> InputFormat {
     let first_line = head.split(|&b| b == b'\n').next().unwrap_or_default();
     if first_line.strip_suffix(b"\r").unwrap_or(first_line) == b"ply" {
@@ -190,6 +209,16 @@ pub fn sniff_format(head: &[u8], size: Option<u64>) -> InputFormat {
         if size == 84 + 50 * u64::from(n) {
             return InputFormat::StlBinary;
         }
+    }
+    let first_data = head
+        .split(|&b| b == b'\n')
+        .map(|l| l.iter().position(|&b| b == b'#').map_or(l, |k| &l[..k]))
+        .find_map(|l| tokens(l, is_space).next());
+    // A binary PCD body follows a text header.
+    if head.trim_ascii_start().starts_with(b"# .PCD")
+        || first_data.is_some_and(|t| pcd::PCD_KEYWORDS.contains(&t))
+    {
+        return InputFormat::Pcd;
     }
     if head.len() >= 84 && head.iter().any(|&b| b < 0x20 && !matches!(b, b'\t' | b'\n' | b'\r' | 0x0b | 0x0c))
     {
@@ -203,7 +232,11 @@ pub fn sniff_format(head: &[u8], size: Option<u64>) -> InputFormat {
             return InputFormat::StlAscii;
         }
     }
-    InputFormat::Xyz
+    match first_data {
+        Some(tok) if off::is_off_keyword(tok) => InputFormat::Off,
+        Some(tok) if obj::OBJ_KEYWORDS.contains(&tok) => InputFormat::Obj,
+        _ => InputFormat::Xyz,
+    }
 }
 
 fn sniff_ply_encoding(head: &[u8]) -> InputFormat {
@@ -277,7 +310,7 @@ fn read_path(path: &Path, limits: &ReadLimits, want: Want) -> Result<(Geometry, 
 pub(crate) fn not_a_mesh(name: &str, why: &str) -> FormatError {
     FormatError::UnsupportedFormat {
         file: name.to_string(),
-        reason: format!("{why}; a mesh needs STL or PLY with a face element"),
+        reason: format!("{why}; a mesh needs STL, OBJ or OFF with faces, or PLY with a face element"),
     }
 }
 
@@ -356,6 +389,20 @@ fn read_with<R: BufRead>(
                 Want::Cloud => (Geometry::Cloud(PointCloud::from_points(mesh.vertices)), stats),
                 _ => (Geometry::Mesh(mesh), stats),
             })
+        }
+        InputFormat::Off | InputFormat::Obj => {
+            let read = if format == InputFormat::Off { off::read_off_src } else { obj::read_obj_src };
+            let (geometry, stats) = read(&mut src, name, limits, want == Want::Cloud)?;
+            if want == Want::Mesh && matches!(geometry, Geometry::Cloud(_)) {
+                return Err(not_a_mesh(name, &format!("the {format} file has no faces, a point cloud")));
+            }
+            Ok((geometry, stats))
+        }
+        InputFormat::Pcd => {
+            if want == Want::Mesh {
+                return Err(not_a_mesh(name, "the input is PCD, a point cloud"));
+            }
+            pcd::read_pcd_src(&mut src, name, limits, keep).map(|(c, s)| (Geometry::Cloud(c), s))
         }
     }
 }
@@ -1059,3 +1106,6 @@ mod tests {
         assert_eq!((l.max_bytes, l.max_points, l.max_triangles), (8 << 30, 200_000_000, 50_000_000));
     }
 }
+
+#[cfg(test)]
+mod text_formats_tests;

@@ -777,7 +777,12 @@ pub(crate) fn read_ply_src<R: BufRead>(
 
 /// Renumbers triangles past the dropped vertices (`dropped_at`, ascending input indices) and
 /// removes those with a dropped corner, a repeated corner or zero area; returns how many went.
-fn finish_triangles(points: &[Point3<f64>], tris: &mut Vec<[u32; 3]>, dropped_at: &[u64], count: u64) -> u64 {
+pub(crate) fn finish_triangles(
+    points: &[Point3<f64>],
+    tris: &mut Vec<[u32; 3]>,
+    dropped_at: &[u64],
+    count: u64,
+) -> u64 {
     let remap: Option<Vec<u32>> = (!dropped_at.is_empty()).then(|| {
         let mut map = Vec::with_capacity(count as usize);
         let mut gone = dropped_at.iter().peekable();

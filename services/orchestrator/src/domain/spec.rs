@@ -181,8 +181,14 @@ impl InputKind {
     /// Media types an input of this kind may have.
     pub fn media_types(self) -> &'static [&'static str] {
         match self {
-            InputKind::Mesh => &["model/stl", "application/x-ply"],
-            InputKind::PointCloud => &["text/x-xyz", "application/x-ply", "application/octet-stream"],
+            InputKind::Mesh => &["model/stl", "application/x-ply", "model/obj", "model/x-off"],
+            InputKind::PointCloud => &[
+                "text/x-xyz",
+                "application/x-ply",
+                "application/x-pcd",
+                "model/obj",
+                "application/octet-stream",
+            ],
             InputKind::DepthMap => &["image/png", "application/x-npy"],
             InputKind::Gcode => &["text/x-gcode"],
         }
