@@ -404,7 +404,7 @@ function jobDetails(job) {
 }
 
 function extension(mediaType) {
-  return ({ 'application/x-ply': '.ply', 'model/stl': '.stl', 'image/png': '.png', 'text/x-gcode': '.ngc', 'text/csv': '.csv',
+  return ({ 'application/x-ply': '.ply', 'model/stl': '.stl', 'model/obj': '.obj', 'model/x-off': '.off', 'application/x-pcd': '.pcd', 'image/png': '.png', 'text/x-gcode': '.ngc', 'text/csv': '.csv',
     'application/json': '.json', 'text/html': '.html', 'application/x-npy': '.npy', 'text/x-xyz': '.xyz', 'image/svg+xml': '.svg' })[mediaType] || '';
 }
 
@@ -797,7 +797,7 @@ async function viewerPanel(job) {
 
 function kindOf(file) {
   const ext = (file.name.split('.').pop() || '').toLowerCase();
-  return ({ stl: ['mesh', 'model/stl'], xyz: ['point_cloud', 'text/x-xyz'], txt: ['point_cloud', 'text/x-xyz'], asc: ['point_cloud', 'text/x-xyz'],
+  return ({ stl: ['mesh', 'model/stl'], obj: ['mesh', 'model/obj'], off: ['mesh', 'model/x-off'], pcd: ['point_cloud', 'application/x-pcd'], xyz: ['point_cloud', 'text/x-xyz'], txt: ['point_cloud', 'text/x-xyz'], asc: ['point_cloud', 'text/x-xyz'],
     ply: ['ply', 'application/x-ply'], png: ['depth_map', 'image/png'], npy: ['depth_map', 'application/x-npy'],
     ngc: ['gcode', 'text/x-gcode'], nc: ['gcode', 'text/x-gcode'], gcode: ['gcode', 'text/x-gcode'], tap: ['gcode', 'text/x-gcode'], cnc: ['gcode', 'text/x-gcode'] })[ext] || null;
 }
@@ -919,7 +919,7 @@ async function submitPage() {
   if (materials) catalogs.material = materials.materials.map((m) => m.name);
   if (machines) catalogs.machine = machines.machines.map((m) => m.name);
 
-  const fileInput = h('input', { type: 'file', id: 'file-input', accept: '.stl,.ply,.xyz,.txt,.asc,.png,.npy,.ngc,.nc,.gcode,.tap,.cnc', class: 'visually-hidden' });
+  const fileInput = h('input', { type: 'file', id: 'file-input', accept: '.stl,.obj,.off,.ply,.pcd,.xyz,.txt,.asc,.png,.npy,.ngc,.nc,.gcode,.tap,.cnc', class: 'visually-hidden' });
   const drop = h('div', { class: 'drop', id: 'drop-zone', tabindex: '0', role: 'button', 'aria-describedby': 'drop-help' },
     h('strong', { text: 'Drop a part file here' }), h('br'), h('span', { id: 'drop-help', class: 'muted small', text: 'or press Enter to choose one: STL, PLY, XYZ (mesh or scan), PNG, NPY (depth map), NGC (G-code)' }));
   const fileStatus = h('p', { id: 'file-status', role: 'status', class: 'small' });
