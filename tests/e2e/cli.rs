@@ -411,3 +411,79 @@ async fn a_part_scanned_on_the_mill_merges_by_the_chain_and_bad_options_are_name
     assert!(!std::path::Path::new(&out2).exists());
     Ok(())
 }
+
+/// `depthmill raster` of a part as OBJ (quads, relative references) and of a cloud as ASCII PCD,
+/// each into a folder that does not exist yet (created), gives the same map as the STL of the
+/// same block; a PCD missing its `z` field is refused naming the line, and writes nothing.
+#[test]
+fn raster_reads_obj_and_pcd_into_a_new_folder() -> anyhow::Result<()> {
+    let dir = tempfile::tempdir()?;
+    let (mut v, mut t) = (Vec::new(), Vec::new());
+    cuboid(&mut v, &mut t, [0.0; 3], [20.0, 10.0, 5.0], false);
+    let mesh = depthmill_geometry::Mesh::new(v.clone(), t.clone())?;
+    let stl = dir.path().join("block.stl");
+    depthmill_geometry::formats::write_stl(std::fs::File::create(&stl)?, &mesh, "block")?;
+    let mut obj = String::from("# block in mm\no block\n");
+    for p in &v {
+        obj += &format!("v {} {} {}\n", p.x, p.y, p.z);
+    }
+    for tri in &t {
+        let n = v.len() as i64;
+        obj += &format!(
+            "f {}//1 {}//1 {}//1\n",
+            i64::from(tri[0]) - n,
+            i64::from(tri[1]) - n,
+            i64::from(tri[2]) - n
+        );
+    }
+    let obj_path = dir.path().join("block.obj");
+    std::fs::write(&obj_path, obj)?;
+    let mut pcd = String::from(
+        "# .PCD v0.7\nVERSION 0.7\nFIELDS x y z rgb\nSIZE 4 4 4 4\nTYPE F F F U\nCOUNT 1 1 1 1\n",
+    );
+    let grid: Vec<(f64, f64)> =
+        (0..=40).flat_map(|i| (0..=20).map(move |j| (f64::from(i) * 0.5, f64::from(j) * 0.5))).collect();
+    pcd += &format!(
+        "WIDTH {}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {}\nDATA ascii\n",
+        grid.len(),
+        grid.len()
+    );
+    for (x, y) in &grid {
+        pcd += &format!("{x} {y} 5 4278190080\n");
+    }
+    let pcd_path = dir.path().join("top.pcd");
+    std::fs::write(&pcd_path, &pcd)?;
+
+    let map_of =
+        |input: &std::path::Path, out: &std::path::Path| -> anyhow::Result<depthmill_geometry::HeightMap> {
+            let (code, stdout, stderr) = depthmill(&[
+                "raster",
+                &input.display().to_string(),
+                "--pixel-mm",
+                "0.5",
+                "--units",
+                "mm",
+                "-o",
+                &out.display().to_string(),
+            ])?;
+            assert_eq!(code, 0, "{stdout}{stderr}");
+            Ok(depthmill_geometry::HeightMap::read(out, None)?)
+        };
+    let from_stl = map_of(&stl, &dir.path().join("stl/map.npy"))?;
+    let from_obj = map_of(&obj_path, &dir.path().join("new/folder/map.npy"))?;
+    assert_eq!((from_obj.width(), from_obj.height()), (from_stl.width(), from_stl.height()));
+    let same = from_obj.data().iter().zip(from_stl.data()).all(|(a, b)| a == b || (a.is_nan() && b.is_nan()));
+    assert!(same, "the OBJ's map differs from the STL's");
+    let from_pcd = map_of(&pcd_path, &dir.path().join("pcd/map.npy"))?;
+    let measured: Vec<f32> = from_pcd.data().iter().copied().filter(|z| z.is_finite()).collect();
+    assert!(measured.len() > 100 && measured.iter().all(|&z| (z - 5.0).abs() < 1e-6), "{}", measured.len());
+
+    std::fs::write(&pcd_path, pcd.replace("FIELDS x y z rgb", "FIELDS x y q rgb"))?;
+    let out = dir.path().join("bad/map.npy");
+    let (code, _, stderr) =
+        depthmill(&["raster", &pcd_path.display().to_string(), "-o", &out.display().to_string()])?;
+    assert_eq!(code, 1, "{stderr}");
+    assert!(stderr.contains("line 3: PCD: no field z (the fields are x y q rgb)"), "{stderr}");
+    assert!(!out.exists() && !dir.path().join("bad").exists());
+    Ok(())
+}

@@ -112,6 +112,9 @@ pub fn run(input: &Path, args: &RasterArgs, output: &Path) -> anyhow::Result<()>
     if out.faces.is_empty() {
         bail!("no face produced");
     }
+    if let Some(dir) = output.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
     for (i, f) in out.faces.iter().enumerate() {
         let main = if i == 0 { output.to_path_buf() } else { sibling(output, &format!(".face{i}"), ext) };
         write(&f.depth_map, &main)?;
