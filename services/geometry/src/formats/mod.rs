@@ -189,14 +189,14 @@ impl Geometry {
 /// 2. `size` known, at least 84 bytes and equal to 84 + 50·n with n the `u32` at byte 80: binary
 ///    STL (even when its header starts with `solid`, as many binary writers' do).
 /// 3. A first line `# .PCD`, or a first line with data (past blank lines and `#` comments)
-///    starting with a PCD header keyword (`VERSION`, `FIELDS`, `COLUMNS`): PCD (whose binary body
-///    follows a text header).
+///    starting with a PCD header keyword (`VERSION`, `FIELDS`, `COLUMNS`) and `FIELDS` (or
+///    `COLUMNS`) and `DATA` lines further on: PCD (whose binary body follows a text header).
 /// 4. At least 84 bytes, some of which text never holds (NUL or control characters other than
 ///    white space): binary STL (the reader then reports how the input fails the binary layout).
 /// 5. `solid` at the start (after white space, any case) and `facet` or `endsolid` further on:
 ///    ASCII STL.
 /// 6. The first line with data starting with an OFF keyword (`OFF`, `COFF`, `NOFF`, `4OFF`, ...):
-///    OFF; with an OBJ statement (`v`, `vt`, `vn`, `f`, `o`, `g`, `s`, `mtllib`, `usemtl`, ...):
+///    OFF; with a PCD header keyword: PCD (a header cut short); with an OBJ statement (`v`, `vt`, `vn`, `f`, `o`, `g`, `s`, `mtllib`, `usemtl`, ...):
 ///    OBJ.
 /// 7. Otherwise XYZ text.
 pub fn sniff_format(head: &[u8], size: Option<u64>) -> InputFormat {
@@ -214,9 +214,13 @@ pub fn sniff_format(head: &[u8], size: Option<u64>) -> InputFormat {
         .split(|&b| b == b'\n')
         .map(|l| l.iter().position(|&b| b == b'#').map_or(l, |k| &l[..k]))
         .find_map(|l| tokens(l, is_space).next());
-    // A binary PCD body follows a text header.
+    // A binary PCD body follows a text header: its first line, or a header keyword first with the
+    // FIELDS (COLUMNS) and DATA lines in the head (a binary STL's header may start with any word).
+    let line_starts = |word: &[u8]| head.split(|&b| b == b'\n').any(|l| l.starts_with(word));
     if head.trim_ascii_start().starts_with(b"# .PCD")
-        || first_data.is_some_and(|t| pcd::PCD_KEYWORDS.contains(&t))
+        || (first_data.is_some_and(|t| pcd::PCD_KEYWORDS.contains(&t))
+            && (line_starts(b"FIELDS ") || line_starts(b"COLUMNS "))
+            && line_starts(b"DATA "))
     {
         return InputFormat::Pcd;
     }
@@ -234,6 +238,7 @@ pub fn sniff_format(head: &[u8], size: Option<u64>) -> InputFormat {
     }
     match first_data {
         Some(tok) if off::is_off_keyword(tok) => InputFormat::Off,
+        Some(tok) if pcd::PCD_KEYWORDS.contains(&tok) => InputFormat::Pcd,
         Some(tok) if obj::OBJ_KEYWORDS.contains(&tok) => InputFormat::Obj,
         _ => InputFormat::Xyz,
     }

@@ -473,7 +473,13 @@ fn sniffing_the_text_formats() {
         sniff_format(b"# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\n", None),
         InputFormat::Pcd
     );
-    assert_eq!(sniff_format(b"FIELDS x y z\n", None), InputFormat::Pcd);
+    assert_eq!(sniff_format(b"FIELDS x y z\nSIZE 4 4 4\nDATA ascii\n", None), InputFormat::Pcd);
+    // A binary STL whose header starts with a PCD keyword, its size unknown.
+    let mut stl = b"VERSION 2 exported".to_vec();
+    stl.resize(80, 0);
+    stl.extend_from_slice(&1u32.to_le_bytes());
+    stl.resize(134, 0);
+    assert_eq!(sniff_format(&stl, None), InputFormat::StlBinary);
     assert_eq!(sniff_format(b"# x y z\n1 2 3\n", None), InputFormat::Xyz);
     assert_eq!(sniff_format(b"OFFSET 1 2\n", None), InputFormat::Xyz);
 }
