@@ -45,6 +45,14 @@ put("xyz/bad-number.xyz", "0 0 0\n1 1 1\n2 2 x\n")
 put("xyz/column-count-changes.xyz", "0 0 0\n1 1 1 7\n")
 put("xyz/nul-byte.xyz", b"0 0 0\n1\x001 1\n")
 put("xyz/one-column.xyz", "12\n13\n")
+# OBJ, OFF (meshes) and PCD (clouds)
+put("obj/index-out-of-range.obj", "# a triangle\nv 0 0 0\nv 10 0 0\nv 0 10 1\nf 1 2 4\n")
+put("obj/zero-index.obj", "v 0 0 0\nv 10 0 0\nv 0 10 1\nf 0 1 2\n")
+put("off/truncated.off", "OFF\n3 1 0\n0 0 0\n10 0 0\n")
+put("off/binary.off", b"OFF BINARY\n" + struct.pack(">3i", 3, 1, 0) + struct.pack(">9f", 0, 0, 0, 10, 0, 0, 0, 10, 1))
+pcd_head = "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS {fields}\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA {data}\n"
+put("pcd/no-z-field.pcd", pcd_head.format(fields="x y w", n=2, data="ascii") + "0 0 0\n1 1 1\n")
+put("pcd/compressed-size-mismatch.pcd", pcd_head.format(fields="x y z", n=100, data="binary_compressed").encode() + struct.pack("<II", 4, 1000) + bytes(4))
 # PNG
 def png(width, height, color_type, bit_depth, rows, text=None):
     def chunk(kind, data):
