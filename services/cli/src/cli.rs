@@ -127,7 +127,7 @@ enum Command {
     /// Also writes <stem>.report.json, <stem>.preview.png (the surface the program leaves) and
     /// <stem>.leftover.png next to the program.
     ///
-    /// With --robot, MAP is a mesh (STL/PLY) milled layer by layer by the 6-axis arm with a
+    /// With --robot, MAP is a mesh (STL/OBJ/OFF/PLY) milled layer by layer by the 6-axis arm with a
     /// spindle: writes the Cartesian program (tool tip X Y Z, tool axis A B), <stem>.joints.json
     /// (the joint trajectory) and <stem>.robot.json (clearance, tilts, reach, timing).
     Plan {
@@ -148,7 +148,7 @@ enum Command {
         #[arg(short, long)]
         output: PathBuf,
     },
-    /// Rasterise a point cloud (XYZ/PLY) or mesh (STL/PLY) into depth maps (no server).
+    /// Rasterise a point cloud (XYZ/PCD/PLY) or mesh (STL/OBJ/OFF/PLY) into depth maps (no server).
     ///
     /// Writes OUTPUT (.png or .npy), <stem>.coverage.png, <stem>.roughing.<ext> and
     /// <stem>.report.json; several --face flags give one map per face (<stem>.face1.<ext>, ...).
@@ -159,7 +159,7 @@ enum Command {
         #[arg(short, long)]
         output: PathBuf,
     },
-    /// Slice a mesh (STL/PLY) into planar layers (no server).
+    /// Slice a mesh (STL/OBJ/OFF/PLY) into planar layers (no server).
     ///
     /// Writes OUTPUT (JSON): the mesh's edge check (open, non-manifold and misoriented edges)
     /// and every layer's closed contours (counter-clockwise outer boundaries, clockwise holes,
@@ -177,7 +177,7 @@ enum Command {
         #[command(flatten)]
         args: demo::DemoArgs,
     },
-    /// Scan a part's mesh (STL/PLY) on the simulated cell into a point cloud (no server).
+    /// Scan a part's mesh (STL/OBJ/OFF/PLY) on the simulated cell into a point cloud (no server).
     ///
     /// Writes OUTPUT (binary PLY: x y z, intensity, pass id, in the mesh's frame) and
     /// <stem>.scan.json (plan, passes, drops, registration error, coverage).

@@ -139,7 +139,7 @@ pub struct SimulateArgs {
     /// <stem>.joints.json): replay it through the arm's kinematics on a dexel stock.
     #[arg(long)]
     pub robot: bool,
-    /// With --robot: the part's mesh (STL/PLY) to measure the machined part against.
+    /// With --robot: the part's mesh (STL/OBJ/OFF/PLY) to measure the machined part against.
     #[arg(long, requires = "robot")]
     pub part: Option<PathBuf>,
     /// With --robot: length unit of the part's mesh: mm, m or in.

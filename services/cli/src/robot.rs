@@ -13,7 +13,7 @@ use depthmill_cam::domain::robot_job::{RobotSettings, robot_report, robot_warnin
 /// `depthmill_cam::domain::robot_job`).
 #[derive(clap::Args, Clone, Debug)]
 pub struct RobotArgs {
-    /// Plan robot milling from a mesh (STL/PLY) instead of a 3-axis program from a depth map.
+    /// Plan robot milling from a mesh (STL/OBJ/OFF/PLY) instead of a 3-axis program from a depth map.
     #[arg(long)]
     pub robot: bool,
     /// With --robot: the tool (library name or .tool file; default flat-6).

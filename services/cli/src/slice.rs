@@ -88,7 +88,7 @@ fn gcode(
     Ok(g)
 }
 
-/// Reads a mesh (STL/PLY) in `units` (`mm`, `m` or `in`, given by the option `flag`) and scales
+/// Reads a mesh (STL/OBJ/OFF/PLY) in `units` (`mm`, `m` or `in`, given by the option `flag`) and scales
 /// it to millimetres; a mesh with no triangles is refused.
 pub(crate) fn read_mesh_in(
     input: &Path,

@@ -406,13 +406,26 @@ pub(crate) fn read_pcd_src<R: BufRead>(
                 parse_error(name, Location::Byte(start + 8), format!("PCD: compressed block: {why}"))
             })?;
             let n = h.points as usize;
-            // Fields one after the other: field f's elements start at points × its offset.
+            // Fields one after the other: field f's elements start at points × its offset. The
+            // fields used are decoded a column at a time.
+            let column = |f: usize| -> Vec<f64> {
+                let field = &h.fields[f];
+                let stride = field.size * field.count;
+                raw[n * field.offset..n * (field.offset + stride)]
+                    .chunks_exact(stride)
+                    .map(|b| field.decode(b))
+                    .collect()
+            };
+            let [x, y, z] = plan.xyz.map(column);
+            let intensity = plan.intensity.map(column);
+            let normals = plan.normals.map(|n| n.map(column));
             for i in 0..n {
-                push(&mut sink, &|f| {
-                    let field = &h.fields[f];
-                    let at = n * field.offset + i * field.size * field.count;
-                    field.decode(&raw[at..])
-                });
+                sink.push(
+                    [x[i], y[i], z[i]],
+                    intensity.as_ref().map_or(0.0, |v| v[i] as f32),
+                    normals.as_ref().map_or([0.0; 3], |c| [c[0][i] as f32, c[1][i] as f32, c[2][i] as f32]),
+                    0,
+                );
             }
         }
     }
@@ -466,9 +479,14 @@ pub fn lzf_decompress(input: &[u8], len: usize) -> Result<Vec<u8>, String> {
                 return Err(format!("the data holds more than the {len} bytes announced"));
             }
             let from = out.len() - back;
-            for k in 0..run {
-                let b = out[from + k];
-                out.push(b);
+            if back >= run {
+                out.extend_from_within(from..from + run);
+            } else {
+                // Overlapping: the run repeats the last `back` bytes.
+                for k in 0..run {
+                    let b = out[from + k];
+                    out.push(b);
+                }
             }
         }
     }
