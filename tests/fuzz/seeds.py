@@ -76,6 +76,32 @@ for name, data in xyz.items():
     put("xyz", name, data)
     put("cloud", name, data)
 
+# OBJ, OFF and PCD (ascii, binary, LZF-compressed), through the sniffing reader.
+obj = "# seed\nmtllib a.mtl\no part\n" + "".join(f"v {x} {y} {z}\n" for x, y, z in pts) + "vn 0 0 1\n"
+obj += "f 1//1 2//1 3//1\nf -3/1 -1/2 -2/3\nf 1 2 \\\n 4 3\n"
+put("cloud", "mesh.obj", obj)
+put("cloud", "points.obj", "".join(f"v {x} {y} {z}\n" for x, y, z in pts))
+off = "OFF\n# seed\n%d %d 0\n" % (len(pts), len(tris)) + "".join(f"{x} {y} {z}\n" for x, y, z in pts)
+put("cloud", "mesh.off", off + "".join(f"3 {a} {b} {c}\n" for a, b, c in tris))
+put("cloud", "quads.coff", "COFF 4 1 0\n" + "".join(f"{x} {y} {z} 1 0 0 1\n" for x, y, z in pts) + "4 0 1 3 2 0.5 0.5 0.5\n")
+
+def pcd(data, body, fields="x y z intensity", size="4 4 4 2", types="F F F U"):
+    head = (f"# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS {fields}\nSIZE {size}\n"
+            f"TYPE {types}\nCOUNT 1 1 1 1\nWIDTH {len(pts)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\n"
+            f"POINTS {len(pts)}\nDATA {data}\n")
+    return head.encode() + body
+
+put("cloud", "ascii.pcd", pcd("ascii", "".join(f"{x} {y} {z} 7\n" for x, y, z in pts).encode()))
+rec = b"".join(struct.pack("<3fH", x, y, z, 7) for x, y, z in pts)
+put("cloud", "binary.pcd", pcd("binary", rec))
+soa = b"".join(struct.pack("<f", p[k]) for k in range(3) for p in pts) + struct.pack("<4H", 7, 7, 7, 7)
+# LZF: the columns as literal runs (at most 32 bytes each), then the intensities' last 6 bytes as
+# an overlapping back reference 2 bytes back (the u16 7 repeated): control (6 - 2) << 5, offset 1.
+lits = soa[:-6]
+body = b"".join(bytes([len(lits[i:i + 32]) - 1]) + lits[i:i + 32] for i in range(0, len(lits), 32))
+body += bytes([4 << 5, 1])
+put("cloud", "compressed.pcd", pcd("binary_compressed", struct.pack("<II", len(body), len(soa)) + body))
+
 # PNG: grey 8 and 16 bit, with and without the depthmill metadata chunk.
 def png(bits, text=None):
     w, h = 4, 3
@@ -109,7 +135,7 @@ copy_dir("machine_toml", "services/machine/machines", "*.toml")
 
 for kind in ("ply", "stl", "xyz", "png", "npy"):
     copy_dir(kind, f"tests/corpus/{kind}")
-for kind in ("ply", "stl", "xyz"):
+for kind in ("ply", "stl", "xyz", "obj", "off", "pcd"):
     copy_dir("cloud", f"tests/corpus/{kind}")
 copy_dir("job_json", "tests/corpus/job")
 copy_dir("gcode", "tests/corpus/gcode")

@@ -1,5 +1,5 @@
 //! Any cloud or mesh input as the services read an upload: the format sniffed from its first
-//! bytes (PLY, STL ascii/binary, XYZ), the production limits.
+//! bytes (PLY, STL ascii/binary, OBJ, OFF, PCD, XYZ), the production limits.
 #![no_main]
 
 use std::io::Cursor;

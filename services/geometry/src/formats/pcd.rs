@@ -405,6 +405,7 @@ pub(crate) fn read_pcd_src<R: BufRead>(
             let raw = lzf_decompress(&input, unpacked as usize).map_err(|why| {
                 parse_error(name, Location::Byte(start + 8), format!("PCD: compressed block: {why}"))
             })?;
+            drop(input);
             let n = h.points as usize;
             // Fields one after the other: field f's elements start at points × its offset. The
             // fields used are decoded a column at a time.
