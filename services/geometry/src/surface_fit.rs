@@ -13,7 +13,11 @@
 //! 1. Every point is binned as [`crate::raster::rasterize_max`] bins it; a cell keeps its count and the mean of
 //!    its points (X, Y as offsets from its centre, Z). Only its top surface counts: points more
 //!    than [`TOP_BAND_NOISE`] noises plus a 75° slope's rise across the cell below its highest
-//!    point are left out (a floor under an overhang that a tilted pass saw, a wall's inner face).
+//!    point are left out (a floor under an overhang that a tilted pass saw, a wall's inner face),
+//!    and so are those under a step inside the cell: the heights left split at their widest gap
+//!    into two levels, the gap over [`STEP_GAP_NOISE`] noises and twice either level's spread (a
+//!    pocket's edge crossing the cell; one point above the rest counts as a level only where a
+//!    neighbouring cell's top is at its height, else it is a stray) ([`step_floor`]).
 //! 2. The noise of one point, σ, unless given: per sampled cell, the residual of its mean against a
 //!    quadric fitted to the cells around it (itself left out), scaled by the variance it should
 //!    have; σ = 1.4826 × the median of those (steps and walls are a minority and do not move it).
@@ -60,6 +64,8 @@ pub const MIN_NOISE_MM: f64 = 0.001;
 /// A cell's points more than this many noises (plus [`TOP_BAND_SLOPE`]'s rise) below its highest
 /// are on a surface under its top, and left out of the fit.
 pub const TOP_BAND_NOISE: f64 = 6.0;
+/// The narrowest gap, in noises, between the two levels of a step inside a cell ([`step_floor`]).
+pub const STEP_GAP_NOISE: f64 = 6.0;
 /// The steepest slope a cell's top surface is allowed across the cell's diagonal (tan 75°):
 /// steeper is a wall, whose lower points are not the top.
 pub const TOP_BAND_SLOPE: f64 = 3.732_050_807_568_877;
@@ -265,11 +271,15 @@ fn fit_map<P: CloudPoint>(
         }
     }
     let band = TOP_BAND_NOISE * noise + TOP_BAND_SLOPE * std::f64::consts::SQRT_2 * p;
-    let under_top = |i: usize, z: f64| top.get(i).is_some_and(|&t| z < t - band);
+    // Per cell the lowest height a top-surface point may have: `top - band`, or above a step
+    // inside the cell ([`step_floor`]).
+    let floor = top_floors(&index, points, &top, w, band, noise);
+    let under_top = |i: usize, z: f64| floor.get(i).is_some_and(|&f| z < f);
     let below_top = index.iter().zip(points).filter(|&(&i, pt)| under_top(i as usize, pt.at().z)).count();
     let cells = if below_top == 0 { all } else { bin(&|i, z| !under_top(i, z)) };
     drop(index);
     drop(top);
+    drop(floor);
     let field = Field { cells: &cells, w, h, pixel: p, kmax, ridges };
     let fitted: Vec<(f32, Option<FitInfo>)> = (0..cells_n)
         .into_par_iter()
@@ -592,6 +602,97 @@ impl Model {
             Model::Mean(_) => Kind::Mean,
         }
     }
+}
+
+/// Per cell, the lowest height a point of its top surface may have: `top - band`, raised to the
+/// middle of a step's gap where the cell's points within the band split into two levels
+/// ([`step_floor`]).
+fn top_floors<P: CloudPoint>(
+    index: &[u32],
+    points: &[P],
+    top: &[f64],
+    w: usize,
+    band: f64,
+    noise: f64,
+) -> Vec<f64> {
+    let mut floor: Vec<f64> = top.iter().map(|&t| t - band).collect();
+    // Only cells whose points spread over more than a step's smallest gap can hold a step.
+    let mut low = vec![f64::INFINITY; top.len()];
+    for (&i, pt) in index.iter().zip(points) {
+        let z = pt.at().z;
+        if let Some(l) = low.get_mut(i as usize)
+            && floor.get(i as usize).is_some_and(|&f| z >= f)
+        {
+            *l = l.min(z);
+        }
+    }
+    let min_gap = STEP_GAP_NOISE * noise;
+    let spread: Vec<bool> = top.iter().zip(&low).map(|(&t, &l)| t - l > min_gap).collect();
+    if !spread.contains(&true) {
+        return floor;
+    }
+    // Those cells' heights, grouped by cell.
+    let mut start = vec![0usize; top.len() + 1];
+    for &i in index {
+        if spread.get(i as usize) == Some(&true) {
+            start[i as usize + 1] += 1;
+        }
+    }
+    for k in 0..top.len() {
+        start[k + 1] += start[k];
+    }
+    let mut next = start.clone();
+    let mut zs = vec![0.0f64; start[top.len()]];
+    for (&i, pt) in index.iter().zip(points) {
+        let i = i as usize;
+        if spread.get(i) == Some(&true) {
+            zs[next[i]] = pt.at().z;
+            next[i] += 1;
+        }
+    }
+    let h = top.len() / w.max(1);
+    // A lone point above the rest is a level when a neighbouring cell's top is at its height
+    // (the top surface reaching into the cell), a stray otherwise.
+    let supported = |c: usize, z: f64| {
+        let (x, y) = ((c % w) as i64, (c / w) as i64);
+        (-1..=1).flat_map(|dy| (-1..=1).map(move |dx| (x + dx, y + dy))).any(|(nx, ny)| {
+            (nx, ny) != (x, y)
+                && (0..w as i64).contains(&nx)
+                && (0..h as i64).contains(&ny)
+                && (top[ny as usize * w + nx as usize] - z).abs() <= min_gap
+        })
+    };
+    for (c, f) in floor.iter_mut().enumerate() {
+        if spread[c] {
+            let cell = &mut zs[start[c]..start[c + 1]];
+            if let Some(raised) = step_floor(cell, *f, min_gap, |z| supported(c, z)) {
+                *f = raised;
+            }
+        }
+    }
+    floor
+}
+
+/// A step inside a cell: its heights at or above `floor`, sorted, split at their widest gap into
+/// two levels, the gap wider than `min_gap` and than twice either level's own spread (a step's two
+/// levels are flat and far apart; a steep slope's heights spread evenly; leaving low points out only
+/// raises the cell). An upper level of one point counts only when `lone_ok` says so of its height
+/// (a neighbour's top there: the top surface reaching into the cell, not a stray). Returns the
+/// middle of the gap: the lower level is another surface (the floor of a pocket whose edge crosses
+/// the cell, seen past the edge), and the fit takes the cell's top level only, as `max` does.
+fn step_floor(zs: &mut [f64], floor: f64, min_gap: f64, lone_ok: impl Fn(f64) -> bool) -> Option<f64> {
+    zs.sort_unstable_by(|a, b| b.total_cmp(a));
+    let n = zs.iter().take_while(|&&z| z >= floor).count();
+    let zs = &zs[..n];
+    if n < 2 {
+        return None;
+    }
+    // The widest gap.
+    let (k, gap) = (0..n - 1).map(|k| (k, zs[k] - zs[k + 1])).max_by(|a, b| a.1.total_cmp(&b.1))?;
+    let upper = zs[0] - zs[k];
+    let lower = zs[k + 1] - zs[n - 1];
+    let split = gap > min_gap && gap > 2.0 * upper.max(lower) && (k > 0 || lone_ok(zs[0]));
+    split.then(|| 0.5 * (zs[k] + zs[k + 1]))
 }
 
 /// Directions across which a ridge through a cell's centre is tried: unit vectors in window
@@ -991,6 +1092,115 @@ mod tests {
         let beside = |x: f64, y: f64| inner(x, y) && !(4.4..10.6).contains(&x);
         let (mean, _, worst) = errors(&map, beside, top);
         assert!(mean.abs() < 0.005 && worst < 0.05, "floor: mean {mean} worst {worst}");
+    }
+
+    #[test]
+    fn a_pocket_edge_inside_a_cell_keeps_the_top_level() {
+        // A top at z = 1 and, past y = 7.2 mm (inside a row of 0.25 mm cells, 0.075 mm past its
+        // centre), a pocket floor 0.65 mm below: the edge's cells hold points of both levels, well
+        // within the band a 75° slope across a cell allows. The cells whose centres are on the top keep its height
+        // (their pocket points left out), the pocket's own cells keep theirs, and a steep slope
+        // (70°, points spread evenly in height) is not taken for a step.
+        let g = grid(56, 0.25);
+        let sigma = 0.035;
+        let edge = 7.2;
+        let level = move |_: f64, y: f64| if y < edge { 1.0 } else { 0.35 };
+        let pts = cloud(&g, 16.0, sigma, 21, level);
+        let (map, _, rep) =
+            rasterize_fit(&pts, &g, &FitParams { noise_mm: Some(sigma), ..FitParams::default() })
+                .expect("fit");
+        assert!(rep.below_top_points > 0, "{rep:?}");
+        let m = *map.meta();
+        let (mut deepest, mut top_cells) = (0.0f64, 0);
+        for r in 0..m.height {
+            for c in 4..m.width - 4 {
+                let y = m.origin_y_mm + (f64::from(r) + 0.5) * m.pixel_mm;
+                let x = m.origin_x_mm + (f64::from(c) + 0.5) * m.pixel_mm;
+                let Some(z) = map.get(c, r).filter(|z| z.is_finite()) else { continue };
+                if (edge - 1.0..edge).contains(&y) {
+                    deepest = deepest.min(f64::from(z) - level(x, y));
+                    top_cells += 1;
+                }
+            }
+        }
+        assert!(top_cells > 100);
+        assert!(deepest > -0.03, "a top cell beside the edge is cut {deepest} mm into");
+        let inner = |x: f64, y: f64| x > 1.0 && x < 13.0 && y > 1.0 && y < 13.0;
+        let (mean, _, _) = errors(&map, |x, y| inner(x, y) && y < edge - 0.5, level);
+        assert!(mean.abs() < 0.005, "top: {mean}");
+        let (mean, _, _) = errors(&map, |x, y| inner(x, y) && y > edge + 0.75, level);
+        assert!(mean.abs() < 0.005, "pocket: {mean}");
+
+        let slope = |x: f64, _: f64| 2.0 + x * 70f64.to_radians().tan();
+        let pts = cloud(&g, 64.0, sigma, 22, slope);
+        let (map, _, _) =
+            rasterize_fit(&pts, &g, &FitParams { noise_mm: Some(sigma), ..FitParams::default() })
+                .expect("fit");
+        let (mean, _, _) = errors(&map, inner, slope);
+        assert!(mean.abs() < 0.02, "slope: {mean}");
+    }
+
+    #[test]
+    fn top_floors_match_a_cell_by_cell_reference() {
+        // Random steps, strays and slopes on a small grid, the floors against each cell's points
+        // gathered by a scan of the whole cloud and handed to `step_floor`.
+        let mut rng = StdRng::seed_from_u64(5);
+        let mut raised = 0;
+        for round in 0..20 {
+            let g = grid(12, 0.25);
+            let step_at: f64 = rng.random_range(0.5..2.5);
+            let drop: f64 = rng.random_range(0.0..1.0);
+            let tilt: f64 = rng.random_range(0.0..4.0);
+            let mut pts = cloud(&g, rng.random_range(1.0..12.0), 0.03, round, move |x, y| {
+                if y < step_at { 1.0 + tilt * x } else { 1.0 + tilt * x - drop }
+            });
+            for _ in 0..rng.random_range(0..6) {
+                let k = rng.random_range(0..pts.len());
+                pts[k].z += rng.random_range(-1.0..1.0);
+            }
+            let (index, _, _) = cell_indices(&pts, &g);
+            let cells = (g.width * g.height) as usize;
+            let mut top = vec![f64::NEG_INFINITY; cells];
+            for (&i, p) in index.iter().zip(&pts) {
+                if let Some(t) = top.get_mut(i as usize) {
+                    *t = t.max(p.z);
+                }
+            }
+            let (band, noise) = (0.5, 0.03);
+            let fast = top_floors(&index, &pts, &top, g.width as usize, band, noise);
+            let min_gap = STEP_GAP_NOISE * noise;
+            for c in 0..cells {
+                let mut zs: Vec<f64> =
+                    index.iter().zip(&pts).filter(|&(&i, _)| i as usize == c).map(|(_, p)| p.z).collect();
+                let floor = top[c] - band;
+                let w = g.width as usize;
+                let lone_ok = |z: f64| {
+                    let (x, y) = ((c % w) as i64, (c / w) as i64);
+                    let mut ok = false;
+                    for ny in y - 1..=y + 1 {
+                        for nx in x - 1..=x + 1 {
+                            if (nx, ny) != (x, y)
+                                && nx >= 0
+                                && ny >= 0
+                                && nx < w as i64
+                                && ny < (cells / w) as i64
+                            {
+                                ok |= (top[ny as usize * w + nx as usize] - z).abs() <= min_gap;
+                            }
+                        }
+                    }
+                    ok
+                };
+                let want = step_floor(&mut zs, floor, min_gap, lone_ok).unwrap_or(floor);
+                raised += usize::from(want > floor);
+                assert!(
+                    fast[c] == want || (fast[c].is_infinite() && want.is_infinite()),
+                    "round {round} cell {c}: {} against {want}",
+                    fast[c]
+                );
+            }
+        }
+        assert!(raised > 20, "{raised} steps found");
     }
 
     #[test]
