@@ -323,8 +323,8 @@ async fn the_console_shows_the_server_s_error_for_a_bad_file_and_asks_for_a_toke
 
     // A file of an unknown type: said at once, nothing uploaded.
     c.goto(&stack.url("/#/submit")).await?;
-    let odd = dir.path().join("part.obj");
-    std::fs::write(&odd, "v 0 0 0\n")?;
+    let odd = dir.path().join("part.step");
+    std::fs::write(&odd, "ISO-10303-21;\nHEADER;\nENDSEC;\n")?;
     c.wait().for_element(Locator::Css("#file-input")).await?.send_keys(&odd.to_string_lossy()).await?;
     let said = until(
         &c,
@@ -333,7 +333,7 @@ async fn the_console_shows_the_server_s_error_for_a_bad_file_and_asks_for_a_toke
         "return document.querySelector('#file-status.error')?.textContent",
     )
     .await?;
-    assert!(said.as_str().unwrap_or_default().contains("part.obj"), "{said}");
+    assert!(said.as_str().unwrap_or_default().contains("part.step"), "{said}");
 
     // A mesh whose every triangle is degenerate: uploaded, then refused at submission with the
     // server's message shown, and no job made.

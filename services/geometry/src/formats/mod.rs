@@ -1,5 +1,5 @@
-//! Streaming readers for point clouds (XYZ text, PLY) and meshes (STL, PLY with faces), and the PLY
-//! writer of the format the scanning service produces.
+//! Streaming readers for point clouds (XYZ text, PLY, PCD, vertex-only OBJ) and meshes (STL, OBJ,
+//! OFF, PLY with faces), and the PLY writer of the format the scanning service produces.
 //!
 //! # Formats
 //! - [`xyz`]: ASCII columns `x y z [intensity] [nx ny nz]`, separated by any whitespace or commas.
@@ -8,6 +8,9 @@
 //!   the scanning service's format: binary little-endian, `float x y z [intensity] [nx ny nz]`,
 //!   `ushort pass`.
 //! - [`stl`]: binary and ASCII STL, vertices welded bit-exactly into an indexed [`Mesh`].
+//! - [`obj`]: Wavefront OBJ's `v` and `f` statements (the rest skipped and listed).
+//! - [`off`]: ASCII OFF and its variants (`COFF`, `NOFF`, `4OFF`, `nOFF`, ...).
+//! - [`pcd`]: PCL's PCD, ascii, binary and LZF-compressed bodies.
 //!
 //! [`read_any_from`] sniffs the format from the first [`SNIFF_LEN`] bytes ([`sniff_format`]) and
 //! hands the stream to the right reader; [`read_any`], [`read_cloud`] and [`read_mesh`] open a file.
@@ -166,9 +169,9 @@ impl ReadStats {
 /// What an input holds: a point cloud or a triangle mesh.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Geometry {
-    /// XYZ, or PLY without faces.
+    /// XYZ, PCD, or PLY, OBJ or OFF without faces.
     Cloud(PointCloud),
-    /// STL, or PLY with a non-empty face element.
+    /// STL, OBJ or OFF with faces, or PLY with a non-empty face element.
     Mesh(Mesh),
 }
 
@@ -196,8 +199,8 @@ impl Geometry {
 /// 5. `solid` at the start (after white space, any case) and `facet` or `endsolid` further on:
 ///    ASCII STL.
 /// 6. The first line with data starting with an OFF keyword (`OFF`, `COFF`, `NOFF`, `4OFF`, ...):
-///    OFF; with a PCD header keyword: PCD (a header cut short); with an OBJ statement (`v`, `vt`, `vn`, `f`, `o`, `g`, `s`, `mtllib`, `usemtl`, ...):
-///    OBJ.
+///    OFF; with a PCD header keyword: PCD (a header cut short); with an OBJ statement (`v`, `vt`,
+///    `vn`, `f`, `o`, `g`, `s`, `mtllib`, `usemtl`, ...): OBJ.
 /// 7. Otherwise XYZ text.
 pub fn sniff_format(head: &[u8], size: Option<u64>) -> InputFormat {
     let first_line = head.split(|&b| b == b'\n').next().unwrap_or_default();
@@ -295,8 +298,9 @@ pub fn read_cloud(path: &Path, limits: &ReadLimits) -> Result<(PointCloud, ReadS
     read_path(path, limits, Want::Cloud).map(|(g, s)| (g.into_cloud(), s))
 }
 
-/// Reads a mesh from `path`: STL, or PLY with a non-empty face element. Anything else is
-/// [`FormatError::UnsupportedFormat`] naming the file, reported before the body is read.
+/// Reads a mesh from `path`: STL, OBJ or OFF with faces, or PLY with a non-empty face element.
+/// Anything else is [`FormatError::UnsupportedFormat`] naming the file, reported before the body is
+/// read (an OBJ or OFF without faces once it is read).
 pub fn read_mesh(path: &Path, limits: &ReadLimits) -> Result<(Mesh, ReadStats)> {
     let name = path.display().to_string();
     match read_path(path, limits, Want::Mesh)? {
