@@ -17,8 +17,8 @@ use std::io::BufRead;
 use super::error::{Location, Result};
 use super::polygon::PolygonSink;
 use super::{
-    Geometry, InputFormat, Lines, ReadLimits, ReadStats, Src, is_space, parse_error, parse_f64, show_token,
-    tokens,
+    Geometry, InputFormat, Lines, MAX_LINE_LEN, ReadLimits, ReadStats, Src, is_space, parse_error, parse_f64,
+    show_token, tokens,
 };
 
 /// OBJ statements a file may start with (after comments), for sniffing.
@@ -52,6 +52,13 @@ pub(crate) fn read_obj_src<R: BufRead>(
             }
             joined.extend_from_slice(head);
             joined.push(b' ');
+            if joined.len() > MAX_LINE_LEN {
+                return Err(parse_error(
+                    name,
+                    Location::Line(start),
+                    format!("a line continued with \\ grows longer than {MAX_LINE_LEN} bytes"),
+                ));
+            }
             continue;
         } else if !joined.is_empty() {
             joined.extend_from_slice(&lines.buf);

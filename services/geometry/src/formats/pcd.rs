@@ -30,6 +30,10 @@ use super::{
 };
 use crate::PointCloud;
 
+/// Largest point record accepted, bytes (a point's values: x y z, a few attributes, a descriptor
+/// histogram of a few hundred bins at most).
+const MAX_RECORD_BYTES: usize = 1 << 16;
+
 /// Header lines read before `DATA` is required.
 const MAX_HEADER_LINES: u64 = 1024;
 
@@ -248,6 +252,13 @@ fn read_header<R: BufRead>(src: &mut Src<R>, name: &str, lines: &mut Lines) -> R
         fields.push(Field { name: names[i].clone(), size, kind, count, offset, column });
         offset += size * count;
         column += count;
+        if offset > MAX_RECORD_BYTES {
+            return Err(header_error(
+                name,
+                counts_line,
+                format!("PCD: a point of {offset} bytes or more, over the limit of {MAX_RECORD_BYTES}"),
+            ));
+        }
     }
     let points = match (points, width, height) {
         (Some(p), _, _) => p,

@@ -149,6 +149,11 @@ fn obj_statements_references_and_continuations() {
 
 #[test]
 fn obj_errors_name_the_line() {
+    let long = format!("v 0 0 0\n{}", "f 1 \\\n".repeat(MAX_LINE_LEN / 4));
+    assert_eq!(
+        err(long.as_bytes()),
+        format!("in: line 2: a line continued with \\ grows longer than {MAX_LINE_LEN} bytes")
+    );
     assert_eq!(err(b"v 0 0 0\nv 1 0\n"), "in: line 2: v: expected 3 coordinates, found 2");
     assert_eq!(err(b"v 0 0 0\nv 1 y 0\n"), "in: line 2: v: cannot parse \"y\" as a number");
     assert_eq!(
@@ -455,6 +460,12 @@ fn pcd_normals_and_errors() {
     assert_eq!(
         any(&bad).expect_err("size").to_string(),
         format!("in: byte {}: PCD: the uncompressed size 20 is not 2 points of 12 bytes (24)", h.len() + 27)
+    );
+    let huge = h.replace("FIELDS x y z", "FIELDS x y z h").replace("SIZE 4 4 4", "SIZE 4 4 4 8");
+    let huge = huge.replace("TYPE F F F", "TYPE F F F F").replace("COUNT 1 1 1", "COUNT 1 1 1 1000000");
+    assert_eq!(
+        err(format!("{huge}DATA ascii\n").as_bytes()),
+        "in: line 5: PCD: a point of 8000012 bytes or more, over the limit of 65536"
     );
     let tight = ReadLimits { max_points: 1, ..ReadLimits::default() };
     let e =
