@@ -342,9 +342,10 @@ pub(crate) fn check_size(name: &str, size: Option<u64>, limits: &ReadLimits) -> 
 }
 
 /// Reads a point cloud from `r` (XYZ, PLY: a mesh's vertices, STL: its welded vertices) keeping
-/// a uniform sample of at most `keep` points, for a picture of a cloud of any size: XYZ and PLY
-/// are read in one streaming pass in memory flat in the input's size (every `2^k`-th point, `k`
-/// growing as the points arrive); an STL is read whole, then sampled. [`ReadStats::points`] is
+/// a uniform sample of at most `keep` points, for a picture of a cloud of any size: XYZ, PLY, OBJ
+/// and OFF are read in one streaming pass in memory flat in the input's size (every `2^k`-th point,
+/// `k` growing as the points arrive), PCD too but for a compressed body's block; an STL is read
+/// whole, then sampled. [`ReadStats::points`] is
 /// the number of points the input holds.
 pub fn sample_cloud_from<R: BufRead>(
     r: R,
@@ -401,7 +402,7 @@ fn read_with<R: BufRead>(
         }
         InputFormat::Off | InputFormat::Obj => {
             let read = if format == InputFormat::Off { off::read_off_src } else { obj::read_obj_src };
-            let (geometry, stats) = read(&mut src, name, limits, want == Want::Cloud)?;
+            let (geometry, stats) = read(&mut src, name, limits, want == Want::Cloud, keep)?;
             if want == Want::Mesh && matches!(geometry, Geometry::Cloud(_)) {
                 return Err(not_a_mesh(name, &format!("the {format} file has no faces, a point cloud")));
             }
@@ -1059,7 +1060,7 @@ mod tests {
 
     proptest::proptest! {
         /// The streaming sample against the obvious reference: every `s`-th finite point for the
-        /// smallest power of two `s` that keeps fewer than `keep`, in XYZ and in every PLY
+        /// smallest power of two `s` that keeps fewer than `keep`, in XYZ, OBJ, OFF and every PLY
         /// encoding, with the input's point count reported.
         #[test]
         fn sampling_keeps_every_power_of_two_th_point(
@@ -1086,11 +1087,13 @@ mod tests {
                 let enc = [PlyEncoding::Ascii, PlyEncoding::BinaryLittleEndian, PlyEncoding::BinaryBigEndian][encoding];
                 let mut ply_bytes = Vec::new();
                 ply::write_ply(&mut ply_bytes, &cloud, None, enc, &[]).expect("write");
-                vec![text.into_bytes(), ply_bytes]
+                let obj: String = all.iter().map(|p| format!("v {} {} {}\n", p[0], p[1], p[2])).collect();
+                let off = format!("OFF\n{n} 0 0\n{text}");
+                vec![text.into_bytes(), ply_bytes, obj.into_bytes(), off.into_bytes()]
             };
             for input in inputs {
-                if n == 0 && !input.starts_with(b"ply") {
-                    continue; // empty XYZ text is not a cloud
+                if n == 0 && !input.starts_with(b"ply") && !input.starts_with(b"OFF") {
+                    continue; // empty XYZ (or OBJ) text is not a cloud
                 }
                 let size = Some(input.len() as u64);
                 let (c, stats) = sample_cloud_from(Cursor::new(input), "sample", size, &ReadLimits::default(), keep)

@@ -33,9 +33,10 @@ pub(crate) fn read_obj_src<R: BufRead>(
     name: &str,
     limits: &ReadLimits,
     cloud: bool,
+    keep: Option<usize>,
 ) -> Result<(Geometry, ReadStats)> {
     let mut lines = Lines::new(0);
-    let mut sink = PolygonSink::new(cloud, limits, 1 << 16);
+    let mut sink = PolygonSink::new(cloud, limits, keep.unwrap_or(1 << 16).min(1 << 16), keep);
     let mut ignored: Vec<String> = Vec::new();
     let mut corners: Vec<u32> = Vec::new();
     // The largest vertex index a face used (0-based) and its line: checked against the vertex

@@ -57,6 +57,7 @@ pub(crate) fn read_off_src<R: BufRead>(
     name: &str,
     limits: &ReadLimits,
     cloud: bool,
+    keep: Option<usize>,
 ) -> Result<(Geometry, ReadStats)> {
     let mut lines = Lines::new(0);
     if !next_data(src, &mut lines, name)? {
@@ -120,7 +121,8 @@ pub(crate) fn read_off_src<R: BufRead>(
         return Err(too_large(name, "triangles", nf, limits.max_triangles));
     }
 
-    let mut sink = PolygonSink::new(cloud, limits, nv.min(1 << 20) as usize);
+    let reserve = nv.min(keep.map_or(1 << 20, |k| k as u64)) as usize;
+    let mut sink = PolygonSink::new(cloud, limits, reserve, keep);
     let coords = if homogeneous { 4 } else { 3 };
     for v in 0..nv {
         if !next_data(src, &mut lines, name)? {

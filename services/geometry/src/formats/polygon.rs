@@ -23,9 +23,12 @@ pub(crate) struct PolygonSink {
 }
 
 impl PolygonSink {
-    pub(crate) fn new(cloud: bool, limits: &ReadLimits, reserve: usize) -> Self {
+    /// `keep`: a cloud keeps a uniform sample of at most that many points ([`CloudSink::sampled`]);
+    /// a mesh keeps every vertex (its faces index them all).
+    pub(crate) fn new(cloud: bool, limits: &ReadLimits, reserve: usize, keep: Option<usize>) -> Self {
+        let vertices = CloudSink::new(false, false, false, !cloud, reserve);
         PolygonSink {
-            vertices: CloudSink::new(false, false, false, !cloud, reserve),
+            vertices: if cloud { vertices.sampled(keep) } else { vertices },
             tris: Vec::new(),
             short: 0,
             has_faces: false,
