@@ -213,10 +213,7 @@ pub fn sniff_format(head: &[u8], size: Option<u64>) -> InputFormat {
             return InputFormat::StlBinary;
         }
     }
-    let first_data = head
-        .split(|&b| b == b'\n')
-        .map(|l| l.iter().position(|&b| b == b'#').map_or(l, |k| &l[..k]))
-        .find_map(|l| tokens(l, is_space).next());
+    let first_data = head.split(|&b| b == b'\n').find_map(|l| tokens(before_comment(l), is_space).next());
     // A binary PCD body follows a text header: its first line, or a header keyword first with the
     // FIELDS (COLUMNS) and DATA lines in the head (a binary STL's header may start with any word).
     let line_starts = |word: &[u8]| head.split(|&b| b == b'\n').any(|l| l.starts_with(word));
@@ -637,6 +634,11 @@ impl Lines {
 #[inline]
 pub(crate) const fn is_space(b: u8) -> bool {
     matches!(b, b' ' | b'\t' | b'\r' | 0x0b | 0x0c)
+}
+
+/// The data of a text line: what comes before its `#` (OBJ, OFF and PCD comments).
+pub(crate) fn before_comment(line: &[u8]) -> &[u8] {
+    line.iter().position(|&b| b == b'#').map_or(line, |k| &line[..k])
 }
 
 /// Splits `line` into tokens separated by bytes for which `sep` is true, without allocating.

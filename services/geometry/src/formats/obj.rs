@@ -17,8 +17,8 @@ use std::io::BufRead;
 use super::error::{Location, Result};
 use super::polygon::PolygonSink;
 use super::{
-    Geometry, InputFormat, Lines, MAX_LINE_LEN, ReadLimits, ReadStats, Src, is_space, parse_error, parse_f64,
-    show_token, tokens,
+    Geometry, InputFormat, Lines, MAX_LINE_LEN, ReadLimits, ReadStats, Src, before_comment, is_space,
+    parse_error, parse_f64, show_token, tokens,
 };
 
 /// OBJ statements a file may start with (after comments), for sniffing.
@@ -70,8 +70,7 @@ pub(crate) fn read_obj_src<R: BufRead>(
             &lines.buf
         };
         let line = start;
-        let text = buf.iter().position(|&b| b == b'#').map_or(buf, |k| &buf[..k]);
-        let mut toks = tokens(text, is_space);
+        let mut toks = tokens(before_comment(buf), is_space);
         match toks.next() {
             None => {}
             Some(b"v") => {

@@ -17,8 +17,8 @@ use std::io::BufRead;
 use super::error::{FormatError, Location, Result};
 use super::polygon::PolygonSink;
 use super::{
-    Geometry, InputFormat, Lines, ReadLimits, ReadStats, Src, is_space, parse_error, parse_f64, show_token,
-    tokens, too_large,
+    Geometry, InputFormat, Lines, ReadLimits, ReadStats, Src, before_comment, is_space, parse_error,
+    parse_f64, show_token, tokens, too_large,
 };
 
 /// True when `tok` is an OFF keyword: `OFF` after any of the prefixes `ST`, `C`, `N`, `4`, `n`.
@@ -26,15 +26,10 @@ pub(crate) fn is_off_keyword(tok: &[u8]) -> bool {
     tok.strip_suffix(b"OFF").is_some_and(|prefix| prefix.iter().all(|b| b"STCN4n".contains(b)))
 }
 
-/// The data of a line: up to its `#`.
-fn data(line: &[u8]) -> &[u8] {
-    line.iter().position(|&b| b == b'#').map_or(line, |k| &line[..k])
-}
-
 /// Reads the next line with data; its tokens' line number is `lines.line`.
 fn next_data<R: BufRead>(src: &mut Src<R>, lines: &mut Lines, name: &str) -> Result<bool> {
     while lines.next(src, name)? {
-        if tokens(data(&lines.buf), is_space).next().is_some() {
+        if tokens(before_comment(&lines.buf), is_space).next().is_some() {
             return Ok(true);
         }
     }
@@ -63,7 +58,7 @@ pub(crate) fn read_off_src<R: BufRead>(
     if !next_data(src, &mut lines, name)? {
         return Err(parse_error(name, Location::Line(lines.line), "OFF: the file has no header"));
     }
-    let head: Vec<Vec<u8>> = tokens(data(&lines.buf), is_space).map(<[u8]>::to_vec).collect();
+    let head: Vec<Vec<u8>> = tokens(before_comment(&lines.buf), is_space).map(<[u8]>::to_vec).collect();
     let keyword = head.first().cloned().unwrap_or_default();
     if !is_off_keyword(&keyword) {
         return Err(parse_error(
@@ -94,7 +89,7 @@ pub(crate) fn read_off_src<R: BufRead>(
                 "OFF: the file ends before the vertex and face counts",
             ));
         }
-        numbers.extend(tokens(data(&lines.buf), is_space).map(|t| (t.to_vec(), lines.line)));
+        numbers.extend(tokens(before_comment(&lines.buf), is_space).map(|t| (t.to_vec(), lines.line)));
     }
     let mut it = numbers.iter();
     if prefix.contains(&b'n') {
@@ -134,7 +129,7 @@ pub(crate) fn read_off_src<R: BufRead>(
         }
         let mut c = [0f64; 4];
         let mut k = 0;
-        for tok in tokens(data(&lines.buf), is_space).take(coords) {
+        for tok in tokens(before_comment(&lines.buf), is_space).take(coords) {
             c[k] = parse_f64(tok).ok_or_else(|| {
                 parse_error(
                     name,
@@ -166,7 +161,7 @@ pub(crate) fn read_off_src<R: BufRead>(
             ));
         }
         let line = lines.line;
-        let mut toks = tokens(data(&lines.buf), is_space);
+        let mut toks = tokens(before_comment(&lines.buf), is_space);
         let k = whole(toks.next().unwrap_or_default(), &format!("face {f}: corner count"), name, line)?;
         corners.clear();
         for _ in 0..k {

@@ -25,8 +25,8 @@ use std::io::BufRead;
 use super::error::{FormatError, Location, Result};
 use super::ply::INTENSITY_NAMES;
 use super::{
-    CloudSink, InputFormat, Lines, ReadLimits, ReadStats, Src, io_error, is_space, parse_error, parse_f32,
-    parse_f64, show_token, tokens, too_large,
+    CloudSink, InputFormat, Lines, ReadLimits, ReadStats, Src, before_comment, io_error, is_space,
+    parse_error, parse_f32, parse_f64, show_token, tokens, too_large,
 };
 use crate::PointCloud;
 
@@ -128,8 +128,7 @@ fn read_header<R: BufRead>(src: &mut Src<R>, name: &str, lines: &mut Lines) -> R
             return Err(header_error(name, lines.line, "PCD: the file ends before the DATA line"));
         }
         let line = lines.line;
-        let text = lines.buf.iter().position(|&b| b == b'#').map_or(&lines.buf[..], |k| &lines.buf[..k]);
-        let mut toks = tokens(text, is_space);
+        let mut toks = tokens(before_comment(&lines.buf), is_space);
         let Some(key) = toks.next() else { continue };
         let rest: Vec<&[u8]> = toks.collect();
         let whole = |tok: &[u8], what: &str| -> Result<u64> {
