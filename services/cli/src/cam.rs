@@ -69,7 +69,8 @@ pub fn run_compensate(
     let pixel_model = match model {
         "column" => PixelModel::Column,
         "point" => PixelModel::Point,
-        other => bail!("--model '{other}' is not column or point"),
+        "facet" => PixelModel::Facet,
+        other => bail!("--model '{other}' is not column, point or facet"),
     };
     let started = std::time::Instant::now();
     let tip = compensate(&map, &tool.profile, &CompensateOptions { pixel_model, outside_z_mm: floor })?;

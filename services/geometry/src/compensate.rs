@@ -62,6 +62,11 @@ pub enum PixelModel {
     /// A square column over the cell (conservative).
     #[default]
     Column,
+    /// A sample of a piecewise-linear surface through the centres that stands above every convex
+    /// edge the neighbouring samples imply, flat for half a pixel beside a step or a wall
+    /// ([`crate::facet`]): exact on planes, as `Point`, and not dipping between samples at a rim,
+    /// as `Column`. The tip surface is a dilation at half the pixel.
+    Facet,
 }
 
 /// Options of [`compensate`].
@@ -99,7 +104,7 @@ pub fn kernel(profile: &ToolProfile, pixel_mm: f64, model: PixelModel) -> Kernel
         let mut heights = Vec::new();
         for dx in -half..=half {
             let (fx, fy) = match model {
-                PixelModel::Point => (f64::from(dx), f64::from(dy)),
+                PixelModel::Point | PixelModel::Facet => (f64::from(dx), f64::from(dy)),
                 PixelModel::Column => {
                     ((f64::from(dx).abs() - 0.5).max(0.0), (f64::from(dy).abs() - 0.5).max(0.0))
                 }
@@ -168,8 +173,26 @@ pub fn compensate(
     if !outside.is_finite() {
         return Err(GeometryError::invalid("outside_z_mm", outside, "a finite height"));
     }
+    if opts.pixel_model == PixelModel::Facet {
+        return compensate_facets(map, profile, outside as f32);
+    }
     let k = kernel(profile, map.pixel_mm(), opts.pixel_model);
     let data = dilate(map, &k, outside as f32);
+    HeightMap::new(*map.meta(), data)
+}
+
+/// [`compensate`] under [`PixelModel::Facet`]: the map's [`crate::facet::facet_nodes`] dilated by
+/// the tool at half the pixel, read back at the cells' centres.
+fn compensate_facets(map: &HeightMap, profile: &ToolProfile, outside: f32) -> Result<HeightMap, GeometryError> {
+    let nodes = crate::facet::facet_nodes(map, crate::facet::FACET_STEEP_SLOPE)?;
+    let k = kernel(profile, nodes.pixel_mm(), PixelModel::Point);
+    let fine = dilate(&nodes, &k, outside);
+    let (w, fw) = (map.width() as usize, nodes.width() as usize);
+    let mut data = Vec::with_capacity(map.data().len());
+    for j in 0..map.height() as usize {
+        let row = &fine[(2 * j + 1) * fw..(2 * j + 2) * fw];
+        data.extend((0..w).map(|i| row[2 * i + 1]));
+    }
     HeightMap::new(*map.meta(), data)
 }
 

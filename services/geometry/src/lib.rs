@@ -40,6 +40,7 @@ pub mod arm;
 pub mod artifact;
 pub mod cloud;
 pub mod compensate;
+pub mod facet;
 pub mod error;
 pub mod face;
 pub mod formats;

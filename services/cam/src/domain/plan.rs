@@ -528,10 +528,11 @@ fn settings(
     let fin_model = match fin.pixel_model.as_deref().unwrap_or("column") {
         "column" => PixelModel::Column,
         "point" => PixelModel::Point,
+        "facet" => PixelModel::Facet,
         other => {
             return Err(CamError::param(
                 "plan.finishing.pixel_model",
-                format!("'{other}' is not column or point"),
+                format!("'{other}' is not column, point or facet"),
             ));
         }
     };

@@ -588,7 +588,9 @@ pub struct Finishing {
     pub arcs: Option<bool>,
     /// What a depth-map cell means to the finishing tool: `column` (default: a square column at
     /// its height; on a slope the tool stands off by up to the slope times half a pixel) or
-    /// `point` (a sample of a continuous surface at the cell's centre, for a fitted target).
+    /// `point` (a sample of a continuous surface at the cell's centre, for a fitted target) or
+    /// `facet` (a sample of a piecewise-linear surface through the centres that stands above the
+    /// convex edges between them and extends a step's top half a pixel flat).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub pixel_model: Option<String>,
 }
