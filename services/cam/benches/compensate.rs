@@ -1,6 +1,7 @@
 //! Tool compensation speed: `compensate` on a 2000 x 2000 relief at 0.1 mm, against the brute-force
 //! `compensate_reference` measured on a crop in the same run (per-cell cost is independent of the
-//! map size, so the crop's time scales linearly).
+//! map size, so the crop's time scales linearly). The `Facet` reading's reference is the brute force
+//! on the crop's nodes at half the pixel (`facet::facet_nodes`), read at the cells' centres.
 //!
 //! ```text
 //! cargo bench -p depthmill-cam --bench compensate -- [--size 2000] [--repeat 3] [--crop 200]
@@ -62,7 +63,8 @@ fn parse_args() -> anyhow::Result<Args> {
                 a.model = match value()?.as_str() {
                     "point" => PixelModel::Point,
                     "column" => PixelModel::Column,
-                    other => bail!("--model {other}: expected point or column"),
+                    "facet" => PixelModel::Facet,
+                    other => bail!("--model {other}: expected point, column or facet"),
                 }
             }
             other => bail!("unknown argument {other}"),
@@ -159,6 +161,7 @@ fn run_bench(a: &Args) -> anyhow::Result<()> {
     for (name, model) in [
         ("ball-6", PixelModel::Point),
         ("ball-6", PixelModel::Column),
+        ("ball-6", PixelModel::Facet),
         ("flat-6", PixelModel::Column),
         ("bull-6-1", PixelModel::Column),
     ] {
@@ -171,10 +174,32 @@ fn run_bench(a: &Args) -> anyhow::Result<()> {
             best = best.min(ms(t));
             std::hint::black_box(c);
         }
-        let k = kernel(&tool, 0.1, model);
+        // Facet: the reference dilates the crop's nodes at half the pixel and reads the centres.
+        let nodes = match model {
+            PixelModel::Facet => Some(depthmill_geometry::facet::facet_nodes(
+                &small,
+                depthmill_geometry::facet::FACET_STEEP_SLOPE,
+            )?),
+            _ => None,
+        };
+        let k = match model {
+            PixelModel::Facet => kernel(&tool, 0.05, PixelModel::Point),
+            _ => kernel(&tool, 0.1, model),
+        };
         let cells: usize = k.rows.iter().map(|r| r.heights.len()).sum();
         let t = Instant::now();
-        let slow = compensate_reference(&small, &k, small.z_min_mm() as f32);
+        let slow = match &nodes {
+            Some(n) => {
+                let fine = compensate_reference(n, &k, small.z_min_mm() as f32);
+                let fw = n.width() as usize;
+                let w = small.width() as usize;
+                (0..small.height() as usize)
+                    .flat_map(|j| (0..w).map(move |i| (j, i)))
+                    .map(|(j, i)| fine[(2 * j + 1) * fw + 2 * i + 1])
+                    .collect()
+            }
+            None => compensate_reference(&small, &k, small.z_min_mm() as f32),
+        };
         let ref_ms = ms(t) * (mpx * 1e6) / small.data().len() as f64;
         let fast_small = compensate(&small, &tool, &opts)?;
         let diff = fast_small.data().iter().zip(&slow).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);

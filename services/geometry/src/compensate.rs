@@ -183,16 +183,17 @@ pub fn compensate(
 
 /// [`compensate`] under [`PixelModel::Facet`]: the map's [`crate::facet::facet_nodes`] dilated by
 /// the tool at half the pixel, read back at the cells' centres.
-fn compensate_facets(map: &HeightMap, profile: &ToolProfile, outside: f32) -> Result<HeightMap, GeometryError> {
+fn compensate_facets(
+    map: &HeightMap,
+    profile: &ToolProfile,
+    outside: f32,
+) -> Result<HeightMap, GeometryError> {
     let nodes = crate::facet::facet_nodes(map, crate::facet::FACET_STEEP_SLOPE)?;
     let k = kernel(profile, nodes.pixel_mm(), PixelModel::Point);
-    let fine = dilate(&nodes, &k, outside);
+    // The node rows on the cells' centres (1, 3, 5, ...), then their nodes on the centres.
+    let fine = dilate_rows(&nodes, &k, outside, 2);
     let (w, fw) = (map.width() as usize, nodes.width() as usize);
-    let mut data = Vec::with_capacity(map.data().len());
-    for j in 0..map.height() as usize {
-        let row = &fine[(2 * j + 1) * fw..(2 * j + 2) * fw];
-        data.extend((0..w).map(|i| row[2 * i + 1]));
-    }
+    let data = fine.chunks_exact(fw).flat_map(|row| (0..w).map(move |i| row[2 * i + 1])).collect();
     HeightMap::new(*map.meta(), data)
 }
 
@@ -203,20 +204,30 @@ fn compensate_facets(map: &HeightMap, profile: &ToolProfile, outside: f32) -> Re
 /// See the module docs for the algorithm: kernel rows with equal profiles share one row maximum,
 /// symmetric rows fold `±dx`, flat runs use a van Herk/Gil-Werman running maximum.
 pub fn dilate(map: &HeightMap, kernel: &Kernel, outside_z: f32) -> Vec<f32> {
+    dilate_rows(map, kernel, outside_z, 1)
+}
+
+/// [`dilate`] at the output rows `y` with `y % step == step / 2` only (every row for `step` 1;
+/// rows 1, 3, 5, ... for 2), packed in order: what [`PixelModel::Facet`] reads back.
+fn dilate_rows(map: &HeightMap, kernel: &Kernel, outside_z: f32, step: usize) -> Vec<f32> {
     let w = map.width() as usize;
     let h = map.height() as usize;
+    let first = step / 2;
+    let out_rows = if h > first { (h - first).div_ceil(step) } else { 0 };
     let groups = plan_groups(kernel);
     let padded = Padded::new(map, kernel, outside_z);
     if groups.is_empty() || w == 0 {
-        return vec![f32::NEG_INFINITY; map.data().len()];
+        return vec![f32::NEG_INFINITY; w * out_rows];
     }
     // Every cell is written below.
-    let mut out = vec![0.0; map.data().len()];
+    let mut out = vec![0.0; w * out_rows];
     let bounds = Bounds::new(&padded, kernel, &groups);
     let stride = padded.stride;
     let cols = padded.cols;
     let tiles = cols / LANES;
-    out.par_chunks_mut(w * BAND).enumerate().for_each_init(
+    // A band holds BAND map rows, of which BAND / step are output.
+    let per_band = BAND / step;
+    out.par_chunks_mut(w * per_band).enumerate().for_each_init(
         || (Scratch::new(stride, cols), vec![(0u32, 0u32); tiles * groups.len()], BoundScratch::default()),
         |(scratch, ranges, res), (band, out_rows)| {
             let y0 = band * BAND;
@@ -235,9 +246,9 @@ pub fn dilate(map: &HeightMap, kernel: &Kernel, outside_z: f32) -> Vec<f32> {
                     }
                 }
             }
-            for y in y0..y1 {
+            for (k, y) in (y0 + first..y1).step_by(step).enumerate() {
                 simd::dilate_row(&padded, &groups, ranges, y as i64, scratch);
-                out_rows[(y - y0) * w..(y - y0 + 1) * w].copy_from_slice(&scratch.acc[..w]);
+                out_rows[k * w..(k + 1) * w].copy_from_slice(&scratch.acc[..w]);
             }
         },
     );

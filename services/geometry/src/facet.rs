@@ -20,8 +20,10 @@
 //!   two segments through the node stand above the crossing as well.
 //!
 //! On a plane every node is the plane's height (the map read exactly, as `Point` reads it). A pair
-//! of samples steeper than `steep` (a wall or step, which no secant describes) gets the higher of
-//! the two at the node: the top extends half a pixel flat, as a column would. A sample beside a
+//! of samples steeper than `steep` (a wall), or rising more than tan 15° and three times the
+//! slopes on either side (a step on a flat or a gentle slope: a pocket's edge, which a secant
+//! would round), gets the higher of the two at the node: the top extends half a pixel flat, as a
+//! column would. A sample beside a
 //! cell without data or the map's edge extends flat to the half-way node, as a column; an
 //! extension is only used when its own pair of samples is not steep and both have data.
 //!
@@ -35,6 +37,12 @@ use rayon::prelude::*;
 /// to interpolate: tan 75°, the slope the surface fit also takes for a wall.
 pub const FACET_STEEP_SLOPE: f64 = 3.732_050_807_568_877;
 
+/// A rise between two samples steeper than this (tan 15°) and [`JUMP_RATIO`] times the slopes
+/// beside it is a step, not a surface to interpolate.
+pub const JUMP_MIN_SLOPE: f64 = 0.267_949_192_431_122_7;
+/// See [`JUMP_MIN_SLOPE`].
+pub const JUMP_RATIO: f64 = 3.0;
+
 /// The half-way node between samples `a` and `b` (mm), with `p` the sample before `a` and `q`
 /// the one after `b` (NaN where there is none), samples `d` mm apart. See the module docs.
 pub fn mid_node(p: f32, a: f32, b: f32, q: f32, d: f64, steep: f64) -> f32 {
@@ -46,7 +54,8 @@ pub fn mid_node(p: f32, a: f32, b: f32, q: f32, d: f64, steep: f64) -> f32 {
     }
     let (a64, b64) = (f64::from(a), f64::from(b));
     let lim = steep * d;
-    if (b64 - a64).abs() > lim {
+    let rise = (b64 - a64).abs();
+    if rise > lim {
         return a.max(b);
     }
     let chord = 0.5 * (a64 + b64);
@@ -55,7 +64,13 @@ pub fn mid_node(p: f32, a: f32, b: f32, q: f32, d: f64, steep: f64) -> f32 {
         let s = f64::from(v) - f64::from(u);
         (u.is_finite() && s.abs() <= lim).then_some(s)
     };
-    let (Some(sl), Some(sr)) = (side(p, a), side(b, q)) else {
+    let (sl, sr) = (side(p, a), side(b, q));
+    // A step: a rise over the jump's minimum that stands out from the slopes on both sides.
+    let beside = sl.map_or(0.0, f64::abs).max(sr.map_or(0.0, f64::abs));
+    if (sl.is_some() || sr.is_some()) && rise > JUMP_MIN_SLOPE * d && rise > JUMP_RATIO * beside {
+        return a.max(b);
+    }
+    let (Some(sl), Some(sr)) = (sl, sr) else {
         return chord as f32;
     };
     let l = |t: f64| a64 + sl * t;
@@ -83,8 +98,11 @@ fn refine_line(n: usize, at: impl Fn(usize) -> f32, out: &mut [f32], d: f64, ste
     for i in 0..n {
         out[2 * i + 1] = at(i);
         let i = i as isize;
-        out[2 * i as usize + 2] =
-            if i as usize + 1 == n { at(n - 1) } else { mid_node(get(i - 1), get(i), get(i + 1), get(i + 2), d, steep) };
+        out[2 * i as usize + 2] = if i as usize + 1 == n {
+            at(n - 1)
+        } else {
+            mid_node(get(i - 1), get(i), get(i + 1), get(i + 2), d, steep)
+        };
     }
 }
 
@@ -113,7 +131,13 @@ pub fn facet_nodes(map: &HeightMap, steep: f64) -> Result<HeightMap, GeometryErr
             out.fill(f32::NAN);
         } else if y % 2 == 1 || y == 0 || y == fh - 1 {
             // A row of cells, or the outer half of the first or last.
-            let j = if y == 0 { 0 } else if y == fh - 1 { h - 1 } else { y / 2 };
+            let j = if y == 0 {
+                0
+            } else if y == fh - 1 {
+                h - 1
+            } else {
+                y / 2
+            };
             match row(j as isize) {
                 Some(r) => out.copy_from_slice(r),
                 None => out.fill(f32::NAN),
@@ -309,7 +333,10 @@ mod tests {
         assert_eq!(mid_node(1.0, 1.0, f32::NAN, 0.0, d, STEEP), 1.0);
         assert_eq!(mid_node(1.0, f32::NAN, 0.5, 0.0, d, STEEP), 0.5);
         assert!(mid_node(0.0, f32::NAN, f32::NAN, 0.0, d, STEEP).is_nan());
-        // A flat top beside a gentle step down (not steep): the chord, raised by nothing.
-        assert_eq!(mid_node(1.0, 1.0, 0.9, 0.9, d, STEEP), 0.95);
+        // A step of 0.1 mm between flats (22° over the cell, not steep) is a step; one of 0.05 mm
+        // (11°) reads as a slope: the chord. The same 0.1 mm rise on a 20° slope is the slope.
+        assert_eq!(mid_node(1.0, 1.0, 0.9, 0.9, d, STEEP), 1.0);
+        assert_eq!(mid_node(1.0, 1.0, 0.95, 0.95, d, STEEP), 0.975);
+        assert_eq!(mid_node(1.09, 1.0, 0.9, 0.81, d, STEEP), 0.95);
     }
 }

@@ -1123,7 +1123,7 @@ mod tests {
     }
 
     #[test]
-    fn a_point_finishing_target_stands_off_a_slope_less_than_columns_and_a_bad_model_is_named() {
+    fn point_and_facet_targets_stand_off_a_slope_less_than_columns_and_a_bad_model_is_named() {
         // A 20° slope on 0.25 mm cells, from 2 to 9 mm over 20 mm.
         let n = 80u32;
         let meta = HeightMapMeta { z_min_mm: 0.0, z_max_mm: 12.0, ..HeightMapMeta::new(n, n, 0.25) };
@@ -1144,17 +1144,24 @@ mod tests {
             let faces = [FaceInput { a_deg: None, map: map.clone(), roughing_map: None }];
             let out = plan(&faces, &options, &library, &MachineLimits::emco_f1(), &|_, _| {}, &|| false)
                 .expect("planned");
-            assert_eq!(
-                out.report.pixel_model,
-                if model == "point" { PixelModel::Point } else { PixelModel::Column }
-            );
+            let want = match model {
+                "point" => PixelModel::Point,
+                "facet" => PixelModel::Facet,
+                _ => PixelModel::Column,
+            };
+            assert_eq!(out.report.pixel_model, want);
             (out.preview.mean_leftover_mm, out.preview.max_gouge_mm)
         };
         let (column, column_gouge) = leftover("column");
         let (point, point_gouge) = leftover("point");
-        // Columns stand off by up to the slope times half a pixel (0.045 mm here).
+        let (facet, facet_gouge) = leftover("facet");
+        // Columns stand off by up to the slope times half a pixel (0.045 mm here); points and
+        // facets read a plane as it is.
         assert!(column > point + 0.02, "mean leftover: column {column}, point {point}");
-        assert!(column_gouge < 5e-3 && point_gouge < 5e-3, "gouges {column_gouge} {point_gouge}");
+        assert!((facet - point).abs() < 5e-3, "mean leftover: facet {facet}, point {point}");
+        for g in [column_gouge, point_gouge, facet_gouge] {
+            assert!(g < 5e-3, "gouges {column_gouge} {point_gouge} {facet_gouge}");
+        }
         let bad = PlanOptions {
             finishing: Some(FinishingOptions { pixel_model: Some("voxel".into()), ..Default::default() }),
             ..Default::default()
