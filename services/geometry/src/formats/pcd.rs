@@ -16,7 +16,8 @@
 //! little-endian records (PCL writes the host's order; every platform it runs on is
 //! little-endian), decoded a block at a time straight out of the reader's buffer; `binary_compressed`
 //! is the compressed and uncompressed sizes (`u32` each) and an LZF block holding the fields one
-//! after the other (all points' `x`, then all `y`, ...), decompressed whole ([`lzf_decompress`]).
+//! after the other (all points' `x`, then all `y`, ...), decompressed whole ([`lzf_decompress`];
+//! the compressed block is freed once decoded) and read point by point where each field lies.
 //! Errors name the line (header, ascii body) or byte offset (binary body) and the field or count
 //! at fault.
 
@@ -417,24 +418,21 @@ pub(crate) fn read_pcd_src<R: BufRead>(
             })?;
             drop(input);
             let n = h.points as usize;
-            // Fields one after the other: field f's elements start at points × its offset. The
-            // fields used are decoded a column at a time.
-            let column = |f: usize| -> Vec<f64> {
+            // Fields one after the other: field f's elements start at points × its offset. Each
+            // point's fields are decoded where they lie (one sequential stream per field used),
+            // so nothing but the decompressed block is held beside the cloud.
+            let at = |f: usize, i: usize| -> f64 {
                 let field = &h.fields[f];
                 let stride = field.size * field.count;
-                raw[n * field.offset..n * (field.offset + stride)]
-                    .chunks_exact(stride)
-                    .map(|b| field.decode(b))
-                    .collect()
+                let s = n * field.offset + i * stride;
+                field.decode(&raw[s..s + stride])
             };
-            let [x, y, z] = plan.xyz.map(column);
-            let intensity = plan.intensity.map(column);
-            let normals = plan.normals.map(|n| n.map(column));
             for i in 0..n {
+                let [xf, yf, zf] = plan.xyz;
                 sink.push(
-                    [x[i], y[i], z[i]],
-                    intensity.as_ref().map_or(0.0, |v| v[i] as f32),
-                    normals.as_ref().map_or([0.0; 3], |c| [c[0][i] as f32, c[1][i] as f32, c[2][i] as f32]),
+                    [at(xf, i), at(yf, i), at(zf, i)],
+                    plan.intensity.map_or(0.0, |f| at(f, i) as f32),
+                    plan.normals.map_or([0.0; 3], |c| c.map(|f| at(f, i) as f32)),
                     0,
                 );
             }
