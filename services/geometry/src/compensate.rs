@@ -94,7 +94,10 @@ pub struct KernelRow {
     pub heights: Vec<f32>,
 }
 
-/// Renders `profile` as a [`Kernel`] at `pixel_mm` under `model`.
+/// Renders `profile` as a [`Kernel`] at `pixel_mm` under `model`. `Facet` renders as `Point`: the
+/// facet reading is a dilation of the map's nodes by the point kernel at half the pixel
+/// ([`compensate`]); on the map's own grid (a region's envelope, what a pass reaches) the cells
+/// are its samples.
 pub fn kernel(profile: &ToolProfile, pixel_mm: f64, model: PixelModel) -> Kernel {
     let radius = profile.radius_mm();
     let half = (radius / pixel_mm).floor() as i32 + 1;

@@ -23,9 +23,9 @@
 //! of samples steeper than `steep` (a wall), or rising more than tan 15° and three times the
 //! slopes on either side (a step on a flat or a gentle slope: a pocket's edge, which a secant
 //! would round), gets the higher of the two at the node: the top extends half a pixel flat, as a
-//! column would. A sample beside a
-//! cell without data or the map's edge extends flat to the half-way node, as a column; an
-//! extension is only used when its own pair of samples is not steep and both have data.
+//! column would. A sample beside a cell without data or the map's edge extends flat to the
+//! half-way node, as a column; an extension is only used when its own pair of samples is not
+//! steep and both have data.
 //!
 //! Cost: two passes of a few operations per node, parallel over rows; the compensation then
 //! dilates a map of (2W+1) x (2H+1) nodes with the tool at half the pixel.
