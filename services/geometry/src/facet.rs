@@ -97,12 +97,9 @@ fn refine_line(n: usize, at: impl Fn(usize) -> f32, out: &mut [f32], d: f64, ste
     out[0] = at(0);
     for i in 0..n {
         out[2 * i + 1] = at(i);
-        let i = i as isize;
-        out[2 * i as usize + 2] = if i as usize + 1 == n {
-            at(n - 1)
-        } else {
-            mid_node(get(i - 1), get(i), get(i + 1), get(i + 2), d, steep)
-        };
+        let k = i as isize;
+        out[2 * i + 2] =
+            if i + 1 == n { at(i) } else { mid_node(get(k - 1), get(k), get(k + 1), get(k + 2), d, steep) };
     }
 }
 
@@ -130,15 +127,8 @@ pub fn facet_nodes(map: &HeightMap, steep: f64) -> Result<HeightMap, GeometryErr
         if h == 0 {
             out.fill(f32::NAN);
         } else if y % 2 == 1 || y == 0 || y == fh - 1 {
-            // A row of cells, or the outer half of the first or last.
-            let j = if y == 0 {
-                0
-            } else if y == fh - 1 {
-                h - 1
-            } else {
-                y / 2
-            };
-            match row(j as isize) {
+            // A row of cells (y = 2j + 1), or the outer half of the first (y = 0) or last (2h).
+            match row((y / 2).min(h - 1) as isize) {
                 Some(r) => out.copy_from_slice(r),
                 None => out.fill(f32::NAN),
             }
