@@ -326,6 +326,30 @@ impl HeightMap {
         self.meta.cell_of(x_mm, y_mm)
     }
 
+    /// The height at `(x_mm, y_mm)` interpolated bilinearly between the four cell centres around
+    /// it: exact on any plane. `None` where one of the four is outside the grid or holds no data,
+    /// or where two neighbours among them differ by more than `max_slope` times the pixel (a wall
+    /// between them, which interpolation would turn into a ramp).
+    pub fn interpolated(&self, x_mm: f64, y_mm: f64, max_slope: f64) -> Option<f64> {
+        let m = &self.meta;
+        let u = (x_mm - m.origin_x_mm) / m.pixel_mm - 0.5;
+        let v = (y_mm - m.origin_y_mm) / m.pixel_mm - 0.5;
+        let (c0, r0) = (u.floor(), v.floor());
+        // NaN fails the comparisons.
+        if !(c0 >= 0.0 && r0 >= 0.0 && c0 + 1.0 < f64::from(m.width) && r0 + 1.0 < f64::from(m.height)) {
+            return None;
+        }
+        let (c, r) = (c0 as u32, r0 as u32);
+        let z = |dc: u32, dr: u32| self.get(c + dc, r + dr).map(f64::from).filter(|z| z.is_finite());
+        let (z00, z10, z01, z11) = (z(0, 0)?, z(1, 0)?, z(0, 1)?, z(1, 1)?);
+        let rise = max_slope * m.pixel_mm;
+        if [z10 - z00, z11 - z01, z01 - z00, z11 - z10].iter().any(|d| d.abs() > rise) {
+            return None;
+        }
+        let (s, t) = (u - c0, v - r0);
+        Some((z00 * (1.0 - s) + z10 * s) * (1.0 - t) + (z01 * (1.0 - s) + z11 * s) * t)
+    }
+
     /// Number of cells holding data (finite values).
     pub fn valid_count(&self) -> usize {
         self.data.iter().filter(|z| z.is_finite()).count()
@@ -370,6 +394,44 @@ pub(crate) mod tests {
             }
         })
         .expect("valid hemisphere")
+    }
+
+    #[test]
+    fn interpolation_is_exact_on_planes_and_refuses_walls_holes_and_the_border() {
+        let mut meta = HeightMapMeta::new(30, 20, 0.25);
+        meta.origin_x_mm = -3.0;
+        meta.origin_y_mm = 1.0;
+        let plane = |x: f64, y: f64| 0.7 * x - 0.4 * y + 2.0;
+        let mut map = HeightMap::from_fn(meta, |c, r| {
+            let (x, y) = meta.cell_center(c, r);
+            plane(x, y) as f32
+        })
+        .expect("plane");
+        let mut seed = 7u64;
+        let mut next = || {
+            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            (seed >> 11) as f64 / (1u64 << 53) as f64
+        };
+        for _ in 0..500 {
+            // Anywhere between the outer cells' centres.
+            let x = -3.0 + 0.125 + next() * (7.5 - 0.25);
+            let y = 1.0 + 0.125 + next() * (5.0 - 0.25);
+            let z = map.interpolated(x, y, 1.0).expect("inside");
+            assert!((z - plane(x, y)).abs() < 1e-5, "({x}, {y}): {z}");
+        }
+        // Outside the centres of the outer cells, or with a slope over the limit: none.
+        assert!(map.interpolated(-3.0 + 0.1, 2.0, 1.0).is_none());
+        assert!(map.interpolated(0.0, 2.0, 0.5).is_none());
+        assert!(map.interpolated(f64::NAN, 2.0, 1.0).is_none());
+        // A hole or a wall next to the point: none; farther away it does not matter.
+        map.set(12, 4, f32::NAN).expect("cell");
+        let (x, y) = map.cell_center(12, 4);
+        assert!(map.interpolated(x + 0.1, y + 0.1, 1.0).is_none());
+        assert!(map.interpolated(x + 0.3, y + 0.1, 1.0).is_some());
+        map.set(20, 10, 9.0).expect("cell");
+        let (x, y) = map.cell_center(20, 10);
+        assert!(map.interpolated(x - 0.1, y - 0.1, 1.0).is_none());
+        assert!(map.interpolated(x - 0.1, y - 0.1, 40.0).is_some());
     }
 
     #[test]

@@ -796,9 +796,16 @@ fn combine_deviations(faces: &[FaceResult]) -> Option<Deviation> {
     })
 }
 
+/// Steepest stock surface, rise over run, read by interpolation at a target cell's centre
+/// (tan 63°); across a steeper step the nearest stock cell is read.
+const STOCK_INTERPOLATION_MAX_SLOPE: f64 = 2.0;
+
 /// Signed deviation `stock − target` on the target's grid (NaN where the target or the stock has
 /// no data: the stock has none where its blank never held material), with its statistics. The
-/// stock is sampled at the nearest cell.
+/// stock is read at each target cell's centre, interpolated between the four stock cells around
+/// it ([`HeightMap::interpolated`]), else at the nearest cell (at a step, a hole, the border). The
+/// nearest cell alone reads a slope of angle θ off by `tan θ` times the distance between the two
+/// grids' centres, up to half a stock cell: ±0.039 mm on a 38° slope cut exactly, on 0.1 mm cells.
 pub fn deviation(target: &HeightMap, stock: &HeightMap) -> Deviation {
     let meta = *target.meta();
     let mut data = vec![f32::NAN; target.data().len()];
@@ -807,11 +814,15 @@ pub fn deviation(target: &HeightMap, stock: &HeightMap) -> Deviation {
         for col in 0..meta.width {
             let Some(t) = target.get(col, row).filter(|t| t.is_finite()) else { continue };
             let (x, y) = meta.cell_center(col, row);
-            let Some(s) = stock.cell_of(x, y).and_then(|(c, r)| stock.get(c, r)).filter(|s| s.is_finite())
+            let nearest = || stock.cell_of(x, y).and_then(|(c, r)| stock.get(c, r)).map(f64::from);
+            let Some(s) = stock
+                .interpolated(x, y, STOCK_INTERPOLATION_MAX_SLOPE)
+                .or_else(nearest)
+                .filter(|s| s.is_finite())
             else {
                 continue;
             };
-            let d = f64::from(s) - f64::from(t);
+            let d = s - f64::from(t);
             data[(row * meta.width + col) as usize] = d as f32;
             max_gouge = max_gouge.max(-d);
             max_left = max_left.max(d);
@@ -921,6 +932,46 @@ pub fn telemetry_chart(rows: &[TelemetryRow], policy: &str) -> Chart {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A stock cut exactly to a slope, on finer cells than the target and offset from them, reads
+    /// the target's slope with no deviation; a step in the stock reads at the nearest cell.
+    #[test]
+    fn the_deviation_reads_a_finer_stock_between_its_cells() {
+        use depthmill_geometry::HeightMapMeta;
+        let slope = |x: f64, y: f64| 0.78 * x + 0.2 * y;
+        let mut tm = HeightMapMeta::new(40, 40, 0.25);
+        (tm.origin_x_mm, tm.origin_y_mm, tm.z_min_mm, tm.z_max_mm) = (0.0, 0.0, -20.0, 20.0);
+        let target = HeightMap::from_fn(tm, |c, r| {
+            let (x, y) = tm.cell_center(c, r);
+            slope(x, y) as f32
+        })
+        .expect("target");
+        let mut sm = HeightMapMeta::new(120, 120, 0.1);
+        (sm.origin_x_mm, sm.origin_y_mm, sm.z_min_mm, sm.z_max_mm) = (-0.97, -0.53, -20.0, 20.0);
+        let mut stock = HeightMap::from_fn(sm, |c, r| {
+            let (x, y) = sm.cell_center(c, r);
+            slope(x, y) as f32
+        })
+        .expect("stock");
+        let d = deviation(&target, &stock);
+        assert_eq!(d.cells, 1600);
+        assert!(
+            d.max_gouge_mm < 1e-5 && d.max_leftover_mm < 1e-5,
+            "{} {}",
+            d.max_gouge_mm,
+            d.max_leftover_mm
+        );
+        // A 3 mm step in the stock is not interpolated across: the cells beside it read one side.
+        for r in 0..120 {
+            for c in 60..120 {
+                let (x, y) = sm.cell_center(c, r);
+                stock.set(c, r, (slope(x, y) + 3.0) as f32).expect("cell");
+            }
+        }
+        let d = deviation(&target, &stock);
+        assert!(d.max_gouge_mm < 1e-5, "{}", d.max_gouge_mm);
+        assert!((d.max_leftover_mm - 3.0).abs() < 1e-4, "{}", d.max_leftover_mm);
+    }
 
     /// The CSV joined from parallel chunks reads as the rows written one after another: the
     /// header, then every row in order across the chunks' edges.

@@ -478,8 +478,13 @@ fn surface_distance_is_the_nearest_dexel_end() {
             Some(d) => assert!((d - reference).abs() < 1e-9, "{p:?}: {d} against {reference}"),
             None => assert!(reference > 5.0 - 1e-9, "{p:?}: none within 5 mm, the reference has {reference}"),
         }
-        let signed = dex.deviation_at(&p, 5.0);
-        assert_eq!(signed > 0.0, dex.inside(&p) && reference > 0.0, "{p:?}: sign of {signed}");
+        // Away from a smooth stretch of surface between the rays, the deviation is that
+        // distance, signed by the material at the point.
+        if dex.grids.iter().all(|g| g.local(&p).is_none()) {
+            let signed = dex.deviation_at(&p, 5.0);
+            assert!((signed.abs() - reference.min(5.0)).abs() < 1e-9, "{p:?}: {signed}");
+            assert_eq!(signed > 0.0, dex.inside(&p) && reference > 0.0, "{p:?}: sign of {signed}");
+        }
     }
     // On a face seen along a grid's rays the distance is exact: 0.3 mm above the untouched top.
     let d = dex.surface_distance(&Point3::new(18.9, 1.1, 10.3), 5.0).expect("near the top");
@@ -923,4 +928,74 @@ fn runs_of_pieces_cut_the_primary_grid_exactly_and_the_others_within_their_error
             }
         }
     }
+}
+
+/// A blank whose top is the plane through the origin with unit normal `n` (tilted less than 70°
+/// from Z), cut to a 16 × 12 mm footprint.
+fn tilted_top(n: &Vector3<f64>, cell: f64) -> DexelStock {
+    let rot = Rotation3::rotation_between(&Vector3::z(), n).expect("not upside down");
+    let slab = OrientedBox {
+        part_from_box: rot,
+        min: Point3::new(-60.0, -60.0, -60.0),
+        max: Point3::new(60.0, 60.0, 0.0),
+    };
+    let footprint = OrientedBox::aligned(Point3::new(-8.0, -6.0, -40.0), Point3::new(8.0, 6.0, 40.0));
+    DexelStock::new(&Blank { boxes: vec![slab, footprint] }, &DexelCells::tri(cell)).expect("stock")
+}
+
+#[test]
+fn a_plane_measures_exactly_at_any_tilt_where_the_nearest_end_is_off_by_the_slope() {
+    let mut rng = StdRng::seed_from_u64(38);
+    let cell = 0.1;
+    let mut nearest_worst = 0.0f64;
+    for _ in 0..12 {
+        let tilt = rng.random_range(0.0..70.0f64).to_radians();
+        let az = rng.random_range(0.0..std::f64::consts::TAU);
+        let n = Vector3::new(tilt.sin() * az.cos(), tilt.sin() * az.sin(), tilt.cos());
+        let dex = tilted_top(&n, cell);
+        for _ in 0..300 {
+            let (x, y) = (rng.random_range(-6.0..6.0), rng.random_range(-4.0..4.0));
+            // On the plane, then `off` along its normal (into the material when negative).
+            let on = Point3::new(x, y, -(n.x * x + n.y * y) / n.z);
+            let off = rng.random_range(-0.15..0.15);
+            let p = on + n * off;
+            let d = dex.deviation_at(&p, 5.0);
+            assert!((d + off).abs() < 2e-5, "tilt {:.1}°, {p:?}: {d} against {}", tilt.to_degrees(), -off);
+            let nearest = dex.surface_distance(&on, 5.0).unwrap_or(5.0);
+            nearest_worst = nearest_worst.max(nearest);
+        }
+    }
+    // The nearest dexel end alone reads points on the plane up to half a cell times the slope off.
+    assert!(nearest_worst > 0.3 * cell, "{nearest_worst}");
+}
+
+#[test]
+fn a_ball_groove_measures_within_the_curvature_between_rays() {
+    let cell = 0.25;
+    let dex = cut_block(cell);
+    // The groove's ball: centre line `tip + R·axis`, radius 3 mm; its surface in the block is the
+    // lower half of the cylinder around that line.
+    let (a, b) = (Point3::new(-4.0, 5.0, 7.0), Point3::new(24.0, 9.0, 8.0));
+    let axis = Vector3::new(0.0, -0.5, 1.0).normalize();
+    let m = (b - a).normalize();
+    let down = -(axis - m * axis.dot(&m)).normalize();
+    let side = m.cross(&down);
+    let mut rng = StdRng::seed_from_u64(5);
+    let (mut worst, mut nearest_worst, mut n) = (0.0f64, 0.0f64, 0);
+    while n < 2000 {
+        let s = rng.random_range(0.0..1.0);
+        let phi = rng.random_range(-1.2..1.2f64);
+        let u = down * phi.cos() + side * phi.sin();
+        let p = a + (b - a) * s + axis * 3.0 + u * 3.0;
+        // In the block, away from its sides and the pocket's reach.
+        if !(p.x > 1.0 && p.x < 19.0 && p.y > 1.0 && p.y < 9.5 && p.z < 9.7) {
+            continue;
+        }
+        n += 1;
+        worst = worst.max(dex.deviation_at(&p, 5.0).abs());
+        nearest_worst = nearest_worst.max(dex.surface_distance(&p, 5.0).unwrap_or(5.0));
+    }
+    // A chord of a 3 mm circle over a cell's diagonal sags (0.35)² / 24 ≈ 0.005 mm.
+    assert!(worst < 0.01, "{worst}");
+    assert!(nearest_worst > 3.0 * worst, "{nearest_worst} against {worst}");
 }
