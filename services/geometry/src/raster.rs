@@ -101,6 +101,11 @@
 //! did not show (a chamfer or a wall's top between a high and a low level): the mean there is
 //! neither level and would cut into the edge, so the cell takes the highest sample, as the
 //! roughing map does (material is left at the foot of the step, never cut from its edge). The
+//! same test runs on the two ends of each bridge through the cell, which may lie past the radius:
+//! in a gap wider than two rings at a step (a cove or a wall's foot the scanner's line did not
+//! reach, seen from one side as a floor), the cells near the low side see only that side, and
+//! would otherwise extend the floor flat under a surface that rises; where a bridge's ends imply
+//! such a step, the cell takes at least the bridge's higher end. The
 //! search walks the offsets nearest
 //! first and stops at the radius: cost `O(cells)` for bridges and components plus
 //! `O(Σ (radius/p)²)` over the filled cells only.
@@ -1213,6 +1218,56 @@ fn fill_at_step(hi: f32, d_hi_sq: u32, lo: f32, d_lo_sq: u32, pixel_mm: f64) -> 
     f64::from(hi) - f64::from(lo) > FILL_STEP_SLOPE * run
 }
 
+/// The higher end of a bridge through the empty cell `(c, r)` whose two ends imply a slope
+/// steeper than [`FILL_STEP_SLOPE`] through the cell ([`fill_at_step`]), or `-inf` when no bridge
+/// does. A bridge is a run of empty cells along a row, a column or a diagonal bounded by data at
+/// both ends and at most `axis` (`diag`) cells long, as [`fill_selection`] bridges them. The
+/// sample radius stops one ring past the nearest sample, so a cell near the low side of a wide
+/// gap at a step sees that side alone; its bridge still reaches the high side.
+fn bridge_step_top(
+    data: &[f32],
+    w: usize,
+    h: usize,
+    c: usize,
+    r: usize,
+    (axis, diag): (u32, u32),
+    p: f64,
+) -> f32 {
+    let at = |c: isize, r: isize| {
+        (c >= 0 && r >= 0 && (c as usize) < w && (r as usize) < h).then(|| data[r as usize * w + c as usize])
+    };
+    let mut top = f32::NEG_INFINITY;
+    for (dc, dr, limit) in [(1isize, 0isize, axis), (0, 1, axis), (1, 1, diag), (1, -1, diag)] {
+        // The data cell ending the run each way, and how many steps away it is.
+        let end = |sign: isize| -> Option<(f32, u32)> {
+            let mut k = 1u32;
+            loop {
+                let v = at(c as isize + sign * dc * k as isize, r as isize + sign * dr * k as isize)?;
+                if v.is_finite() {
+                    return Some((v, k));
+                }
+                // The run holds `k` empty cells past this one on this side alone.
+                if k >= limit {
+                    return None;
+                }
+                k += 1;
+            }
+        };
+        let (Some((a, ka)), Some((b, kb))) = (end(1), end(-1)) else { continue };
+        // Empty cells in the run: this one and those on both sides.
+        if ka + kb - 1 > limit {
+            continue;
+        }
+        let d2 = |k: u32| k.saturating_mul(k).saturating_mul(if dc != 0 && dr != 0 { 2 } else { 1 });
+        let ((hi, d_hi), (lo, d_lo)) =
+            if a >= b { ((a, d2(ka)), (b, d2(kb))) } else { ((b, d2(kb)), (a, d2(ka))) };
+        if fill_at_step(hi, d_hi, lo, d_lo, p) {
+            top = top.max(hi);
+        }
+    }
+    top
+}
+
 /// The fill value of cell `(c, r)` from the valid cells of `data` within the (fixed or adaptive)
 /// radius, NaN without any. With `max` the highest sample; otherwise the IDW mean, or the highest
 /// sample when the samples span a step ([`fill_at_step`]; `pixel_mm` the cell size).
@@ -1296,7 +1351,10 @@ pub fn fill_holes(raw: &HeightMap, params: &FillParams) -> Result<(HeightMap, Fi
             let (mut f, mut n) = (0usize, 0usize);
             for (c, (o, &s)) in orow.iter_mut().zip(srow).enumerate() {
                 if s != 0 {
-                    let v = fill_value(data, w, h, c, r, &offsets, max, p);
+                    let mut v = fill_value(data, w, h, c, r, &offsets, max, p);
+                    if !max && v.is_finite() {
+                        v = v.max(bridge_step_top(data, w, h, c, r, (axis, diag), p));
+                    }
                     if v.is_finite() {
                         *o = v;
                         f += 1;
@@ -1988,6 +2046,33 @@ mod tests {
                 FillMethod::Idw { .. } if sw > 0.0 => (swz / sw) as f32,
                 FillMethod::Idw { .. } => f32::NAN,
             };
+            // The bridge rule: along each line through the cell, the nearest data on both sides
+            // with at most the bridge limit of empty cells between them, farther apart in height
+            // than a 60° slope over the path through the cell rises: at least the higher one.
+            if matches!(method, FillMethod::Idw { .. }) && out[i].is_finite() {
+                let (axis, diag) = gap_limits(params.max_hole_mm, p);
+                for (dc, dr) in [(1isize, 0isize), (0, 1), (1, 1), (1, -1)] {
+                    let limit = if dc != 0 && dr != 0 { diag } else { axis } as usize;
+                    let side = |sign: isize| {
+                        (1..w.max(h) as isize).find_map(|k| {
+                            let (cc, rr) = (c + sign * dc * k, r + sign * dr * k);
+                            if cc < 0 || rr < 0 || cc >= w as isize || rr >= h as isize {
+                                return Some(None);
+                            }
+                            let z = d[rr as usize * w + cc as usize];
+                            z.is_finite().then_some(Some((z, k as f64)))
+                        })?
+                    };
+                    let (Some((a, ka)), Some((b, kb))) = (side(1), side(-1)) else { continue };
+                    if ka + kb - 1.0 > limit as f64 {
+                        continue;
+                    }
+                    let unit = if dc != 0 && dr != 0 { 2f64.sqrt() } else { 1.0 };
+                    if f64::from((a - b).abs()) > 3f64.sqrt() * p * unit * (ka + kb) {
+                        out[i] = out[i].max(a.max(b));
+                    }
+                }
+            }
         }
         out
     }
@@ -2110,6 +2195,47 @@ mod tests {
                         // highest sample would stand three above it).
                         let plane = 3.0 + slope * c as f32;
                         assert!((z - plane).abs() < slope, "{what} ({c}, {r}): {z} vs {plane}");
+                    }
+                }
+            }
+        }
+    }
+
+    /// A gap wider than the sample radius at a step (a cove's foot the scanner did not reach, a
+    /// floor seen on one side, a plateau on the other) is filled at the plateau all across, not
+    /// with the floor extended under the rise; the same gap on a 30° slope is interpolated.
+    #[test]
+    fn a_wide_gap_at_a_step_takes_the_high_side_near_the_low_side_too() {
+        let p = 0.25;
+        let w = 10;
+        for (what, step) in [("step", true), ("slope", false)] {
+            let m = meta(10, 24, p, 0.0, 0.0);
+            let slope = 30f64.to_radians().tan() as f32 * p as f32;
+            let mut map = HeightMap::from_fn(m, |_, r| match (step, r) {
+                (true, r) if r < 10 => 1.0,
+                (true, _) => 5.0,
+                (false, r) => 1.0 + slope * r as f32,
+            })
+            .expect("map");
+            for r in 10..16 {
+                for c in 0..w {
+                    map.data_mut()[r * w + c] = f32::NAN;
+                }
+            }
+            let params =
+                FillParams { method: FillMethod::Idw { power: 2.0 }, max_hole_mm: 2.0, radius_mm: None };
+            let (out, report) = fill_holes(&map, &params).expect("fill");
+            assert_eq!(report.filled, 60, "{what}");
+            for r in 10..16 {
+                for c in 0..w {
+                    let z = out.data()[r * w + c];
+                    if step {
+                        assert_eq!(z, 5.0, "{what} ({c}, {r})");
+                    } else {
+                        // Near the plane (the IDW extends each side a little flat), never a side's
+                        // level carried across the gap: the bridge rule stays out.
+                        let plane = 1.0 + slope * r as f32;
+                        assert!((z - plane).abs() < 3.0 * slope, "{what} ({c}, {r}): {z} vs {plane}");
                     }
                 }
             }

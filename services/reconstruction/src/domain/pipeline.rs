@@ -1482,8 +1482,9 @@ fn finish_face(
         Some(mut upper) => {
             upper.set_z_range(z_min, z_max)?;
             // Filling is monotone in the samples (max, or a weighted mean with the same weights
-            // over the same cells), so the filled bound stays above the filled target; the
-            // unseen fill takes the highest neighbour, also monotone.
+            // over the same cells) but for its step rules, so the filled bound stays above the
+            // filled target but at a step (below); the unseen fill takes the highest neighbour,
+            // also monotone.
             let mut filled = if r.fill.max_hole_mm > 0.0 { fill_holes(&upper, &r.fill)?.0 } else { upper };
             if let Some(lid) = lid {
                 for (z, &l) in filled.data_mut().iter_mut().zip(lid) {
@@ -1494,6 +1495,14 @@ fn finish_face(
             }
             if let Some(f) = &free {
                 fill_unseen(&mut filled, f);
+            }
+            // Where a fill's step rule lifted a target cell that the bound's own fill (over
+            // samples a little higher, so a little less of a step) did not, the bound takes the
+            // target: roughing never goes under the finishing target.
+            for (u, &t) in filled.data_mut().iter_mut().zip(depth_map.data()) {
+                if t.is_finite() && (u.is_nan() || *u < t) {
+                    *u = t;
+                }
             }
             continuous_over(&filled, r.roughing_factor)?
         }
