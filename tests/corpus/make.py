@@ -3,7 +3,7 @@
 named way. The files are committed; this script documents and regenerates them:
     python3 tests/corpus/make.py
 What each one must give is in corpus.toml, checked by tests/e2e/corpus.rs."""
-import os, struct, zlib
+import gzip, os, struct, zlib
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 
@@ -49,6 +49,14 @@ put("xyz/one-column.xyz", "12\n13\n")
 put("obj/index-out-of-range.obj", "# a triangle\nv 0 0 0\nv 10 0 0\nv 0 10 1\nf 1 2 4\n")
 put("obj/zero-index.obj", "v 0 0 0\nv 10 0 0\nv 0 10 1\nf 0 1 2\n")
 put("off/truncated.off", "OFF\n3 1 0\n0 0 0\n10 0 0\n")
+# Gzip-compressed meshes (read decompressed, whatever the name): cut short, and with its deflate
+# data corrupted (mtime 0: the same bytes on every run).
+good_stl_gz = gzip.compress(stl_binary([((0, 0, 0), (10, 0, 0), (0, 10, 1))] * 40), mtime=0)
+put("stl/truncated.stl.gz", good_stl_gz[: len(good_stl_gz) // 2])
+corrupt = bytearray(gzip.compress(b"".join(b"v %d 0 0\nv 0 %d 0\nv 0 0 %d\nf 1 2 3\n" % (i, i, i) for i in range(1, 200)), mtime=0))
+for i in range(12, 40):
+    corrupt[i] ^= 0x5A
+put("obj/corrupt.obj.gz", bytes(corrupt))
 put("off/binary.off", b"OFF BINARY\n" + struct.pack(">3i", 3, 1, 0) + struct.pack(">9f", 0, 0, 0, 10, 0, 0, 0, 10, 1))
 pcd_head = "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS {fields}\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA {data}\n"
 put("pcd/no-z-field.pcd", pcd_head.format(fields="x y w", n=2, data="ascii") + "0 0 0\n1 1 1\n")

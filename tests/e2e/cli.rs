@@ -474,6 +474,14 @@ fn raster_reads_obj_and_pcd_into_a_new_folder() -> anyhow::Result<()> {
     assert_eq!((from_obj.width(), from_obj.height()), (from_stl.width(), from_stl.height()));
     let same = from_obj.data().iter().zip(from_stl.data()).all(|(a, b)| a == b || (a.is_nan() && b.is_nan()));
     assert!(same, "the OBJ's map differs from the STL's");
+    // Gzip-compressed, the same map.
+    let gz_path = dir.path().join("block.obj.gz");
+    let mut gz =
+        flate2::write::GzEncoder::new(std::fs::File::create(&gz_path)?, flate2::Compression::default());
+    std::io::Write::write_all(&mut gz, &std::fs::read(&obj_path)?)?;
+    gz.finish()?;
+    let from_gz = map_of(&gz_path, &dir.path().join("gz/map.npy"))?;
+    assert!(from_gz.bitwise_eq(&from_obj), "the gzip OBJ's map differs from the OBJ's");
     let from_pcd = map_of(&pcd_path, &dir.path().join("pcd/map.npy"))?;
     let measured: Vec<f32> = from_pcd.data().iter().copied().filter(|z| z.is_finite()).collect();
     assert!(measured.len() > 100 && measured.iter().all(|&z| (z - 5.0).abs() < 1e-6), "{}", measured.len());

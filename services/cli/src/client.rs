@@ -80,10 +80,20 @@ pub struct Submit {
 }
 
 /// Kind and media type of an input file, by extension; a PLY file is a mesh when its header
-/// declares faces, a point cloud otherwise.
+/// declares faces, a point cloud otherwise. A mesh or cloud may be gzip-compressed (`.stl.gz`,
+/// `.ply.gz`, ...): it is sent as it is, under its content's type, and read decompressed.
 pub fn classify(path: &Path) -> Option<(&'static str, &'static str)> {
-    let ext = path.extension()?.to_str()?.to_ascii_lowercase();
-    Some(match ext.as_str() {
+    let mut ext = path.extension()?.to_str()?.to_ascii_lowercase();
+    let gz = ext == "gz";
+    if gz {
+        ext = Path::new(path.file_stem()?).extension()?.to_str()?.to_ascii_lowercase();
+    }
+    let (kind, media) = classify_ext(&ext, path)?;
+    (!gz || matches!(kind, "mesh" | "point_cloud")).then_some((kind, media))
+}
+
+fn classify_ext(ext: &str, path: &Path) -> Option<(&'static str, &'static str)> {
+    Some(match ext {
         "stl" => ("mesh", "model/stl"),
         "off" => ("mesh", "model/x-off"),
         "obj" => ("mesh", "model/obj"),
@@ -111,7 +121,7 @@ fn ply_has_faces(path: &Path) -> bool {
 pub async fn submit(server: &Server, s: Submit) -> anyhow::Result<String> {
     let (guess_kind, media_type) = classify(&s.file).with_context(|| {
         format!(
-            "cannot tell the type of {} from its extension (stl, xyz, ply, png, npy, ngc)",
+            "cannot tell the type of {} from its extension (stl, obj, off, ply, pcd, xyz, each also .gz; png, npy, ngc)",
             s.file.display()
         )
     })?;

@@ -79,7 +79,7 @@ pub async fn run(args: &DemoArgs) -> anyhow::Result<()> {
         Some(path) => {
             let (_, media_type) =
                 crate::client::classify(path).filter(|(kind, _)| *kind == "mesh").with_context(|| {
-                    format!("{}: --part takes a mesh (.stl, .obj, .off, or .ply with faces)", path.display())
+                    format!("{}: --part takes a mesh (.stl, .obj, .off, or .ply with faces; each may be gzip-compressed, .stl.gz)", path.display())
                 })?;
             let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
             let (geometry, stats) = depthmill_geometry::formats::read_any_from(

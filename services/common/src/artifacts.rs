@@ -143,7 +143,9 @@ pub fn validate_digest(s: &str) -> Result<(), ArtifactError> {
 }
 
 /// Incremental check of bytes against a declared media type: magic numbers for binary formats,
-/// "text without NUL bytes" for text formats, and the size equation of binary STL at the end.
+/// "text without NUL bytes" for text formats, and the size equation of binary STL at the end. A
+/// mesh or point cloud may be gzip-compressed (it starts with the gzip magic): its content is
+/// checked by the reader that decompresses it.
 #[derive(Debug)]
 pub struct MediaCheck {
     media_type: String,
@@ -168,7 +170,28 @@ impl MediaCheck {
         &self.media_type
     }
 
+    /// Geometry sent gzip-compressed (a mesh or point cloud type whose bytes start with the gzip
+    /// magic).
+    fn is_gzip_geometry(&self) -> bool {
+        self.is_geometry() && depthmill_geometry::formats::is_gzip(&self.head)
+    }
+
+    fn is_geometry(&self) -> bool {
+        matches!(
+            self.media_type.as_str(),
+            "model/stl"
+                | "application/x-ply"
+                | "text/x-xyz"
+                | "model/obj"
+                | "model/x-off"
+                | "application/x-pcd"
+        )
+    }
+
     fn is_text(&self) -> bool {
+        if self.is_gzip_geometry() {
+            return false;
+        }
         matches!(
             self.media_type.as_str(),
             "text/x-xyz" | "text/x-gcode" | "application/json" | "text/html" | "text/csv" | "image/svg+xml"
@@ -178,13 +201,13 @@ impl MediaCheck {
     /// Feeds the next bytes; fails as soon as the head shows the wrong type.
     pub fn update(&mut self, chunk: &[u8]) -> Result<(), ArtifactError> {
         self.size += chunk.len() as u64;
-        if self.is_text() && chunk.contains(&0) {
-            return Err(self.mismatch("it contains NUL bytes, so it is not text"));
-        }
         if self.head.len() < HEAD_LEN {
             let take = (HEAD_LEN - self.head.len()).min(chunk.len());
             self.head.extend_from_slice(&chunk[..take]);
             self.check_head(false)?;
+        }
+        if self.is_text() && chunk.contains(&0) {
+            return Err(self.mismatch("it contains NUL bytes, so it is not text"));
         }
         Ok(())
     }
@@ -195,6 +218,9 @@ impl MediaCheck {
             return Err(ArtifactError::Empty);
         }
         self.check_head(true)?;
+        if self.is_gzip_geometry() {
+            return Ok(());
+        }
         use depthmill_geometry::formats::{InputFormat, sniff_format};
         // ASCII STL (`solid` in any case, after white space, with facets) is checked by the reader;
         // a binary one, even with a header that starts with `solid`, by its size.
@@ -232,6 +258,13 @@ impl MediaCheck {
 
     fn check_head(&self, complete: bool) -> Result<(), ArtifactError> {
         let head = &self.head;
+        // Gzip, or its first byte so far.
+        let magic = depthmill_geometry::formats::GZIP_MAGIC;
+        if self.is_geometry()
+            && (self.is_gzip_geometry() || (!complete && head[..] == magic[..head.len().min(1)]))
+        {
+            return Ok(());
+        }
         let need = |magic: &[u8], what: &str| -> Result<(), ArtifactError> {
             let n = magic.len().min(head.len());
             if head[..n] != magic[..n] || (complete && head.len() < magic.len()) {
@@ -947,6 +980,32 @@ mod tests {
         let _again = ObjectArtifactStore::open_local(dir.path().join("artifacts")).await.expect("reopen");
         assert!(!old.exists(), "the stale staging file is removed");
         assert!(young.exists(), "an upload in progress elsewhere is left alone");
+    }
+
+    /// Gzip-compressed meshes and clouds pass, also fed a byte at a time (their content is the
+    /// reader's to check); a depth map or a program does not.
+    #[test]
+    fn gzip_geometry_is_accepted_under_its_content_type() {
+        // A gzip member: magic, deflate, flags, then bytes with NULs in them.
+        let gz: Vec<u8> =
+            [0x1f, 0x8b, 0x08, 0x00, 0, 0, 0, 0, 0, 0xff].into_iter().chain(0..=255u8).collect();
+        for media in
+            ["model/stl", "application/x-ply", "text/x-xyz", "model/obj", "model/x-off", "application/x-pcd"]
+        {
+            let mut check = MediaCheck::new(media).expect("type");
+            for b in &gz {
+                check.update(std::slice::from_ref(b)).expect(media);
+            }
+            check.finish().expect(media);
+        }
+        for media in ["image/png", "text/x-gcode", "application/x-npy"] {
+            let mut check = MediaCheck::new(media).expect("type");
+            let fed = gz.chunks(7).try_for_each(|c| check.update(c));
+            assert!(fed.is_err() || check.finish().is_err(), "{media}");
+        }
+        // A PLY that is neither: refused as before.
+        let mut check = MediaCheck::new("application/x-ply").expect("type");
+        assert!(check.update(b"\x1fnot ply").is_err());
     }
 
     #[test]

@@ -167,11 +167,22 @@ pub fn normalise(
 }
 
 /// Reads the first bytes of a file for [`Units::decide`] (up to 4 KiB: any header that names a
-/// unit is in there).
+/// unit is in there); of a gzip-compressed file, the first bytes of its content.
 pub fn read_head(path: &std::path::Path) -> std::io::Result<Vec<u8>> {
     use std::io::Read as _;
     let mut head = Vec::with_capacity(4096);
-    std::fs::File::open(path)?.take(4096).read_to_end(&mut head)?;
+    let file = std::io::BufReader::new(std::fs::File::open(path)?);
+    let mut magic = Vec::with_capacity(2);
+    let mut file = file;
+    (&mut file).take(2).read_to_end(&mut magic)?;
+    let rest = std::io::Cursor::new(magic.clone()).chain(file);
+    if crate::formats::is_gzip(&magic) {
+        flate2::bufread::MultiGzDecoder::new(std::io::BufReader::new(rest))
+            .take(4096)
+            .read_to_end(&mut head)?;
+    } else {
+        rest.take(4096).read_to_end(&mut head)?;
+    }
     Ok(head)
 }
 

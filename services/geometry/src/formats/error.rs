@@ -45,6 +45,11 @@ pub enum FormatError {
     #[error("invalid {field} = {value}: {reason}")]
     InvalidParameter { field: String, value: String, reason: String },
 
+    /// A gzip-compressed input whose compressed stream is broken (cut short, corrupt, a checksum
+    /// that does not match); `at` is how many compressed bytes the decoder had taken.
+    #[error("{file}: gzip: {problem} (after {at} compressed bytes)")]
+    Gzip { file: String, at: u64, problem: String },
+
     /// An I/O error on `file`.
     #[error("{file}: {source}")]
     Io {

@@ -15,6 +15,12 @@
 //! [`read_any_from`] sniffs the format from the first [`SNIFF_LEN`] bytes ([`sniff_format`]) and
 //! hands the stream to the right reader; [`read_any`], [`read_cloud`] and [`read_mesh`] open a file.
 //!
+//! Any of these formats may come gzip-compressed (`part.stl.gz`, `scan.ply.gz`: a stream starting
+//! with the gzip magic `1f 8b`, whatever its name): it is decompressed as it is read and the
+//! content sniffed and read as above, with the limits applying to the decompressed bytes (a
+//! small archive cannot expand past `max_bytes`). Errors of the compressed stream name the file
+//! and say `gzip`; a gzip stream inside another is refused.
+//!
 //! # Conventions
 //! - **Streaming.** Nothing reads a whole file into memory: text is read line by line into one
 //!   reused buffer, binary records are decoded straight out of the reader's buffer in large
@@ -325,10 +331,16 @@ pub(crate) type Replay<R> = io::Chain<Cursor<Vec<u8>>, R>;
 
 /// Reads the first [`SNIFF_LEN`] bytes of `r` and returns the format they show with a stream that
 /// replays them.
-pub(crate) fn sniff<R: BufRead>(mut r: R, name: &str, size: Option<u64>) -> Result<(InputFormat, Replay<R>)> {
+pub(crate) fn sniff<R: BufRead>(r: R, name: &str, size: Option<u64>) -> Result<(InputFormat, Replay<R>)> {
+    let (head, r) = read_head(r, name)?;
+    Ok((sniff_format(&head, size), r))
+}
+
+/// Reads the first [`SNIFF_LEN`] bytes of `r` and returns them with a stream that replays them.
+fn read_head<R: BufRead>(mut r: R, name: &str) -> Result<(Vec<u8>, Replay<R>)> {
     let mut head = Vec::with_capacity(SNIFF_LEN);
     r.by_ref().take(SNIFF_LEN as u64).read_to_end(&mut head).map_err(|e| io_error(name, e))?;
-    Ok((sniff_format(&head, size), Cursor::new(head).chain(r)))
+    Ok((head.clone(), Cursor::new(head).chain(r)))
 }
 
 pub(crate) fn check_size(name: &str, size: Option<u64>, limits: &ReadLimits) -> Result<()> {
@@ -373,7 +385,90 @@ fn read_with<R: BufRead>(
     keep: Option<usize>,
 ) -> Result<(Geometry, ReadStats)> {
     check_size(name, size, limits)?;
-    let (format, r) = sniff(r, name, size)?;
+    let (head, r) = read_head(r, name)?;
+    if is_gzip(&head) {
+        // The decompressed size is not known up front: the readers stream and `Src` enforces
+        // `max_bytes` on what comes out.
+        let decoder = flate2::bufread::MultiGzDecoder::new(Counted { inner: r, taken: 0 });
+        let inner = BufReader::with_capacity(BUF_LEN, Gunzip(decoder));
+        let (head, inner) = read_head(inner, name)?;
+        if is_gzip(&head) {
+            return Err(parse_error(name, Location::Byte(0), "gzip: a gzip stream inside a gzip stream"));
+        }
+        return read_sniffed(sniff_format(&head, None), inner, name, None, limits, want, keep);
+    }
+    read_sniffed(sniff_format(&head, size), r, name, size, limits, want, keep)
+}
+
+/// The gzip member header's first two bytes.
+pub const GZIP_MAGIC: [u8; 2] = [0x1f, 0x8b];
+
+/// Whether `head` (the first bytes of an input) starts a gzip stream.
+pub fn is_gzip(head: &[u8]) -> bool {
+    head.starts_with(&GZIP_MAGIC)
+}
+
+/// A compressed stream that counts the bytes its decoder takes.
+struct Counted<R> {
+    inner: R,
+    taken: u64,
+}
+
+impl<R: BufRead> Read for Counted<R> {
+    fn read(&mut self, buf: &mut [u8]) -> io::Result<usize> {
+        let n = self.inner.read(buf)?;
+        self.taken += n as u64;
+        Ok(n)
+    }
+}
+
+impl<R: BufRead> BufRead for Counted<R> {
+    fn fill_buf(&mut self) -> io::Result<&[u8]> {
+        self.inner.fill_buf()
+    }
+    fn consume(&mut self, amt: usize) {
+        self.taken += amt as u64;
+        self.inner.consume(amt);
+    }
+}
+
+/// A fault of the compressed stream, carried through `io::Error` to [`io_error`].
+#[derive(Debug)]
+struct GzipFault {
+    at: u64,
+    problem: String,
+}
+
+impl fmt::Display for GzipFault {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "gzip: {} (after {} compressed bytes)", self.problem, self.at)
+    }
+}
+
+impl std::error::Error for GzipFault {}
+
+/// A gzip decoder whose errors are [`GzipFault`]s.
+struct Gunzip<R: BufRead>(flate2::bufread::MultiGzDecoder<Counted<R>>);
+
+impl<R: BufRead> Read for Gunzip<R> {
+    fn read(&mut self, buf: &mut [u8]) -> io::Result<usize> {
+        self.0.read(buf).map_err(|e| {
+            let at = self.0.get_ref().taken;
+            io::Error::new(io::ErrorKind::InvalidData, GzipFault { at, problem: e.to_string() })
+        })
+    }
+}
+
+#[allow(clippy::too_many_arguments)]
+fn read_sniffed<R: BufRead>(
+    format: InputFormat,
+    r: R,
+    name: &str,
+    size: Option<u64>,
+    limits: &ReadLimits,
+    want: Want,
+    keep: Option<usize>,
+) -> Result<(Geometry, ReadStats)> {
     let mut src = Src::new(r, limits.max_bytes);
     match format {
         InputFormat::Xyz => {
@@ -446,6 +541,9 @@ impl std::error::Error for ByteLimit {}
 pub(crate) fn io_error(name: &str, e: io::Error) -> FormatError {
     if let Some(limit) = e.get_ref().and_then(|inner| inner.downcast_ref::<ByteLimit>()).map(|b| b.limit) {
         return too_large(name, "bytes", limit.saturating_add(1), limit);
+    }
+    if let Some(g) = e.get_ref().and_then(|inner| inner.downcast_ref::<GzipFault>()) {
+        return FormatError::Gzip { file: name.to_string(), at: g.at, problem: g.problem.clone() };
     }
     FormatError::Io { file: name.to_string(), source: e }
 }
@@ -971,6 +1069,80 @@ mod tests {
         }
         v.extend_from_slice(&[0, 0]);
         v
+    }
+
+    fn gzip(bytes: &[u8]) -> Vec<u8> {
+        use std::io::Write as _;
+        let mut e = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::default());
+        e.write_all(bytes).expect("compress");
+        e.finish().expect("compress")
+    }
+
+    /// Every format reads the same compressed as plain (sniffed by content, not by name); the
+    /// limits count decompressed bytes; a cut, corrupt or nested stream is refused naming the file.
+    #[test]
+    fn gzip_inputs_read_as_their_content() {
+        let limits = ReadLimits::default();
+        let read = |bytes: &[u8], limits: &ReadLimits| {
+            read_any_from(Cursor::new(bytes.to_vec()), "part.gz", Some(bytes.len() as u64), limits)
+        };
+        let mut big_stl = vec![0u8; 80];
+        big_stl.extend_from_slice(&300u32.to_le_bytes());
+        for t in 0..300u32 {
+            big_stl.extend_from_slice(&[0u8; 12]);
+            let x = t as f32;
+            for f in [x, 0., 0., x + 1., 0., 0., x, 1., 0.] {
+                big_stl.extend_from_slice(&f.to_le_bytes());
+            }
+            big_stl.extend_from_slice(&[0, 0]);
+        }
+        let inputs: Vec<Vec<u8>> = vec![
+            b"1 2 3\n4 5 6.5\n".to_vec(),
+            one_triangle_stl(),
+            big_stl.clone(),
+            b"solid t\nfacet normal 0 0 1\nouter loop\nvertex 0 0 0\nvertex 1 0 0\nvertex 0 1 0\nendloop\nendfacet\nendsolid t\n".to_vec(),
+            b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n4 5 6\n1 1 1\n".to_vec(),
+            b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n".to_vec(),
+            b"OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n".to_vec(),
+            b"VERSION .7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 1\nHEIGHT 1\nPOINTS 1\nDATA ascii\n1 2 3\n".to_vec(),
+        ];
+        for plain in &inputs {
+            let (g, s) = read(plain, &limits).expect("plain");
+            let packed = gzip(plain);
+            assert!(is_gzip(&packed));
+            let (gz, sz) = read(&packed, &limits).expect("gzip");
+            assert_eq!(gz, g);
+            assert_eq!((sz.format, sz.points, sz.triangles), (s.format, s.points, s.triangles));
+        }
+        // Two members one after the other (`cat a.gz b.gz`) are one stream, as gunzip reads them.
+        let mut two = gzip(b"1 2 3\n");
+        two.extend_from_slice(&gzip(b"4 5 6\n"));
+        let (g, _) = read(&two, &limits).expect("two members");
+        assert!(matches!(g, Geometry::Cloud(ref c) if c.points.len() == 2));
+        // The byte limit holds on what comes out, however small the archive.
+        let zeros = gzip(&b"0 0 0\n".repeat(200_000));
+        assert!(zeros.len() < 10_000);
+        let tight = ReadLimits { max_bytes: 100_000, ..ReadLimits::default() };
+        let e = read(&zeros, &tight).expect_err("expands past the limit").to_string();
+        assert!(e.contains("part.gz") && e.contains("100000"), "{e}");
+        // Cut short, corrupt, nested: errors naming the file and the gzip stream.
+        let packed = gzip(&big_stl);
+        let e = read(&packed[..packed.len() / 2], &limits).expect_err("cut").to_string();
+        assert!(e.contains("part.gz") && e.contains("gzip"), "{e}");
+        let mut bad = packed.clone();
+        for b in &mut bad[20..60] {
+            *b ^= 0x5a;
+        }
+        let e = read(&bad, &limits).expect_err("corrupt").to_string();
+        assert!(e.contains("part.gz") && e.contains("gzip"), "{e}");
+        let e = read(&gzip(&gzip(b"1 2 3\n")), &limits).expect_err("nested").to_string();
+        assert!(e.contains("part.gz") && e.contains("gzip stream inside"), "{e}");
+        // The unit sniffing reads the content's header.
+        let dir = tempfile::tempdir().expect("dir");
+        let path = dir.path().join("part.ply.gz");
+        std::fs::write(&path, gzip(b"ply\nformat ascii 1.0\ncomment units mm\nend_header\n")).expect("write");
+        let head = crate::units::read_head(&path).expect("head");
+        assert!(head.starts_with(b"ply\nformat ascii"), "{}", String::from_utf8_lossy(&head));
     }
 
     #[test]
