@@ -335,6 +335,28 @@ async fn the_console_shows_the_server_s_error_for_a_bad_file_and_asks_for_a_toke
     .await?;
     assert!(said.as_str().unwrap_or_default().contains("part.step"), "{said}");
 
+    // A gzip-compressed PLY with faces: a mesh, told from the decompressed header, uploaded as it is.
+    let ply_gz = dir.path().join("tri.ply.gz");
+    let mut gz =
+        flate2::write::GzEncoder::new(std::fs::File::create(&ply_gz)?, flate2::Compression::default());
+    std::io::Write::write_all(
+        &mut gz,
+        b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n10 0 0\n0 10 2\n3 0 1 2\n",
+    )?;
+    gz.finish()?;
+    c.find(Locator::Css("#file-input")).await?.send_keys(&ply_gz.to_string_lossy()).await?;
+    let said = until(
+        &c,
+        "the gzip upload",
+        Duration::from_secs(20),
+        "const s = document.querySelector('#file-status')?.textContent || ''; return s.includes('uploaded') ? s : null",
+    )
+    .await?;
+    let said = said.as_str().unwrap_or_default();
+    assert!(said.contains("tri.ply.gz") && said.contains("a mesh starts at the scan stage"), "{said}");
+    c.refresh().await?;
+    c.wait().for_element(Locator::Css("#file-input")).await?;
+
     // A mesh whose every triangle is degenerate: uploaded, then refused at submission with the
     // server's message shown, and no job made.
     let flat = dir.path().join("flat.stl");

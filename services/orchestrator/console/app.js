@@ -795,8 +795,19 @@ async function viewerPanel(job) {
 
 // ---------------------------------------------------------------- submit
 
+// A mesh or cloud may be gzip-compressed (part.stl.gz): sent as it is, under its content's type.
+function isGzipName(name) { return /\.gz$/i.test(name); }
+
 function kindOf(file) {
-  const ext = (file.name.split('.').pop() || '').toLowerCase();
+  const parts = file.name.toLowerCase().split('.');
+  const gz = parts.length > 2 && parts[parts.length - 1] === 'gz';
+  if (gz) parts.pop();
+  const ext = parts.length > 1 ? parts.pop() : '';
+  const known = kindOfExt(ext);
+  return gz && known && !['mesh', 'point_cloud', 'ply'].includes(known[0]) ? null : known;
+}
+
+function kindOfExt(ext) {
   return ({ stl: ['mesh', 'model/stl'], obj: ['mesh', 'model/obj'], off: ['mesh', 'model/x-off'], pcd: ['point_cloud', 'application/x-pcd'], xyz: ['point_cloud', 'text/x-xyz'], txt: ['point_cloud', 'text/x-xyz'], asc: ['point_cloud', 'text/x-xyz'],
     ply: ['ply', 'application/x-ply'], png: ['depth_map', 'image/png'], npy: ['depth_map', 'application/x-npy'],
     ngc: ['gcode', 'text/x-gcode'], nc: ['gcode', 'text/x-gcode'], gcode: ['gcode', 'text/x-gcode'], tap: ['gcode', 'text/x-gcode'], cnc: ['gcode', 'text/x-gcode'] })[ext] || null;
@@ -804,7 +815,29 @@ function kindOf(file) {
 
 // A PLY file is a mesh when its header declares faces, a point cloud otherwise (as the CLI decides).
 async function plyKind(file) {
-  const head = new TextDecoder().decode(await file.slice(0, 4096).arrayBuffer());
+  let bytes = await file.slice(0, 4096).arrayBuffer();
+  if (isGzipName(file.name)) {
+    // The header of the content: the first decompressed chunks, up to 4 KiB.
+    const reader = file.stream().pipeThrough(new DecompressionStream('gzip')).getReader();
+    const chunks = [];
+    let n = 0;
+    try {
+      while (n < 4096) {
+        const { value, done } = await reader.read();
+        if (done) break;
+        chunks.push(value);
+        n += value.length;
+      }
+    } catch (e) {
+      // A broken stream: the server names the fault when it reads the file.
+    }
+    reader.cancel().catch(() => {});
+    const all = new Uint8Array(n);
+    let at = 0;
+    for (const c of chunks) { all.set(c, at); at += c.length; }
+    bytes = all.slice(0, 4096).buffer;
+  }
+  const head = new TextDecoder().decode(bytes);
   const header = head.split('end_header')[0];
   const m = header.match(/element face (\d+)/);
   return m && Number(m[1]) > 0 ? 'mesh' : 'point_cloud';
@@ -919,7 +952,7 @@ async function submitPage() {
   if (materials) catalogs.material = materials.materials.map((m) => m.name);
   if (machines) catalogs.machine = machines.machines.map((m) => m.name);
 
-  const fileInput = h('input', { type: 'file', id: 'file-input', accept: '.stl,.obj,.off,.ply,.pcd,.xyz,.txt,.asc,.png,.npy,.ngc,.nc,.gcode,.tap,.cnc', class: 'visually-hidden' });
+  const fileInput = h('input', { type: 'file', id: 'file-input', accept: '.stl,.obj,.off,.ply,.pcd,.xyz,.txt,.asc,.gz,.png,.npy,.ngc,.nc,.gcode,.tap,.cnc', class: 'visually-hidden' });
   const drop = h('div', { class: 'drop', id: 'drop-zone', tabindex: '0', role: 'button', 'aria-describedby': 'drop-help' },
     h('strong', { text: 'Drop a part file here' }), h('br'), h('span', { id: 'drop-help', class: 'muted small', text: 'or press Enter to choose one: STL, PLY, XYZ (mesh or scan), PNG, NPY (depth map), NGC (G-code)' }));
   const fileStatus = h('p', { id: 'file-status', role: 'status', class: 'small' });
@@ -940,7 +973,7 @@ async function submitPage() {
     const known = kindOf(file);
     if (!known) {
       fileStatus.className = 'small error';
-      fileStatus.textContent = `${file.name}: cannot tell the type from its extension (stl, ply, xyz, png, npy, ngc)`;
+      fileStatus.textContent = `${file.name}: cannot tell the type from its extension (stl, obj, off, ply, pcd, xyz, each also .gz; png, npy, ngc)`;
       return;
     }
     let [kind, mediaType] = known;
