@@ -37,6 +37,11 @@ def merge(a, b):
 merge(job, json.loads(sys.argv[3]))
 json.dump(job, open(sys.argv[2], 'w'), indent=1)
 PYEOF
+  # A part the first run refused (too large for the machine) is not run again.
+  if [ ! -f "$RUNS/$name/artifacts/scan_report.json" ]; then
+    echo "== $name: skipped, the first run made no job" >&2
+    continue
+  fi
   # The units the first run used (its scan report), so both runs read the file alike.
   units=$(python3 -c "import json,sys; print(json.load(open(sys.argv[1])).get('units', {}).get('unit', 'mm'))" \
     "$RUNS/$name/artifacts/scan_report.json" 2>/dev/null || echo mm)
