@@ -148,15 +148,14 @@ async fn the_whole_job_reproduces_the_part_within_tolerance() -> anyhow::Result<
     println!(
         "machined vs part: max gouge {gouge:.4} mm; vs part opened by ball-3: max gouge {gouge_open:.4} mm, max leftover {left_open:.4} mm, RMS {rms:.4} mm over {n} cells"
     );
-    // Tolerances, wide enough for the conservative settings too (`estimator: max`, columns).
-    // The scan's noise is σ = 35 µm: the default fitted target averages it down (a few µm), where
-    // max-Z binning keeps the highest sample of a 0.25 mm pixel (about +2σ = 0.07 mm above the
-    // surface) and a column reading lifts the dome's flanks (slope up to 0.42) by up to slope ×
-    // pixel = 0.1 mm; the CAM works to 0.01 mm and the mill's steps are 0.01 mm; a 0.4 mm
-    // step-over of a 1.5 mm ball leaves scallops of R − √(R² − 0.2²) = 0.013 mm. So: no gouge
-    // below the part beyond the noise's low side (≤ 0.15 mm), leftover above the part opened by
-    // the ball ≤ 0.07 + 0.1 + 0.013 + steps (≤ 0.3 mm), and the copy within 0.15 mm RMS of the
-    // best a 3 mm ball can do.
+    // Tolerances. The scan's noise is σ = 35 µm and max-Z binning keeps the highest sample of a
+    // 0.25 mm pixel (about +2σ = 0.07 mm above the surface); the CAM reads each pixel as a
+    // column as high as its highest corner (the conservative pixel model), which on the dome's
+    // flanks (slope up to 0.42) lifts the surface by up to slope × pixel = 0.1 mm; the CAM works
+    // to 0.01 mm and the mill's steps are 0.01 mm; a 0.4 mm step-over of a 1.5 mm ball leaves
+    // scallops of R − √(R² − 0.2²) = 0.013 mm. So: no gouge below the part beyond the noise's low
+    // side (≤ 0.15 mm), leftover above the part opened by the ball ≤ 0.07 + 0.1 + 0.013 + steps
+    // (≤ 0.3 mm), and the copy within 0.15 mm RMS of the best a 3 mm ball can do.
     assert!(n > 5_000, "{n} cells compared");
     assert!(gouge < 0.15 && gouge_open < 0.15, "gouge {gouge} / {gouge_open}");
     assert!(left_open < 0.3, "leftover {left_open}");
