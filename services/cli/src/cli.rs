@@ -107,10 +107,9 @@ enum Command {
         /// Tool: a name (ball-6, flat-6, bull-6-1, v-6-90, or one of the shipped library) or a .tool file.
         #[arg(long)]
         tool: String,
-        /// Pixel reading: facet (a piecewise-linear surface through the centres standing above their
-        /// convex edges; the plan stage's default), column (conservative: each cell a square column)
-        /// or point (cell-centre samples).
-        #[arg(long, default_value = "facet")]
+        /// Pixel reading: column (conservative: each cell a square column), point (cell-centre samples)
+        /// or facet (a piecewise-linear surface through the centres standing above their convex edges).
+        #[arg(long, default_value = "column")]
         model: String,
         /// Height of everything outside the map and of cells without data (default: the map's z_min).
         #[arg(long, allow_negative_numbers = true)]

@@ -106,13 +106,11 @@ pub struct FinishingOptions {
     pub tolerance_mm: Option<f64>,
     #[serde(default)]
     pub arcs: Option<bool>,
-    /// What a depth-map cell means to the finishing tool: `facet` (default: a sample of a
-    /// piecewise-linear surface through the centres that stands above the convex edges between
-    /// them and extends a step's top half a pixel flat; no stand-off on slopes), `column` (a
-    /// square column at its height, never below it anywhere over the cell; on a slope the tool
-    /// stands off by up to the slope times half a pixel) or `point` (a sample of a continuous
-    /// surface at the cell's centre; between samples the tool may dip by the surface's bulge over
-    /// a pixel).
+    /// What a depth-map cell means to the finishing tool: `column` (default: a square column at
+    /// its height, never below it anywhere over the cell; on a slope the tool stands off by up to
+    /// the slope times half a pixel) or `point` (a sample of a continuous surface at the cell's
+    /// centre: no stand-off on slopes, for a fitted target such as `reconstruct.estimator: "fit"`;
+    /// between samples the tool may dip by the surface's bulge over a pixel).
     #[serde(default)]
     pub pixel_model: Option<String>,
 }
@@ -527,7 +525,7 @@ fn settings(
     };
     let tolerance = positive("plan.finishing.tolerance_mm", fin.tolerance_mm, 0.01)?;
     let arcs = fin.arcs.unwrap_or(true);
-    let fin_model = match fin.pixel_model.as_deref().unwrap_or("facet") {
+    let fin_model = match fin.pixel_model.as_deref().unwrap_or("column") {
         "column" => PixelModel::Column,
         "point" => PixelModel::Point,
         "facet" => PixelModel::Facet,
@@ -1133,12 +1131,12 @@ mod tests {
         let data = (0..n * n).map(|i| (2.0 + slope * ((i % n) as f64 + 0.5) * 0.25) as f32).collect();
         let map = HeightMap::new(meta, data).expect("valid map");
         let library = ToolLibrary::builtin().expect("library");
-        let leftover = |model: Option<&str>| {
+        let leftover = |model: &str| {
             let options = PlanOptions {
                 stock: Some(StockOptions { z_mm: Some(12.0), ..Default::default() }),
                 finishing: Some(FinishingOptions {
                     step_over_mm: Some(0.25),
-                    pixel_model: model.map(str::to_string),
+                    pixel_model: Some(model.into()),
                     ..Default::default()
                 }),
                 ..Default::default()
@@ -1146,19 +1144,17 @@ mod tests {
             let faces = [FaceInput { a_deg: None, map: map.clone(), roughing_map: None }];
             let out = plan(&faces, &options, &library, &MachineLimits::emco_f1(), &|_, _| {}, &|| false)
                 .expect("planned");
-            // Facets unless told otherwise.
             let want = match model {
-                Some("point") => PixelModel::Point,
-                Some("column") => PixelModel::Column,
-                _ => PixelModel::Facet,
+                "point" => PixelModel::Point,
+                "facet" => PixelModel::Facet,
+                _ => PixelModel::Column,
             };
             assert_eq!(out.report.pixel_model, want);
             (out.preview.mean_leftover_mm, out.preview.max_gouge_mm)
         };
-        let (column, column_gouge) = leftover(Some("column"));
-        let (point, point_gouge) = leftover(Some("point"));
-        let (facet, facet_gouge) = leftover(Some("facet"));
-        assert_eq!(leftover(None), (facet, facet_gouge), "the default reads facets");
+        let (column, column_gouge) = leftover("column");
+        let (point, point_gouge) = leftover("point");
+        let (facet, facet_gouge) = leftover("facet");
         // Columns stand off by up to the slope times half a pixel (0.045 mm here); points and
         // facets read a plane as it is.
         assert!(column > point + 0.02, "mean leftover: column {column}, point {point}");

@@ -319,8 +319,7 @@ pub struct ReconstructParams {
     /// Lattice of the continuous roughing map, in pixels (default 4).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub roughing_factor: Option<u32>,
-    /// How a cell's points make the finishing target (default `fit`, the best estimate of the
-    /// surface; `max` never below the measured surface but about two noise deviations above it).
+    /// How a cell's points make the depth map (default `max`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub estimator: Option<CellEstimator>,
 }
@@ -587,11 +586,11 @@ pub struct Finishing {
     pub tolerance_mm: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub arcs: Option<bool>,
-    /// What a depth-map cell means to the finishing tool: `facet` (default: a sample of a
-    /// piecewise-linear surface through the centres that stands above the convex edges between
-    /// them and extends a step's top half a pixel flat), `column` (a square column at its height;
-    /// on a slope the tool stands off by up to the slope times half a pixel) or `point` (a sample
-    /// of a continuous surface at the cell's centre).
+    /// What a depth-map cell means to the finishing tool: `column` (default: a square column at
+    /// its height; on a slope the tool stands off by up to the slope times half a pixel) or
+    /// `point` (a sample of a continuous surface at the cell's centre, for a fitted target) or
+    /// `facet` (a sample of a piecewise-linear surface through the centres that stands above the
+    /// convex edges between them and extends a step's top half a pixel flat).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub pixel_model: Option<String>,
 }

@@ -4,7 +4,7 @@
 //! Order, for a cloud: rigid user transform -> intensity window -> voxel decimation -> statistical
 //! outlier removal -> radius outlier removal -> per face: rotate into the face frame, region of
 //! interest (given, or the points' extent plus a margin), rasterisation (each cell the max Z of
-//! its points, or by default a robust local surface fit, `estimator`), hole filling (enclosed holes only),
+//! its points, or their median with `estimator: "median"`), hole filling (enclosed holes only),
 //! coverage, robust Z range (after the filters, quantiles: one stray point does not set `z_max`),
 //! roughing map (always from the max, so it never cuts into the part whatever the estimator). A
 //! mesh skips the filters and is z-buffered per face.
@@ -13,7 +13,7 @@
 //! `margin_mm`, `z_min_mm`/`z_max_mm`, `filters`, `roughing_factor` and `estimator`. Defaults: pixel 0.1 mm,
 //! one face `+Z`, IDW fill (power 2) of holes up to 2 mm, margin 2 pixels, statistical outlier
 //! removal with k = 12 and n·σ = 3, keeping the flagged points on a sparsely sampled surface
-//! (when `filters` is absent; a given `filters` object runs exactly the filters it names), roughing lattice of 4 pixels, estimator `fit`.
+//! (when `filters` is absent; a given `filters` object runs exactly the filters it names), roughing lattice of 4 pixels, estimator `max`.
 
 use std::time::Instant;
 
@@ -88,6 +88,7 @@ pub struct ReconstructOptions {
 pub enum CellEstimator {
     /// The highest point: never below the measured surface, but about two standard deviations of
     /// the scanner's noise above it (the noise is cut into the part).
+    #[default]
     Max,
     /// The median point: an unbiased estimate of the surface under symmetric noise. The roughing
     /// map still comes from the max.
@@ -100,8 +101,7 @@ pub enum CellEstimator {
     /// A robust local quadric fit of a few hundred points around each cell
     /// ([`depthmill_geometry::surface_fit`]): the noise averaged an order of magnitude down,
     /// curved surfaces kept, steps and convex edges kept by weighting the other side out. The
-    /// roughing map still comes from the max. The default: the best estimate of the surface.
-    #[default]
+    /// roughing map still comes from the max.
     Fit,
 }
 
@@ -433,10 +433,10 @@ impl ReconstructOptions {
             ));
         }
         let estimator = match self.estimator.as_deref() {
-            Some("max") => CellEstimator::Max,
+            None | Some("max") => CellEstimator::Max,
             Some("median") => CellEstimator::Median,
             Some("median_bilateral") => CellEstimator::MedianBilateral,
-            None | Some("fit") => CellEstimator::Fit,
+            Some("fit") => CellEstimator::Fit,
             Some(other) => {
                 return Err(ReconError::param(
                     "reconstruct.estimator",
@@ -1569,7 +1569,7 @@ mod tests {
 
     #[test]
     fn the_median_target_is_unbiased_and_roughing_still_comes_from_the_max() {
-        let max = face(Some("max"));
+        let max = face(None);
         let median = face(Some("median"));
         // The max stands about 0.04 mm proud with 16 samples of ±0.05 mm; the median does not.
         assert!(finite_mean(&max.depth_map) - 5.0 > 0.03, "max mean {}", finite_mean(&max.depth_map));
@@ -1601,7 +1601,7 @@ mod tests {
     fn the_fit_target_averages_far_below_the_median_reports_its_noise_and_roughs_from_the_max() {
         let median = face(Some("median"));
         let fit = face(Some("fit"));
-        let max = face(Some("max"));
+        let max = face(None);
         let (rm, rf) = (rms_about(&median.depth_map, 5.0), rms_about(&fit.depth_map, 5.0));
         assert!(rf < rm / 1.8, "median RMS {rm}, fit RMS {rf}");
         assert!((finite_mean(&fit.depth_map) - 5.0).abs() < 0.003, "{}", finite_mean(&fit.depth_map));
@@ -1801,15 +1801,6 @@ mod tests {
         assert_eq!(side.warning.as_ref(), Some(&w), "the report carries it");
         assert!(w.starts_with("face A=90: ") && w.contains("% assumed"), "{w}");
         assert!(side.unseen_filled > 3 * side.coverage.measured, "{side:?}");
-    }
-
-    #[test]
-    fn the_default_estimator_is_the_fit() {
-        let r = ReconstructOptions::default().resolve().expect("defaults");
-        assert_eq!(r.estimator, CellEstimator::Fit);
-        assert_eq!(CellEstimator::default(), CellEstimator::Fit);
-        let max = ReconstructOptions { estimator: Some("max".into()), ..Default::default() };
-        assert_eq!(max.resolve().expect("max").estimator, CellEstimator::Max);
     }
 
     #[test]
