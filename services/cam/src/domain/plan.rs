@@ -1027,7 +1027,14 @@ fn plan_with(
         title: "depthmill".into(),
         lines: vec![
             format!("material {material}"),
-            format!("tolerance {tolerance} mm, pixel model column"),
+            format!(
+                "tolerance {tolerance} mm, finishing pixel model {}",
+                match fin_model {
+                    PixelModel::Column => "column",
+                    PixelModel::Point => "point",
+                    PixelModel::Facet => "facet",
+                }
+            ),
             format!("roughing step-down {step_down} mm, stock to leave {leave} mm"),
             format!("finishing step-over {step_over:.4} mm"),
         ],
