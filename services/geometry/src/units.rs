@@ -171,9 +171,8 @@ pub fn normalise(
 pub fn read_head(path: &std::path::Path) -> std::io::Result<Vec<u8>> {
     use std::io::Read as _;
     let mut head = Vec::with_capacity(4096);
-    let file = std::io::BufReader::new(std::fs::File::open(path)?);
+    let mut file = std::io::BufReader::new(std::fs::File::open(path)?);
     let mut magic = Vec::with_capacity(2);
-    let mut file = file;
     (&mut file).take(2).read_to_end(&mut magic)?;
     let rest = std::io::Cursor::new(magic.clone()).chain(file);
     if crate::formats::is_gzip(&magic) {

@@ -447,14 +447,19 @@ impl fmt::Display for GzipFault {
 
 impl std::error::Error for GzipFault {}
 
-/// A gzip decoder whose errors are [`GzipFault`]s.
+/// A gzip decoder whose faults of the compressed data (corrupt, cut short, a checksum that does
+/// not match: the decoder's invalid-data and end-of-file errors) are [`GzipFault`]s; errors of
+/// the stream under it pass through as they are.
 struct Gunzip<R: BufRead>(flate2::bufread::MultiGzDecoder<Counted<R>>);
 
 impl<R: BufRead> Read for Gunzip<R> {
     fn read(&mut self, buf: &mut [u8]) -> io::Result<usize> {
-        self.0.read(buf).map_err(|e| {
-            let at = self.0.get_ref().taken;
-            io::Error::new(io::ErrorKind::InvalidData, GzipFault { at, problem: e.to_string() })
+        self.0.read(buf).map_err(|e| match e.kind() {
+            io::ErrorKind::InvalidInput | io::ErrorKind::InvalidData | io::ErrorKind::UnexpectedEof => {
+                let at = self.0.get_ref().taken;
+                io::Error::new(io::ErrorKind::InvalidData, GzipFault { at, problem: e.to_string() })
+            }
+            _ => e,
         })
     }
 }
