@@ -796,51 +796,116 @@ fn combine_deviations(faces: &[FaceResult]) -> Option<Deviation> {
     })
 }
 
-/// Steepest stock surface, rise over run, read by interpolation at a target cell's centre
-/// (tan 63°); across a steeper step the nearest stock cell is read.
-const STOCK_INTERPOLATION_MAX_SLOPE: f64 = 2.0;
+/// Steepest surface, rise over run, read by interpolation between cells (tan 63°); across a
+/// steeper step the nearest cell is read.
+const INTERPOLATION_MAX_SLOPE: f64 = 2.0;
 
 /// Signed deviation `stock − target` on the target's grid (NaN where the target or the stock has
-/// no data: the stock has none where its blank never held material), with its statistics. The
-/// stock is read at each target cell's centre, interpolated between the four stock cells around
-/// it ([`HeightMap::interpolated`]), else at the nearest cell (at a step, a hole, the border). The
-/// nearest cell alone reads a slope of angle θ off by `tan θ` times the distance between the two
-/// grids' centres, up to half a stock cell: ±0.039 mm on a 38° slope cut exactly, on 0.1 mm cells.
+/// no data: the stock has none where its blank never held material), with its statistics.
+///
+/// - Where the target reads smoothly around a cell (the four target centres around each of the
+///   stock cells in it have data and no step steeper than tan 63° between neighbours) and the
+///   stock is finer, the cell is measured at each of its stock cells, where the stock is exact,
+///   against the target interpolated there ([`HeightMap::interpolated`]: a sampled surface,
+///   linear between its centres as the planner's point and facet readings take it). The cell's
+///   value is the deepest gouge among them, else their mean; each counts for its share of the
+///   cell's area.
+/// - Elsewhere (a step, a wall, a hole or the border of the target, or a stock as coarse as the
+///   target) at the target cell's centre, the stock interpolated there, else its nearest cell.
+///
+/// The nearest stock cell alone reads a slope of angle θ off by `tan θ` times the distance
+/// between the two grids' centres (±0.039 mm on a 38° slope cut exactly, on 0.1 mm cells), and
+/// the stock read at the target's centres reads a target's single-cell peak against stock
+/// interpolated under it (0.0235 mm on the hinge's filled cove, 0.0088 mm on the stock's cells).
 pub fn deviation(target: &HeightMap, stock: &HeightMap) -> Deviation {
     let meta = *target.meta();
-    let mut data = vec![f32::NAN; target.data().len()];
-    let (mut max_gouge, mut max_left, mut sum_left, mut sum_sq, mut n) = (0.0f64, 0.0f64, 0.0, 0.0, 0usize);
+    let n = target.data().len();
+    let fine = stock.pixel_mm() < target.pixel_mm() * (1.0 - 1e-9);
+    // Per target cell, over its stock cells: whether every one reads the target smoothly, the
+    // deepest deviation, the sum and the count.
+    let (mut smooth, mut worst, mut sum, mut count) =
+        (vec![fine; n], vec![f64::INFINITY; n], vec![0.0; n], vec![0u32; n]);
+    if fine {
+        let sm = *stock.meta();
+        for row in 0..sm.height {
+            for col in 0..sm.width {
+                let Some(s) = stock.get(col, row).filter(|s| s.is_finite()) else { continue };
+                let (x, y) = sm.cell_center(col, row);
+                let Some(i) = target.cell_of(x, y).and_then(|(c, r)| target.index(c, r)) else { continue };
+                match target.interpolated(x, y, INTERPOLATION_MAX_SLOPE) {
+                    Some(t) => {
+                        let d = f64::from(s) - t;
+                        worst[i] = worst[i].min(d);
+                        sum[i] += d;
+                        count[i] += 1;
+                    }
+                    None => smooth[i] = false,
+                }
+            }
+        }
+    }
+    let share = (stock.pixel_mm() / target.pixel_mm()).powi(2);
+    let mut data = vec![f32::NAN; n];
+    let (mut max_gouge, mut max_left, mut sum_left, mut sum_sq, mut weight, mut cells) =
+        (0.0f64, 0.0f64, 0.0f64, 0.0f64, 0.0f64, 0usize);
+    let mut add = |d: f64, w: f64| {
+        max_gouge = max_gouge.max(-d);
+        max_left = max_left.max(d);
+        sum_left += w * d.max(0.0);
+        sum_sq += w * d * d;
+        weight += w;
+    };
     for row in 0..meta.height {
         for col in 0..meta.width {
+            let i = (row * meta.width + col) as usize;
             let Some(t) = target.get(col, row).filter(|t| t.is_finite()) else { continue };
+            if smooth[i] && count[i] > 0 {
+                // Measured on its stock cells (counted below, each for its share of the cell).
+                let k = f64::from(count[i]);
+                data[i] = if worst[i] < 0.0 { worst[i] } else { sum[i] / k } as f32;
+                cells += 1;
+                continue;
+            }
             let (x, y) = meta.cell_center(col, row);
             let nearest = || stock.cell_of(x, y).and_then(|(c, r)| stock.get(c, r)).map(f64::from);
-            let Some(s) = stock
-                .interpolated(x, y, STOCK_INTERPOLATION_MAX_SLOPE)
-                .or_else(nearest)
-                .filter(|s| s.is_finite())
+            let Some(s) =
+                stock.interpolated(x, y, INTERPOLATION_MAX_SLOPE).or_else(nearest).filter(|s| s.is_finite())
             else {
                 continue;
             };
             let d = s - f64::from(t);
-            data[(row * meta.width + col) as usize] = d as f32;
-            max_gouge = max_gouge.max(-d);
-            max_left = max_left.max(d);
-            sum_left += d.max(0.0);
-            sum_sq += d * d;
-            n += 1;
+            data[i] = d as f32;
+            add(d, 1.0);
+            cells += 1;
+        }
+    }
+    if fine {
+        // The smooth cells' stock cells, each for its share of the cell.
+        let sm = *stock.meta();
+        for row in 0..sm.height {
+            for col in 0..sm.width {
+                let Some(s) = stock.get(col, row).filter(|s| s.is_finite()) else { continue };
+                let (x, y) = sm.cell_center(col, row);
+                let Some(i) = target.cell_of(x, y).and_then(|(c, r)| target.index(c, r)) else { continue };
+                if !(smooth[i] && count[i] > 0 && target.data()[i].is_finite()) {
+                    continue;
+                }
+                if let Some(t) = target.interpolated(x, y, INTERPOLATION_MAX_SLOPE) {
+                    add(f64::from(s) - t, share);
+                }
+            }
         }
     }
     let range = max_gouge.max(max_left).max(0.01);
     let dev_meta = HeightMapMeta { z_min_mm: -range, z_max_mm: range, ..meta };
     let map = HeightMap::new(dev_meta, data).unwrap_or_else(|_| target.clone());
-    let nf = n.max(1) as f64;
+    let w = weight.max(f64::MIN_POSITIVE);
     Deviation {
         max_gouge_mm: max_gouge,
         max_leftover_mm: max_left,
-        mean_leftover_mm: sum_left / nf,
-        rms_deviation_mm: (sum_sq / nf).sqrt(),
-        cells: n,
+        mean_leftover_mm: if weight > 0.0 { sum_left / w } else { 0.0 },
+        rms_deviation_mm: if weight > 0.0 { (sum_sq / w).sqrt() } else { 0.0 },
+        cells,
         map,
     }
 }
@@ -932,6 +997,45 @@ pub fn telemetry_chart(rows: &[TelemetryRow], policy: &str) -> Chart {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A target's single-cell peak against a stock that follows the target read linearly between
+    /// its centres (the planner's reading): no gouge, where the stock read at the peak's centre
+    /// stands well under it. At the target's outline (no data beyond), a part edge inside the last
+    /// cell does not read as a gouge of the part's height: that cell is measured at its centre.
+    #[test]
+    fn a_single_cell_peak_and_an_edge_inside_a_cell_are_measured_where_the_stock_is() {
+        use depthmill_geometry::HeightMapMeta;
+        let mut tm = HeightMapMeta::new(40, 40, 0.25);
+        (tm.z_min_mm, tm.z_max_mm) = (0.0, 10.0);
+        let target = HeightMap::from_fn(tm, |c, r| match (c, r) {
+            (20, 20) => 5.3,
+            (c, _) if c >= 30 => f32::NAN,
+            _ => 5.0,
+        })
+        .expect("target");
+        let mut sm = HeightMapMeta::new(90, 90, 0.1);
+        (sm.origin_x_mm, sm.origin_y_mm, sm.z_min_mm, sm.z_max_mm) = (0.23, 0.37, 0.0, 10.0);
+        // The part's edge at x = 7.43 mm, inside the last target column (7.25..7.5); beyond it the
+        // stock is cut down to 0.
+        let stock = HeightMap::from_fn(sm, |c, r| {
+            let (x, y) = sm.cell_center(c, r);
+            if x > 7.43 {
+                0.0
+            } else {
+                target.interpolated(x, y, INTERPOLATION_MAX_SLOPE).unwrap_or(5.0) as f32
+            }
+        })
+        .expect("stock");
+        let d = deviation(&target, &stock);
+        assert!(d.max_gouge_mm < 1e-5, "{d:?}");
+        assert!(d.max_leftover_mm < 1e-5, "{d:?}");
+        // The target cells with data that the stock covers (29 x 36 centres under it, and the
+        // border cells whose stock cells lie under it).
+        assert!((1044..=1100).contains(&d.cells), "{}", d.cells);
+        let (px, py) = tm.cell_center(20, 20);
+        let under = stock.interpolated(px, py, INTERPOLATION_MAX_SLOPE).expect("between stock cells");
+        assert!(under < 5.3 - 0.05, "the stock read at the peak's centre: {under}");
+    }
 
     /// A stock cut exactly to a slope, on finer cells than the target and offset from them, reads
     /// the target's slope with no deviation; a step in the stock reads at the nearest cell.
