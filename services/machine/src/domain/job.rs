@@ -822,9 +822,10 @@ pub fn deviation(target: &HeightMap, stock: &HeightMap) -> Deviation {
     let n = target.data().len();
     let fine = stock.pixel_mm() < target.pixel_mm() * (1.0 - 1e-9);
     // Per target cell, over its stock cells: whether every one reads the target smoothly, the
-    // deepest deviation, the sum and the count.
+    // deepest deviation, the sum and the count; and each stock cell's (target cell, deviation).
     let (mut smooth, mut worst, mut sum, mut count) =
         (vec![fine; n], vec![f64::INFINITY; n], vec![0.0; n], vec![0u32; n]);
+    let mut on_stock: Vec<(usize, f64)> = Vec::new();
     if fine {
         let sm = *stock.meta();
         for row in 0..sm.height {
@@ -838,6 +839,7 @@ pub fn deviation(target: &HeightMap, stock: &HeightMap) -> Deviation {
                         worst[i] = worst[i].min(d);
                         sum[i] += d;
                         count[i] += 1;
+                        on_stock.push((i, d));
                     }
                     None => smooth[i] = false,
                 }
@@ -879,32 +881,23 @@ pub fn deviation(target: &HeightMap, stock: &HeightMap) -> Deviation {
             cells += 1;
         }
     }
-    if fine {
-        // The smooth cells' stock cells, each for its share of the cell.
-        let sm = *stock.meta();
-        for row in 0..sm.height {
-            for col in 0..sm.width {
-                let Some(s) = stock.get(col, row).filter(|s| s.is_finite()) else { continue };
-                let (x, y) = sm.cell_center(col, row);
-                let Some(i) = target.cell_of(x, y).and_then(|(c, r)| target.index(c, r)) else { continue };
-                if !(smooth[i] && count[i] > 0 && target.data()[i].is_finite()) {
-                    continue;
-                }
-                if let Some(t) = target.interpolated(x, y, INTERPOLATION_MAX_SLOPE) {
-                    add(f64::from(s) - t, share);
-                }
-            }
+    // The smooth cells' stock cells, each for its share of the cell (a cell interpolated at a
+    // stock cell has data, so the smooth ones are those measured above).
+    for &(i, d) in &on_stock {
+        if smooth[i] {
+            add(d, share);
         }
     }
     let range = max_gouge.max(max_left).max(0.01);
     let dev_meta = HeightMapMeta { z_min_mm: -range, z_max_mm: range, ..meta };
     let map = HeightMap::new(dev_meta, data).unwrap_or_else(|_| target.clone());
+    // Nothing measured: the sums are 0, and so are the figures.
     let w = weight.max(f64::MIN_POSITIVE);
     Deviation {
         max_gouge_mm: max_gouge,
         max_leftover_mm: max_left,
-        mean_leftover_mm: if weight > 0.0 { sum_left / w } else { 0.0 },
-        rms_deviation_mm: if weight > 0.0 { (sum_sq / w).sqrt() } else { 0.0 },
+        mean_leftover_mm: sum_left / w,
+        rms_deviation_mm: (sum_sq / w).sqrt(),
         cells,
         map,
     }
