@@ -263,9 +263,16 @@ pub fn execute_params(p: &ExecuteParams) -> machine::ExecuteParams {
 /// The execute stage's parameters, the plan's stock filling what the job's `execute` leaves open.
 /// The plan stage's parameters for a job: its `plan` section, with the stock's material taken
 /// from `execute.material` when only that names one (the feeds are then chosen for the material
-/// the machine will cut).
+/// the machine will cut), and the finishing pixel model `facet` when the job reconstructs its
+/// maps with the `fit` estimator and names none (see `Finishing::pixel_model`).
 pub fn plan_params_for_job(spec: &JobSpec) -> cam::PlanParams {
     let mut plan = spec.plan.clone().unwrap_or_default();
+    if spec.plans_a_fitted_map() {
+        let finishing = plan.finishing.get_or_insert_with(Default::default);
+        if finishing.pixel_model.is_none() {
+            finishing.pixel_model = Some("facet".into());
+        }
+    }
     if let Some(m) = spec.execute.as_ref().and_then(|e| e.material.clone()) {
         let stock = plan.stock.get_or_insert_with(Default::default);
         if stock.material.is_none() {
@@ -891,6 +898,29 @@ mod tests {
         .expect("spec");
         assert_eq!(execute_params_for_job(&spec).material.as_deref(), Some("brass"));
         assert_eq!(plan_params_for_job(&spec).stock.and_then(|s| s.material).as_deref(), Some("brass"));
+    }
+
+    #[test]
+    fn a_fitted_map_is_finished_as_facets_unless_the_job_says_otherwise() {
+        let model = |job: serde_json::Value| {
+            let spec: JobSpec = serde_json::from_value(job).expect("spec");
+            plan_params_for_job(&spec).finishing.and_then(|f| f.pixel_model)
+        };
+        let a = "a".repeat(64);
+        for kind in ["mesh", "point_cloud"] {
+            let facet = model(serde_json::json!({"input": {"kind": kind, "artifact": a}}));
+            assert_eq!(facet.as_deref(), Some("facet"), "{kind}");
+            let fit = serde_json::json!({"input": {"kind": kind, "artifact": a}, "reconstruct": {"estimator": "fit"}});
+            assert_eq!(model(fit).as_deref(), Some("facet"), "{kind}");
+            let max = serde_json::json!({"input": {"kind": kind, "artifact": a}, "reconstruct": {"estimator": "max"}});
+            assert_eq!(model(max), None, "{kind}: the cam's own default, columns");
+            let named = serde_json::json!({"input": {"kind": kind, "artifact": a},
+                "plan": {"finishing": {"pixel_model": "point", "tool": "ball-2"}}});
+            let spec: JobSpec = serde_json::from_value(named).expect("spec");
+            let fin = plan_params_for_job(&spec).finishing.expect("finishing");
+            assert_eq!((fin.pixel_model.as_deref(), fin.tool.as_deref()), (Some("point"), Some("ball-2")));
+        }
+        assert_eq!(model(serde_json::json!({"input": {"kind": "depth_map", "artifact": a}})), None);
     }
 
     #[test]

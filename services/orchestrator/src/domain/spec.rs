@@ -319,7 +319,7 @@ pub struct ReconstructParams {
     /// Lattice of the continuous roughing map, in pixels (default 4).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub roughing_factor: Option<u32>,
-    /// How a cell's points make the depth map (default `max`).
+    /// How a cell's points make the depth map (default `fit`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub estimator: Option<CellEstimator>,
 }
@@ -586,11 +586,14 @@ pub struct Finishing {
     pub tolerance_mm: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub arcs: Option<bool>,
-    /// What a depth-map cell means to the finishing tool: `column` (default: a square column at
-    /// its height; on a slope the tool stands off by up to the slope times half a pixel) or
-    /// `point` (a sample of a continuous surface at the cell's centre, for a fitted target) or
-    /// `facet` (a sample of a piecewise-linear surface through the centres that stands above the
-    /// convex edges between them and extends a step's top half a pixel flat).
+    /// What a depth-map cell means to the finishing tool: `column` (a square column at its
+    /// height; on a slope the tool stands off by up to the slope times half a pixel) or `point`
+    /// (a sample of a continuous surface at the cell's centre) or `facet` (a sample of a
+    /// piecewise-linear surface through the centres that stands above the convex edges between
+    /// them and extends a step's top half a pixel flat). Default: `facet` for the depth maps a
+    /// job reconstructs with the `fit` estimator (the best estimate of the surface, read as
+    /// one), `column` otherwise (an uploaded depth map, or one made with `max`, whose cells
+    /// stand at their highest point).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub pixel_model: Option<String>,
 }
@@ -754,6 +757,14 @@ impl JobSpec {
     /// their input kind does.
     pub fn first_stage(&self) -> Stage {
         if self.is_robot() { Stage::Plan } else { self.input.kind.first_stage() }
+    }
+
+    /// Whether the plan's depth maps come from this job's reconstruction with the `fit`
+    /// estimator (its default): a mesh or point-cloud input on the mill.
+    pub fn plans_a_fitted_map(&self) -> bool {
+        !self.is_robot()
+            && matches!(self.input.kind, InputKind::Mesh | InputKind::PointCloud)
+            && matches!(self.reconstruct.as_ref().and_then(|r| r.estimator), None | Some(CellEstimator::Fit))
     }
 
     /// A robot milling job (`"process": "robot"`).

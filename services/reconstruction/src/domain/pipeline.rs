@@ -433,10 +433,10 @@ impl ReconstructOptions {
             ));
         }
         let estimator = match self.estimator.as_deref() {
-            None | Some("max") => CellEstimator::Max,
+            Some("max") => CellEstimator::Max,
             Some("median") => CellEstimator::Median,
             Some("median_bilateral") => CellEstimator::MedianBilateral,
-            Some("fit") => CellEstimator::Fit,
+            None | Some("fit") => CellEstimator::Fit,
             Some(other) => {
                 return Err(ReconError::param(
                     "reconstruct.estimator",
@@ -1569,7 +1569,7 @@ mod tests {
 
     #[test]
     fn the_median_target_is_unbiased_and_roughing_still_comes_from_the_max() {
-        let max = face(None);
+        let max = face(Some("max"));
         let median = face(Some("median"));
         // The max stands about 0.04 mm proud with 16 samples of ±0.05 mm; the median does not.
         assert!(finite_mean(&max.depth_map) - 5.0 > 0.03, "max mean {}", finite_mean(&max.depth_map));
@@ -1601,7 +1601,18 @@ mod tests {
     fn the_fit_target_averages_far_below_the_median_reports_its_noise_and_roughs_from_the_max() {
         let median = face(Some("median"));
         let fit = face(Some("fit"));
-        let max = face(None);
+        let max = face(Some("max"));
+        // The fit is the default.
+        let default = face(None);
+        assert!(
+            default
+                .depth_map
+                .data()
+                .iter()
+                .zip(fit.depth_map.data())
+                .all(|(a, b)| a.to_bits() == b.to_bits()),
+            "the default estimator is not the fit"
+        );
         let (rm, rf) = (rms_about(&median.depth_map, 5.0), rms_about(&fit.depth_map, 5.0));
         assert!(rf < rm / 1.8, "median RMS {rm}, fit RMS {rf}");
         assert!((finite_mean(&fit.depth_map) - 5.0).abs() < 0.003, "{}", finite_mean(&fit.depth_map));
