@@ -781,13 +781,16 @@ const RIDGE_ACROSS: [(f64, f64); 4] = [
 /// whatever the noise. So, when the quadric bends down across some direction, a tent
 /// `z = a + b·u + c·v − e·|n·(u, v)|` (`e > 0`: two planes meeting along the line through the
 /// centre across `n`) is fitted across each direction of [`RIDGE_ACROSS`] and across the
-/// quadric's most concave direction (a crease at any angle), each started from the quadric's
-/// final weights and then reweighted by its own residuals as the quadric was; a cell the crease
-/// crosses is modelled by the tent's mean over its points ([`tent_basis`]). The best tent
-/// replaces the quadric at the centre when its Tukey cost over the whole window is no larger
-/// than the quadric's (with two parameters fewer) and its apex is higher. On a smooth dome the
-/// quadric fits better and stays; a tent chosen where the surface bends smoothly lies above it
-/// (a tent over `−x²` peaks `R²/6` high), leaving material, never cutting.
+/// quadric's most concave direction (a crease at any angle), each by its own iteratively
+/// reweighted least squares over the window as the quadric was; a cell the crease crosses is
+/// modelled by the tent's mean over its points ([`tent_basis`]). The best direction's crease is
+/// then moved up to a cell off the centre in quarter cells (`z = a + b·u + c·v − e·|n·(u, v) − t|`,
+/// read `a − e·|t|` at the centre) where the centred tent costs at most [`RIDGE_SEARCH`] times the
+/// quadric. The best tent replaces the quadric at the centre when its Tukey cost over the whole
+/// window is no larger than the quadric's (with two parameters fewer) and its height there is
+/// higher. On a smooth dome the quadric fits better and stays; a tent chosen where the surface
+/// bends smoothly lies above it (a tent over `−x²` peaks `R²/6` high), leaving material, never
+/// cutting.
 fn ridge_at_centre(samples: &[Sample], model: &Model, q: &Vector6<f64>, cell: f64) -> Option<f64> {
     // The quadric's curvature across its most concave direction must point down.
     let (h11, h12, h22) = (2.0 * q[3], q[4], 2.0 * q[5]);
