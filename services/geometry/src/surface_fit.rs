@@ -36,7 +36,8 @@
 //!    (a thin wall's top or a pin the window's majority does not share: the map is what the tools
 //!    cut to); one below it takes the fit. A fit that keeps less than half its window's weight and disagrees
 //!    with the cell's own mean (a convex edge on a steep slope) gives way to that mean. Where the
-//!    quadric bends down, a ridge through the cell (two planes meeting along a line across one of
+//!    quadric bends down by enough to round a crease by a quarter of the noise
+//!    ([`RIDGE_MIN_RISE`]; on flat faces and gentle curves it does not), a ridge through the cell (two planes meeting along a line across one of
 //!    four fixed directions or across the quadric's most concave one, each reweighted by its own
 //!    residuals) that costs no more (Tukey's cost over the window) and stands higher gives the
 //!    cell its apex: a quadric rounds a crease by 3/16 of the drop over its window, a cut into
@@ -92,6 +93,9 @@ pub struct FitParams {
     pub max_radius_mm: f64,
     /// Per-point noise (standard deviation), mm; estimated from the points when `None`.
     pub noise_mm: Option<f64>,
+    /// Where a ridge's apex may replace the quadric.
+    #[serde(default)]
+    pub ridges: Ridges,
 }
 
 impl Default for FitParams {
@@ -100,6 +104,7 @@ impl Default for FitParams {
             target_points: DEFAULT_TARGET_POINTS,
             max_radius_mm: DEFAULT_MAX_RADIUS_MM,
             noise_mm: None,
+            ridges: Ridges::Screened,
         }
     }
 }
@@ -145,6 +150,10 @@ pub struct FitReport {
     /// Cells on a ridge a quadric would round: the apex of two planes meeting there.
     #[serde(default)]
     pub ridge_cells: usize,
+    /// Cells where a ridge was tried: those whose quadric bends down enough to round a crease
+    /// by more than a tenth of the noise ([`RIDGE_MIN_RISE`]).
+    #[serde(default)]
+    pub ridge_tried_cells: usize,
     /// Cells whose fit dipped under every point around them (beside a gap at a wall's foot),
     /// held at the lowest mean there ([`HOLD_NOISE`]).
     #[serde(default)]
@@ -156,8 +165,17 @@ pub struct FitReport {
     pub seconds: f64,
 }
 
-/// How a cell was fitted: the kind of fit, the points in its window and the window's radius in cells.
-type FitInfo = (Kind, u32, usize);
+/// How a cell was fitted.
+#[derive(Debug, Clone, Copy)]
+struct FitInfo {
+    kind: Kind,
+    /// Points in its window.
+    points: u32,
+    /// The window's radius in cells.
+    k: usize,
+    /// Whether a ridge's apex was tried ([`ridge_at_centre`]).
+    ridge_tried: bool,
+}
 
 /// A cell's points: count, means (X, Y from the cell centre; Z from the map's reference) and the
 /// (co)variances of X and Y (a quadric's mean over the points is the quadric at their mean plus
@@ -201,24 +219,29 @@ enum Kind {
     Held,
 }
 
+/// Where a ridge's apex is tried ([`ridge_at_centre`]); the fit benchmark times the three.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Ridges {
+    /// Nowhere: the quadric's height.
+    Off,
+    /// Wherever the quadric bends down.
+    Everywhere,
+    /// Where the quadric bends down by enough that a crease it rounds could lie more than
+    /// [`RIDGE_MIN_RISE`] noises under the apex ([`RIDGE_RISE_PER_CURVATURE`]).
+    #[default]
+    Screened,
+}
+
 /// The map of `points` on `grid` by a robust local quadric fit (see the module docs).
 pub fn rasterize_fit<P: CloudPoint>(
     points: &[P],
     grid: &HeightMapMeta,
     params: &FitParams,
 ) -> Result<(HeightMap, RasterStats, FitReport), RasterError> {
-    fit_map(points, grid, params, true)
-}
-
-/// [`rasterize_fit`], with or without the ridge apexes ([`ridge_at_centre`]; the tests compare).
-fn fit_map<P: CloudPoint>(
-    points: &[P],
-    grid: &HeightMapMeta,
-    params: &FitParams,
-    ridges: bool,
-) -> Result<(HeightMap, RasterStats, FitReport), RasterError> {
     let started = Instant::now();
     params.validate()?;
+    let ridges = params.ridges;
     let cells_n = checked_cells(grid)?;
     let (index, binned, non_finite) = cell_indices(points, grid);
     // A reference height near the points so cell means keep their precision in f32.
@@ -303,8 +326,8 @@ fn fit_map<P: CloudPoint>(
                 return (f32::NAN, None);
             }
             let (c, r) = (i % w, i / w);
-            let (z, kind, pts, k) = field.fit(c, r, params.target_points, noise, buf);
-            ((f64::from(cell.z) + z + z_ref) as f32, Some((kind, pts, k)))
+            let (z, info) = field.fit(c, r, params.target_points, noise, buf);
+            ((f64::from(cell.z) + z + z_ref) as f32, Some(info))
         })
         .collect();
     let mut report = FitReport {
@@ -315,10 +338,11 @@ fn fit_map<P: CloudPoint>(
     };
     let (mut n, mut pts, mut rad) = (0usize, 0u64, 0.0f64);
     for (_, info) in &fitted {
-        let Some((kind, p_in, k)) = info else { continue };
+        let Some(FitInfo { kind, points: p_in, k, ridge_tried }) = info else { continue };
         n += 1;
         pts += u64::from(*p_in);
         rad += *k as f64 * p;
+        report.ridge_tried_cells += usize::from(*ridge_tried);
         match kind {
             Kind::Quadric => report.quadric_cells += 1,
             Kind::Plane => report.plane_cells += 1,
@@ -344,8 +368,8 @@ struct Field<'a> {
     h: usize,
     pixel: f64,
     kmax: usize,
-    /// Whether a ridge's apex may replace the quadric at a cell ([`ridge_at_centre`]).
-    ridges: bool,
+    /// Where a ridge's apex may replace the quadric at a cell ([`ridge_at_centre`]).
+    ridges: Ridges,
 }
 
 impl Field<'_> {
@@ -438,18 +462,11 @@ impl Field<'_> {
     /// The height at the centre of cell `(c, r)` from its mean, the fit's kind, the points in the
     /// window and its radius in cells: the fit's ([`Field::fit_model`]), held where it dips under
     /// every point around the cell ([`Field::held_at`]).
-    fn fit(
-        &self,
-        c: usize,
-        r: usize,
-        target: u32,
-        sigma: f64,
-        buf: &mut Vec<Sample>,
-    ) -> (f64, Kind, u32, usize) {
-        let (z, kind, points, k, model) = self.fit_model(c, r, target, sigma, buf);
-        match model.and_then(|m| self.held_at(c, r, k, sigma, z, &m)) {
-            Some(held) => (held, Kind::Held, points, k),
-            None => (z, kind, points, k),
+    fn fit(&self, c: usize, r: usize, target: u32, sigma: f64, buf: &mut Vec<Sample>) -> (f64, FitInfo) {
+        let (z, info, model) = self.fit_model(c, r, target, sigma, buf);
+        match model.and_then(|m| self.held_at(c, r, info.k, sigma, z, &m)) {
+            Some(held) => (held, FitInfo { kind: Kind::Held, ..info }),
+            None => (z, info),
         }
     }
 
@@ -490,7 +507,7 @@ impl Field<'_> {
         target: u32,
         sigma: f64,
         buf: &mut Vec<Sample>,
-    ) -> (f64, Kind, u32, usize, Option<Model>) {
+    ) -> (f64, FitInfo, Option<Model>) {
         let k = self.radius(c, r, target);
         let points = self.samples(c, r, k, sigma, false, buf);
         let samples = &buf[..];
@@ -536,7 +553,8 @@ impl Field<'_> {
         }
         let Some((_, mut model)) = best else {
             // A lone cell, or cells on a line: its own mean.
-            return (0.0, Kind::Mean, points, k, None);
+            let info = FitInfo { kind: Kind::Mean, points, k, ridge_tried: false };
+            return (0.0, info, None);
         };
         for widen in IRLS_WIDEN {
             // One pass: the normal equations of the samples the current model keeps.
@@ -570,8 +588,15 @@ impl Field<'_> {
         let centre = self.cells[r * self.w + c];
         let own = self.sample(centre, centre, 0, 0, (k as f64 + 1.0) * self.pixel, sigma);
         let below = model.mean_over(&own);
+        let tried = match (model, self.ridges) {
+            (Model::Quadric(_), Ridges::Off) => false,
+            (Model::Quadric(q), Ridges::Screened) => may_round_a_crease(&q, k, sigma),
+            (Model::Quadric(_), Ridges::Everywhere) => true,
+            _ => false,
+        };
+        let info = |kind| FitInfo { kind, points, k, ridge_tried: tried };
         let ridge = || match model {
-            Model::Quadric(q) if self.ridges => ridge_at_centre(samples, &model, &q, 1.0 / (k as f64 + 1.0)),
+            Model::Quadric(q) if tried => ridge_at_centre(samples, &model, &q, 1.0 / (k as f64 + 1.0)),
             _ => None,
         };
         let total: f64 = samples.iter().map(|s| s.ws).sum();
@@ -581,14 +606,14 @@ impl Field<'_> {
             // under the apex too (its points lie on both faces): a ridge's apex, where one fits
             // and stands higher, gives the cell its height.
             return match ridge() {
-                Some(apex) if apex > 0.0 => (apex, Kind::Ridge, points, k, Some(model)),
-                _ => (0.0, Kind::Own, points, k, None),
+                Some(apex) if apex > 0.0 => (apex, info(Kind::Ridge), Some(model)),
+                _ => (0.0, info(Kind::Own), None),
             };
         }
         if let Some(apex) = ridge() {
-            return (apex, Kind::Ridge, points, k, Some(model));
+            return (apex, info(Kind::Ridge), Some(model));
         }
-        (model.at(0.0, 0.0), model.kind(), points, k, Some(model))
+        (model.at(0.0, 0.0), info(model.kind()), Some(model))
     }
 
     /// σ of one point from leave-one-out residuals of cell means (see the module docs).
@@ -764,6 +789,37 @@ fn step_floor(zs: &mut [f64], floor: f64, min_gap: f64, lone_ok: impl Fn(f64) ->
 /// looked for off the centre ([`ridge_at_centre`]).
 const RIDGE_SEARCH: f64 = 1.5;
 
+/// The rise under which a ridge's apex is not looked for, in noises of one point
+/// ([`may_round_a_crease`]): a quarter of the noise, of the order of the fit's own noise at the
+/// centre (a few hundred points averaged). Below it the quadric's bend is mostly the noise's, and a
+/// tent fitted to the noise only lifts the cell.
+const RIDGE_MIN_RISE: f64 = 0.25;
+
+/// The most a quadric can round a crease by (the apex's height above the quadric at the centre),
+/// per unit of its most concave curvature (second derivative, window units), in windows of two
+/// cells' radius and more: 1.8 times the most seen over exact tents at any angle, up to a cell off
+/// the centre, with cells missing and their means anywhere in the cell (0.071;
+/// `a_quadrics_curvature_bounds_how_much_it_rounds_a_crease` checks it).
+const RIDGE_RISE_PER_CURVATURE: f64 = 0.125;
+
+/// Whether the quadric `q` (of a window `k` cells in radius, noise `sigma`) bends down enough to
+/// round a crease by more than [`RIDGE_MIN_RISE`] noises, so that [`ridge_at_centre`] is worth
+/// its cost. Why: a quadric fitted over a tent `e·|x|` bends by about `2.4·e` (window units) and
+/// lies about `0.14·e` under its apex, so its curvature bounds what a ridge could give back; on a
+/// flat face or a gentle curve (most of a part) the ridge's thirteen reweighted fits are skipped. A
+/// one-cell window (nine cells for six terms) follows the samples too closely for the bound, and
+/// is always tried.
+fn may_round_a_crease(q: &Vector6<f64>, k: usize, sigma: f64) -> bool {
+    let lowest = lowest_curvature(q);
+    k < 2 || -lowest * RIDGE_RISE_PER_CURVATURE > RIDGE_MIN_RISE * sigma
+}
+
+/// The quadric's most concave second derivative (the smaller eigenvalue of its Hessian).
+fn lowest_curvature(q: &Vector6<f64>) -> f64 {
+    let (h11, h12, h22) = (2.0 * q[3], q[4], 2.0 * q[5]);
+    0.5 * (h11 + h22) - (0.25 * (h11 - h22).powi(2) + h12 * h12).sqrt()
+}
+
 /// Directions across which a ridge through a cell's centre is tried: unit vectors in window
 /// units, across the crease (east-west, north-south and the two diagonals).
 const RIDGE_ACROSS: [(f64, f64); 4] = [
@@ -794,7 +850,7 @@ const RIDGE_ACROSS: [(f64, f64); 4] = [
 fn ridge_at_centre(samples: &[Sample], model: &Model, q: &Vector6<f64>, cell: f64) -> Option<f64> {
     // The quadric's curvature across its most concave direction must point down.
     let (h11, h12, h22) = (2.0 * q[3], q[4], 2.0 * q[5]);
-    let lowest = 0.5 * (h11 + h22) - (0.25 * (h11 - h22).powi(2) + h12 * h12).sqrt();
+    let lowest = lowest_curvature(q);
     if lowest >= 0.0 {
         return None;
     }
@@ -1196,8 +1252,12 @@ mod tests {
                 let f = |x: f64, y: f64| 2.0 - t * d(x, y).abs();
                 let pts = cloud(&g, 4.0, sigma, seed, f);
                 let near = |x: f64, y: f64| inner(x, y) && d(x, y).abs() < 0.1;
-                let (with, _, rep) = fit_map(&pts, &g, &FitParams::default(), true).expect("fit");
-                let (without, _, _) = fit_map(&pts, &g, &FitParams::default(), false).expect("fit");
+                let (with, _, rep) =
+                    rasterize_fit(&pts, &g, &FitParams { ridges: Ridges::Screened, ..FitParams::default() })
+                        .expect("fit");
+                let (without, _, _) =
+                    rasterize_fit(&pts, &g, &FitParams { ridges: Ridges::Off, ..FitParams::default() })
+                        .expect("fit");
                 let (mean, _, _) = errors(&with, near, f);
                 let (mean_q, _, _) = errors(&without, near, f);
                 let (lo, lo_q) = (lowest(&with, near, f), lowest(&without, near, f));
@@ -1215,8 +1275,11 @@ mod tests {
         // A dome of radius 10 mm: the quadric fits it, the ridge test changes next to nothing.
         let dome = |x: f64, y: f64| 2.0 - ((x - 3.0).powi(2) + (y - 3.0).powi(2)) / 20.0;
         let pts = cloud(&g, 4.0, sigma, 8, dome);
-        let (with, _, _) = fit_map(&pts, &g, &FitParams::default(), true).expect("fit");
-        let (without, _, _) = fit_map(&pts, &g, &FitParams::default(), false).expect("fit");
+        let (with, _, _) =
+            rasterize_fit(&pts, &g, &FitParams { ridges: Ridges::Screened, ..FitParams::default() })
+                .expect("fit");
+        let (without, _, _) =
+            rasterize_fit(&pts, &g, &FitParams { ridges: Ridges::Off, ..FitParams::default() }).expect("fit");
         let ((mean, rms, _), (mean_q, rms_q, _)) =
             (errors(&with, inner, dome), errors(&without, inner, dome));
         assert!(mean.abs() < 0.002 && rms < 0.006, "dome: mean {mean} RMS {rms}");
@@ -1236,8 +1299,12 @@ mod tests {
             let d = move |x: f64, y: f64| (x - 6.07) * ca + (y - 5.96) * sa;
             let f = move |x: f64, y: f64| 5.0 - t * d(x, y).abs();
             let pts = cloud(&g, 5.0, sigma, seed, f);
-            let (with, _, rep) = fit_map(&pts, &g, &FitParams::default(), true).expect("fit");
-            let (without, _, _) = fit_map(&pts, &g, &FitParams::default(), false).expect("fit");
+            let (with, _, rep) =
+                rasterize_fit(&pts, &g, &FitParams { ridges: Ridges::Screened, ..FitParams::default() })
+                    .expect("fit");
+            let (without, _, _) =
+                rasterize_fit(&pts, &g, &FitParams { ridges: Ridges::Off, ..FitParams::default() })
+                    .expect("fit");
             let near = |x: f64, y: f64| inner(x, y) && d(x, y).abs() < 0.25;
             let (mean, _, _) = errors(&with, near, f);
             let (mean_q, _, _) = errors(&without, near, f);
@@ -1252,6 +1319,95 @@ mod tests {
             let away = |x: f64, y: f64| inner(x, y) && d(x, y).abs() > 1.0;
             let (m_away, _, _) = errors(&with, away, f);
             assert!(m_away.abs() < 0.005, "{deg}° at {angle}°: mean off the ridge {m_away}");
+        }
+    }
+
+    #[test]
+    fn a_quadrics_curvature_bounds_how_much_it_rounds_a_crease() {
+        // Exact tents over windows of 2 to 8 cells' radius, at random angles, the crease up to a
+        // cell off the centre, the cells' means anywhere in their cell and a tenth of the cells
+        // missing: the rise of the tent at the centre over the weighted quadric through it stays
+        // under `RIDGE_RISE_PER_CURVATURE` times its most concave curvature, with room to spare.
+        let mut rng = StdRng::seed_from_u64(43);
+        let mut worst = 0.0f64;
+        for _ in 0..3000 {
+            let k: usize = rng.random_range(2..=8);
+            let big_r = k as f64 + 1.0;
+            let angle: f64 = rng.random::<f64>() * std::f64::consts::PI;
+            let (nu, nv) = (angle.cos(), angle.sin());
+            let t = (rng.random::<f64>() * 2.0 - 1.0) / big_r;
+            let e = 0.05 + rng.random::<f64>() * 5.0;
+            let lim = (k as f64 + 0.5).powi(2);
+            let ki = k as isize;
+            let mut samples = Vec::new();
+            for dr in -ki..=ki {
+                for dc in -ki..=ki {
+                    let centre = dr == 0 && dc == 0;
+                    if ((dr * dr + dc * dc) as f64) > lim || (!centre && rng.random::<f64>() < 0.1) {
+                        continue;
+                    }
+                    let u = (dc as f64 + rng.random::<f64>() - 0.5) / big_r;
+                    let v = (dr as f64 + rng.random::<f64>() - 0.5) / big_r;
+                    let rho2 = u * u + v * v;
+                    samples.push(Sample {
+                        u,
+                        v,
+                        z: -e * (nu * u + nv * v - t).abs(),
+                        ws: (1.0 - rho2).max(0.05),
+                        cut: 1.0,
+                        var: [0.0; 3],
+                    });
+                }
+            }
+            let Some(q) = quadric(samples.iter().map(|s| (s, s.ws))) else { continue };
+            let rise = -e * t.abs() - q[0];
+            let bend = -lowest_curvature(&q);
+            assert!(bend > 0.0, "a tent bends the quadric down: {q:?}");
+            worst = worst.max(rise / bend);
+        }
+        eprintln!("the most a quadric rounded a crease per unit of curvature: {worst:.4}");
+        assert!(worst > 0.03 && worst < 0.6 * RIDGE_RISE_PER_CURVATURE, "{worst}");
+    }
+
+    #[test]
+    fn the_curvature_screen_skips_only_ridges_that_would_not_rise() {
+        // Roofs from flat to steep, at random angles and offsets, on a dome, with the scanner's
+        // noise: trying the ridge only where the quadric bends enough leaves the deepest cell and
+        // the mean where trying it everywhere has them, and skips it over most of a gentle
+        // surface (where a tent fitted to the noise only lifts a cell).
+        let g = grid(40, 0.1);
+        let sigma = 0.035;
+        let inner = |x: f64, y: f64| x > 0.8 && y > 0.8 && x < 3.2 && y < 3.2;
+        let mut rng = StdRng::seed_from_u64(44);
+        for case in 0..6 {
+            let slope = [0.0, 0.02, 0.1, 0.3, 0.7, 1.2][case];
+            let angle: f64 = rng.random::<f64>() * std::f64::consts::PI;
+            let (sa, ca) = angle.sin_cos();
+            let (x0, y0) = (1.5 + rng.random::<f64>(), 1.5 + rng.random::<f64>());
+            let f = move |x: f64, y: f64| {
+                3.0 - slope * ((x - x0) * ca + (y - y0) * sa).abs()
+                    - ((x - 2.0).powi(2) + (y - 2.0).powi(2)) / 40.0
+            };
+            let pts = cloud(&g, 4.0, sigma, 50 + case as u64, f);
+            let fit =
+                |ridges| rasterize_fit(&pts, &g, &FitParams { ridges, ..FitParams::default() }).expect("fit");
+            let ((screened, _, rep), (all, _, rep_all)) = (fit(Ridges::Screened), fit(Ridges::Everywhere));
+            let ((mean, rms, _), (mean_all, rms_all, _)) =
+                (errors(&screened, inner, f), errors(&all, inner, f));
+            let (lo, lo_all) = (lowest(&screened, inner, f), lowest(&all, inner, f));
+            eprintln!(
+                "slope {slope}: ridge tried at {} cells (everywhere {}), apex at {} (everywhere {}); mean {mean:.4} (everywhere {mean_all:.4}), RMS {rms:.4} ({rms_all:.4}), deepest {lo:.4} ({lo_all:.4})",
+                rep.ridge_tried_cells, rep_all.ridge_tried_cells, rep.ridge_cells, rep_all.ridge_cells
+            );
+            assert!(lo > lo_all - 0.1 * sigma, "slope {slope}: deepest {lo} against {lo_all}");
+            assert!(mean > mean_all - 0.002 && rms < rms_all + 0.001, "slope {slope}: {mean} {rms}");
+            assert!(rep.ridge_tried_cells < rep_all.ridge_tried_cells);
+            if slope < 0.05 {
+                assert!(
+                    4 * rep.ridge_tried_cells < rep_all.ridge_tried_cells,
+                    "slope {slope}: tried too often"
+                );
+            }
         }
     }
 
