@@ -40,6 +40,7 @@
 //! stations are taken by the unseen surface they add per second of turning and scanning, so the
 //! table turns only where a view adds something.
 
+pub mod align;
 pub mod obstacles;
 pub mod options;
 pub mod plan;
@@ -374,6 +375,10 @@ pub struct ScanReport {
     /// RMS of that distance after the one rigid transform that best aligns the whole cloud
     /// with the truth: how well the views agree with each other (the merge error), mm.
     pub registration_merge_rms_mm: f64,
+    /// The passes moved onto the surface the whole cloud describes ([`align::align_passes`]); the
+    /// registration figures are after it.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub pass_alignment: Option<align::PassAlignment>,
     /// Whether the points were placed with a calibration of the cell (else with its drawing).
     pub calibrated: bool,
     /// The calibration in force and its figures (set by the service that was handed it).
@@ -488,6 +493,17 @@ impl PositionSource for StationSource<'_> {
     }
 }
 
+/// One frame's points placed in the part frame ([`ScanSession::place`]).
+struct Placed {
+    pts: Vec<Point3<f64>>,
+    inten: Vec<f32>,
+    clear_to: Vec<f64>,
+    /// Placed less true position, per point.
+    errors: Vec<Vector3<f32>>,
+    floor: Vec<FreeSample>,
+    moments: AlignmentMoments,
+}
+
 /// A scan in progress; see the module doc.
 pub struct ScanSession {
     opts: ScanOptions,
@@ -502,6 +518,9 @@ pub struct ScanSession {
     points: Vec<Point3<f64>>,
     intensity: Vec<f32>,
     pass: Vec<u16>,
+    /// Per point, where it was placed less where it truly is (the registration error, kept so
+    /// that the pass alignment's figures are the truth's).
+    placement_error: Vec<Vector3<f32>>,
     dropped: DropTotals,
     err_sq: f64,
     err_max: f64,
@@ -694,6 +713,7 @@ impl ScanSession {
             points: Vec::new(),
             intensity: Vec::new(),
             pass: Vec::new(),
+            placement_error: Vec::new(),
             dropped: DropTotals::default(),
             err_sq: 0.0,
             err_max: 0.0,
@@ -1148,6 +1168,7 @@ impl ScanSession {
                 let mut pts = Vec::with_capacity(profile.points.len());
                 let mut inten = Vec::with_capacity(profile.points.len());
                 let mut clear_to = Vec::with_capacity(profile.points.len());
+                let mut errors = Vec::with_capacity(profile.points.len());
                 // How high over each point the fan showed its vertical clear (a sensor whose laser
                 // plane holds the vertical: looking down, or rolled about its pass direction; a
                 // plane tilted across the pass holds no vertical but the point's own).
@@ -1171,6 +1192,7 @@ impl ScanSession {
                     sq += e;
                     mx = mx.max(e);
                     moments.add(&q, &t);
+                    errors.push((q - t).cast::<f32>());
                     pts.push(q);
                     inten.push(*i);
                     clear_to.push(q.z + h);
@@ -1200,10 +1222,13 @@ impl ScanSession {
                 } else {
                     Vec::new()
                 };
-                (r.pass, pts, inten, clear_to, profile.dropped, sq, mx.sqrt(), floor, moments)
+                let placed = Placed { pts, inten, clear_to, errors, floor, moments };
+                (r.pass, placed, profile.dropped, sq, mx.sqrt())
             })
             .collect();
-        for (pass, pts, inten, clear_to, dropped, sq, mx, floor, moments) in results {
+        for (pass, placed, dropped, sq, mx) in results {
+            let Placed { pts, inten, clear_to, errors, floor, moments } = placed;
+            self.placement_error.extend(errors);
             self.free_space.extend(floor);
             self.clear_to.extend(clear_to);
             self.pass.extend(std::iter::repeat_n(pass, pts.len()));
@@ -1584,9 +1609,50 @@ impl ScanSession {
         Ok((cal, report))
     }
 
+    /// Moves every pass onto the surface the whole cloud describes ([`align::align_passes`]), and
+    /// brings the registration figures, the clear heights over the points and the diagnostics up
+    /// to date.
+    fn align_passes(&mut self) -> Option<align::PassAlignment> {
+        let n = self.points.len();
+        if n == 0 || self.placement_error.len() != n || self.clear_to.len() != n {
+            return None;
+        }
+        let before = self.points.clone();
+        let mut alignment = align::align_passes(&mut self.points, &self.pass)?;
+        alignment.registration_rms_before_mm = (self.err_sq / n as f64).sqrt();
+        alignment.registration_merge_rms_before_mm = self.moments.rms_after_alignment();
+        let (mut sq, mut mx, mut moments) = (0.0, 0.0f64, AlignmentMoments::default());
+        for (i, (q, b)) in self.points.iter().zip(&before).enumerate() {
+            let moved = q - b;
+            let e = self.placement_error[i].cast::<f64>() + moved;
+            self.placement_error[i] = e.cast::<f32>();
+            self.clear_to[i] += moved.z;
+            sq += e.norm_squared();
+            mx = mx.max(e.norm());
+            moments.add(q, &(q - e));
+        }
+        (self.err_sq, self.err_max, self.moments) = (sq, mx, moments);
+        let moved: Vec<String> = alignment
+            .passes
+            .iter()
+            .filter(|s| s.applied)
+            .map(|s| {
+                format!(
+                    "{} by ({:+.4}, {:+.4}, {:+.4}) mm",
+                    s.pass, -s.offset_mm[0], -s.offset_mm[1], -s.offset_mm[2]
+                )
+            })
+            .collect();
+        if !moved.is_empty() {
+            self.diagnostics.push(format!("passes moved onto the cloud's surface: {}", moved.join("; ")));
+        }
+        Some(alignment)
+    }
+
     /// The registered cloud, the pass ids and the report.
     pub fn finish(mut self) -> ScanOutput {
         let n = self.points.len();
+        let pass_alignment = self.align_passes();
         let slant = (self.scanner.spec().fan_half_tan().atan() + FREE_SPACE_MAX_TILT_DEG.to_radians()).tan();
         let free_space = free_space(&self.free_space, &self.points, self.placement.height_mm() * slant);
         let shadowed: Vec<Point3<f64>> = shadowed(&self.points, &self.clear_to)
@@ -1622,6 +1688,7 @@ impl ScanSession {
             diagnostics: self.diagnostics,
             silhouette,
             units: None,
+            pass_alignment,
         };
         ScanOutput {
             cloud: PointCloud {
