@@ -24,6 +24,8 @@
 //!   [`formats::ReadLimits`], format sniffing, and the PLY and STL writers.
 //! - [`raster`]: point clouds to height maps (max-Z binning, enclosed-hole filling, coverage);
 //!   [`mesh_raster`]: a mesh's exact top surface at cell centres (z-buffer).
+//! - [`pass_align`]: each pass of a cloud moved by the translation that lays it on the surface
+//!   the whole cloud describes (a calibration's residual between the passes).
 //! - [`surface_fit`]: a cloud to a height map by a robust local quadric fit (the unbiased
 //!   finishing target).
 //! - [`sample`]: the generated sample part (a relief) of the demo, the tests and the benches.
@@ -51,6 +53,7 @@ pub mod mesh;
 pub mod mesh_raster;
 pub mod multi_face;
 pub mod npy;
+pub mod pass_align;
 pub mod png_io;
 pub mod pose;
 pub mod raster;

@@ -40,7 +40,6 @@
 //! stations are taken by the unseen surface they add per second of turning and scanning, so the
 //! table turns only where a view adds something.
 
-pub mod align;
 pub mod obstacles;
 pub mod options;
 pub mod plan;
@@ -48,6 +47,7 @@ pub mod silhouette;
 pub mod views;
 
 use depthmill_geometry::Mesh;
+use depthmill_geometry::pass_align::{self, PassAlignment};
 use depthmill_geometry::raster::{COVERAGE_HOLE, Roi, coverage, grid_for_roi, try_rasterize_max};
 use depthmill_geometry::{HeightMap, PointCloud, XyzYpr};
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
@@ -375,10 +375,10 @@ pub struct ScanReport {
     /// RMS of that distance after the one rigid transform that best aligns the whole cloud
     /// with the truth: how well the views agree with each other (the merge error), mm.
     pub registration_merge_rms_mm: f64,
-    /// The passes moved onto the surface the whole cloud describes ([`align::align_passes`]); the
+    /// The passes moved onto the surface the whole cloud describes ([`pass_align::align_passes`]); the
     /// registration figures are after it.
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub pass_alignment: Option<align::PassAlignment>,
+    pub pass_alignment: Option<PassAlignment>,
     /// Whether the points were placed with a calibration of the cell (else with its drawing).
     pub calibrated: bool,
     /// The calibration in force and its figures (set by the service that was handed it).
@@ -1609,16 +1609,16 @@ impl ScanSession {
         Ok((cal, report))
     }
 
-    /// Moves every pass onto the surface the whole cloud describes ([`align::align_passes`]), and
+    /// Moves every pass onto the surface the whole cloud describes ([`pass_align::align_passes`]), and
     /// brings the registration figures, the clear heights over the points and the diagnostics up
     /// to date.
-    fn align_passes(&mut self) -> Option<align::PassAlignment> {
+    fn align_passes(&mut self) -> Option<PassAlignment> {
         let n = self.points.len();
         if n == 0 || self.placement_error.len() != n || self.clear_to.len() != n {
             return None;
         }
         let before = self.points.clone();
-        let mut alignment = align::align_passes(&mut self.points, &self.pass)?;
+        let mut alignment = pass_align::align_passes(&mut self.points, &self.pass)?;
         alignment.registration_rms_before_mm = (self.err_sq / n as f64).sqrt();
         alignment.registration_merge_rms_before_mm = self.moments.rms_after_alignment();
         let (mut sq, mut mx, mut moments) = (0.0, 0.0f64, AlignmentMoments::default());

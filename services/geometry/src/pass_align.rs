@@ -1,4 +1,4 @@
-//! Pass-to-pass alignment of a scan's cloud.
+//! Pass-to-pass alignment of a scanned cloud whose points carry their pass.
 //!
 //! Why: the passes are placed with the cell's calibration, which leaves each a residual error of
 //! a few hundredths of a millimetre (the demo's tilted passes lie about 0.03 mm off the others,
@@ -27,9 +27,9 @@
 use std::collections::BTreeMap;
 use std::time::Instant;
 
-use depthmill_geometry::HeightMap;
-use depthmill_geometry::raster::{Roi, grid_for_roi};
-use depthmill_geometry::surface_fit::{FitParams, Ridges, rasterize_fit};
+use crate::HeightMap;
+use crate::raster::{Roi, grid_for_roi};
+use crate::surface_fit::{FitParams, Ridges, rasterize_fit};
 use nalgebra::{Matrix3, Point3, Vector3};
 use rayon::prelude::*;
 use serde::Serialize;
