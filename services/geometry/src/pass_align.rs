@@ -86,6 +86,7 @@ pub struct PassAlignment {
     /// Rounds of fitting the whole cloud and moving every pass onto it.
     pub rounds: usize,
     pub pixel_mm: f64,
+    /// The passes of at least [`ALIGN_MIN_POINTS`] points (the others stay as placed).
     pub passes: Vec<PassShift>,
     /// The registration error before the shifts (RMS over all points, against the true poses;
     /// the report's `registration_rms_mm` is after them), mm.
