@@ -116,8 +116,15 @@ pub fn align_passes(points: &mut [Point3<f64>], pass: &[u16]) -> Option<PassAlig
     // Per pass: the offset moved back so far, and the last round's figures.
     let mut total: BTreeMap<u16, Vector3<f64>> = by_pass.keys().map(|&p| (p, Vector3::zeros())).collect();
     let mut last: BTreeMap<u16, PassShift> = BTreeMap::new();
-    for _ in 0..ALIGN_PASS_ROUNDS {
-        let map = reference_map(points)?;
+    for round in 0..ALIGN_PASS_ROUNDS {
+        // A map that the first round could make, a later one can too; should it not, the shifts
+        // made so far stand and are reported.
+        let Some(map) = reference_map(points) else {
+            if round == 0 {
+                return None;
+            }
+            break;
+        };
         let cloud: &[Point3<f64>] = points;
         let shifts: Vec<(u16, PassShift, bool)> = by_pass
             .par_iter()
