@@ -116,6 +116,7 @@ pub fn align_passes(points: &mut [Point3<f64>], pass: &[u16]) -> Option<PassAlig
     // Per pass: the offset moved back so far, and the last round's figures.
     let mut total: BTreeMap<u16, Vector3<f64>> = by_pass.keys().map(|&p| (p, Vector3::zeros())).collect();
     let mut last: BTreeMap<u16, PassShift> = BTreeMap::new();
+    let mut rounds = 0;
     for round in 0..ALIGN_PASS_ROUNDS {
         // A map that the first round could make, a later one can too; should it not, the shifts
         // made so far stand and are reported.
@@ -125,6 +126,7 @@ pub fn align_passes(points: &mut [Point3<f64>], pass: &[u16]) -> Option<PassAlig
             }
             break;
         };
+        rounds += 1;
         let cloud: &[Point3<f64>] = points;
         let shifts: Vec<(u16, PassShift, bool)> = by_pass
             .par_iter()
@@ -178,7 +180,7 @@ pub fn align_passes(points: &mut [Point3<f64>], pass: &[u16]) -> Option<PassAlig
         })
         .collect();
     Some(PassAlignment {
-        rounds: ALIGN_PASS_ROUNDS,
+        rounds,
         pixel_mm: ALIGN_PIXEL_MM,
         passes,
         registration_rms_before_mm: 0.0,
