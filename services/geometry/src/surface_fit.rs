@@ -37,10 +37,10 @@
 //!    cut to); one below it takes the fit. A fit that keeps less than half its window's weight and disagrees
 //!    with the cell's own mean (a convex edge on a steep slope) gives way to that mean. Where the
 //!    quadric bends down by enough to round a crease by a quarter of the noise
-//!    ([`RIDGE_MIN_RISE`]; on flat faces and gentle curves it does not), a ridge through the cell (two planes meeting along a line across one of
-//!    four fixed directions or across the quadric's most concave one, each reweighted by its own
-//!    residuals) that costs no more (Tukey's cost over the window) and stands higher gives the
-//!    cell its apex: a quadric rounds a crease by 3/16 of the drop over its window, a cut into
+//!    ([`RIDGE_MIN_RISE`]; on flat faces and gentle curves it does not), a ridge through the cell
+//!    (two planes meeting along a line across one of four fixed directions or across the
+//!    quadric's most concave one, each reweighted by its own residuals) that costs no more
+//!    (Tukey's cost over the window) and stands higher gives the cell its apex: a quadric rounds a crease by 3/16 of the drop over its window, a cut into
 //!    the edge ([`ridge_at_centre`]).
 //!
 //! Cells without points stay empty (NaN), as in the other rasterisers.
@@ -151,7 +151,7 @@ pub struct FitReport {
     #[serde(default)]
     pub ridge_cells: usize,
     /// Cells where a ridge was tried: those whose quadric bends down enough to round a crease
-    /// by more than a tenth of the noise ([`RIDGE_MIN_RISE`]).
+    /// by more than a quarter of the noise ([`RIDGE_MIN_RISE`]).
     #[serde(default)]
     pub ridge_tried_cells: usize,
     /// Cells whose fit dipped under every point around them (beside a gap at a wall's foot),
