@@ -25,21 +25,9 @@ use nalgebra::{Isometry3, Matrix4, Point3, Translation3, UnitQuaternion, Vector3
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
-type BoxResult<T> = Result<T, Box<dyn std::error::Error>>;
+mod support;
 
-fn arg<T: std::str::FromStr>(args: &[String], name: &str, default: T) -> T {
-    args.iter()
-        .position(|a| a == name)
-        .and_then(|i| args.get(i + 1))
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(default)
-}
-
-fn gauss(rng: &mut StdRng) -> f64 {
-    let u: f64 = rng.random_range(1e-12..1.0);
-    let v: f64 = rng.random_range(0.0..1.0);
-    (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
-}
+use support::{BoxResult, arg, gauss};
 
 fn relief(x: f64, y: f64) -> f64 {
     let waves = 3.0 * (x / 11.0).sin() * (y / 17.0).cos();

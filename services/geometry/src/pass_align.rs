@@ -29,7 +29,7 @@ use std::time::Instant;
 
 use crate::HeightMap;
 use crate::raster::{Roi, grid_for_roi};
-use crate::surface_fit::{FitParams, Ridges, rasterize_fit};
+use crate::surface_fit::{FitParams, Ridges, rasterize_fit, robust_sd};
 use nalgebra::{Matrix3, Point3, Vector3};
 use rayon::prelude::*;
 use serde::Serialize;
@@ -231,19 +231,6 @@ fn read(map: &HeightMap, x: f64, y: f64) -> Option<(f64, f64, f64)> {
     (gx.hypot(gy) < ALIGN_MAX_SLOPE).then_some((h, gx, gy))
 }
 
-/// The robust standard deviation (1.4826 × the median absolute value) of `r`.
-fn robust_sd(r: &mut [f64]) -> f64 {
-    if r.is_empty() {
-        return 0.0;
-    }
-    for v in r.iter_mut() {
-        *v = v.abs();
-    }
-    let mid = r.len() / 2;
-    let (_, m, _) = r.select_nth_unstable_by(mid, f64::total_cmp);
-    1.4826 * *m
-}
-
 /// The offset of the points `pts` of one pass against `map` (see the module docs); with
 /// `horizontal` false, its height only.
 fn solve_offset(map: &HeightMap, pts: &[Point3<f64>], horizontal: bool) -> PassShift {
@@ -260,8 +247,8 @@ fn solve_offset(map: &HeightMap, pts: &[Point3<f64>], horizontal: bool) -> PassS
                 (r.abs() < ALIGN_MAX_RESIDUAL_MM).then_some((r, gx, gy))
             })
             .collect();
-        let mut abs: Vec<f64> = rows.iter().map(|t| t.0).collect();
-        let sigma = robust_sd(&mut abs).max(1e-4);
+        let mut residuals: Vec<f64> = rows.iter().map(|t| t.0).collect();
+        let sigma = robust_sd(&mut residuals).max(1e-4);
         spread = sigma;
         let cut = TUKEY * sigma;
         let (mut a, mut b) = (Matrix3::<f64>::zeros(), Vector3::<f64>::zeros());

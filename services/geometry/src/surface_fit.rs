@@ -655,10 +655,22 @@ impl Field<'_> {
         if t.len() < NOISE_MIN_CELLS {
             return None;
         }
-        let mid = t.len() / 2;
-        let (_, m, _) = t.select_nth_unstable_by(mid, f64::total_cmp);
-        Some(1.4826 * *m)
+        Some(robust_sd(&mut t))
     }
+}
+
+/// The robust standard deviation of `r` (1.4826 × the median of `|r|`; 0 for none); `r` is left
+/// as those absolute values, reordered.
+pub(crate) fn robust_sd(r: &mut [f64]) -> f64 {
+    if r.is_empty() {
+        return 0.0;
+    }
+    for v in r.iter_mut() {
+        *v = v.abs();
+    }
+    let mid = r.len() / 2;
+    let (_, m, _) = r.select_nth_unstable_by(mid, f64::total_cmp);
+    1.4826 * *m
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -1220,6 +1232,15 @@ mod tests {
         assert!((f64::from(pin_z) - f(4.55, 1.55) - 0.5).abs() < 0.06, "pin cell {pin_z}");
     }
 
+    /// The default fit with the ridge apexes tried where `ridges` says.
+    fn fit_with(
+        pts: &[Point3<f64>],
+        g: &HeightMapMeta,
+        ridges: Ridges,
+    ) -> (HeightMap, RasterStats, FitReport) {
+        rasterize_fit(pts, g, &FitParams { ridges, ..FitParams::default() }).expect("fit")
+    }
+
     /// The lowest error (most negative) at the cell centres where `keep(x, y)`.
     fn lowest(map: &HeightMap, keep: impl Fn(f64, f64) -> bool, f: impl Fn(f64, f64) -> f64) -> f64 {
         let m = *map.meta();
@@ -1252,12 +1273,8 @@ mod tests {
                 let f = |x: f64, y: f64| 2.0 - t * d(x, y).abs();
                 let pts = cloud(&g, 4.0, sigma, seed, f);
                 let near = |x: f64, y: f64| inner(x, y) && d(x, y).abs() < 0.1;
-                let (with, _, rep) =
-                    rasterize_fit(&pts, &g, &FitParams { ridges: Ridges::Screened, ..FitParams::default() })
-                        .expect("fit");
-                let (without, _, _) =
-                    rasterize_fit(&pts, &g, &FitParams { ridges: Ridges::Off, ..FitParams::default() })
-                        .expect("fit");
+                let (with, _, rep) = fit_with(&pts, &g, Ridges::Screened);
+                let (without, _, _) = fit_with(&pts, &g, Ridges::Off);
                 let (mean, _, _) = errors(&with, near, f);
                 let (mean_q, _, _) = errors(&without, near, f);
                 let (lo, lo_q) = (lowest(&with, near, f), lowest(&without, near, f));
@@ -1275,11 +1292,8 @@ mod tests {
         // A dome of radius 10 mm: the quadric fits it, the ridge test changes next to nothing.
         let dome = |x: f64, y: f64| 2.0 - ((x - 3.0).powi(2) + (y - 3.0).powi(2)) / 20.0;
         let pts = cloud(&g, 4.0, sigma, 8, dome);
-        let (with, _, _) =
-            rasterize_fit(&pts, &g, &FitParams { ridges: Ridges::Screened, ..FitParams::default() })
-                .expect("fit");
-        let (without, _, _) =
-            rasterize_fit(&pts, &g, &FitParams { ridges: Ridges::Off, ..FitParams::default() }).expect("fit");
+        let (with, _, _) = fit_with(&pts, &g, Ridges::Screened);
+        let (without, _, _) = fit_with(&pts, &g, Ridges::Off);
         let ((mean, rms, _), (mean_q, rms_q, _)) =
             (errors(&with, inner, dome), errors(&without, inner, dome));
         assert!(mean.abs() < 0.002 && rms < 0.006, "dome: mean {mean} RMS {rms}");
@@ -1299,12 +1313,8 @@ mod tests {
             let d = move |x: f64, y: f64| (x - 6.07) * ca + (y - 5.96) * sa;
             let f = move |x: f64, y: f64| 5.0 - t * d(x, y).abs();
             let pts = cloud(&g, 5.0, sigma, seed, f);
-            let (with, _, rep) =
-                rasterize_fit(&pts, &g, &FitParams { ridges: Ridges::Screened, ..FitParams::default() })
-                    .expect("fit");
-            let (without, _, _) =
-                rasterize_fit(&pts, &g, &FitParams { ridges: Ridges::Off, ..FitParams::default() })
-                    .expect("fit");
+            let (with, _, rep) = fit_with(&pts, &g, Ridges::Screened);
+            let (without, _, _) = fit_with(&pts, &g, Ridges::Off);
             let near = |x: f64, y: f64| inner(x, y) && d(x, y).abs() < 0.25;
             let (mean, _, _) = errors(&with, near, f);
             let (mean_q, _, _) = errors(&without, near, f);

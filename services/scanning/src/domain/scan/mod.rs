@@ -1617,13 +1617,15 @@ impl ScanSession {
         if n == 0 || self.placement_error.len() != n || self.clear_to.len() != n {
             return None;
         }
-        let before = self.points.clone();
         let mut alignment = pass_align::align_passes(&mut self.points, &self.pass)?;
         alignment.registration_rms_before_mm = (self.err_sq / n as f64).sqrt();
         alignment.registration_merge_rms_before_mm = self.moments.rms_after_alignment();
+        // Each pass's points were moved back by its offset.
+        let moved_by: std::collections::BTreeMap<u16, Vector3<f64>> =
+            alignment.passes.iter().map(|s| (s.pass, -Vector3::from(s.offset_mm))).collect();
         let (mut sq, mut mx, mut moments) = (0.0, 0.0f64, AlignmentMoments::default());
-        for (i, (q, b)) in self.points.iter().zip(&before).enumerate() {
-            let moved = q - b;
+        for (i, (q, p)) in self.points.iter().zip(&self.pass).enumerate() {
+            let moved = moved_by.get(p).copied().unwrap_or_else(Vector3::zeros);
             let e = self.placement_error[i].cast::<f64>() + moved;
             self.placement_error[i] = e.cast::<f32>();
             self.clear_to[i] += moved.z;
