@@ -5,6 +5,7 @@
 # Needs a release build (`cargo build --release --bin depthmill`) and the parts
 # (`tests/parts/fetch.sh PARTS_DIR`). Units: the files' own where known; the unit-box CGAL models
 # are read as inches (25.4 mm parts); the rest are decided by depthmill (`auto`).
+# With TABLE_ONLY=1 it only writes the table from the runs already in OUT_DIR.
 set -uo pipefail
 export RUST_BACKTRACE=0
 PARTS=${1:?usage: run-all.sh PARTS_DIR OUT_DIR}
@@ -35,6 +36,7 @@ mesh-cheese.stl|auto
 mesh-armadillo.stl|auto"
 
 while IFS='|' read -r file units; do
+  [ "${TABLE_ONLY:-0}" = 1 ] && break
   name=${file%.stl}
   [ -f "$PARTS/$file" ] || { echo "missing $PARTS/$file" >&2; continue; }
   echo "== $file ($units)" >&2
@@ -58,7 +60,7 @@ for name in sorted(f[:-3] for f in os.listdir(out) if f.endswith('.rc')):
         msg = (err[-1] if err else log.strip().splitlines()[-1])
         if '"message":"' in msg:
             msg = msg.split('"message":"', 1)[1].split('","', 1)[0]
-        rows.append(f"| {name} | refused: {msg[:400]} |" + " |" * 14)
+        rows.append(f"| {name} | refused: {msg[:400]} |" + " |" * 17)
         continue
     job = json.load(open(job_path))
     m = job.get('metrics', {})
@@ -73,7 +75,7 @@ for name in sorted(f[:-3] for f in os.listdir(out) if f.endswith('.rc')):
     status = job.get('status')
     if status != 'succeeded':
         err = job.get('error') or {}
-        rows.append(f"| {name} | {status}: {err.get('message', '')[:200]} |" + " |" * 14)
+        rows.append(f"| {name} | {status}: {err.get('message', '')[:200]} |" + " |" * 17)
         continue
     tools = ''
     try:
@@ -94,8 +96,8 @@ for name in sorted(f[:-3] for f in os.listdir(out) if f.endswith('.rc')):
             faces = ', '.join(f['face'] for f in rr.get('faces', []))
     except Exception:
         pass
-    rows.append(f"| {name} | {units} | {faces} | {tools} | {f('scan_silhouette_coverage_pct', 1)} | {f('coverage_pct', 1)} | {f('part_mean_mm')} | {f('part_rms_mm')} | {f('part_max_gouge_mm')} | {f('part_off_walls_max_gouge_mm')} | {f('part_off_walls_rms_mm')} | {f('preview_rms_mm')} | {f('max_gouge_mm')} | {f('cycle_time_s', 0)} | {f('cycle_time_no_adaptive_s', 0)} | {float(secs):.0f} |")
-hdr = "| part | units read | faces (surface share each adds, %) | tools | silhouette seen % | depth-map coverage % | mean vs part mm | RMS vs part mm | max gouge vs part mm | max gouge off walls mm | RMS off walls mm | RMS vs tools' surface mm | max gouge vs target (one face) or original part (several) mm | cycle s (adaptive) | cycle s (none) | wall s |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+    rows.append(f"| {name} | {units} | {faces} | {tools} | {f('scan_silhouette_coverage_pct', 1)} | {f('coverage_pct', 1)} | {f('part_mean_mm')} | {f('part_rms_mm')} | {f('part_max_gouge_mm')} | {f('part_off_walls_max_gouge_mm')} | {f('part_off_walls_rms_mm')} | {f('preview_rms_mm')} | {f('part_opened_mean_mm', 4)} | {f('part_opened_rms_mm', 4)} | {f('part_opened_max_gouge_mm', 4)} | {f('max_gouge_mm')} | {f('cycle_time_s', 0)} | {f('cycle_time_no_adaptive_s', 0)} | {float(secs):.0f} |")
+hdr = "| part | units read | faces (surface share each adds, %) | tools | silhouette seen % | depth-map coverage % | mean vs part mm | RMS vs part mm | max gouge vs part mm | max gouge off walls mm | RMS off walls mm | RMS vs tools' surface mm | mean vs part opened mm | RMS vs part opened mm | max gouge vs part opened mm | max gouge vs target (one face) or original part (several) mm | cycle s (adaptive) | cycle s (none) | wall s |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
 open(os.path.join(out, 'table.md'), 'w').write(hdr + "\n" + "\n".join(rows) + "\n")
 print(hdr); print("\n".join(rows))
 PYEOF

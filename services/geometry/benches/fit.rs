@@ -1,7 +1,9 @@
 //! Surface-fit benchmark: the robust local fit of a cloud to a height map
 //! ([`depthmill_geometry::surface_fit`]) with the ridge apexes tried nowhere, only where the
 //! quadric bends enough to round a crease (the default), and wherever it bends down, timed in the
-//! same run, with how far the default's map strays from trying everywhere.
+//! same run, with how far the default's map strays from trying everywhere; then the default with
+//! the plane never taken for a quadric whose bend is the noise's (`Planes::Never`), and, on the
+//! synthetic part, each map against the part itself.
 //!
 //! The default cloud imitates a scanned machined part: 40 x 40 mm at 5 points per 0.1 mm cell
 //! with 0.035 mm noise; a flat face, a wavy relief, a chamfered boss (four creases at 30°
@@ -17,7 +19,7 @@ use std::time::Instant;
 use depthmill_geometry::HeightMap;
 use depthmill_geometry::formats::{ReadLimits, read_cloud};
 use depthmill_geometry::raster::{Roi, grid_for_roi};
-use depthmill_geometry::surface_fit::{FitParams, FitReport, Ridges, rasterize_fit};
+use depthmill_geometry::surface_fit::{FitParams, FitReport, Planes, Ridges, rasterize_fit};
 use nalgebra::Point3;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
@@ -61,7 +63,7 @@ fn run(
     points: &[Point3<f64>],
     roi: &Roi,
     pixel: f64,
-    ridges: Ridges,
+    params: FitParams,
     repeat: u32,
 ) -> BoxResult<(f64, HeightMap, FitReport)> {
     let grid = grid_for_roi(roi, pixel)?;
@@ -69,12 +71,17 @@ fn run(
     let mut out = None;
     for _ in 0..repeat {
         let t = Instant::now();
-        let (map, _, report) = rasterize_fit(points, &grid, &FitParams { ridges, ..FitParams::default() })?;
+        let (map, _, report) = rasterize_fit(points, &grid, &params)?;
         best = best.min(t.elapsed().as_secs_f64());
         out = Some((map, report));
     }
     let (map, report) = out.ok_or("no run")?;
     Ok((best, map, report))
+}
+
+/// Cells the fit gave a height.
+fn cells(r: &FitReport) -> usize {
+    r.quadric_cells + r.plane_cells + r.mean_cells + r.own_cells + r.ridge_cells + r.held_cells + r.flat_cells
 }
 
 fn main() -> BoxResult<()> {
@@ -97,18 +104,27 @@ fn main() -> BoxResult<()> {
         });
     let roi = Roi { x_min_mm: lo.0, y_min_mm: lo.1, x_max_mm: hi.0 + pixel, y_max_mm: hi.1 + pixel };
     println!("{what}: {} points, {pixel} mm cells, best of {repeat}", points.len());
-    let (t_all, all, r_all) = run(&points, &roi, pixel, Ridges::Everywhere, repeat)?;
-    let (t_scr, scr, r_scr) = run(&points, &roi, pixel, Ridges::Screened, repeat)?;
-    let (t_off, _, r_off) = run(&points, &roi, pixel, Ridges::Off, repeat)?;
+    let ridges = |ridges| FitParams { ridges, ..FitParams::default() };
+    let (t_all, all, r_all) = run(&points, &roi, pixel, ridges(Ridges::Everywhere), repeat)?;
+    let (t_scr, scr, r_scr) = run(&points, &roi, pixel, ridges(Ridges::Screened), repeat)?;
+    let (t_off, _, r_off) = run(&points, &roi, pixel, ridges(Ridges::Off), repeat)?;
+    let never = FitParams { planes: Planes::Never, ..FitParams::default() };
+    let (t_never, quad, r_never) = run(&points, &roi, pixel, never, repeat)?;
     for (name, t, r) in [("everywhere", t_all, &r_all), ("screened", t_scr, &r_scr), ("off", t_off, &r_off)] {
         println!(
             "ridges {name:>10}: {t:.3} s ({:.2}x everywhere); tried at {} cells, apex at {} of {} cells",
             t / t_all,
             r.ridge_tried_cells,
             r.ridge_cells,
-            r.quadric_cells + r.plane_cells + r.mean_cells + r.own_cells + r.ridge_cells + r.held_cells
+            cells(r)
         );
     }
+    println!(
+        "planes      never: {t_never:.3} s; the default (where flat) {t_scr:.3} s, {:.2}x; the plane at {} of {} cells",
+        t_scr / t_never,
+        r_scr.flat_cells,
+        cells(&r_never)
+    );
     let (mut worst, mut moved, mut lower) = (0.0f64, 0usize, 0usize);
     for (a, b) in scr.data().iter().zip(all.data()) {
         let d = f64::from(*a) - f64::from(*b);
@@ -124,7 +140,7 @@ fn main() -> BoxResult<()> {
     );
     if cloud.is_none() {
         // Against the part itself, off the steps between its four regions and the map's border.
-        for (name, map) in [("everywhere", &all), ("screened", &scr)] {
+        for (name, map) in [("ridges everywhere", &all), ("the default", &scr), ("planes never", &quad)] {
             let (mut sum, mut sq, mut deepest, mut n) = (0.0, 0.0, f64::INFINITY, 0usize);
             let m = *map.meta();
             for r in 0..m.height {
@@ -144,7 +160,7 @@ fn main() -> BoxResult<()> {
             }
             let n = n.max(1) as f64;
             println!(
-                "ridges {name:>10} against the part: mean {:+.4} mm, RMS {:.4} mm, deepest {deepest:+.4} mm",
+                "{name:>17} against the part: mean {:+.4} mm, RMS {:.4} mm, deepest {deepest:+.4} mm",
                 sum / n,
                 (sq / n).sqrt()
             );

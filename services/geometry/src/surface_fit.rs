@@ -41,7 +41,12 @@
 //!    (two planes meeting along a line across one of four fixed directions or across the
 //!    quadric's most concave one, each reweighted by its own residuals) that costs no more
 //!    (Tukey's cost over the window) and stands higher gives the cell its apex: a quadric rounds a crease by 3/16 of the drop over its window, a cut into
-//!    the edge ([`ridge_at_centre`]).
+//!    the edge ([`ridge_at_centre`]). Where neither the quadric nor one fitted over a window
+//!    twice as wide bends by more than [`FLAT_NOISE`] standard deviations of its height against
+//!    the plane's, the plane fitted with the quadric's weights gives the height ([`flat_plane`],
+//!    [`Field::bends_wider`]): on a flat face the quadric's curvature is the noise's, and the
+//!    plane's height at the centre has about half its noise, so the deepest cells are no longer cut
+//!    into the part.
 //!
 //! Cells without points stay empty (NaN), as in the other rasterisers.
 
@@ -96,6 +101,9 @@ pub struct FitParams {
     /// Where a ridge's apex may replace the quadric.
     #[serde(default)]
     pub ridges: Ridges,
+    /// Where the plane gives a cell's height instead of the quadric ([`flat_plane`]).
+    #[serde(default)]
+    pub planes: Planes,
 }
 
 impl Default for FitParams {
@@ -105,6 +113,7 @@ impl Default for FitParams {
             max_radius_mm: DEFAULT_MAX_RADIUS_MM,
             noise_mm: None,
             ridges: Ridges::Screened,
+            planes: Planes::WhereFlat,
         }
     }
 }
@@ -154,6 +163,10 @@ pub struct FitReport {
     /// by more than a quarter of the noise ([`RIDGE_MIN_RISE`]).
     #[serde(default)]
     pub ridge_tried_cells: usize,
+    /// Cells where neither the quadric nor a wider one bent by more than the noise explains and
+    /// the plane fitted with the same weights gave the height ([`flat_plane`]).
+    #[serde(default)]
+    pub flat_cells: usize,
     /// Cells whose fit dipped under every point around them (beside a gap at a wall's foot),
     /// held at the lowest mean there ([`HOLD_NOISE`]).
     #[serde(default)]
@@ -217,6 +230,8 @@ enum Kind {
     Ridge,
     /// A fit that dipped under the data around the cell, held at them ([`Field::held_at`]).
     Held,
+    /// A quadric whose bend is the noise's, given way to the plane ([`flat_plane`]).
+    Flat,
 }
 
 /// Where a ridge's apex is tried ([`ridge_at_centre`]); the fit benchmark times the three.
@@ -233,6 +248,18 @@ pub enum Ridges {
     Screened,
 }
 
+/// Where the plane fitted with the quadric's weights gives a cell's height ([`flat_plane`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Planes {
+    /// Nowhere: the quadric's height.
+    Never,
+    /// Where neither the quadric nor one fitted over a window twice as wide stands off the plane
+    /// at the centre by more than [`FLAT_NOISE`] standard deviations of that difference.
+    #[default]
+    WhereFlat,
+}
+
 /// The map of `points` on `grid` by a robust local quadric fit (see the module docs).
 pub fn rasterize_fit<P: CloudPoint>(
     points: &[P],
@@ -241,7 +268,7 @@ pub fn rasterize_fit<P: CloudPoint>(
 ) -> Result<(HeightMap, RasterStats, FitReport), RasterError> {
     let started = Instant::now();
     params.validate()?;
-    let ridges = params.ridges;
+    let (ridges, planes) = (params.ridges, params.planes);
     let cells_n = checked_cells(grid)?;
     let (index, binned, non_finite) = cell_indices(points, grid);
     // A reference height near the points so cell means keep their precision in f32.
@@ -291,7 +318,9 @@ pub fn rasterize_fit<P: CloudPoint>(
     let (noise, estimated) = match params.noise_mm {
         Some(s) => (s, false),
         None => {
-            match (Field { cells: &all, w, h, pixel: p, kmax, ridges }).estimate_noise(params.target_points) {
+            match (Field { cells: &all, w, h, pixel: p, kmax, ridges, planes })
+                .estimate_noise(params.target_points)
+            {
                 Some(s) => (s.max(MIN_NOISE_MM), true),
                 None => (FALLBACK_NOISE_MM, false),
             }
@@ -317,18 +346,21 @@ pub fn rasterize_fit<P: CloudPoint>(
     drop(index);
     drop(top);
     drop(floor);
-    let field = Field { cells: &cells, w, h, pixel: p, kmax, ridges };
+    let field = Field { cells: &cells, w, h, pixel: p, kmax, ridges, planes };
     let fitted: Vec<(f32, Option<FitInfo>)> = (0..cells_n)
         .into_par_iter()
-        .map_init(Vec::new, |buf, i| {
-            let cell = cells[i];
-            if cell.n == 0 {
-                return (f32::NAN, None);
-            }
-            let (c, r) = (i % w, i / w);
-            let (z, info) = field.fit(c, r, params.target_points, noise, buf);
-            ((f64::from(cell.z) + z + z_ref) as f32, Some(info))
-        })
+        .map_init(
+            || (Vec::new(), Vec::new()),
+            |buf, i| {
+                let cell = cells[i];
+                if cell.n == 0 {
+                    return (f32::NAN, None);
+                }
+                let (c, r) = (i % w, i / w);
+                let (z, info) = field.fit(c, r, params.target_points, noise, buf);
+                ((f64::from(cell.z) + z + z_ref) as f32, Some(info))
+            },
+        )
         .collect();
     let mut report = FitReport {
         noise_mm: noise,
@@ -350,6 +382,7 @@ pub fn rasterize_fit<P: CloudPoint>(
             Kind::Own => report.own_cells += 1,
             Kind::Ridge => report.ridge_cells += 1,
             Kind::Held => report.held_cells += 1,
+            Kind::Flat => report.flat_cells += 1,
         }
     }
     if n > 0 {
@@ -362,6 +395,9 @@ pub fn rasterize_fit<P: CloudPoint>(
     Ok((HeightMap::new(*grid, data)?, stats, report))
 }
 
+/// A fit's sample buffers: its window's and the wider one's ([`Field::bends_wider`]).
+type Buffers = (Vec<Sample>, Vec<Sample>);
+
 struct Field<'a> {
     cells: &'a [Cell],
     w: usize,
@@ -370,6 +406,8 @@ struct Field<'a> {
     kmax: usize,
     /// Where a ridge's apex may replace the quadric at a cell ([`ridge_at_centre`]).
     ridges: Ridges,
+    /// Where the plane may give the height ([`flat_plane`]).
+    planes: Planes,
 }
 
 impl Field<'_> {
@@ -462,7 +500,7 @@ impl Field<'_> {
     /// The height at the centre of cell `(c, r)` from its mean, the fit's kind, the points in the
     /// window and its radius in cells: the fit's ([`Field::fit_model`]), held where it dips under
     /// every point around the cell ([`Field::held_at`]).
-    fn fit(&self, c: usize, r: usize, target: u32, sigma: f64, buf: &mut Vec<Sample>) -> (f64, FitInfo) {
+    fn fit(&self, c: usize, r: usize, target: u32, sigma: f64, buf: &mut Buffers) -> (f64, FitInfo) {
         let (z, info, model) = self.fit_model(c, r, target, sigma, buf);
         match model.and_then(|m| self.held_at(c, r, info.k, sigma, z, &m)) {
             Some(held) => (held, FitInfo { kind: Kind::Held, ..info }),
@@ -506,9 +544,10 @@ impl Field<'_> {
         r: usize,
         target: u32,
         sigma: f64,
-        buf: &mut Vec<Sample>,
+        buf: &mut Buffers,
     ) -> (f64, FitInfo, Option<Model>) {
         let k = self.radius(c, r, target);
+        let (buf, wide) = buf;
         let points = self.samples(c, r, k, sigma, false, buf);
         let samples = &buf[..];
         // Starting planes: the whole disk and its eight half-disks.
@@ -613,7 +652,61 @@ impl Field<'_> {
         if let Some(apex) = ridge() {
             return (apex, info(Kind::Ridge), Some(model));
         }
+        if let (Model::Quadric(q), Planes::WhereFlat) = (model, self.planes)
+            && let Some(plane) = flat_plane(samples, &q, sigma)
+            // Only where the wider window shows the surface flat too.
+            && self.bends_wider(c, r, k, &q, sigma, wide) == Some(false)
+        {
+            return (plane_at(&plane, 0.0, 0.0), info(Kind::Flat), Some(Model::Plane(plane)));
+        }
         (model.at(0.0, 0.0), info(model.kind()), Some(model))
+    }
+
+    /// Whether a window twice as wide around cell `(c, r)` (whose window of radius `k` cells
+    /// fitted the quadric `q`) bends: its own quadric, reweighted from `q`'s shape, stands off the
+    /// plane fitted with its weights by more than [`FLAT_NOISE`] standard deviations of that
+    /// difference at the centre ([`flat_plane`]). `None` when too few of its cells agree for a
+    /// quadric, or its quadric leaves more than a twentieth of the window's weight out
+    /// ([`WIDE_INSIDE`]): where a convex edge's far side is weighted out, the rest looks flat.
+    ///
+    /// Why: a bend's height against the plane grows as the window's radius squared while the
+    /// noise of the curvature falls as the fifth power, so a window twice as wide tells a real
+    /// fillet, valley or dome (the quadric kept) from the noise's (the plane) where one window
+    /// cannot: alone, its test would take a valley of a few mm radius for flat and leave it up
+    /// to five of its standard deviations high.
+    fn bends_wider(
+        &self,
+        c: usize,
+        r: usize,
+        k: usize,
+        q: &Vector6<f64>,
+        sigma: f64,
+        wide: &mut Vec<Sample>,
+    ) -> Option<bool> {
+        let k2 = 2 * k + 1;
+        self.samples(c, r, k2, sigma, false, wide);
+        // The quadric in the wide window's units (positions halved).
+        let s = (k as f64 + 1.0) / (k2 as f64 + 1.0);
+        let (s1, s2) = (1.0 / s, 1.0 / (s * s));
+        let mut q2 = Vector6::new(q[0], q[1] * s1, q[2] * s1, q[3] * s2, q[4] * s2, q[5] * s2);
+        for widen in IRLS_WIDEN {
+            let model = Model::Quadric(q2);
+            let normal = Normal::sum(wide.iter().filter_map(|x| {
+                let wt = x.ws * tukey_weight(x.z - model.mean_over(x), x.cut * widen);
+                (wt > 0.0).then_some((x, wt))
+            }));
+            q2 = normal.quadric().filter(|_| normal.n >= 8)?;
+        }
+        // A wide window that weights some of its cells out is not one surface (a convex edge's
+        // far side, a step, a wall): no verdict.
+        let model = Model::Quadric(q2);
+        let total: f64 = wide.iter().map(|x| x.ws).sum();
+        let inside: f64 =
+            wide.iter().filter(|x| (x.z - model.mean_over(x)).abs() < x.cut).map(|x| x.ws).sum();
+        if inside < WIDE_INSIDE * total {
+            return None;
+        }
+        Some(flat_plane(wide, &q2, sigma).is_none())
     }
 
     /// σ of one point from leave-one-out residuals of cell means (see the module docs).
@@ -795,6 +888,56 @@ fn step_floor(zs: &mut [f64], floor: f64, min_gap: f64, lone_ok: impl Fn(f64) ->
     let lower = zs[k + 1] - zs[n - 1];
     let split = gap > min_gap && gap > 2.0 * upper.max(lower) && (k > 0 || lone_ok(zs[0]));
     split.then(|| 0.5 * (zs[k] + zs[k + 1]))
+}
+
+/// How many standard deviations of the quadric's height against the plane's at the centre the
+/// noise is taken to make ([`flat_plane`]): five are exceeded once in about 1.7 million cells.
+pub const FLAT_NOISE: f64 = 5.0;
+
+/// The share of a wide window's weight whose cells its quadric must fit within their cut-off for
+/// its verdict to count ([`Field::bends_wider`]); under Gaussian noise all but a few in a million
+/// do.
+const WIDE_INSIDE: f64 = 0.95;
+
+/// The plane fitted with the quadric `q`'s final weights (Tukey's, from its residuals, at the
+/// noise `sigma`'s cut-off) where the quadric's height at the window's centre lies within
+/// [`FLAT_NOISE`] standard deviations of the plane's ([`bend_sd`]).
+///
+/// Why: the quadric's three second-order terms follow the noise as well as the surface, and its
+/// height at the centre has about twice the plane's standard deviation; on a flat face a window
+/// whose noise happens to bend the quadric up reads low, and the deepest of those cells are cut
+/// into the part. Where the bend is no more than the noise could make, here and over a window
+/// twice as wide ([`Field::bends_wider`]), the plane's height is the better estimate. A fillet,
+/// valley or dome bends the wide window beyond the noise and keeps its quadric.
+fn flat_plane(samples: &[Sample], q: &Vector6<f64>, sigma: f64) -> Option<Vector3<f64>> {
+    let model = Model::Quadric(*q);
+    let weights: Vec<f64> =
+        samples.iter().map(|s| s.ws * tukey_weight(s.z - model.mean_over(s), s.cut)).collect();
+    let normal = Normal::sum(samples.iter().zip(&weights).filter(|(_, w)| **w > 0.0).map(|(s, w)| (s, *w)));
+    let plane = normal.plane()?;
+    let sd = bend_sd(samples, &weights, &normal, sigma)?;
+    ((plane[0] - q[0]).abs() <= FLAT_NOISE * sd).then_some(plane)
+}
+
+/// The standard deviation of the quadric's height minus the plane's at the window's centre, both
+/// fitted with `weights` (whose normal equations are `normal`), under a noise `sigma` per point:
+/// the difference is `Σ gᵢ zᵢ` with `gᵢ = wᵢ (φᵢᵀ A_q⁻¹ e₀ − ψᵢᵀ A_p⁻¹ e₀)` and a cell mean's
+/// variance `σ²/nᵢ`.
+fn bend_sd(samples: &[Sample], weights: &[f64], normal: &Normal, sigma: f64) -> Option<f64> {
+    let e0q = Matrix6::from_fn(|i, j| normal.at(i, j)).cholesky()?.solve(&Vector6::x());
+    let e0p = Matrix3::from_fn(|i, j| normal.at(i, j)).cholesky()?.solve(&Vector3::x());
+    let mut var = 0.0;
+    for (s, &w) in samples.iter().zip(weights) {
+        if w <= 0.0 {
+            continue;
+        }
+        let phi = basis(s);
+        let g = w * (phi.dot(&e0q) - (e0p[0] + s.u * e0p[1] + s.v * e0p[2]));
+        // The cell's point count, from its cut-off (`TUKEY · σ / √n`).
+        let n = (TUKEY * sigma / s.cut).powi(2);
+        var += g * g * sigma * sigma / n;
+    }
+    Some(var.sqrt())
 }
 
 /// How much more than the quadric's a ridge through the centre may cost and still have its crease
@@ -1230,6 +1373,131 @@ mod tests {
         // The pin keeps its height (its own mean, within the noise of its points).
         let pin_z = map.get(45, 15).expect("cell");
         assert!((f64::from(pin_z) - f(4.55, 1.55) - 0.5).abs() < 0.06, "pin cell {pin_z}");
+    }
+
+    /// Box-Muller: a standard normal draw.
+    fn gauss(rng: &mut StdRng) -> f64 {
+        let (a, b): (f64, f64) = (rng.random::<f64>().max(1e-300), rng.random());
+        (-2.0 * a.ln()).sqrt() * (std::f64::consts::TAU * b).cos()
+    }
+
+    #[test]
+    fn the_bends_standard_deviation_matches_a_monte_carlo_of_its_two_fits() {
+        // A window of radius 3 cells (0.25 mm), 2 to 14 points a cell spread over it, fixed
+        // weights; the quadric's and the plane's heights at the centre refitted to 4000 draws of
+        // the noise, by the normal equations directly.
+        let mut rng = StdRng::seed_from_u64(41);
+        let (sigma, pixel, k) = (0.035, 0.25, 3isize);
+        let big_r = (k as f64 + 1.0) * pixel;
+        let mut samples = Vec::new();
+        for dr in -k..=k {
+            for dc in -k..=k {
+                if (dc * dc + dr * dr) as f64 > (k as f64 + 0.5).powi(2) {
+                    continue;
+                }
+                let n = rng.random_range(2..=14u32);
+                let x = dc as f64 * pixel + (rng.random::<f64>() - 0.5) * 0.3 * pixel;
+                let y = dr as f64 * pixel + (rng.random::<f64>() - 0.5) * 0.3 * pixel;
+                let v = pixel * pixel / 12.0 / (big_r * big_r);
+                samples.push(Sample {
+                    u: x / big_r,
+                    v: y / big_r,
+                    z: 0.0,
+                    ws: f64::from(n) * (1.0 - (x * x + y * y) / (big_r * big_r)).max(0.05),
+                    cut: TUKEY * sigma / f64::from(n).sqrt(),
+                    var: [v, 0.0, v],
+                });
+            }
+        }
+        let weights: Vec<f64> = samples.iter().map(|s| s.ws).collect();
+        let normal = Normal::sum(samples.iter().map(|s| (s, s.ws)));
+        let predicted = bend_sd(&samples, &weights, &normal, sigma).expect("sd");
+        let draws = 4000;
+        let mut sq = 0.0;
+        for _ in 0..draws {
+            for s in samples.iter_mut() {
+                let n = (TUKEY * sigma / s.cut).powi(2);
+                s.z = sigma / n.sqrt() * gauss(&mut rng);
+            }
+            let ne = Normal::sum(samples.iter().map(|s| (s, s.ws)));
+            let (q, p) = (ne.quadric().expect("quadric"), ne.plane().expect("plane"));
+            sq += (q[0] - p[0]).powi(2);
+        }
+        let empirical = (sq / f64::from(draws)).sqrt();
+        assert!(
+            (empirical / predicted - 1.0).abs() < 0.05,
+            "empirical sd {empirical}, predicted {predicted}"
+        );
+    }
+
+    /// The fit with the plane taken where `planes` says.
+    fn fit_planes(pts: &[Point3<f64>], g: &HeightMapMeta, planes: Planes) -> (HeightMap, FitReport) {
+        let (map, _, report) =
+            rasterize_fit(pts, g, &FitParams { planes, ..FitParams::default() }).expect("fit");
+        (map, report)
+    }
+
+    /// Errors against `f` over the cells where `keep`: (mean, sd, lowest).
+    fn error_spread(
+        map: &HeightMap,
+        keep: impl Fn(f64, f64) -> bool,
+        f: impl Fn(f64, f64) -> f64,
+    ) -> (f64, f64, f64) {
+        let m = *map.meta();
+        let mut e = Vec::new();
+        for r in 0..m.height {
+            for c in 0..m.width {
+                let (x, y) = m.cell_center(c, r);
+                if let Some(z) = map.get(c, r).filter(|z| z.is_finite())
+                    && keep(x, y)
+                {
+                    e.push(f64::from(z) - f(x, y));
+                }
+            }
+        }
+        let n = e.len() as f64;
+        let mean = e.iter().sum::<f64>() / n;
+        let sd = (e.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n).sqrt();
+        (mean, sd, e.iter().copied().fold(f64::INFINITY, f64::min))
+    }
+
+    #[test]
+    fn a_flat_face_takes_the_plane_and_real_bowls_and_domes_keep_their_quadric() {
+        let g = grid(120, 0.25);
+        let sigma = 0.035;
+        let inner = |x: f64, y: f64| x > 1.0 && y > 1.0 && x < 29.0 && y < 29.0;
+        // A flat face, 10 points a cell: the plane halves the spread and lifts the deepest cell.
+        let flat = |_: f64, _: f64| 1.0;
+        let pts = cloud(&g, 10.0, sigma, 51, flat);
+        let (quad, _) = fit_planes(&pts, &g, Planes::Never);
+        let (fl, rep) = fit_planes(&pts, &g, Planes::WhereFlat);
+        assert!(rep.flat_cells > rep.quadric_cells, "{rep:?}");
+        let (qm, qsd, qlow) = error_spread(&quad, inner, flat);
+        let (fm, fsd, flow) = error_spread(&fl, inner, flat);
+        eprintln!("flat: mean {fm} sd {fsd} lowest {flow} (quadric {qm} {qsd} {qlow})");
+        assert!(fsd < 0.7 * qsd, "sd {fsd} against the quadric's {qsd}");
+        assert!(flow > qlow + 0.003, "lowest {flow} against the quadric's {qlow}");
+        assert!((fm - qm).abs() < 0.001 && fm.abs() < 0.001, "mean {fm} against the quadric's {qm}");
+        // Spherical bowls and domes of 1.5 mm radius (a ball-3's own) and of 5 mm bend a window
+        // twice as wide beyond the noise: their quadric stays. One of 40 mm bends less than the
+        // noise: the plane, within a few microns.
+        for (radius, seed) in [(1.5f64, 52u64), (-1.5, 53), (5.0, 54), (-5.0, 55), (40.0, 56), (-40.0, 57)] {
+            let g = grid(80, 0.1);
+            let rr = radius.abs();
+            let sphere = move |x: f64, y: f64| {
+                let d2 = (x - 4.0).powi(2) + (y - 4.0).powi(2);
+                radius.signum() * (rr - (rr * rr - d2.min(0.81 * rr * rr)).sqrt())
+            };
+            let near = move |x: f64, y: f64| (x - 4.0).hypot(y - 4.0) < (0.8 * rr).min(3.0);
+            let pts = cloud(&g, 4.0, sigma, seed, sphere);
+            let (quad, _) = fit_planes(&pts, &g, Planes::Never);
+            let (fl, _) = fit_planes(&pts, &g, Planes::WhereFlat);
+            let (qm, _, _) = error_spread(&quad, near, sphere);
+            let (fm, _, flow) = error_spread(&fl, near, sphere);
+            eprintln!("sphere {radius} mm: mean {fm} (quadric {qm}), lowest {flow}");
+            let allowed = if rr < 10.0 { 0.001 } else { 0.003 };
+            assert!((fm - qm).abs() < allowed, "sphere {radius} mm: mean {fm} against the quadric's {qm}");
+        }
     }
 
     /// The default fit with the ridge apexes tried where `ridges` says.
