@@ -664,10 +664,10 @@ impl Field<'_> {
 
     /// Whether a window twice as wide around cell `(c, r)` (whose window of radius `k` cells
     /// fitted the quadric `q`) bends: its own quadric, reweighted from `q`'s shape, stands off the
-    /// plane fitted with its weights by more than [`FLAT_NOISE`] standard deviations of that
-    /// difference at the centre ([`flat_plane`]). `None` when too few of its cells agree for a
-    /// quadric, or its quadric leaves more than a twentieth of the window's weight out
-    /// ([`WIDE_INSIDE`]): where a convex edge's far side is weighted out, the rest looks flat.
+    /// plane fitted with its weights at the centre beyond [`flat_plane`]'s bounds. `None` when
+    /// too few of its cells agree for a quadric, or its quadric leaves more than a twentieth of
+    /// the window's weight out ([`WIDE_INSIDE`]): where a convex edge's far side is weighted out,
+    /// the rest looks flat.
     ///
     /// Why: a bend's height against the plane grows as the window's radius squared while the
     /// noise of the curvature falls as the fifth power, so a window twice as wide tells a real
@@ -892,7 +892,8 @@ fn step_floor(zs: &mut [f64], floor: f64, min_gap: f64, lone_ok: impl Fn(f64) ->
 }
 
 /// How many standard deviations of the quadric's height against the plane's at the centre the
-/// noise is taken to make ([`flat_plane`]): five are exceeded once in about 1.7 million cells.
+/// noise is taken to make, where the plane stands above the quadric (a bowl, [`flat_plane`]):
+/// five are exceeded once in about 3.5 million cells.
 pub const FLAT_NOISE: f64 = 5.0;
 
 /// The same for a plane that stands under the quadric ([`flat_plane`]): there taking the plane
@@ -909,8 +910,9 @@ const WIDE_INSIDE: f64 = 0.95;
 const WIDE_IRLS_WIDEN: [f64; 2] = [2.0, 1.0];
 
 /// The plane fitted with the quadric `q`'s final weights (Tukey's, from its residuals, at the
-/// noise `sigma`'s cut-off) where the quadric's height at the window's centre lies within
-/// [`FLAT_NOISE`] standard deviations of the plane's ([`bend_sd`]).
+/// noise `sigma`'s cut-off) where the quadric's height at the window's centre lies at most
+/// [`FLAT_NOISE`] standard deviations of that difference ([`bend_sd`]) under the plane's and at
+/// most [`FLAT_NOISE_UNDER`] above it.
 ///
 /// Why: the quadric's three second-order terms follow the noise as well as the surface, and its
 /// height at the centre has about twice the plane's standard deviation; on a flat face a window
@@ -1289,10 +1291,7 @@ mod tests {
             .map(|_| {
                 let x = g.origin_x_mm + rng.random::<f64>() * wx;
                 let y = g.origin_y_mm + rng.random::<f64>() * wy;
-                // Box-Muller.
-                let (a, b): (f64, f64) = (rng.random::<f64>().max(1e-300), rng.random());
-                let e = sigma * (-2.0 * a.ln()).sqrt() * (std::f64::consts::TAU * b).cos();
-                Point3::new(x, y, f(x, y) + e)
+                Point3::new(x, y, f(x, y) + sigma * gauss(&mut rng))
             })
             .collect()
     }
