@@ -450,8 +450,9 @@ impl Field<'_> {
     }
 
     /// The samples of the window of radius `k` around `(c, r)`, placed from the centre cell's
-    /// centre; `skip_centre` leaves the centre cell out. Heights from the centre cell's mean;
-    /// cut-offs for noise `sigma`. Returns the points in the window.
+    /// centre; `skip_centre` leaves the centre cell out; `step` 2 takes every other row and
+    /// column (the centre's among them). Heights from the centre cell's mean; cut-offs for noise
+    /// `sigma`. Returns the points in the window.
     fn samples(
         &self,
         c: usize,
@@ -459,6 +460,7 @@ impl Field<'_> {
         k: usize,
         sigma: f64,
         skip_centre: bool,
+        step: isize,
         out: &mut Vec<Sample>,
     ) -> u32 {
         out.clear();
@@ -467,8 +469,8 @@ impl Field<'_> {
         let lim = (k as f64 + 0.5).powi(2);
         let ki = k as isize;
         let mut points = 0u32;
-        for dr in -ki..=ki {
-            for dc in -ki..=ki {
+        for dr in (-ki..=ki).filter(|d| d % step == 0) {
+            for dc in (-ki..=ki).filter(|d| d % step == 0) {
                 if skip_centre && dr == 0 && dc == 0 {
                     continue;
                 }
@@ -548,7 +550,7 @@ impl Field<'_> {
     ) -> (f64, FitInfo, Option<Model>) {
         let k = self.radius(c, r, target);
         let (buf, wide) = buf;
-        let points = self.samples(c, r, k, sigma, false, buf);
+        let points = self.samples(c, r, k, sigma, false, 1, buf);
         let samples = &buf[..];
         // Starting planes: the whole disk and its eight half-disks.
         let halves: [fn(f64, f64) -> bool; 9] = [
@@ -684,7 +686,10 @@ impl Field<'_> {
         wide: &mut Vec<Sample>,
     ) -> Option<bool> {
         let k2 = 2 * k + 1;
-        self.samples(c, r, k2, sigma, false, wide);
+        // A window of nine cells' radius and more: every other row and column, still sixty
+        // samples and more.
+        let step = if k >= WIDE_EVERY_OTHER_FROM { 2 } else { 1 };
+        self.samples(c, r, k2, sigma, false, step, wide);
         // The quadric in the wide window's units (positions halved).
         let s = (k as f64 + 1.0) / (k2 as f64 + 1.0);
         let (s1, s2) = (1.0 / s, 1.0 / (s * s));
@@ -724,7 +729,7 @@ impl Field<'_> {
                 let (c, r) = (i % self.w, i / self.w);
                 let k = self.radius(c, r, target);
                 // Unit cut-offs: unweighted by residual.
-                self.samples(c, r, k, 1.0, true, buf);
+                self.samples(c, r, k, 1.0, true, 1, buf);
                 let centre = self.cells[i];
                 let q = quadric(buf.iter().map(|s| (s, s.ws)))?;
                 let own = self.sample(centre, centre, 0, 0, (k as f64 + 1.0) * self.pixel, 1.0);
@@ -905,6 +910,13 @@ pub const FLAT_NOISE_UNDER: f64 = 2.0;
 /// its verdict to count ([`Field::bends_wider`]); under Gaussian noise all but a few in a million
 /// do.
 const WIDE_INSIDE: f64 = 0.95;
+
+/// The window radius (cells) from which a wide window takes every other row and column of its
+/// cells ([`Field::bends_wider`]): a quarter of the work for a bend test that still holds about
+/// as many points as the window's own fit. On the demo's scan at 0.1 mm (windows of about six
+/// cells) the fit's time fell from 14.8 to 9.1 s with the flat cells' deepest -0.0084 ->
+/// -0.0101 mm and the other cells more than 0.01 mm low 722 -> 544.
+const WIDE_EVERY_OTHER_FROM: usize = 4;
 
 /// The cut-offs of the wide window's reweighting rounds, in noises ([`Field::bends_wider`]).
 const WIDE_IRLS_WIDEN: [f64; 2] = [2.0, 1.0];
