@@ -395,6 +395,16 @@ pub fn rasterize_fit<P: CloudPoint>(
     Ok((HeightMap::new(*grid, data)?, stats, report))
 }
 
+/// Which cells of a window make its samples ([`Field::samples`]).
+#[derive(Debug, Clone, Copy)]
+enum Pick {
+    All,
+    /// All but the centre cell (a leave-one-out residual).
+    AllButCentre,
+    /// Every other row and column, the centre's among them.
+    EveryOther,
+}
+
 /// A fit's sample buffers: its window's and the wider one's ([`Field::bends_wider`]).
 type Buffers = (Vec<Sample>, Vec<Sample>);
 
@@ -450,19 +460,14 @@ impl Field<'_> {
     }
 
     /// The samples of the window of radius `k` around `(c, r)`, placed from the centre cell's
-    /// centre; `skip_centre` leaves the centre cell out; `step` 2 takes every other row and
-    /// column (the centre's among them). Heights from the centre cell's mean; cut-offs for noise
+    /// centre, the cells `which` says. Heights from the centre cell's mean; cut-offs for noise
     /// `sigma`. Returns the points in the window.
-    fn samples(
-        &self,
-        c: usize,
-        r: usize,
-        k: usize,
-        sigma: f64,
-        skip_centre: bool,
-        step: isize,
-        out: &mut Vec<Sample>,
-    ) -> u32 {
+    fn samples(&self, c: usize, r: usize, k: usize, sigma: f64, which: Pick, out: &mut Vec<Sample>) -> u32 {
+        let (skip_centre, step) = match which {
+            Pick::All => (false, 1),
+            Pick::AllButCentre => (true, 1),
+            Pick::EveryOther => (false, 2),
+        };
         out.clear();
         let centre = self.cells[r * self.w + c];
         let big_r = (k as f64 + 1.0) * self.pixel;
@@ -550,7 +555,7 @@ impl Field<'_> {
     ) -> (f64, FitInfo, Option<Model>) {
         let k = self.radius(c, r, target);
         let (buf, wide) = buf;
-        let points = self.samples(c, r, k, sigma, false, 1, buf);
+        let points = self.samples(c, r, k, sigma, Pick::All, buf);
         let samples = &buf[..];
         // Starting planes: the whole disk and its eight half-disks.
         let halves: [fn(f64, f64) -> bool; 9] = [
@@ -688,8 +693,8 @@ impl Field<'_> {
         let k2 = 2 * k + 1;
         // A window of nine cells' radius and more: every other row and column, still sixty
         // samples and more.
-        let step = if k >= WIDE_EVERY_OTHER_FROM { 2 } else { 1 };
-        self.samples(c, r, k2, sigma, false, step, wide);
+        let which = if k >= WIDE_EVERY_OTHER_FROM { Pick::EveryOther } else { Pick::All };
+        self.samples(c, r, k2, sigma, which, wide);
         // The quadric in the wide window's units (positions halved).
         let s = (k as f64 + 1.0) / (k2 as f64 + 1.0);
         let (s1, s2) = (1.0 / s, 1.0 / (s * s));
@@ -729,7 +734,7 @@ impl Field<'_> {
                 let (c, r) = (i % self.w, i / self.w);
                 let k = self.radius(c, r, target);
                 // Unit cut-offs: unweighted by residual.
-                self.samples(c, r, k, 1.0, true, 1, buf);
+                self.samples(c, r, k, 1.0, Pick::AllButCentre, buf);
                 let centre = self.cells[i];
                 let q = quadric(buf.iter().map(|s| (s, s.ws)))?;
                 let own = self.sample(centre, centre, 0, 0, (k as f64 + 1.0) * self.pixel, 1.0);
