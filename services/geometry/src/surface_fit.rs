@@ -1313,33 +1313,38 @@ mod tests {
             .collect()
     }
 
+    /// The map's errors against `f` at the cell centres where `keep(x, y)`.
+    fn cell_errors(
+        map: &HeightMap,
+        keep: impl Fn(f64, f64) -> bool,
+        f: impl Fn(f64, f64) -> f64,
+    ) -> Vec<f64> {
+        let m = *map.meta();
+        let mut e = Vec::new();
+        for r in 0..m.height {
+            for c in 0..m.width {
+                let (x, y) = m.cell_center(c, r);
+                if let Some(z) = map.get(c, r).filter(|z| z.is_finite())
+                    && keep(x, y)
+                {
+                    e.push(f64::from(z) - f(x, y));
+                }
+            }
+        }
+        assert!(!e.is_empty(), "no cell measured");
+        e
+    }
+
     /// Errors against `f` at the cell centres where `keep(x, y)`: (mean, RMS, max |e|).
     fn errors(
         map: &HeightMap,
         keep: impl Fn(f64, f64) -> bool,
         f: impl Fn(f64, f64) -> f64,
     ) -> (f64, f64, f64) {
-        let m = *map.meta();
-        let (mut sum, mut sq, mut worst, mut n) = (0.0, 0.0, 0.0f64, 0usize);
-        for r in 0..m.height {
-            for c in 0..m.width {
-                let (x, y) = (
-                    m.origin_x_mm + (f64::from(c) + 0.5) * m.pixel_mm,
-                    m.origin_y_mm + (f64::from(r) + 0.5) * m.pixel_mm,
-                );
-                let Some(z) = map.get(c, r).filter(|z| z.is_finite()) else { continue };
-                if !keep(x, y) {
-                    continue;
-                }
-                let e = f64::from(z) - f(x, y);
-                sum += e;
-                sq += e * e;
-                worst = worst.max(e.abs());
-                n += 1;
-            }
-        }
-        assert!(n > 0, "no cell measured");
-        (sum / n as f64, (sq / n as f64).sqrt(), worst)
+        let e = cell_errors(map, keep, f);
+        let n = e.len() as f64;
+        let rms = (e.iter().map(|v| v * v).sum::<f64>() / n).sqrt();
+        (e.iter().sum::<f64>() / n, rms, e.iter().fold(0.0f64, |w, v| w.max(v.abs())))
     }
 
     #[test]
@@ -1469,18 +1474,7 @@ mod tests {
         keep: impl Fn(f64, f64) -> bool,
         f: impl Fn(f64, f64) -> f64,
     ) -> (f64, f64, f64) {
-        let m = *map.meta();
-        let mut e = Vec::new();
-        for r in 0..m.height {
-            for c in 0..m.width {
-                let (x, y) = m.cell_center(c, r);
-                if let Some(z) = map.get(c, r).filter(|z| z.is_finite())
-                    && keep(x, y)
-                {
-                    e.push(f64::from(z) - f(x, y));
-                }
-            }
-        }
+        let e = cell_errors(map, keep, f);
         let n = e.len() as f64;
         let mean = e.iter().sum::<f64>() / n;
         let sd = (e.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n).sqrt();
